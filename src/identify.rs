@@ -1,0 +1,679 @@
+//! Identification of the location errors from the detections of one cycle: Gauss-Newton
+//! weighted least squares on the exact measurement model, with the nuisance parameters the
+//! plan can support, standard uncertainties from the covariance, per-detection residuals, the
+//! redundancy residuals and their chi-square, optional Huber weighting, and a structural
+//! identifiability check that names what a plan cannot separate.
+//!
+//! Parameters are in um, urad and um/min; the model works in mm and rad.
+
+use nalgebra::{DMatrix, DVector};
+use serde::Serialize;
+use thiserror::Error;
+
+use crate::geometry::{Vec3, wrap_deg};
+use crate::kinematics::{ErrorId, Kinematics, MAX_ROTARY, MachineState};
+use crate::measurement::{Approach, Axis, NoTrip, latched_with_beam};
+
+/// One detection as the solver sees it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Observation {
+    pub label: String,
+    pub angles: [f64; MAX_ROTARY],
+    pub approach: Approach,
+    /// The latched commanded position, mm; the moving coordinate is the reading.
+    pub position: Vec3,
+    pub t_ns: i64,
+}
+
+impl Observation {
+    pub fn reading(&self) -> f64 {
+        self.position[self.approach.axis.index()]
+    }
+}
+
+/// What the solver may estimate besides the identified location errors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Nuisance {
+    /// Beam height above its configured place (table frame), um.
+    SetterHeight,
+    /// Beam shift across the beam, horizontally (along table Z x beam direction), um.
+    SetterLateral,
+    /// Effective radius minus feed x latency of lateral approaches, against its calibration, um.
+    Radius,
+    /// Tool-tip drift rate along a machine axis during the cycle, um/min.
+    DriftRate(Axis),
+}
+
+impl Nuisance {
+    pub fn name(&self) -> String {
+        match self {
+            Nuisance::SetterHeight => "setter_height_um".into(),
+            Nuisance::SetterLateral => "setter_lateral_um".into(),
+            Nuisance::Radius => "radius_minus_latency_um".into(),
+            Nuisance::DriftRate(a) => format!("tool_drift_{}_um_per_min", a.name()),
+        }
+    }
+    fn unit(&self) -> &'static str {
+        match self {
+            Nuisance::DriftRate(_) => "um/min",
+            _ => "um",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Param {
+    Location(ErrorId),
+    Nuisance(Nuisance),
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveOptions {
+    /// One-reading standard uncertainty, um.
+    pub sigma_um: f64,
+    /// Huber threshold in units of sigma (physics.md suggests 1.5); `None` for plain LS.
+    pub huber_k: Option<f64>,
+    /// Nuisance parameters to estimate where the plan supports them, in priority order.
+    pub nuisance: Vec<Nuisance>,
+    pub max_iterations: usize,
+}
+
+impl SolveOptions {
+    pub fn new(sigma_um: f64) -> Self {
+        SolveOptions {
+            sigma_um,
+            huber_k: None,
+            nuisance: vec![
+                Nuisance::SetterHeight,
+                Nuisance::SetterLateral,
+                Nuisance::Radius,
+            ],
+            max_iterations: 30,
+        }
+    }
+
+    /// Also estimate the tool-tip drift rates (event-level use of the timestamps).
+    pub fn with_drift_rates(mut self) -> Self {
+        for a in [Axis::X, Axis::Y, Axis::Z] {
+            self.nuisance.push(Nuisance::DriftRate(a));
+        }
+        self
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum SolveError {
+    #[error("{n} detections cannot determine {p} parameters")]
+    TooFew { n: usize, p: usize },
+    #[error("the plan cannot separate {}{}", .combinations.join("; "), hint_text(.hint))]
+    NotIdentifiable {
+        combinations: Vec<String>,
+        hint: Option<String>,
+    },
+    #[error("detection '{label}': the model finds no trip ({reason})")]
+    NoTrip { label: String, reason: NoTrip },
+    #[error("detection '{label}': {what} is not a finite number")]
+    NonFinite { label: String, what: String },
+    #[error("the solution did not converge in {iterations} iterations (last step {step:.3e})")]
+    NotConverged { iterations: usize, step: f64 },
+    #[error("sigma_um must be a positive number")]
+    BadSigma,
+}
+
+fn hint_text(h: &Option<String>) -> String {
+    h.as_ref().map(|h| format!(" ({h})")).unwrap_or_default()
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Estimate {
+    pub name: String,
+    pub unit: String,
+    pub value: f64,
+    pub sigma: f64,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Held {
+    pub name: String,
+    pub reason: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Solution {
+    /// The identified location errors, in the machine's report order.
+    pub errors: Vec<Estimate>,
+    pub nuisance: Vec<Estimate>,
+    /// Nuisance parameters held at their configured value, with why.
+    pub held: Vec<Held>,
+    /// Measured minus model, per detection in input order, um.
+    pub residuals_um: Vec<f64>,
+    /// Huber weight factor per detection (1 = full weight).
+    pub weights: Vec<f64>,
+    /// Residuals projected on an orthonormal basis of the left null space of the
+    /// sensitivity matrix: free of every estimated parameter, um.
+    pub redundancy_um: Vec<f64>,
+    pub chi2: f64,
+    pub dof: usize,
+    pub iterations: usize,
+    /// Reference time: mean of the detection timestamps, ns.
+    pub t_ref_ns: i64,
+    #[serde(skip)]
+    pub covariance: DMatrix<f64>,
+}
+
+impl Solution {
+    pub fn error(&self, name: &str) -> Option<&Estimate> {
+        self.errors.iter().find(|e| e.name == name)
+    }
+    pub fn residual_rms_um(&self) -> f64 {
+        let n = self.residuals_um.len().max(1) as f64;
+        (self.residuals_um.iter().map(|r| r * r).sum::<f64>() / n).sqrt()
+    }
+}
+
+/// Mean of timestamps without overflow.
+pub fn mean_time_ns(ts: impl Iterator<Item = i64> + Clone) -> i64 {
+    let Some(t0) = ts.clone().next() else {
+        return 0;
+    };
+    let (sum, n) = ts.fold((0.0f64, 0usize), |(s, n), t| (s + (t - t0) as f64, n + 1));
+    t0 + (sum / n as f64).round() as i64
+}
+
+/// A solver prepared for one set of observation geometries (a plan): the parameters it
+/// estimates and the sensitivity matrix at the nominal state.
+pub struct Identifier<'a> {
+    k: &'a Kinematics,
+    base: MachineState,
+    params: Vec<Param>,
+    held: Vec<Held>,
+    opts: SolveOptions,
+    lateral_normal: Vec3,
+    /// Step sizes for finite differences, per parameter.
+    steps: Vec<f64>,
+}
+
+const RANK_TOL: f64 = 1e-6;
+
+impl<'a> Identifier<'a> {
+    pub fn new(
+        k: &'a Kinematics,
+        template: &[Observation],
+        opts: &SolveOptions,
+    ) -> Result<Self, SolveError> {
+        if !(opts.sigma_um > 0.0 && opts.sigma_um.is_finite()) {
+            return Err(SolveError::BadSigma);
+        }
+        check_finite(template)?;
+        let base = k.nominal_state();
+        let mut lateral_normal = Vec3::z().cross(&base.beam_dir);
+        if lateral_normal.norm() < 1e-9 {
+            lateral_normal = Vec3::x();
+        }
+        lateral_normal /= lateral_normal.norm();
+        let mut me = Identifier {
+            k,
+            base,
+            params: k.identify.iter().map(|id| Param::Location(*id)).collect(),
+            held: Vec::new(),
+            opts: opts.clone(),
+            lateral_normal,
+            steps: Vec::new(),
+        };
+        me.steps = me.params.iter().map(|_| 1e-3).collect();
+        let t_ref = mean_time_ns(template.iter().map(|o| o.t_ns));
+        let n = template.len();
+        if n < me.params.len() {
+            return Err(SolveError::TooFew {
+                n,
+                p: me.params.len(),
+            });
+        }
+        let zero = vec![0.0; me.params.len()];
+        let j = me.jacobian_central(template, &zero, t_ref)?;
+        let null = null_combinations(&j, &me.param_names());
+        if !null.is_empty() {
+            return Err(SolveError::NotIdentifiable {
+                combinations: null,
+                hint: identifiability_hint(k, template),
+            });
+        }
+        for nu in &opts.nuisance {
+            if let Nuisance::DriftRate(a) = nu
+                && !template.iter().any(|o| o.approach.axis == *a)
+            {
+                continue;
+            }
+            me.params.push(Param::Nuisance(*nu));
+            me.steps.push(1e-3);
+            let zero = vec![0.0; me.params.len()];
+            let j = me.jacobian_central(template, &zero, t_ref)?;
+            let null = if me.params.len() > n {
+                vec!["more parameters than detections".to_string()]
+            } else {
+                null_combinations(&j, &me.param_names())
+            };
+            if !null.is_empty() {
+                me.params.pop();
+                me.steps.pop();
+                me.held.push(Held {
+                    name: nu.name(),
+                    reason: format!(
+                        "held at its configured value: the plan cannot separate {}",
+                        null.join("; ")
+                    ),
+                });
+            }
+        }
+        Ok(me)
+    }
+
+    fn param_names(&self) -> Vec<String> {
+        self.params
+            .iter()
+            .map(|p| match p {
+                Param::Location(id) => self.k.error_name(*id).to_string(),
+                Param::Nuisance(n) => n.name(),
+            })
+            .collect()
+    }
+
+    /// The model state for parameter values `p`.
+    fn state(&self, p: &[f64]) -> MachineState {
+        let mut s = self.base;
+        for (param, v) in self.params.iter().zip(p) {
+            match param {
+                Param::Location(id) => s.loc[id.axis][id.slot] += v * id.scale(),
+                Param::Nuisance(Nuisance::SetterHeight) => s.beam_point.z += v * 1e-3,
+                Param::Nuisance(Nuisance::SetterLateral) => {
+                    s.beam_point += self.lateral_normal * (v * 1e-3)
+                }
+                Param::Nuisance(Nuisance::Radius) => s.radius += v * 1e-3,
+                Param::Nuisance(Nuisance::DriftRate(_)) => {}
+            }
+        }
+        s
+    }
+
+    /// Model readings (mm) of all observations.
+    fn predict(&self, obs: &[Observation], p: &[f64], t_ref: i64) -> Result<Vec<f64>, SolveError> {
+        let s = self.state(p);
+        let mut cache: Vec<([f64; MAX_ROTARY], Vec3, Vec3)> = Vec::with_capacity(8);
+        let mut out = Vec::with_capacity(obs.len());
+        for o in obs {
+            let (bp, be) = match cache.iter().find(|(a, _, _)| same_angles(a, &o.angles)) {
+                Some((_, p, e)) => (*p, *e),
+                None => {
+                    let (p, e) = self.k.beam_in_machine(&s, &o.angles);
+                    cache.push((o.angles, p, e));
+                    (p, e)
+                }
+            };
+            let mut v = latched_with_beam(self.k, &s, &bp, &be, &o.approach, &o.position, None)
+                .map_err(|reason| SolveError::NoTrip {
+                    label: o.label.clone(),
+                    reason,
+                })?;
+            let dt_min = (o.t_ns - t_ref) as f64 / 60e9;
+            for (param, val) in self.params.iter().zip(p) {
+                if let Param::Nuisance(Nuisance::DriftRate(a)) = param
+                    && *a == o.approach.axis
+                {
+                    v -= val * 1e-3 * dt_min;
+                }
+            }
+            out.push(v);
+        }
+        Ok(out)
+    }
+
+    /// Sensitivities, um (of reading) per parameter unit, by central differences.
+    fn jacobian_central(
+        &self,
+        obs: &[Observation],
+        p: &[f64],
+        t_ref: i64,
+    ) -> Result<DMatrix<f64>, SolveError> {
+        let mut j = DMatrix::zeros(obs.len(), p.len());
+        let mut q = p.to_vec();
+        for c in 0..p.len() {
+            let h = self.steps[c];
+            q[c] = p[c] + h;
+            let up = self.predict(obs, &q, t_ref)?;
+            q[c] = p[c] - h;
+            let dn = self.predict(obs, &q, t_ref)?;
+            q[c] = p[c];
+            for r in 0..obs.len() {
+                j[(r, c)] = (up[r] - dn[r]) * 1e3 / (2.0 * h);
+            }
+        }
+        Ok(j)
+    }
+
+    /// Forward differences around known model readings `f0`.
+    fn jacobian_forward(
+        &self,
+        obs: &[Observation],
+        p: &[f64],
+        f0: &[f64],
+        t_ref: i64,
+    ) -> Result<DMatrix<f64>, SolveError> {
+        let mut j = DMatrix::zeros(obs.len(), p.len());
+        let mut q = p.to_vec();
+        for c in 0..p.len() {
+            let h = self.steps[c];
+            q[c] = p[c] + h;
+            let up = self.predict(obs, &q, t_ref)?;
+            q[c] = p[c];
+            for r in 0..obs.len() {
+                j[(r, c)] = (up[r] - f0[r]) * 1e3 / h;
+            }
+        }
+        Ok(j)
+    }
+
+    /// Cramer-Rao standard deviations of the estimated parameters for this geometry, at the
+    /// nominal state: `sigma * sqrt(diag((J^T J)^-1))`.
+    pub fn cramer_rao(&self, template: &[Observation]) -> Result<Vec<Estimate>, SolveError> {
+        let t_ref = mean_time_ns(template.iter().map(|o| o.t_ns));
+        let zero = vec![0.0; self.params.len()];
+        let j = self.jacobian_central(template, &zero, t_ref)?;
+        let cov = covariance(&j, self.opts.sigma_um);
+        Ok(self.estimates(&zero, &cov).into_iter().flatten().collect())
+    }
+
+    fn estimates(&self, p: &[f64], cov: &DMatrix<f64>) -> [Vec<Estimate>; 2] {
+        let mut errors = Vec::new();
+        let mut nuisance = Vec::new();
+        for (i, param) in self.params.iter().enumerate() {
+            let sigma = cov[(i, i)].max(0.0).sqrt();
+            match param {
+                Param::Location(id) => errors.push(Estimate {
+                    name: self.k.error_name(*id).to_string(),
+                    unit: id.unit().into(),
+                    value: p[i],
+                    sigma,
+                }),
+                Param::Nuisance(n) => nuisance.push(Estimate {
+                    name: n.name(),
+                    unit: n.unit().into(),
+                    value: p[i],
+                    sigma,
+                }),
+            }
+        }
+        [errors, nuisance]
+    }
+
+    /// Solve one cycle. The observations must have the geometry of the template (same poses
+    /// and approaches); values and times are free.
+    pub fn solve(&self, obs: &[Observation]) -> Result<Solution, SolveError> {
+        check_finite(obs)?;
+        let n = obs.len();
+        let np = self.params.len();
+        if n < np {
+            return Err(SolveError::TooFew { n, p: np });
+        }
+        let t_ref = mean_time_ns(obs.iter().map(|o| o.t_ns));
+        let sigma = self.opts.sigma_um;
+        let m: Vec<f64> = obs.iter().map(|o| o.reading()).collect();
+        let mut p = vec![0.0; np];
+        let mut weights = vec![1.0; n];
+        let mut iterations = 0;
+        let mut j = self.jacobian_central(obs, &p, t_ref)?;
+        let mut fresh_jacobian_from = 4;
+        let mut f = self.predict(obs, &p, t_ref)?;
+        loop {
+            // Gauss-Newton on the current weights.
+            let mut last_step = f64::INFINITY;
+            let mut converged = false;
+            for it in 0..self.opts.max_iterations {
+                iterations += 1;
+                let step = gn_step(&j, &m, &f, &weights, sigma);
+                for (pi, di) in p.iter_mut().zip(step.iter()) {
+                    *pi += di;
+                }
+                last_step = step.amax();
+                f = self.predict(obs, &p, t_ref)?;
+                if it + 1 >= fresh_jacobian_from {
+                    j = self.jacobian_forward(obs, &p, &f, t_ref)?;
+                }
+                if last_step < 1e-7 {
+                    converged = true;
+                    break;
+                }
+            }
+            fresh_jacobian_from = 0;
+            if !converged {
+                return Err(SolveError::NotConverged {
+                    iterations,
+                    step: last_step,
+                });
+            }
+            let Some(k) = self.opts.huber_k else { break };
+            let new_w: Vec<f64> = m
+                .iter()
+                .zip(&f)
+                .map(|(mi, fi)| {
+                    let a = ((mi - fi) * 1e3 / sigma).abs();
+                    if a <= k { 1.0 } else { k / a }
+                })
+                .collect();
+            let change = new_w
+                .iter()
+                .zip(&weights)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            weights = new_w;
+            if change < 1e-6 || iterations > 20 * self.opts.max_iterations {
+                break;
+            }
+        }
+        let j = self.jacobian_forward(obs, &p, &f, t_ref)?;
+        let residuals_um: Vec<f64> = m.iter().zip(&f).map(|(a, b)| (a - b) * 1e3).collect();
+        let wj = weighted(&j, &weights, sigma);
+        let cov = covariance_from_weighted(&wj);
+        let chi2 = residuals_um.iter().map(|r| (r / sigma).powi(2)).sum();
+        let redundancy_um = redundancy(&weighted(&j, &vec![1.0; n], sigma), &residuals_um, sigma);
+        let [errors, nuisance] = self.estimates(&p, &cov);
+        Ok(Solution {
+            errors,
+            nuisance,
+            held: self.held.clone(),
+            residuals_um,
+            weights,
+            redundancy_um,
+            chi2,
+            dof: n - np,
+            iterations,
+            t_ref_ns: t_ref,
+            covariance: cov,
+        })
+    }
+}
+
+/// Solve one cycle from scratch.
+pub fn identify(
+    k: &Kinematics,
+    obs: &[Observation],
+    opts: &SolveOptions,
+) -> Result<Solution, SolveError> {
+    Identifier::new(k, obs, opts)?.solve(obs)
+}
+
+fn same_angles(a: &[f64; MAX_ROTARY], b: &[f64; MAX_ROTARY]) -> bool {
+    a.iter().zip(b).all(|(x, y)| wrap_deg(x - y).abs() < 1e-12)
+}
+
+fn check_finite(obs: &[Observation]) -> Result<(), SolveError> {
+    for o in obs {
+        let bad = |what: &str| SolveError::NonFinite {
+            label: o.label.clone(),
+            what: what.to_string(),
+        };
+        if o.angles.iter().any(|a| !a.is_finite()) {
+            return Err(bad("an axis angle"));
+        }
+        for (i, c) in ["x_mm", "y_mm", "z_mm"].iter().enumerate() {
+            if !o.position[i].is_finite() {
+                return Err(bad(c));
+            }
+        }
+        if !o.approach.feed_mm_min.is_finite() {
+            return Err(bad("feed_mm_min"));
+        }
+    }
+    Ok(())
+}
+
+fn weighted(j: &DMatrix<f64>, w: &[f64], sigma: f64) -> DMatrix<f64> {
+    let mut wj = j.clone();
+    for (r, wr) in w.iter().enumerate() {
+        let s = wr.sqrt() / sigma;
+        wj.row_mut(r).scale_mut(s);
+    }
+    wj
+}
+
+fn gn_step(j: &DMatrix<f64>, m: &[f64], f: &[f64], w: &[f64], sigma: f64) -> DVector<f64> {
+    let wj = weighted(j, w, sigma);
+    let rw = DVector::from_iterator(
+        m.len(),
+        m.iter()
+            .zip(f)
+            .zip(w)
+            .map(|((mi, fi), wi)| (mi - fi) * 1e3 * wi.sqrt() / sigma),
+    );
+    let qr = wj.qr();
+    let mut qtr = rw;
+    qr.q_tr_mul(&mut qtr);
+    let p = j.ncols();
+    let r = qr.r();
+    let rhs = qtr.rows(0, p).into_owned();
+    r.solve_upper_triangular(&rhs)
+        .unwrap_or_else(|| DVector::zeros(p))
+}
+
+fn covariance_from_weighted(wj: &DMatrix<f64>) -> DMatrix<f64> {
+    let info = wj.transpose() * wj;
+    info.clone()
+        .try_inverse()
+        .unwrap_or_else(|| DMatrix::from_element(info.nrows(), info.ncols(), f64::NAN))
+}
+
+fn covariance(j: &DMatrix<f64>, sigma: f64) -> DMatrix<f64> {
+    covariance_from_weighted(&weighted(j, &vec![1.0; j.nrows()], sigma))
+}
+
+/// Components of the residuals in the left null space of the (weighted) sensitivity matrix.
+fn redundancy(wj: &DMatrix<f64>, residuals_um: &[f64], sigma: f64) -> Vec<f64> {
+    let n = wj.nrows();
+    let p = wj.ncols();
+    let qr = wj.clone().qr();
+    let mut v = DVector::from_iterator(n, residuals_um.iter().map(|r| r / sigma));
+    qr.q_tr_mul(&mut v);
+    v.rows(p, n - p).iter().map(|x| x * sigma).collect()
+}
+
+/// The parameter combinations the sensitivity matrix cannot see, in words.
+fn null_combinations(j: &DMatrix<f64>, names: &[String]) -> Vec<String> {
+    let norms: Vec<f64> = (0..j.ncols()).map(|c| j.column(c).norm()).collect();
+    let mut out = Vec::new();
+    for (c, nrm) in norms.iter().enumerate() {
+        if *nrm < 1e-12 {
+            out.push(format!("{} (no reading depends on it)", names[c]));
+        }
+    }
+    if !out.is_empty() {
+        return out;
+    }
+    let mut jn = j.clone();
+    for (c, nrm) in norms.iter().enumerate() {
+        jn.column_mut(c).unscale_mut(*nrm);
+    }
+    let svd = jn.svd(false, true);
+    let Some(vt) = svd.v_t else {
+        return vec!["(singular value decomposition failed)".into()];
+    };
+    let smax = svd.singular_values.max();
+    for (i, s) in svd.singular_values.iter().enumerate() {
+        if *s > RANK_TOL * smax {
+            continue;
+        }
+        // Back to physical units, largest component 1.
+        let v: Vec<f64> = (0..names.len()).map(|c| vt[(i, c)] / norms[c]).collect();
+        let big = v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        let terms: Vec<String> = v
+            .iter()
+            .zip(names)
+            .filter(|(x, _)| x.abs() > 1e-3 * big)
+            .map(|(x, n)| format!("{:+.3} {}", x / big, n))
+            .collect();
+        out.push(format!(
+            "the readings do not change along ({})",
+            terms.join(" ")
+        ));
+    }
+    out
+}
+
+fn identifiability_hint(k: &Kinematics, obs: &[Observation]) -> Option<String> {
+    let n = k.rotary.len();
+    let tilted = obs
+        .iter()
+        .any(|o| o.angles[..n.saturating_sub(1)].iter().any(|a| wrap_deg(*a).abs() > 1e-9));
+    if !tilted && n > 1 {
+        let outer: Vec<&str> = k.rotary[..n - 1].iter().map(|a| a.name.as_str()).collect();
+        return Some(format!(
+            "no tilted pose: the position of the {} axis shows only when it turns; add a pose with {} != 0",
+            outer.join("/"),
+            outer.join("/")
+        ));
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::{Plan, PlanConfig};
+
+    pub(crate) fn observations(k: &Kinematics, plan: &Plan, truth: &MachineState) -> Vec<Observation> {
+        plan.steps
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let v = crate::measurement::latched(k, truth, &s.angles, &s.approach, &s.start, None)
+                    .unwrap();
+                let mut position = s.start;
+                position[s.approach.axis.index()] = v;
+                Observation {
+                    label: s.label.clone(),
+                    angles: s.angles,
+                    approach: s.approach,
+                    position,
+                    t_ns: i as i64 * 1_000_000_000,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn recovers_errors_noise_free() {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+        let mut truth = k.nominal_state();
+        let vals = [40.0, -70.0, 25.0, -15.0, 120.0, -250.0];
+        for (id, v) in k.identify.iter().zip(vals) {
+            truth.loc[id.axis][id.slot] = v * id.scale();
+        }
+        truth.beam_point += Vec3::new(0.3, -0.4, 0.25);
+        let obs = observations(&k, &plan, &truth);
+        let sol = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+        for (e, v) in sol.errors.iter().zip(vals) {
+            assert!((e.value - v).abs() < 1e-3, "{} {} vs {}", e.name, e.value, v);
+        }
+        assert!(sol.chi2 < 1e-6);
+    }
+}

@@ -1,0 +1,12 @@
+//! driftwatch: keeps a 5-axis machine tool's rotary-axis compensation true while it heats up
+//! and cools down.
+//!
+//! The library is the functional core: kinematics, the tool-setter measurement model, cycle
+//! plans, the thermal model, the truth simulator and the identification are pure code (no I/O,
+//! no globals, deterministic for a given seed). `recording` and the binary are the shell.
+
+pub mod geometry;
+pub mod identify;
+pub mod kinematics;
+pub mod measurement;
+pub mod plan;

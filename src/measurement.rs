@@ -1,0 +1,271 @@
+//! The laser tool-setter measurement in exact geometry: a turning tool (a cylinder of the
+//! effective radius along the spindle axis, flat end) moved into the beam line, and the
+//! commanded position the NC latches at the skip signal.
+//!
+//! - Lateral approach (x or y): the trip is where the distance between the tool axis and the
+//!   beam line, measured across the tool axis, equals the radius, coming from outside, with the
+//!   tool end below the beam.
+//! - Vertical approach (-z): the trip is where the end face reaches the highest point of the
+//!   beam line within one radius of the tool axis.
+//! - Skip latency: the latched position lies `feed * latency` further along the motion.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::geometry::Vec3;
+use crate::kinematics::{Kinematics, MachineState};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Axis {
+    X,
+    Y,
+    Z,
+}
+
+impl Axis {
+    pub fn index(self) -> usize {
+        match self {
+            Axis::X => 0,
+            Axis::Y => 1,
+            Axis::Z => 2,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Axis::X => "x",
+            Axis::Y => "y",
+            Axis::Z => "z",
+        }
+    }
+}
+
+/// One approach as commanded: the axis that moves, its direction and feed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Approach {
+    pub axis: Axis,
+    pub direction: i8,
+    pub feed_mm_min: f64,
+}
+
+impl Approach {
+    /// Latency shift of the latched position, mm (signed along the machine axis).
+    pub fn latency_shift(&self, latency_s: f64) -> f64 {
+        f64::from(self.direction) * self.feed_mm_min / 60.0 * latency_s
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum NoTrip {
+    #[error("the tool moves parallel to the beam and never reaches it")]
+    Parallel,
+    #[error("the tool axis passes {distance_mm:.3} mm from the beam, more than the radius")]
+    Misses { distance_mm: f64 },
+    #[error("the tool end is {above_mm:.3} mm above the beam at the trip point")]
+    AboveBeam { above_mm: f64 },
+    #[error("the tool starts inside the beam or moves away from it")]
+    WrongSide,
+    #[error("the trip lies {needed_mm:.3} mm from the start, beyond the allowed travel {max_mm:.3} mm")]
+    BeyondTravel { needed_mm: f64, max_mm: f64 },
+    #[error("vertical approaches move -z (direction -1)")]
+    UpwardZ,
+}
+
+/// Where the approach starts and how far it may go (the simulator checks these; the estimator
+/// does not know them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Travel {
+    pub start: f64,
+    pub max_mm: f64,
+}
+
+/// The latched commanded coordinate of the moving axis at the trip.
+///
+/// `commanded` holds the commanded position; its moving coordinate is ignored (the start is in
+/// `travel`, when known).
+pub fn latched(
+    k: &Kinematics,
+    s: &MachineState,
+    angles_deg: &[f64],
+    approach: &Approach,
+    commanded: &Vec3,
+    travel: Option<Travel>,
+) -> Result<f64, NoTrip> {
+    let (p, e) = k.beam_in_machine(s, angles_deg);
+    latched_with_beam(k, s, &p, &e, approach, commanded, travel)
+}
+
+/// As [`latched`], with the beam line in the machine frame already computed for the pose.
+pub fn latched_with_beam(
+    k: &Kinematics,
+    s: &MachineState,
+    beam_p: &Vec3,
+    beam_e: &Vec3,
+    approach: &Approach,
+    commanded: &Vec3,
+    travel: Option<Travel>,
+) -> Result<f64, NoTrip> {
+    let w = k.tool_axis;
+    let a_mat = s.linear.matrix();
+    let i = approach.axis.index();
+    let col = a_mat.column(i).into_owned();
+    let mut c0 = *commanded;
+    c0[i] = 0.0;
+    // Actual tool-tip position as an affine function of the moving coordinate v.
+    let a0 = a_mat * c0 + s.tool_tip;
+    let e_perp = beam_e - w * beam_e.dot(&w);
+    let e_perp_norm = e_perp.norm();
+    if e_perp_norm < 1e-12 {
+        return Err(NoTrip::Parallel);
+    }
+    let e_hat = e_perp / e_perp_norm;
+    let n = w.cross(&e_hat);
+    let r = s.radius;
+    let v = match approach.axis {
+        crate::measurement::Axis::Z => {
+            if approach.direction != -1 {
+                return Err(NoTrip::UpwardZ);
+            }
+            let dh = col.dot(&w);
+            let mut v = travel.map(|t| t.start).unwrap_or(commanded[i]);
+            for _ in 0..4 {
+                let a = a0 + col * v;
+                let d = a - beam_p;
+                let delta = n.dot(&d);
+                if delta.abs() >= r {
+                    return Err(NoTrip::Misses {
+                        distance_mm: delta.abs(),
+                    });
+                }
+                let t0 = d.dot(&e_perp) / (e_perp_norm * e_perp_norm);
+                let half = (r * r - delta * delta).sqrt() / e_perp_norm;
+                let ew = beam_e.dot(&w);
+                let top = beam_p.dot(&w) + t0 * ew + ew.abs() * half;
+                v = (top - a0.dot(&w)) / dh;
+            }
+            v
+        }
+        _ => {
+            let g = n.dot(&col);
+            if g.abs() < 1e-12 {
+                return Err(NoTrip::Parallel);
+            }
+            let f0 = n.dot(&(a0 - beam_p));
+            let side = -(f64::from(approach.direction) * g).signum();
+            let v = (side * r - f0) / g;
+            let a = a0 + col * v;
+            let d = a - beam_p;
+            let t = d.dot(&e_perp) / (e_perp_norm * e_perp_norm);
+            let beam_height = (beam_p + beam_e * t).dot(&w);
+            let tip_height = a.dot(&w);
+            if tip_height >= beam_height {
+                return Err(NoTrip::AboveBeam {
+                    above_mm: tip_height - beam_height,
+                });
+            }
+            v
+        }
+    };
+    if let Some(t) = travel {
+        let ahead = f64::from(approach.direction) * (v - t.start);
+        if ahead < 0.0 {
+            return Err(NoTrip::WrongSide);
+        }
+        if ahead > t.max_mm {
+            return Err(NoTrip::BeyondTravel {
+                needed_mm: ahead,
+                max_mm: t.max_mm,
+            });
+        }
+    }
+    Ok(v + approach.latency_shift(s.latency_s))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn setup() -> (Kinematics, MachineState) {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let s = k.nominal_state();
+        (k, s)
+    }
+
+    fn ap(axis: Axis, direction: i8) -> Approach {
+        Approach {
+            axis,
+            direction,
+            feed_mm_min: 200.0,
+        }
+    }
+
+    #[test]
+    fn nominal_readings_of_the_patent_poses() {
+        let (k, s) = setup();
+        let (r, rr, h) = (5.0, 100.0, 70.0);
+        // C = 0: beam at y = -R; tool from -Y moving +Y.
+        let y1 = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Y, 1), &Vec3::new(0.0, 0.0, 65.0), None);
+        assert!((y1.unwrap() - (-rr - r)).abs() < 1e-12);
+        let z1 = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Z, -1), &Vec3::new(0.0, -rr, 0.0), None);
+        assert!((z1.unwrap() - h).abs() < 1e-12);
+        // C = -90: beam at x = +R; tool from +X moving -X.
+        let x2 = latched(&k, &s, &[0.0, -90.0], &ap(Axis::X, -1), &Vec3::new(0.0, 0.0, 65.0), None);
+        assert!((x2.unwrap() - (rr + r)).abs() < 1e-12);
+        // B = -90 (C = -270): table top faces +X, beam at x = H, z = R; tool from +X.
+        let x5 = latched(&k, &s, &[-90.0, -270.0], &ap(Axis::X, -1), &Vec3::new(0.0, 0.0, 95.0), None);
+        assert!((x5.unwrap() - (h + r)).abs() < 1e-12);
+        let z5 = latched(&k, &s, &[-90.0, -270.0], &ap(Axis::Z, -1), &Vec3::new(h, 0.0, 0.0), None);
+        assert!((z5.unwrap() - rr).abs() < 1e-12);
+    }
+
+    #[test]
+    fn latency_moves_the_reading_along_the_motion() {
+        let (k, mut s) = setup();
+        s.latency_s = 0.003;
+        let a = ap(Axis::Y, 1);
+        let y = latched(&k, &s, &[0.0, 0.0], &a, &Vec3::new(0.0, 0.0, 65.0), None).unwrap();
+        assert!((y - (-105.0 + 200.0 / 60.0 * 0.003)).abs() < 1e-12);
+        let z = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Z, -1), &Vec3::new(0.0, -100.0, 0.0), None)
+            .unwrap();
+        assert!((z - (70.0 - 0.01)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn tool_tip_drift_shifts_readings_by_minus_s() {
+        let (k, mut s) = setup();
+        s.tool_tip = Vec3::new(0.004, -0.002, -0.030);
+        let y = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Y, 1), &Vec3::new(0.0, 0.0, 65.0), None).unwrap();
+        assert!((y - (-105.0 + 0.002)).abs() < 1e-12);
+        let z = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Z, -1), &Vec3::new(0.0, -100.0, 0.0), None)
+            .unwrap();
+        assert!((z - 70.030).abs() < 1e-12);
+    }
+
+    #[test]
+    fn flat_end_meets_a_sloping_beam_at_its_high_end() {
+        let (k, mut s) = setup();
+        // Tilt the beam in the table frame by 300 urad about Y: slope along X.
+        s.beam_dir = Vec3::new(1.0, 0.0, 300e-6).normalize();
+        let z = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Z, -1), &Vec3::new(0.0, -100.0, 0.0), None)
+            .unwrap();
+        assert!((z - (70.0 + 300e-6 * 5.0)).abs() < 1e-9, "{z}");
+    }
+
+    #[test]
+    fn failures_are_named() {
+        let (k, s) = setup();
+        let miss = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Z, -1), &Vec3::new(0.0, -90.0, 0.0), None);
+        assert!(matches!(miss, Err(NoTrip::Misses { .. })));
+        let above = latched(&k, &s, &[0.0, 0.0], &ap(Axis::Y, 1), &Vec3::new(0.0, 0.0, 75.0), None);
+        assert!(matches!(above, Err(NoTrip::AboveBeam { .. })));
+        let far = latched(
+            &k,
+            &s,
+            &[0.0, 0.0],
+            &ap(Axis::Y, 1),
+            &Vec3::new(0.0, 0.0, 65.0),
+            Some(Travel { start: -120.0, max_mm: 3.0 }),
+        );
+        assert!(matches!(far, Err(NoTrip::BeyondTravel { .. })));
+    }
+}
