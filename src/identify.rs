@@ -422,24 +422,55 @@ impl<'a> Identifier<'a> {
         let mut weights = vec![1.0; n];
         let mut iterations = 0;
         let mut j = self.jacobian_central(obs, &p, t_ref)?;
-        let mut fresh_jacobian_from = 4;
+        let mut fresh_jacobian_from = 1;
         let mut f = self.predict(obs, &p, t_ref)?;
         loop {
             // Gauss-Newton on the current weights.
             let mut last_step = f64::INFINITY;
             let mut converged = false;
+            let cost = |f: &[f64], w: &[f64]| -> f64 {
+                m.iter()
+                    .zip(f)
+                    .zip(w)
+                    .map(|((mi, fi), wi)| wi * ((mi - fi) * 1e3 / sigma).powi(2))
+                    .sum()
+            };
+            let mut c = cost(&f, &weights);
             for it in 0..self.opts.max_iterations {
                 iterations += 1;
                 let step = gn_step(&j, &m, &f, &weights, sigma);
-                for (pi, di) in p.iter_mut().zip(step.iter()) {
-                    *pi += di;
-                }
                 last_step = step.amax();
-                f = self.predict(obs, &p, t_ref)?;
+                if last_step < 1e-7 {
+                    converged = true;
+                    break;
+                }
+                // Halve the step while the cost rises: the flat tool end makes the model
+                // kink where a beam slope changes sign.
+                let mut scale = 1.0;
+                let mut accepted = None;
+                while scale >= 1e-4 {
+                    let p_new: Vec<f64> =
+                        p.iter().zip(step.iter()).map(|(a, d)| a + scale * d).collect();
+                    let f_new = self.predict(obs, &p_new, t_ref)?;
+                    let c_new = cost(&f_new, &weights);
+                    if c_new <= c {
+                        accepted = Some((p_new, f_new, c_new));
+                        break;
+                    }
+                    scale *= 0.5;
+                }
+                let Some((p_new, f_new, c_new)) = accepted else {
+                    // No descent along the Gauss-Newton direction: a minimum at a kink.
+                    converged = last_step < 1e-3;
+                    break;
+                };
+                p = p_new;
+                f = f_new;
+                c = c_new;
                 if it + 1 >= fresh_jacobian_from {
                     j = self.jacobian_forward(obs, &p, &f, t_ref)?;
                 }
-                if last_step < 1e-7 {
+                if scale * last_step < 1e-7 {
                     converged = true;
                     break;
                 }
@@ -580,15 +611,18 @@ fn redundancy(wj: &DMatrix<f64>, residuals_um: &[f64], sigma: f64) -> Vec<f64> {
 fn null_combinations(j: &DMatrix<f64>, names: &[String]) -> Vec<String> {
     let norms: Vec<f64> = (0..j.ncols()).map(|c| j.column(c).norm()).collect();
     let mut out = Vec::new();
+    let live: Vec<usize> = (0..j.ncols()).filter(|c| norms[*c] >= 1e-12).collect();
     for (c, nrm) in norms.iter().enumerate() {
         if *nrm < 1e-12 {
             out.push(format!("{} (no reading depends on it)", names[c]));
         }
     }
-    if !out.is_empty() {
+    if live.is_empty() {
         return out;
     }
-    let mut jn = j.clone();
+    let names: Vec<String> = live.iter().map(|c| names[*c].clone()).collect();
+    let norms: Vec<f64> = live.iter().map(|c| norms[*c]).collect();
+    let mut jn = j.select_columns(&live);
     for (c, nrm) in norms.iter().enumerate() {
         jn.column_mut(c).unscale_mut(*nrm);
     }
@@ -606,7 +640,7 @@ fn null_combinations(j: &DMatrix<f64>, names: &[String]) -> Vec<String> {
         let big = v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
         let terms: Vec<String> = v
             .iter()
-            .zip(names)
+            .zip(&names)
             .filter(|(x, _)| x.abs() > 1e-3 * big)
             .map(|(x, n)| format!("{:+.3} {}", x / big, n))
             .collect();

@@ -349,6 +349,12 @@ impl Kinematics {
                 position_dirs[k] = d;
                 orientation_axes[k] = o;
             }
+            if position_dirs[0].dot(&position_dirs[1]).abs() > 1e-9 {
+                return Err(invalid(format!(
+                    "the two position error directions of axis {} must be perpendicular",
+                    r.name
+                )));
+            }
             if !(r.speed_deg_min > 0.0) || r.travel_deg[0] >= r.travel_deg[1] {
                 return Err(invalid(format!(
                     "axis {} needs a positive speed and travel_deg [min, max]",
@@ -493,23 +499,61 @@ impl Kinematics {
 
     /// The work-side transform table -> machine at the commanded angles (deg).
     pub fn pose_transform(&self, state: &MachineState, angles_deg: &[f64]) -> Affine {
+        let (offsets, dirs) = self.lines(state);
         let mut total = Affine::identity();
-        let mut parent_offset = Vec3::zeros();
         for (i, ax) in self.rotary.iter().enumerate() {
-            let e = &state.loc[i];
-            let mut offset = ax.position_dirs[0] * e[0] + ax.position_dirs[1] * e[1];
-            if ax.relative_to_parent {
-                offset += parent_offset - ax.u0 * parent_offset.dot(&ax.u0);
-            }
-            let u = rotation(&ax.orientation_axes[1], e[3])
-                * rotation(&ax.orientation_axes[0], e[2])
-                * ax.u0;
-            let angle = ax.sign * (deg_to_rad(angles_deg[i]) + e[4] + state.angle_error[i]);
-            let t = Affine::about_line(&(ax.q0 + offset), &u, angle);
+            let angle =
+                ax.sign * (deg_to_rad(angles_deg[i]) + state.loc[i][4] + state.angle_error[i]);
+            let t = Affine::about_line(&(ax.q0 + offsets[i]), &dirs[i], angle);
             total = total.then_inner(&t);
-            parent_offset = offset;
         }
         total
+    }
+
+    /// Absolute offsets of each axis line from its nominal point and the actual directions.
+    fn lines(&self, state: &MachineState) -> ([Vec3; MAX_ROTARY], [Vec3; MAX_ROTARY]) {
+        let mut offsets = [Vec3::zeros(); MAX_ROTARY];
+        let mut dirs = [Vec3::zeros(); MAX_ROTARY];
+        let mut parent = Vec3::zeros();
+        for (i, ax) in self.rotary.iter().enumerate() {
+            let e = &state.loc[i];
+            let mut o = ax.position_dirs[0] * e[0] + ax.position_dirs[1] * e[1];
+            if ax.relative_to_parent {
+                o += parent - ax.u0 * parent.dot(&ax.u0);
+            }
+            offsets[i] = o;
+            dirs[i] = rotation(&ax.orientation_axes[1], e[3])
+                * rotation(&ax.orientation_axes[0], e[2])
+                * ax.u0;
+            parent = o;
+        }
+        (offsets, dirs)
+    }
+
+    /// The state a tool-setter cycle measures (the contract's apparent errors): the tool-tip
+    /// displacement `s` moved into the axis lines and the setter, both shifted by `-s`, with
+    /// the tool tip at zero. Every reading is exactly the same as with `state`.
+    pub fn apparent_state(&self, state: &MachineState) -> MachineState {
+        let s = state.tool_tip;
+        let (offsets, dirs) = self.lines(state);
+        let mut out = *state;
+        let mut parent = Vec3::zeros();
+        for (i, ax) in self.rotary.iter().enumerate() {
+            // Shift the line by -s, then name it by its point in the plane normal to u0.
+            let q = offsets[i] - s;
+            let lambda = q.dot(&ax.u0) / dirs[i].dot(&ax.u0);
+            let o = q - dirs[i] * lambda;
+            let mut own = o;
+            if ax.relative_to_parent {
+                own -= parent - ax.u0 * parent.dot(&ax.u0);
+            }
+            out.loc[i][0] = own.dot(&ax.position_dirs[0]);
+            out.loc[i][1] = own.dot(&ax.position_dirs[1]);
+            parent = o;
+        }
+        out.beam_point = state.beam_point - s;
+        out.tool_tip = Vec3::zeros();
+        out
     }
 
     /// The beam line in the machine frame at a pose: (point, unit direction).
@@ -605,6 +649,36 @@ mod tests {
         let p = ub * 200.0;
         let t = k.pose_transform(&s, &[33.0, 0.0]);
         assert!((t.point(&p) - p).norm() < 1e-4);
+    }
+
+    #[test]
+    fn apparent_state_gives_the_same_readings_with_the_tool_tip_at_zero() {
+        use crate::measurement::{Approach, Axis, latched};
+        let k = table_bc();
+        let mut s = k.nominal_state();
+        s.loc[0] = [0.02, -0.03, 2e-4, -1e-4, 0.0];
+        s.loc[1] = [0.01, 0.015, 3e-4, -2e-4, 0.0];
+        s.tool_tip = Vec3::new(0.012, -0.007, -0.080);
+        let a = k.apparent_state(&s);
+        assert_eq!(a.tool_tip, Vec3::zeros());
+        // The contract's rule to first order (second-order terms here are below 1 nm).
+        assert!((a.loc[0][0] - (0.02 - 0.012)).abs() < 2e-6);
+        assert!((a.loc[0][1] - (-0.03 + 0.080)).abs() < 2e-6);
+        // EY0C also takes sz times the C tilt, where the shifted line is named at z = 0.
+        assert!((a.loc[1][1] - (0.015 + 0.007 - (-0.080) * 3e-4)).abs() < 2e-6);
+        assert!((a.loc[1][0] - (0.01 + (-0.080) * (-2e-4))).abs() < 2e-6);
+        let probes = [
+            ([0.0, -90.0, 0.0], Axis::X, -1, Vec3::new(0.0, 0.0, 65.0)),
+            ([0.0, -180.0, 0.0], Axis::Z, -1, Vec3::new(0.0, 100.0, 0.0)),
+            ([-90.0, -270.0, 0.0], Axis::X, -1, Vec3::new(0.0, 0.0, 95.0)),
+            ([90.0, -90.0, 0.0], Axis::Z, -1, Vec3::new(-70.0, 0.0, 0.0)),
+        ];
+        for (angles, axis, direction, c) in probes {
+            let ap = Approach { axis, direction, feed_mm_min: 100.0 };
+            let v1 = latched(&k, &s, &angles, &ap, &c, None).unwrap();
+            let v2 = latched(&k, &a, &angles, &ap, &c, None).unwrap();
+            assert!((v1 - v2).abs() < 1e-12, "{angles:?}: {v1} vs {v2}");
+        }
     }
 
     #[test]

@@ -5,8 +5,15 @@
 //! plans, the thermal model, the truth simulator and the identification are pure code (no I/O,
 //! no globals, deterministic for a given seed). `recording` and the binary are the shell.
 
+pub mod cycle;
+pub mod experiment;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;
 pub mod measurement;
+pub mod patent_relations;
 pub mod plan;
+pub mod recording;
+pub mod scenario;
+pub mod simulator;
+pub mod thermal;

@@ -1,1 +1,510 @@
-fn main() {}
+//! The `driftwatch` command: a thin shell over the library.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+
+use driftwatch::cycle::{CycleChecks, group_by_cycle, infer_expected_steps, process_cycle};
+use driftwatch::experiment;
+use driftwatch::identify::{Identifier, Observation, SolveOptions};
+use driftwatch::kinematics::Kinematics;
+use driftwatch::measurement::latched;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
+use driftwatch::recording::{self as rec, Timed};
+use driftwatch::scenario::Scenario;
+use driftwatch::simulator::simulate;
+
+#[derive(Parser)]
+#[command(name = "driftwatch", version, about = "Keeps a 5-axis machine's rotary-axis compensation true while it heats and cools")]
+struct Cli {
+    /// Log as JSON lines instead of text.
+    #[arg(long, global = true)]
+    log_json: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the truth simulator over a scenario and write a contract recording (MCAP).
+    Simulate {
+        /// Scenario TOML, or a built-in name (patent, warmup).
+        #[arg(long)]
+        scenario: String,
+        #[arg(long)]
+        out: PathBuf,
+        /// Use this plan instead of the scenario's (built-in name or TOML path).
+        #[arg(long)]
+        plan: Option<String>,
+    },
+    /// Identify every cycle of a contract recording.
+    Solve {
+        /// Machine TOML, or a built-in name (table_bc).
+        #[arg(long)]
+        machine: String,
+        #[arg(long)]
+        recording: PathBuf,
+        /// Print JSON lines shaped like /cycle/result instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Check each cycle against this plan's steps (else against the step set most cycles share).
+        #[arg(long)]
+        plan: Option<String>,
+        /// Read a recording cut short up to its last complete chunk.
+        #[arg(long)]
+        recover: bool,
+        #[command(flatten)]
+        solver: SolverArgs,
+    },
+    /// Reproduce an experiment of the source documents end to end.
+    Experiment {
+        #[arg(value_enum)]
+        which: Which,
+        /// Where the CSV, SVG and recording go.
+        #[arg(long, default_value = "out/experiment")]
+        out_dir: PathBuf,
+        /// Scenario to run instead of the built-in one.
+        #[arg(long)]
+        scenario: Option<String>,
+    },
+    /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error.
+    Plan {
+        #[arg(long)]
+        machine: String,
+        /// Plan TOML or built-in name (patent, patent_sequential).
+        #[arg(long, default_value = "patent")]
+        plan: String,
+        /// One-reading standard uncertainty, um (default: the machine's).
+        #[arg(long)]
+        sigma_um: Option<f64>,
+        /// Also estimate tool-tip drift rates within the cycle.
+        #[arg(long)]
+        drift_rates: bool,
+    },
+    /// Benchmarks (run and report; not tests).
+    Bench {
+        #[arg(value_enum)]
+        which: BenchWhich,
+        /// Plan to solve (built-in or path).
+        #[arg(long, default_value = "patent_sequential")]
+        plan: String,
+        /// Number of solves.
+        #[arg(long, default_value_t = 20000)]
+        n: usize,
+    },
+}
+
+#[derive(clap::Args, Clone)]
+struct SolverArgs {
+    /// One-reading standard uncertainty, um (default: the machine's).
+    #[arg(long)]
+    sigma_um: Option<f64>,
+    /// Huber weighting with this threshold in sigmas (e.g. 1.5).
+    #[arg(long)]
+    huber: Option<f64>,
+    /// Also estimate tool-tip drift rates within each cycle from the timestamps.
+    #[arg(long)]
+    drift_rates: bool,
+    /// Largest distance of a reading from its nominal value, mm.
+    #[arg(long, default_value_t = 1.0)]
+    max_deviation_mm: f64,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Which {
+    Patent,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum BenchWhich {
+    Solve,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let sub = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    if cli.log_json {
+        sub.json().init();
+    } else {
+        sub.init();
+    }
+    match run(cli.command) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
+    let mut c = CycleChecks::new(k);
+    let sigma = args.sigma_um.unwrap_or(k.setter.sigma_um);
+    c.solve = SolveOptions::new(sigma);
+    if args.drift_rates {
+        c.solve = c.solve.with_drift_rates();
+    }
+    c.solve.huber_k = args.huber;
+    if !(args.max_deviation_mm > 0.0) {
+        bail!("--max-deviation-mm must be > 0");
+    }
+    c.max_deviation_mm = args.max_deviation_mm;
+    Ok(c)
+}
+
+fn run(cmd: Command) -> Result<ExitCode> {
+    match cmd {
+        Command::Simulate { scenario, out, plan } => cmd_simulate(&scenario, &out, plan.as_deref()),
+        Command::Solve {
+            machine,
+            recording,
+            json,
+            plan,
+            recover,
+            solver,
+        } => cmd_solve(&machine, &recording, json, plan.as_deref(), recover, &solver),
+        Command::Experiment {
+            which: Which::Patent,
+            out_dir,
+            scenario,
+        } => cmd_experiment(scenario.as_deref().unwrap_or("patent"), &out_dir),
+        Command::Plan {
+            machine,
+            plan,
+            sigma_um,
+            drift_rates,
+        } => cmd_plan(&machine, &plan, sigma_um, drift_rates),
+        Command::Bench {
+            which: BenchWhich::Solve,
+            plan,
+            n,
+        } => cmd_bench_solve(&plan, n),
+    }
+}
+
+fn load_scenario(name: &str, plan_override: Option<&str>) -> Result<(Scenario, Kinematics, Plan)> {
+    let scn = Scenario::load(name)?;
+    let k = Kinematics::load(&scn.machine)?;
+    let plan_cfg = PlanConfig::load(plan_override.unwrap_or(&scn.plan))?;
+    let plan = Plan::build(&k, &plan_cfg)?;
+    Ok((scn, k, plan))
+}
+
+/// Write a simulation with the truth-free results of its cycles.
+fn write_recording(
+    path: &Path,
+    sim: &driftwatch::simulator::Simulation,
+    outcomes: &[driftwatch::cycle::CycleOutcome],
+) -> Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut w = RecordingWriter::create_file(path)
+        .with_context(|| format!("creating recording {}", path.display()))?;
+    let t0 = sim.truth.first().map(|t| t.t_ns).unwrap_or(0);
+    w.write(rec::TOPIC_INFO, t0, &sim.info)?;
+    // Merge everything in time order so that readers see one timeline.
+    let mut items: Vec<(i64, u8, usize)> = Vec::new();
+    items.extend(sim.states.iter().enumerate().map(|(i, m)| (m.t_ns, 0, i)));
+    items.extend(sim.spindle.iter().enumerate().map(|(i, m)| (m.t_ns, 1, i)));
+    items.extend(sim.temperatures.iter().enumerate().map(|(i, m)| (m.t_ns, 2, i)));
+    items.extend(sim.truth.iter().enumerate().map(|(i, m)| (m.t_ns, 3, i)));
+    let dets: Vec<&Timed<rec::DetectionMsg>> = sim.cycles.iter().flat_map(|c| c.detections.iter()).collect();
+    items.extend(dets.iter().enumerate().map(|(i, m)| (m.t_ns, 4, i)));
+    let mut results: Vec<(i64, rec::CycleResultMsg)> = Vec::new();
+    for (o, c) in outcomes.iter().zip(&sim.cycles) {
+        // A result is known once its cycle's last detection is in.
+        let t = c.detections.last().map(|d| d.t_ns).unwrap_or(o.t_ref_ns);
+        results.push((t, o.message()));
+    }
+    items.extend(results.iter().enumerate().map(|(i, m)| (m.0, 5, i)));
+    items.extend(sim.cycles.iter().enumerate().map(|(i, c)| (c.truth.t_ns, 6, i)));
+    items.sort();
+    let mut since_flush = 0;
+    for (t, kind, i) in items {
+        match kind {
+            0 => w.write(rec::TOPIC_STATE, t, &sim.states[i].msg)?,
+            1 => w.write(rec::TOPIC_SPINDLE, t, &sim.spindle[i].msg)?,
+            2 => w.write(rec::TOPIC_TEMPERATURE, t, &sim.temperatures[i].msg)?,
+            3 => w.write(rec::TOPIC_TRUTH, t, &sim.truth[i])?,
+            4 => w.write(rec::TOPIC_DETECTION, t, &dets[i].msg)?,
+            5 => {
+                w.write(rec::TOPIC_RESULT, t, &results[i].1)?;
+                since_flush = 0;
+                w.flush()?;
+            }
+            _ => w.write(rec::TOPIC_TRUTH, t, &sim.cycles[i].truth)?,
+        }
+        since_flush += 1;
+        let _ = since_flush;
+    }
+    w.finish()?;
+    Ok(())
+}
+
+fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCode> {
+    let (scn, k, plan) = load_scenario(scenario, plan)?;
+    let sim = simulate(&scn, &k, &plan)?;
+    let dets: Vec<_> = sim
+        .cycles
+        .iter()
+        .flat_map(|c| c.detections.iter())
+        .map(|d| Timed { t_ns: d.t_ns, msg: Ok(d.msg.clone()) })
+        .collect();
+    let mut checks = CycleChecks::new(&k);
+    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    let (outcomes, _) = driftwatch::cycle::process_all(&k, &dets, &checks);
+    write_recording(out, &sim, &outcomes)?;
+    let ok = outcomes.iter().filter(|o| o.is_ok()).count();
+    println!(
+        "wrote {}: scenario '{}', {} cycles ({} ok), {} detections, {:.0} min",
+        out.display(),
+        scn.name,
+        outcomes.len(),
+        ok,
+        dets.len(),
+        scn.duration_min
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_solve(
+    machine: &str,
+    path: &Path,
+    json: bool,
+    plan: Option<&str>,
+    recover: bool,
+    args: &SolverArgs,
+) -> Result<ExitCode> {
+    let k = Kinematics::load(machine)?;
+    let recording = read_file(path, &ReadOptions { recover_truncated: recover })?;
+    if let Some(t) = &recording.truncated {
+        eprintln!("warning: {}: {t}", path.display());
+    }
+    if let Some(info) = &recording.info
+        && info.kinematics != k.name
+    {
+        bail!(
+            "{} was recorded on machine kinematics '{}', but --machine is '{}'",
+            path.display(),
+            info.kinematics,
+            k.name
+        );
+    }
+    for p in &recording.problems {
+        eprintln!("warning: {}: {p}", path.display());
+    }
+    let mut checks = checks(&k, args)?;
+    let (groups, unassigned) = group_by_cycle(&recording.detections);
+    for p in &unassigned.problems {
+        eprintln!("warning: {}: {p}", path.display());
+    }
+    if let Some(plan) = plan {
+        let p = Plan::build(&k, &PlanConfig::load(plan)?)?;
+        checks.expected_steps = Some(p.steps.iter().map(|s| s.label.clone()).collect::<BTreeSet<_>>());
+    } else if let Some((steps, n)) = infer_expected_steps(&groups) {
+        if !json {
+            println!("expected steps: the {} shared by {n} of {} cycles", steps.len(), groups.len());
+        }
+        checks.expected_steps = Some(steps);
+    }
+    if groups.is_empty() {
+        bail!("{} has no /probe/detection messages", path.display());
+    }
+    let names = k.identify_names();
+    if !json {
+        print!("{:>5} {:>30} {:>8}", "cycle", "reference time (UTC)", "status");
+        for n in &names {
+            print!(" {:>18}", n);
+        }
+        println!(" {:>8} {:>6}", "rms/um", "chi2");
+    }
+    let mut rejected = 0;
+    for (c, entries) in &groups {
+        let o = process_cycle(&k, *c, entries, &checks);
+        if !o.is_ok() {
+            rejected += 1;
+        }
+        if json {
+            println!("{}", serde_json::to_string(&o.message())?);
+            continue;
+        }
+        let t = chrono::DateTime::from_timestamp_nanos(o.t_ref_ns).format("%Y-%m-%d %H:%M:%S%.3f");
+        match &o.solution {
+            Some(s) => {
+                print!("{:>5} {:>30} {:>8}", c, t, "ok");
+                for e in &s.errors {
+                    print!(" {:>18}", format!("{:.2}+-{:.2}", e.value, e.sigma));
+                }
+                println!(" {:>8.3} {:>6.2}", s.residual_rms_um(), s.chi2);
+            }
+            None => println!(
+                "{:>5} {:>30} {:>8} {}",
+                c,
+                t,
+                "rejected",
+                o.reason.clone().unwrap_or_default()
+            ),
+        }
+    }
+    if !json {
+        println!(
+            "{} cycles, {} rejected; errors in um and urad (apparent, tool-relative)",
+            groups.len(),
+            rejected
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
+    let (scn, k, plan) = load_scenario(scenario, None)?;
+    let mut checks = CycleChecks::new(&k);
+    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    let stop = scn
+        .spindle
+        .iter()
+        .find(|s| s.rpm == 0.0 && s.at_min > 0.0)
+        .map(|s| s.at_min)
+        .unwrap_or(scn.duration_min);
+    let ex = experiment::run(&scn, &k, &plan, &checks, stop)?;
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    println!(
+        "scenario '{}': {} on {}, plan '{}' ({} approaches, {:.1} s machine time), seed {}",
+        scn.name, scn.description, k.name, plan.name, plan.steps.len(), plan.machine_time_s, scn.seed
+    );
+    print!("{}", ex.table());
+    let s = &ex.summary;
+    println!(
+        "EZ0B rise over 0..{stop:.0} min: {:.1} um (patent: about 80); drop in 30 min after the stop: {:.1} um (patent: about 45)",
+        s.ez0b_rise_um, s.ez0b_drop_um
+    );
+    println!("EX0B rise: {:.1} um (patent: about 20)", s.ex0b_rise_um);
+    println!(
+        "largest |identified - truth| / sigma: {:.2} over {} values; {} of {} cycles ok",
+        s.max_abs_z,
+        ex.rows.iter().map(|r| r.values.len()).sum::<usize>(),
+        s.cycles_ok,
+        s.cycles
+    );
+    let csv = out_dir.join("patent_experiment.csv");
+    std::fs::write(&csv, ex.csv()).with_context(|| format!("writing {}", csv.display()))?;
+    let svg = out_dir.join("patent_experiment.svg");
+    let plot = ex
+        .svg("patent experiment: identified (2 sigma) vs truth")
+        .map_err(|e| anyhow::anyhow!("plotting: {e}"))?;
+    std::fs::write(&svg, plot).with_context(|| format!("writing {}", svg.display()))?;
+    let mcap = out_dir.join("patent_experiment.mcap");
+    write_recording(&mcap, &ex.simulation, &ex.outcomes)?;
+    let summary = out_dir.join("summary.json");
+    std::fs::write(&summary, serde_json::to_string_pretty(&ex.summary)?)?;
+    println!("wrote {}, {}, {}, {}", csv.display(), svg.display(), mcap.display(), summary.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+fn template(k: &Kinematics, plan: &Plan) -> Result<Vec<Observation>> {
+    let nominal = k.nominal_state();
+    plan.steps
+        .iter()
+        .map(|s| {
+            let v = latched(k, &nominal, &s.angles, &s.approach, &s.start, None)
+                .map_err(|e| anyhow::anyhow!("step {}: {e}", s.label))?;
+            let mut position = s.start;
+            position[s.approach.axis.index()] = v;
+            Ok(Observation {
+                label: s.label.clone(),
+                angles: s.angles,
+                approach: s.approach,
+                position,
+                t_ns: (s.t_start_s * 1e9) as i64,
+            })
+        })
+        .collect()
+}
+
+fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) -> Result<ExitCode> {
+    let k = Kinematics::load(machine)?;
+    let plan = Plan::build(&k, &PlanConfig::load(plan)?)?;
+    println!("plan '{}': {}", plan.name, plan.description);
+    println!(
+        "{:>8} {:>7} {:>9} {:>9} {:>9} {:>8} {:>8}  {}",
+        "t/s", "dur/s", "x/mm", "y/mm", "z/mm", "B/deg", "C/deg", "move"
+    );
+    for m in &plan.moves {
+        println!(
+            "{:>8.2} {:>7.2} {:>9.3} {:>9.3} {:>9.3} {:>8.1} {:>8.1}  {:?} {}",
+            m.t_start_s, m.duration_s, m.to[0], m.to[1], m.to[2], m.angles_deg[0], m.angles_deg[1], m.kind, m.note
+        );
+    }
+    println!(
+        "{} approaches; machine time {:.1} s (rapid {} mm/min, probing {} mm/min, clearance {} mm, dwell {} s, B {} deg/min, C {} deg/min, clamp {} s)",
+        plan.steps.len(),
+        plan.machine_time_s,
+        k.motion.rapid_mm_min,
+        plan.config.feed_mm_min,
+        plan.config.clearance_mm,
+        plan.config.dwell_s,
+        k.rotary[0].speed_deg_min,
+        k.rotary.get(1).map(|a| a.speed_deg_min).unwrap_or(0.0),
+        k.motion.clamp_s
+    );
+    let sigma = sigma.unwrap_or(k.setter.sigma_um);
+    let mut opts = SolveOptions::new(sigma);
+    if drift_rates {
+        opts = opts.with_drift_rates();
+    }
+    let obs = template(&k, &plan)?;
+    let id = Identifier::new(&k, &obs, &opts)?;
+    println!("Cramer-Rao standard deviations at sigma = {sigma} um:");
+    for e in id.cramer_rao(&obs)? {
+        println!("  {:>28} {:>9.3} {}", e.name, e.sigma, e.unit);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_bench_solve(plan: &str, n: usize) -> Result<ExitCode> {
+    let k = Kinematics::builtin("table_bc")?;
+    let plan = Plan::build(&k, &PlanConfig::load(plan)?)?;
+    let obs = template(&k, &plan)?;
+    let opts = SolveOptions::new(k.setter.sigma_um);
+    let id = Identifier::new(&k, &obs, &opts)?;
+    // Distinct noisy cycles, made before timing.
+    let cycles: Vec<Vec<Observation>> = (0..n.min(1000))
+        .map(|i| {
+            obs.iter()
+                .enumerate()
+                .map(|(j, o)| {
+                    let mut o = o.clone();
+                    let a = o.approach.axis.index();
+                    let h = ((i * 7919 + j * 104729) % 1000) as f64 / 1000.0 - 0.5;
+                    o.position[a] += h * 1e-3;
+                    o
+                })
+                .collect()
+        })
+        .collect();
+    let t = Instant::now();
+    let mut sum = 0.0;
+    for i in 0..n {
+        let s = id.solve(&cycles[i % cycles.len()])?;
+        sum += s.errors[0].value;
+    }
+    let dt = t.elapsed().as_secs_f64();
+    println!(
+        "{} solves of the {}-detection plan '{}' in {:.3} s on one thread: {:.0} solves/s (checksum {:.3})",
+        n,
+        obs.len(),
+        plan.name,
+        dt,
+        n as f64 / dt,
+        sum
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -2,9 +2,10 @@
 //! list of moves with an estimate of machine time.
 //!
 //! The default order is time-symmetric: the B = 0 poses forward, the tilted poses in the
-//! middle, then the B = 0 poses again in reverse. Every quantity built from B = 0 readings then
-//! has its mean time at the centre of the cycle, so a drift that is linear over the cycle
-//! cancels (physics.md 4.6, step 0). `as_listed` keeps the patent's sequential order.
+//! middle, then every approach again in reverse (a palindrome: the last tilted pose is probed
+//! twice in a row). Every reading then has its mean time at the centre of the cycle, so a drift
+//! that is linear over the cycle cancels in every estimate (physics.md 4.6, step 0).
+//! `as_listed` keeps the patent's sequential order.
 
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -315,23 +316,18 @@ impl Plan {
                 }
             }
             Order::TimeSymmetric => {
-                let flat: Vec<&Step> = per_pose
+                let forward: Vec<&Step> = per_pose
                     .iter()
                     .filter(|(t, _)| !t)
+                    .chain(per_pose.iter().filter(|(t, _)| *t))
                     .flat_map(|(_, s)| s.iter())
                     .collect();
-                for s in &flat {
-                    let mut s = (*s).clone();
-                    s.label.push_str("#1");
-                    steps.push(s);
-                }
-                for (_, s) in per_pose.iter().filter(|(t, _)| *t) {
-                    steps.extend(s.iter().cloned());
-                }
-                for s in flat.iter().rev() {
-                    let mut s = (*s).clone();
-                    s.label.push_str("#2");
-                    steps.push(s);
+                for (pass, seq) in [(1, forward.clone()), (2, forward.into_iter().rev().collect())] {
+                    for s in seq {
+                        let mut s = s.clone();
+                        s.label.push_str(&format!("#{pass}"));
+                        steps.push(s);
+                    }
                 }
             }
         }
@@ -458,19 +454,19 @@ mod tests {
         let k = Kinematics::builtin("table_bc").unwrap();
         let cfg = PlanConfig::load("patent").unwrap();
         let plan = Plan::build(&k, &cfg).unwrap();
-        assert_eq!(plan.steps.len(), 20);
-        let first: Vec<_> = plan.steps[..8].iter().map(|s| s.label.clone()).collect();
+        assert_eq!(plan.steps.len(), 24);
+        let first: Vec<_> = plan.steps[..12].iter().map(|s| s.label.clone()).collect();
         let last: Vec<_> = plan.steps[12..].iter().rev().map(|s| s.label.replace("#2", "#1")).collect();
         assert_eq!(first, last);
         // The tilted poses sit in the middle.
-        assert!(plan.steps[8..12].iter().all(|s| s.b_deg != 0.0));
+        assert!(plan.steps[8..16].iter().all(|s| s.b_deg != 0.0));
         // Patent approach directions: C = 0 from -Y moving +Y; B = -90 from +X moving -X.
         let y1 = &plan.steps[1];
         assert_eq!((y1.approach.axis, y1.approach.direction), (Axis::Y, 1));
         let x5 = plan.steps.iter().find(|s| s.label.starts_with("B-90C-270/x")).unwrap();
         assert_eq!((x5.approach.axis, x5.approach.direction), (Axis::X, -1));
         assert!((x5.expected - 75.0).abs() < 1e-9);
-        // Approach times increase.
+        // Approach times increase, and their mean is the middle of the probing.
         assert!(plan.steps.windows(2).all(|w| w[1].t_start_s > w[0].t_start_s));
     }
 

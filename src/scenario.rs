@@ -1,0 +1,347 @@
+//! Scenarios for the truth simulator: machine, spindle program, cycle times, noise, the
+//! virtual machine's thermal behaviour and the effects switched on. TOML, every key documented
+//! in `config/scenarios/patent.toml`.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::recording::MachineStateKind;
+use crate::thermal::{Channel, InputConfig, LagTerm};
+
+pub const BUILTIN_SCENARIOS: &[(&str, &str)] = &[
+    ("patent", include_str!("../config/scenarios/patent.toml")),
+    ("warmup", include_str!("../config/scenarios/warmup.toml")),
+];
+
+#[derive(Debug, Error)]
+pub enum ScenarioError {
+    #[error("unknown scenario '{0}': not a built-in (patent, warmup) and no such file")]
+    Unknown(String),
+    #[error("cannot read scenario file {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("scenario {origin} is not valid TOML for a scenario: {message}")]
+    Parse { origin: String, message: String },
+    #[error("scenario '{name}': {message}")]
+    Invalid { name: String, message: String },
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProgramSegment {
+    /// From this time on (min from the scenario start)...
+    pub at_min: f64,
+    /// ... the spindle turns at this speed (min^-1) ...
+    pub rpm: f64,
+    /// ... and the NC reports this state.
+    #[serde(default = "idle")]
+    pub state: MachineStateKind,
+    #[serde(default)]
+    pub program: Option<String>,
+}
+
+fn idle() -> MachineStateKind {
+    MachineStateKind::Idle
+}
+
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CycleSchedule {
+    /// Explicit cycle start times, min.
+    pub at_min: Vec<f64>,
+    /// Or a regular cadence: every `every_min` from `from_min` up to `to_min`.
+    pub every_min: Option<f64>,
+    pub from_min: f64,
+    pub to_min: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NoiseConfig {
+    /// Trip noise, one standard deviation, um.
+    pub sigma_um: f64,
+    /// Probability that a reading is an outlier (chips, coolant mist).
+    pub outlier_rate: f64,
+    /// Outlier size range, um (sign random).
+    pub outlier_um: [f64; 2],
+    /// Probability that an approach ends without a trip.
+    pub no_trip_rate: f64,
+}
+
+impl Default for NoiseConfig {
+    fn default() -> Self {
+        NoiseConfig {
+            sigma_um: 0.5,
+            outlier_rate: 0.0,
+            outlier_um: [5.0, 30.0],
+            no_trip_rate: 0.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AmbientConfig {
+    pub mean_c: f64,
+    /// Half the day-night swing, K.
+    pub amplitude_k: f64,
+    pub period_h: f64,
+    /// Hour of the UTC day with the warmest air.
+    pub peak_h: f64,
+    /// Whether an `ambient` sensor is written to `/temperature`.
+    pub logged: bool,
+}
+
+impl Default for AmbientConfig {
+    fn default() -> Self {
+        AmbientConfig {
+            mean_c: 20.0,
+            amplitude_k: 0.0,
+            period_h: 24.0,
+            peak_h: 15.0,
+            logged: true,
+        }
+    }
+}
+
+/// The thermal behaviour of the virtual machine. `channels` and `sensors` are merged over the
+/// defaults (the patent reproduction): an entry given here replaces the default of that name.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TruthConfig {
+    /// Reference spindle speed of the heat input `u = (n / n_ref)^gamma`, min^-1.
+    pub n_ref_rpm: f64,
+    pub gamma: f64,
+    /// Ambient reference temperature of the ambient lags, deg C.
+    pub t_ref_c: f64,
+    /// Location errors (um, urad), tool-tip drift sx, sy, sz (um), setter shift in the table
+    /// frame setter_x, setter_y, setter_z (um), effective radius change `radius` (um), scale
+    /// errors kx, ky, kz (ppm) and squareness errors sxy, sxz, syz (urad).
+    pub channels: BTreeMap<String, Channel>,
+    /// Temperature sensors (deg C), written to `/temperature` unless listed in `unlogged`.
+    pub sensors: BTreeMap<String, Channel>,
+    pub unlogged: Vec<String>,
+}
+
+impl Default for TruthConfig {
+    fn default() -> Self {
+        let i = InputConfig::default();
+        TruthConfig {
+            n_ref_rpm: i.n_ref_rpm,
+            gamma: i.gamma,
+            t_ref_c: i.t_ref_c,
+            channels: BTreeMap::new(),
+            sensors: BTreeMap::new(),
+            unlogged: Vec::new(),
+        }
+    }
+}
+
+impl TruthConfig {
+    pub fn inputs(&self) -> InputConfig {
+        InputConfig {
+            n_ref_rpm: self.n_ref_rpm,
+            gamma: self.gamma,
+            t_ref_c: self.t_ref_c,
+        }
+    }
+}
+
+fn lag(gain: f64, tau_min: f64) -> Channel {
+    Channel {
+        spindle: vec![LagTerm { gain, tau_min }],
+        ..Default::default()
+    }
+}
+
+/// The default virtual machine: reproduces the patent experiment (see `config/scenarios/patent.toml`
+/// for the reasoning). EZ0B_app = EZ0B - sz splits into tool growth (fast) and structure (slow).
+pub fn default_channels() -> BTreeMap<String, Channel> {
+    let mut m = BTreeMap::new();
+    m.insert("sz".into(), lag(-41.0, 11.0));
+    m.insert("EZ0B".into(), lag(48.0, 120.0));
+    m.insert("EX0B".into(), lag(22.0, 60.0));
+    m.insert("sy".into(), lag(-4.0, 45.0));
+    m.insert("EX0C".into(), lag(2.0, 90.0));
+    m.insert("EA0C".into(), lag(3.0, 90.0));
+    m.insert("EB0C".into(), lag(-4.0, 90.0));
+    m
+}
+
+pub fn default_sensors() -> BTreeMap<String, Channel> {
+    let mut m = BTreeMap::new();
+    let mut head = lag(14.0, 15.0);
+    head.offset = 20.0;
+    head.ambient = vec![LagTerm {
+        gain: 1.0,
+        tau_min: 60.0,
+    }];
+    m.insert("spindle_head".into(), head);
+    m
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SkipConfig {
+    /// True skip latency of the virtual machine, ms (the machine file holds the calibrated one).
+    pub latency_ms: f64,
+}
+
+impl Default for SkipConfig {
+    fn default() -> Self {
+        SkipConfig { latency_ms: 0.0 }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    /// Built-in machine name or path to a machine TOML.
+    pub machine: String,
+    #[serde(default = "default_machine_id")]
+    pub machine_id: String,
+    /// Built-in plan name or path to a plan TOML.
+    pub plan: String,
+    pub seed: u64,
+    /// Scenario start, RFC 3339 (UTC).
+    pub start_utc: String,
+    pub duration_min: f64,
+    /// Interval of `/temperature` and `/sim/truth` samples, s.
+    #[serde(default = "sixty")]
+    pub sample_s: f64,
+    pub spindle: Vec<ProgramSegment>,
+    #[serde(default)]
+    pub cycles: CycleSchedule,
+    #[serde(default)]
+    pub noise: NoiseConfig,
+    #[serde(default)]
+    pub skip: SkipConfig,
+    #[serde(default)]
+    pub ambient: AmbientConfig,
+    #[serde(default)]
+    pub truth: TruthConfig,
+}
+
+fn default_machine_id() -> String {
+    "sim-1".into()
+}
+
+fn sixty() -> f64 {
+    60.0
+}
+
+impl Scenario {
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, ScenarioError> {
+        let s: Scenario = toml::from_str(text).map_err(|e| ScenarioError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        s.validate()?;
+        Ok(s)
+    }
+
+    pub fn load(name_or_path: &str) -> Result<Self, ScenarioError> {
+        if let Some((_, text)) = BUILTIN_SCENARIOS.iter().find(|(n, _)| *n == name_or_path) {
+            return Self::from_toml(text, name_or_path);
+        }
+        let path = std::path::Path::new(name_or_path);
+        if !path.exists() {
+            return Err(ScenarioError::Unknown(name_or_path.to_string()));
+        }
+        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Read {
+            path: name_or_path.to_string(),
+            source,
+        })?;
+        Self::from_toml(&text, name_or_path)
+    }
+
+    fn validate(&self) -> Result<(), ScenarioError> {
+        let bad = |m: &str| {
+            Err(ScenarioError::Invalid {
+                name: self.name.clone(),
+                message: m.to_string(),
+            })
+        };
+        if !(self.duration_min > 0.0) {
+            return bad("duration_min must be > 0");
+        }
+        if self.spindle.is_empty() {
+            return bad("the spindle program needs at least one segment");
+        }
+        if self
+            .spindle
+            .windows(2)
+            .any(|w| w[1].at_min <= w[0].at_min)
+        {
+            return bad("spindle segments must have increasing at_min");
+        }
+        if self.spindle.iter().any(|s| !s.rpm.is_finite() || s.rpm < 0.0) {
+            return bad("spindle rpm must be finite and >= 0");
+        }
+        if !(self.noise.sigma_um >= 0.0)
+            || !(0.0..=1.0).contains(&self.noise.outlier_rate)
+            || !(0.0..=1.0).contains(&self.noise.no_trip_rate)
+        {
+            return bad("noise: sigma_um >= 0, rates within [0, 1]");
+        }
+        if !(self.sample_s > 0.0) {
+            return bad("sample_s must be > 0");
+        }
+        if let Some(e) = self.cycles.every_min
+            && !(e > 0.0)
+        {
+            return bad("cycles.every_min must be > 0");
+        }
+        if chrono::DateTime::parse_from_rfc3339(&self.start_utc).is_err() {
+            return bad("start_utc must be an RFC 3339 time, e.g. 2026-03-02T06:00:00Z");
+        }
+        Ok(())
+    }
+
+    pub fn start_ns(&self) -> i64 {
+        chrono::DateTime::parse_from_rfc3339(&self.start_utc)
+            .map(|t| t.timestamp_nanos_opt().unwrap_or(0))
+            .unwrap_or(0)
+    }
+
+    /// Cycle start times, min, sorted.
+    pub fn cycle_times_min(&self) -> Vec<f64> {
+        let mut t = self.cycles.at_min.clone();
+        if let Some(every) = self.cycles.every_min {
+            let end = self.cycles.to_min.unwrap_or(self.duration_min);
+            let mut x = self.cycles.from_min;
+            while x <= end + 1e-9 {
+                t.push(x);
+                x += every;
+            }
+        }
+        t.retain(|x| *x >= 0.0 && *x < self.duration_min);
+        t.sort_by(f64::total_cmp);
+        t.dedup();
+        t
+    }
+
+    /// Truth channels: the defaults with this scenario's channels over them.
+    pub fn truth_channels(&self) -> BTreeMap<String, Channel> {
+        let mut m = default_channels();
+        for (k, v) in &self.truth.channels {
+            m.insert(k.clone(), v.clone());
+        }
+        m
+    }
+
+    pub fn sensors(&self) -> BTreeMap<String, Channel> {
+        let mut m = default_sensors();
+        for (k, v) in &self.truth.sensors {
+            m.insert(k.clone(), v.clone());
+        }
+        m
+    }
+}

@@ -1,0 +1,444 @@
+//! The truth simulator: a virtual machine whose location errors, tool-tip drift, setter,
+//! tool radius and linear axes follow a thermal model driven by the complete spindle log
+//! (measurement spins included), measured by cycles whose every detection happens at its own
+//! time in exact geometry, with noise, outliers and failed approaches. Deterministic for a
+//! given seed; no I/O.
+
+use std::collections::BTreeMap;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use thiserror::Error;
+
+use crate::geometry::Vec3;
+use crate::kinematics::{Kinematics, MachineState};
+use crate::measurement::latched;
+use crate::plan::Plan;
+use crate::recording::{
+    DetectionMsg, DetectionStatus, MachineInfo, MachineStateKind, SpindleMsg, StateMsg,
+    TemperatureMsg, Timed,
+};
+use crate::scenario::Scenario;
+use crate::thermal::LagModel;
+
+#[derive(Debug, Error)]
+pub enum SimError {
+    #[error("scenario channel '{0}' is not a location error of the machine nor one of sx, sy, sz, setter_x, setter_y, setter_z, radius, kx, ky, kz, sxy, sxz, syz")]
+    UnknownChannel(String),
+    #[error("scenario '{scenario}' uses machine '{scenario_machine}' but was given machine '{machine}'")]
+    MachineMismatch {
+        scenario: String,
+        scenario_machine: String,
+        machine: String,
+    },
+}
+
+/// The truth at one instant: the apparent (tool-relative) location errors a perfect cycle
+/// would report, and every raw channel.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TruthSample {
+    pub t_ns: i64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cycle: Option<i64>,
+    pub rpm: f64,
+    pub apparent: BTreeMap<String, f64>,
+    pub channels: BTreeMap<String, f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct SimCycle {
+    pub number: i64,
+    pub start_ns: i64,
+    pub detections: Vec<Timed<DetectionMsg>>,
+    /// Truth at the cycle's reference time (mean time of its `ok` detections).
+    pub truth: TruthSample,
+}
+
+#[derive(Debug, Clone)]
+pub struct Simulation {
+    pub info: MachineInfo,
+    pub states: Vec<Timed<StateMsg>>,
+    pub spindle: Vec<Timed<SpindleMsg>>,
+    pub temperatures: Vec<Timed<TemperatureMsg>>,
+    pub truth: Vec<TruthSample>,
+    pub cycles: Vec<SimCycle>,
+}
+
+#[derive(Clone, Copy)]
+enum Target {
+    Location(usize, usize, f64),
+    Tool(usize),
+    Setter(usize),
+    Radius,
+    Scale(usize),
+    Sxy,
+    Sxz,
+    Syz,
+}
+
+/// The virtual machine: thermal state plus the map from channels to the machine state.
+#[derive(Clone)]
+struct Virtual {
+    model: LagModel,
+    targets: Vec<Target>,
+    sensors: LagModel,
+    base: MachineState,
+}
+
+impl Virtual {
+    fn new(k: &Kinematics, scn: &Scenario) -> Result<Self, SimError> {
+        let channels: Vec<_> = scn.truth_channels().into_iter().collect();
+        let mut targets = Vec::new();
+        for (name, _) in &channels {
+            let t = match name.as_str() {
+                "sx" => Target::Tool(0),
+                "sy" => Target::Tool(1),
+                "sz" => Target::Tool(2),
+                "setter_x" => Target::Setter(0),
+                "setter_y" => Target::Setter(1),
+                "setter_z" => Target::Setter(2),
+                "radius" => Target::Radius,
+                "kx" => Target::Scale(0),
+                "ky" => Target::Scale(1),
+                "kz" => Target::Scale(2),
+                "sxy" => Target::Sxy,
+                "sxz" => Target::Sxz,
+                "syz" => Target::Syz,
+                other => match k.error_id(other) {
+                    Some(id) => Target::Location(id.axis, id.slot, id.scale()),
+                    None => return Err(SimError::UnknownChannel(other.to_string())),
+                },
+            };
+            targets.push(t);
+        }
+        let inputs = scn.truth.inputs();
+        let mut base = k.nominal_state();
+        // The NC's held values are its belief, not the truth: the truth starts from zero.
+        base.loc = [[0.0; 5]; crate::kinematics::MAX_ROTARY];
+        base.latency_s = scn.skip.latency_ms * 1e-3;
+        Ok(Virtual {
+            model: LagModel::new(inputs, channels),
+            targets,
+            sensors: LagModel::new(inputs, scn.sensors().into_iter().collect()),
+            base,
+        })
+    }
+
+    fn advance(&mut self, dt_s: f64, rpm: f64, ambient_c: f64) {
+        self.model.advance(dt_s, rpm, ambient_c);
+        self.sensors.advance(dt_s, rpm, ambient_c);
+    }
+
+    fn state(&self, rpm: f64) -> MachineState {
+        let mut s = self.base;
+        for (i, t) in self.targets.iter().enumerate() {
+            let v = self.model.value(i, rpm);
+            match t {
+                Target::Location(a, slot, scale) => s.loc[*a][*slot] += v * scale,
+                Target::Tool(j) => s.tool_tip[*j] += v * 1e-3,
+                Target::Setter(j) => s.beam_point[*j] += v * 1e-3,
+                Target::Radius => s.radius += v * 1e-3,
+                Target::Scale(j) => s.linear.k[*j] += v * 1e-6,
+                Target::Sxy => s.linear.sxy += v * 1e-6,
+                Target::Sxz => s.linear.sxz += v * 1e-6,
+                Target::Syz => s.linear.syz += v * 1e-6,
+            }
+        }
+        s
+    }
+
+    fn sample(&self, k: &Kinematics, t_ns: i64, rpm: f64, cycle: Option<i64>) -> TruthSample {
+        let app = k.apparent_state(&self.state(rpm));
+        let mut apparent = BTreeMap::new();
+        for id in &k.identify {
+            apparent.insert(
+                k.error_name(*id).to_string(),
+                app.loc[id.axis][id.slot] / id.scale(),
+            );
+        }
+        let shift = (app.beam_point - k.setter.point) * 1e3;
+        apparent.insert("setter_x_um".into(), shift.x);
+        apparent.insert("setter_y_um".into(), shift.y);
+        apparent.insert("setter_z_um".into(), shift.z);
+        let channels = self
+            .model
+            .names()
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.clone(), self.model.value(i, rpm)))
+            .collect();
+        TruthSample {
+            t_ns,
+            cycle,
+            rpm,
+            apparent,
+            channels,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, PartialOrd)]
+enum Event {
+    Segment(usize),
+    CycleEnd(usize),
+    CycleStart(usize),
+    Probe(usize, usize),
+    Sample,
+    Heartbeat,
+}
+
+fn ambient_at(scn: &Scenario, t_ns: i64) -> f64 {
+    let a = &scn.ambient;
+    if a.amplitude_k == 0.0 {
+        return a.mean_c;
+    }
+    let hours = (t_ns.rem_euclid(86_400_000_000_000)) as f64 / 3.6e12;
+    a.mean_c + a.amplitude_k * (2.0 * std::f64::consts::PI * (hours - a.peak_h) / a.period_h).cos()
+}
+
+/// Run a scenario.
+pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulation, SimError> {
+    let mut vm = Virtual::new(k, scn)?;
+    let start_ns = scn.start_ns();
+    let to_ns = |t_s: f64| start_ns + (t_s * 1e9).round() as i64;
+    let mut rng = ChaCha8Rng::seed_from_u64(scn.seed);
+    let duration_s = scn.duration_min * 60.0;
+    let cycle_len = plan.machine_time_s;
+
+    // Cycle windows, pushed back so that they never overlap.
+    let mut windows: Vec<(f64, f64)> = Vec::new();
+    for t in scn.cycle_times_min() {
+        let mut s = t * 60.0;
+        if let Some((_, e)) = windows.last()
+            && s < *e
+        {
+            s = *e;
+        }
+        if s < duration_s {
+            windows.push((s, s + cycle_len));
+        }
+    }
+    let in_cycle = |t: f64| windows.iter().position(|(s, e)| t >= *s && t < *e);
+    let segment_at = |t: f64| scn.spindle.iter().rposition(|s| s.at_min * 60.0 <= t);
+    let rpm_at = |t: f64| match in_cycle(t) {
+        Some(_) => plan.config.spindle_rpm,
+        None => segment_at(t).map(|i| scn.spindle[i].rpm).unwrap_or(0.0),
+    };
+
+    let mut events: Vec<(f64, Event)> = Vec::new();
+    for (i, s) in scn.spindle.iter().enumerate() {
+        events.push((s.at_min * 60.0, Event::Segment(i)));
+    }
+    for (c, (s, e)) in windows.iter().enumerate() {
+        events.push((*s, Event::CycleStart(c)));
+        for (i, st) in plan.steps.iter().enumerate() {
+            events.push((s + st.t_start_s, Event::Probe(c, i)));
+        }
+        events.push((*e, Event::CycleEnd(c)));
+    }
+    let mut t = 0.0;
+    while t < duration_s {
+        events.push((t, Event::Sample));
+        t += scn.sample_s;
+    }
+    let mut t = 0.0;
+    while t < duration_s {
+        events.push((t, Event::Heartbeat));
+        t += 10.0;
+    }
+    events.retain(|(t, _)| *t >= 0.0 && *t < duration_s);
+    events.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal)));
+
+    let mut sim = Simulation {
+        info: MachineInfo {
+            machine_id: scn.machine_id.clone(),
+            kinematics: k.name.clone(),
+            software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
+        },
+        states: Vec::new(),
+        spindle: Vec::new(),
+        temperatures: Vec::new(),
+        truth: Vec::new(),
+        cycles: Vec::new(),
+    };
+    vm.model.settle(0.0, ambient_at(scn, start_ns));
+    vm.sensors.settle(0.0, ambient_at(scn, start_ns));
+    let mut now = 0.0;
+    let mut last_rpm = f64::NAN;
+    let mut last_state: Option<(MachineStateKind, Option<String>)> = None;
+    // Snapshots of the virtual machine at each probe start of the open cycle.
+    let mut snapshots: Vec<(f64, Virtual)> = Vec::new();
+    let mut open: Option<SimCycle> = None;
+
+    for (te, ev) in events {
+        // Advance with the inputs held since `now` (every speed change is an event).
+        let rpm = rpm_at(now);
+        while now < te {
+            let dt = (te - now).min(60.0);
+            let amb = ambient_at(scn, to_ns(now + dt / 2.0));
+            vm.advance(dt, rpm, amb);
+            now += dt;
+        }
+        now = te;
+        let t_ns = to_ns(te);
+        let rpm_now = rpm_at(te);
+        if rpm_now != last_rpm || (matches!(ev, Event::Heartbeat) && rpm_now > 0.0) {
+            sim.spindle.push(Timed {
+                t_ns,
+                msg: SpindleMsg { rpm: rpm_now },
+            });
+            last_rpm = rpm_now;
+        }
+        let state_now = match in_cycle(te) {
+            Some(c) => (
+                MachineStateKind::Measuring,
+                Some(format!("driftwatch cycle {}", c + 1)),
+            ),
+            None => match segment_at(te) {
+                Some(i) => (scn.spindle[i].state, scn.spindle[i].program.clone()),
+                None => (MachineStateKind::Off, None),
+            },
+        };
+        if last_state.as_ref() != Some(&state_now) {
+            sim.states.push(Timed {
+                t_ns,
+                msg: StateMsg {
+                    state: state_now.0,
+                    program: state_now.1.clone(),
+                },
+            });
+            last_state = Some(state_now);
+        }
+        match ev {
+            Event::Sample => {
+                let amb = ambient_at(scn, t_ns);
+                if scn.ambient.logged {
+                    sim.temperatures.push(Timed {
+                        t_ns,
+                        msg: TemperatureMsg {
+                            sensor: "ambient".into(),
+                            celsius: amb,
+                        },
+                    });
+                }
+                for (i, name) in vm.sensors.names().iter().enumerate() {
+                    if scn.truth.unlogged.contains(name) {
+                        continue;
+                    }
+                    sim.temperatures.push(Timed {
+                        t_ns,
+                        msg: TemperatureMsg {
+                            sensor: name.clone(),
+                            celsius: vm.sensors.value(i, rpm_now),
+                        },
+                    });
+                }
+                sim.truth.push(vm.sample(k, t_ns, rpm_now, None));
+            }
+            Event::CycleStart(c) => {
+                snapshots.clear();
+                open = Some(SimCycle {
+                    number: c as i64 + 1,
+                    start_ns: t_ns,
+                    detections: Vec::new(),
+                    truth: vm.sample(k, t_ns, rpm_now, Some(c as i64 + 1)),
+                });
+            }
+            Event::Probe(c, i) => {
+                let step = &plan.steps[i];
+                snapshots.push((te, vm.clone()));
+                let feed = step.approach.feed_mm_min / 60.0;
+                let travel = step.travel();
+                let dir = f64::from(step.approach.direction);
+                let lat = step.approach.latency_shift(vm.base.latency_s);
+                // The trip time depends on where the beam is: two passes.
+                let mut t_trip = te + plan.config.clearance_mm / feed;
+                let mut outcome = None;
+                for _ in 0..2 {
+                    let mut peek = vm.clone();
+                    peek.advance(t_trip - te, rpm_now, ambient_at(scn, t_ns));
+                    let s = peek.state(rpm_now);
+                    let r = latched(k, &s, &step.angles, &step.approach, &step.start, Some(travel));
+                    if let Ok(v) = r {
+                        t_trip = te + ((v - lat) - travel.start).abs() / feed;
+                    }
+                    outcome = Some(r);
+                }
+                let mut pos = step.start;
+                let axis = step.approach.axis.index();
+                let forced_no_trip = rng.random::<f64>() < scn.noise.no_trip_rate;
+                let (status, t_det) = match outcome {
+                    Some(Ok(v)) if !forced_no_trip => {
+                        let z: f64 = StandardNormal.sample(&mut rng);
+                        let mut e_um = scn.noise.sigma_um * z;
+                        if rng.random::<f64>() < scn.noise.outlier_rate {
+                            let [lo, hi] = scn.noise.outlier_um;
+                            let size = lo + (hi - lo) * rng.random::<f64>();
+                            e_um += if rng.random::<bool>() { size } else { -size };
+                        }
+                        pos[axis] = v + e_um * 1e-3;
+                        (None, t_trip + vm.base.latency_s)
+                    }
+                    _ => {
+                        pos[axis] = travel.start + dir * travel.max_mm;
+                        (
+                            Some(DetectionStatus::NoTrip),
+                            te + travel.max_mm / feed,
+                        )
+                    }
+                };
+                if let Some(cy) = open.as_mut() {
+                    cy.detections.push(Timed {
+                        t_ns: to_ns(t_det),
+                        msg: DetectionMsg {
+                            cycle: c as i64 + 1,
+                            step: step.label.clone(),
+                            b_deg: step.b_deg,
+                            c_deg: step.c_deg,
+                            axis: step.approach.axis,
+                            direction: step.approach.direction,
+                            feed_mm_min: step.approach.feed_mm_min,
+                            spindle_rpm: plan.config.spindle_rpm,
+                            tool_id: k.tool_id.clone(),
+                            x_mm: pos.x,
+                            y_mm: pos.y,
+                            z_mm: pos.z,
+                            status,
+                        },
+                    });
+                }
+            }
+            Event::CycleEnd(_) => {
+                if let Some(mut cy) = open.take() {
+                    let ok = cy
+                        .detections
+                        .iter()
+                        .filter(|d| d.msg.status() == DetectionStatus::Ok)
+                        .map(|d| d.t_ns);
+                    let t_ref = crate::identify::mean_time_ns(ok);
+                    let t_ref_s = (t_ref - start_ns) as f64 / 1e9;
+                    let snap = snapshots
+                        .iter()
+                        .rev()
+                        .find(|(ts, _)| *ts <= t_ref_s)
+                        .or(snapshots.first());
+                    if let Some((ts, v)) = snap {
+                        let mut v = v.clone();
+                        let cycle_rpm = plan.config.spindle_rpm;
+                        v.advance(t_ref_s - ts, cycle_rpm, ambient_at(scn, t_ref));
+                        cy.truth = v.sample(k, t_ref, cycle_rpm, Some(cy.number));
+                    }
+                    sim.cycles.push(cy);
+                }
+            }
+            Event::Segment(_) | Event::Heartbeat => {}
+        }
+    }
+    Ok(sim)
+}
+
+/// A machine position as a vector (helper for callers building observations).
+pub fn detection_position(d: &DetectionMsg) -> Vec3 {
+    Vec3::new(d.x_mm, d.y_mm, d.z_mm)
+}

@@ -1,0 +1,287 @@
+//! Acceptance tests of the core library: conventions, identification, statistics,
+//! cross-check, identifiability, in-cycle drift and the patent experiment.
+
+use driftwatch::cycle::CycleChecks;
+use driftwatch::experiment;
+use driftwatch::geometry::Vec3;
+use driftwatch::identify::{Identifier, Observation, SolveError, SolveOptions, identify};
+use driftwatch::kinematics::{Kinematics, MachineState};
+use driftwatch::measurement::{Axis, latched};
+use driftwatch::patent_relations;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::scenario::Scenario;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+fn table_bc() -> Kinematics {
+    Kinematics::builtin("table_bc").unwrap()
+}
+
+fn plan(k: &Kinematics, name: &str) -> Plan {
+    Plan::build(k, &PlanConfig::load(name).unwrap()).unwrap()
+}
+
+/// Readings of a plan on a machine in state `truth`, with Gaussian noise of `sigma_um`.
+fn observe(k: &Kinematics, plan: &Plan, truth: &MachineState, sigma_um: f64, rng: &mut ChaCha8Rng) -> Vec<Observation> {
+    plan.steps
+        .iter()
+        .map(|s| {
+            let v = latched(k, truth, &s.angles, &s.approach, &s.start, None).unwrap();
+            let z: f64 = StandardNormal.sample(rng);
+            let mut position = s.start;
+            position[s.approach.axis.index()] = v + sigma_um * z * 1e-3;
+            Observation {
+                label: s.label.clone(),
+                angles: s.angles,
+                approach: s.approach,
+                position,
+                t_ns: (s.t_start_s * 1e9) as i64,
+            }
+        })
+        .collect()
+}
+
+fn set_errors(k: &Kinematics, s: &mut MachineState, values: &[f64]) {
+    for (id, v) in k.identify.iter().zip(values) {
+        s.loc[id.axis][id.slot] = v * id.scale();
+    }
+}
+
+#[test]
+fn conventions_c_minus_90_is_counter_clockwise_and_b_minus_90_is_met_from_plus_x() {
+    let k = table_bc();
+    let s = k.nominal_state();
+    // C = -90: a table point on +X moves to +Y (counter-clockwise seen from +Z).
+    let t = k.pose_transform(&s, &[0.0, -90.0, 0.0]);
+    assert!((t.point(&Vec3::new(1.0, 0.0, 0.0)) - Vec3::new(0.0, 1.0, 0.0)).norm() < 1e-12);
+    // B = -90: the table top faces +X; the patent plan meets the setter from +X moving -X.
+    let t = k.pose_transform(&s, &[-90.0, 0.0, 0.0]);
+    assert!((t.vector(&Vec3::z()) - Vec3::x()).norm() < 1e-12);
+    let p = plan(&k, "patent");
+    let x5 = p.steps.iter().find(|s| s.b_deg == -90.0 && s.approach.axis == Axis::X).unwrap();
+    assert_eq!(x5.approach.direction, -1);
+    assert!(x5.start.x > x5.expected, "starts on the +X side");
+}
+
+#[test]
+fn noise_free_round_trip_recovers_errors_and_setter_placement() {
+    let k = table_bc();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut worst = (0.0f64, 0.0f64);
+    for name in ["patent", "patent_sequential"] {
+        let p = plan(&k, name);
+        for _ in 0..200 {
+            let mut truth = k.nominal_state();
+            let vals: Vec<f64> = (0..6)
+                .map(|i| {
+                    let lim = if i < 4 { 100.0 } else { 300.0 };
+                    rng.random_range(-lim..lim)
+                })
+                .collect();
+            set_errors(&k, &mut truth, &vals);
+            truth.beam_point += Vec3::new(
+                rng.random_range(-0.5..0.5),
+                rng.random_range(-0.5..0.5),
+                rng.random_range(-0.5..0.5),
+            );
+            let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+            let sol = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+            for (e, v) in sol.errors.iter().zip(&vals) {
+                let d = (e.value - v).abs();
+                if e.unit == "um" {
+                    worst.0 = worst.0.max(d);
+                } else {
+                    worst.1 = worst.1.max(d);
+                }
+            }
+            let height = sol.nuisance.iter().find(|n| n.name == "setter_height_um").unwrap();
+            let dz = (truth.beam_point.z - k.setter.point.z) * 1e3;
+            assert!((height.value - dz).abs() < 1e-3, "setter height {} vs {dz}", height.value);
+        }
+    }
+    println!("worst noise-free error: {:.2e} um, {:.2e} urad", worst.0, worst.1);
+    assert!(worst.0 < 1e-3 && worst.1 < 1e-2, "{worst:?}");
+}
+
+#[test]
+fn monte_carlo_matches_reported_uncertainty_and_cramer_rao() {
+    let k = table_bc();
+    let p = plan(&k, "patent_sequential");
+    let sigma = 0.5;
+    let mut truth = k.nominal_state();
+    let vals = [20.0, 80.0, 4.0, 2.0, 30.0, -40.0];
+    set_errors(&k, &mut truth, &vals);
+    let mut rng = ChaCha8Rng::seed_from_u64(2024);
+    let template = observe(&k, &p, &k.nominal_state(), 0.0, &mut rng);
+    let opts = SolveOptions::new(sigma);
+    let id = Identifier::new(&k, &template, &opts).unwrap();
+    let crb = id.cramer_rao(&template).unwrap();
+    let trials = 4000;
+    let mut est = vec![Vec::with_capacity(trials); 6];
+    let mut reported = vec![0.0; 6];
+    let mut chi2 = 0.0;
+    let mut dof = 0;
+    for _ in 0..trials {
+        let obs = observe(&k, &p, &truth, sigma, &mut rng);
+        let s = id.solve(&obs).unwrap();
+        for (i, e) in s.errors.iter().enumerate() {
+            est[i].push(e.value);
+            reported[i] += e.sigma / trials as f64;
+        }
+        chi2 += s.chi2 / trials as f64;
+        dof = s.dof;
+    }
+    for i in 0..6 {
+        let n = trials as f64;
+        let mean = est[i].iter().sum::<f64>() / n;
+        let sd = (est[i].iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let name = &crb[i].name;
+        println!(
+            "{name}: sd {sd:.4}, reported {:.4}, CRB {:.4}, bias {:.4} sd",
+            reported[i],
+            crb[i].sigma,
+            (mean - vals[i]) / sd
+        );
+        assert!((sd / reported[i] - 1.0).abs() < 0.05, "{name}: sd {sd} vs reported {}", reported[i]);
+        assert!((sd / crb[i].sigma - 1.0).abs() < 0.05, "{name}: sd {sd} vs CRB {}", crb[i].sigma);
+        assert!(((mean - vals[i]) / sd).abs() < 0.05, "{name}: bias {}", mean - vals[i]);
+    }
+    println!("mean chi2 {chi2:.3} for {dof} dof");
+    assert!(dof > 0 && (chi2 / dof as f64 - 1.0).abs() < 0.05);
+}
+
+#[test]
+fn first_order_relations_agree_within_second_order_terms() {
+    // Bound: products of two small quantities, |theta|^2 * L with L ~ 200 mm and setter
+    // offsets (<= 0.1 mm) times angles (<= 50 urad): 0.1 mm * 50e-6 = 5 nm, doubled for
+    // sums of such terms; orientations: that over the 2R = 200 mm lever, 0.05 urad.
+    let k = table_bc();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut worst = (0.0f64, 0.0f64);
+    for name in ["patent", "patent_sequential"] {
+        let p = plan(&k, name);
+        for _ in 0..100 {
+            let mut truth = k.nominal_state();
+            let vals: Vec<f64> = (0..6)
+                .map(|i| if i < 4 { rng.random_range(-10.0..10.0) } else { rng.random_range(-50.0..50.0) })
+                .collect();
+            set_errors(&k, &mut truth, &vals);
+            truth.beam_point += Vec3::new(0.0, rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1));
+            let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+            let exact = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+            let first = patent_relations::estimate(&k, &obs).unwrap();
+            for e in &exact.errors {
+                let d = (e.value - first.errors[&e.name]).abs();
+                if e.unit == "um" {
+                    worst.0 = worst.0.max(d);
+                } else {
+                    worst.1 = worst.1.max(d);
+                }
+            }
+        }
+    }
+    println!("largest difference exact vs first-order: {:.4} um, {:.4} urad", worst.0, worst.1);
+    assert!(worst.0 < 0.01 && worst.1 < 0.05, "{worst:?}");
+}
+
+#[test]
+fn the_quoted_x_difference_relation_has_the_wrong_sign() {
+    let k = table_bc();
+    let p = plan(&k, "patent_sequential");
+    let mut truth = k.nominal_state();
+    set_errors(&k, &mut truth, &[0.0, 0.0, 0.0, 0.0, 0.0, 40.0]);
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+    let r = |l: &str| obs.iter().find(|o| o.label == l).unwrap().reading();
+    let beta = 40e-6;
+    // With EA0C = 0 the flat-end terms of z2 and z4 are equal and cancel.
+    let lhs = r("B0C-270/z") - r("B0C-90/z");
+    let quoted = (r("B0C-270/x") - r("B0C-90/x")) * beta;
+    let derived = (r("B0C-90/x") - r("B0C-270/x")) * beta;
+    // The lever is 2R, not x2 - x4 = 2(R + r): a 5 % difference.
+    assert!((lhs - derived).abs() < 0.06 * lhs.abs(), "{lhs} vs {derived}");
+    assert!((lhs - quoted).abs() > 1.5 * lhs.abs());
+}
+
+#[test]
+fn a_plan_without_tilted_pose_names_what_it_cannot_separate() {
+    let k = table_bc();
+    let mut cfg = PlanConfig::load("patent_sequential").unwrap();
+    cfg.poses.retain(|p| p.b_deg == 0.0);
+    let p = Plan::build(&k, &cfg).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let obs = observe(&k, &p, &k.nominal_state(), 0.5, &mut rng);
+    let err = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap_err();
+    let text = err.to_string();
+    println!("{text}");
+    assert!(matches!(err, SolveError::NotIdentifiable { .. }));
+    assert!(text.contains("EZ0B") && text.contains("EX0B") && text.contains("EX0C"), "{text}");
+    assert!(text.contains("tilted pose"), "{text}");
+}
+
+fn worst_orientation_alias(plan_cfg: &PlanConfig, drift_rates: bool) -> (f64, f64) {
+    let mut scn = Scenario::load("warmup").unwrap();
+    scn.noise.sigma_um = 0.0;
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, plan_cfg).unwrap();
+    let mut checks = CycleChecks::new(&k);
+    if drift_rates {
+        checks.solve = checks.solve.with_drift_rates();
+    }
+    let ex = experiment::run(&scn, &k, &p, &checks, 1e9).unwrap();
+    let mut worst = 0.0f64;
+    for r in &ex.rows {
+        for n in ["EA0C", "EB0C"] {
+            let (v, _, t) = r.values[n];
+            worst = worst.max((v - t).abs());
+        }
+    }
+    (worst, p.machine_time_s)
+}
+
+#[test]
+fn in_cycle_drift_aliases_in_sequential_order_and_cancels_in_symmetric_order() {
+    // A slow cycle (air blast and spindle settle before each touch, slow probing), about the
+    // 7.5 min physics.md assumes, and the default one.
+    let mut slow_seq = PlanConfig::load("patent_sequential").unwrap();
+    slow_seq.dwell_s = 30.0;
+    slow_seq.feed_mm_min = 20.0;
+    // The time-symmetric plan has 24 approaches: a shorter dwell gives the same cycle length.
+    let mut slow_sym = PlanConfig::load("patent").unwrap();
+    slow_sym.dwell_s = 12.0;
+    slow_sym.feed_mm_min = 20.0;
+    let (seq_slow, t_seq_slow) = worst_orientation_alias(&slow_seq, false);
+    let (sym_slow, t_sym_slow) = worst_orientation_alias(&slow_sym, false);
+    let (seq, t_seq) = worst_orientation_alias(&PlanConfig::load("patent_sequential").unwrap(), false);
+    let (sym, t_sym) = worst_orientation_alias(&PlanConfig::load("patent").unwrap(), false);
+    let (seq_rates, _) = worst_orientation_alias(&slow_seq, true);
+    println!("largest |EA0C, EB0C identified - truth| in warm-up, noise-free:");
+    println!("  sequential {t_seq_slow:.0} s cycle: {seq_slow:.2} urad; with drift rates: {seq_rates:.2} urad");
+    println!("  time-symmetric {t_sym_slow:.0} s cycle: {sym_slow:.2} urad");
+    println!("  sequential {t_seq:.0} s cycle: {seq:.2} urad; time-symmetric {t_sym:.0} s: {sym:.2} urad");
+    assert!(seq_slow >= 20.0, "tens of urad expected, got {seq_slow}");
+    // At the default feeds the time-symmetric cycle is under 2 urad; at equal (slow) cycle
+    // length what remains is the curvature of the 11-min lag over the cycle.
+    assert!(sym < 2.0, "{sym}");
+    assert!(seq > 10.0 * sym, "{seq} vs {sym}");
+    assert!(sym_slow < seq_slow / 5.0, "{sym_slow} vs {seq_slow}");
+    assert!(seq_rates < seq_slow / 3.0, "{seq_rates} vs {seq_slow}");
+}
+
+#[test]
+fn patent_experiment_reproduces_the_published_drift() {
+    let scn = Scenario::load("patent").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let mut checks = CycleChecks::new(&k);
+    checks.expected_steps = Some(p.steps.iter().map(|s| s.label.clone()).collect());
+    let ex = experiment::run(&scn, &k, &p, &checks, 210.0).unwrap();
+    let s = &ex.summary;
+    println!("{s:?}");
+    assert_eq!(s.cycles_ok, 15);
+    assert!((s.ez0b_rise_um - 80.0).abs() <= 5.0, "{}", s.ez0b_rise_um);
+    assert!((s.ez0b_drop_um - 45.0).abs() <= 5.0, "{}", s.ez0b_drop_um);
+    assert!((s.ex0b_rise_um - 20.0).abs() <= 5.0, "{}", s.ex0b_rise_um);
+    assert!(s.max_abs_z < 3.0, "{}", s.max_abs_z);
+}
