@@ -54,7 +54,12 @@ impl CycleOutcome {
     pub fn message(&self) -> CycleResultMsg {
         let s = self.solution.as_ref();
         let map = |f: fn(&crate::identify::Estimate) -> f64| {
-            s.map(|s| s.errors.iter().map(|e| (e.name.clone(), f(e))).collect::<BTreeMap<_, _>>())
+            s.map(|s| {
+                s.errors
+                    .iter()
+                    .map(|e| (e.name.clone(), f(e)))
+                    .collect::<BTreeMap<_, _>>()
+            })
         };
         CycleResultMsg {
             cycle: self.cycle,
@@ -67,7 +72,12 @@ impl CycleOutcome {
             chi2: s.map(|s| s.chi2),
             dof: s.map(|s| s.dof),
             n_detections: Some(self.n_detections),
-            nuisance: s.map(|s| s.nuisance.iter().map(|e| (e.name.clone(), e.value)).collect()),
+            nuisance: s.map(|s| {
+                s.nuisance
+                    .iter()
+                    .map(|e| (e.name.clone(), e.value))
+                    .collect()
+            }),
             redundancy_um: s.map(|s| s.redundancy_um.clone()),
         }
     }
@@ -95,7 +105,11 @@ pub fn group_by_cycle(detections: &[Entry]) -> (BTreeMap<i64, Vec<Entry>>, Unass
             None => un.problems.push(format!(
                 "a /probe/detection message at t = {} ns has no readable cycle number: {}",
                 d.t_ns,
-                d.msg.as_ref().err().map(|i| i.message.as_str()).unwrap_or("")
+                d.msg
+                    .as_ref()
+                    .err()
+                    .map(|i| i.message.as_str())
+                    .unwrap_or("")
             )),
         }
     }
@@ -103,7 +117,9 @@ pub fn group_by_cycle(detections: &[Entry]) -> (BTreeMap<i64, Vec<Entry>>, Unass
 }
 
 /// The step set shared by most cycles (at least two), to check the others against.
-pub fn infer_expected_steps(groups: &BTreeMap<i64, Vec<Entry>>) -> Option<(BTreeSet<String>, usize)> {
+pub fn infer_expected_steps(
+    groups: &BTreeMap<i64, Vec<Entry>>,
+) -> Option<(BTreeSet<String>, usize)> {
     let mut counts: BTreeMap<BTreeSet<String>, usize> = BTreeMap::new();
     for entries in groups.values() {
         let set: BTreeSet<String> = entries
@@ -133,7 +149,12 @@ pub fn observation(k: &Kinematics, t_ns: i64, m: &DetectionMsg) -> Observation {
 }
 
 /// Validate and solve one cycle.
-pub fn process_cycle(k: &Kinematics, cycle: i64, entries: &[Entry], checks: &CycleChecks) -> CycleOutcome {
+pub fn process_cycle(
+    k: &Kinematics,
+    cycle: i64,
+    entries: &[Entry],
+    checks: &CycleChecks,
+) -> CycleOutcome {
     let mut reasons: Vec<String> = Vec::new();
     let mut ok: Vec<(i64, &DetectionMsg)> = Vec::new();
     for e in entries {
@@ -163,7 +184,11 @@ pub fn process_cycle(k: &Kinematics, cycle: i64, entries: &[Entry], checks: &Cyc
         if !missing.is_empty() {
             reasons.push(format!(
                 "missing steps: {}",
-                missing.iter().map(|s| format!("'{s}'")).collect::<Vec<_>>().join(", ")
+                missing
+                    .iter()
+                    .map(|s| format!("'{s}'"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             ));
         }
     }
@@ -183,7 +208,11 @@ pub fn process_cycle(k: &Kinematics, cycle: i64, entries: &[Entry], checks: &Cyc
             continue;
         }
         if m.status() != DetectionStatus::Ok {
-            let s = if m.status() == DetectionStatus::NoTrip { "no_trip" } else { "aborted" };
+            let s = if m.status() == DetectionStatus::NoTrip {
+                "no_trip"
+            } else {
+                "aborted"
+            };
             reasons.push(format!(
                 "step '{}' did not trip ({s}): broken tool, blocked beam or wrong tool?",
                 m.step
@@ -251,7 +280,11 @@ pub fn process_cycle(k: &Kinematics, cycle: i64, entries: &[Entry], checks: &Cyc
 }
 
 /// Validate and solve every cycle of a detection stream.
-pub fn process_all(k: &Kinematics, detections: &[Entry], checks: &CycleChecks) -> (Vec<CycleOutcome>, Unassigned) {
+pub fn process_all(
+    k: &Kinematics,
+    detections: &[Entry],
+    checks: &CycleChecks,
+) -> (Vec<CycleOutcome>, Unassigned) {
     let (groups, un) = group_by_cycle(detections);
     let out = groups
         .iter()

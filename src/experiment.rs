@@ -142,7 +142,13 @@ impl Experiment {
         }
         out.push_str(",reason\n");
         for r in &self.rows {
-            let _ = write!(out, "{},{:.3},{}", r.cycle, r.t_min, if r.ok { "ok" } else { "rejected" });
+            let _ = write!(
+                out,
+                "{},{:.3},{}",
+                r.cycle,
+                r.t_min,
+                if r.ok { "ok" } else { "rejected" }
+            );
             for n in &names {
                 match r.values.get(n) {
                     Some((v, s, t)) => {
@@ -163,7 +169,11 @@ impl Experiment {
         let mut out = String::new();
         let _ = write!(out, "{:>5} {:>8}", "cycle", "t/min");
         for n in &names {
-            let unit = if n.starts_with("EA") || n.starts_with("EB") || n.starts_with("EC") { "urad" } else { "um" };
+            let unit = if n.starts_with("EA") || n.starts_with("EB") || n.starts_with("EC") {
+                "urad"
+            } else {
+                "um"
+            };
             let _ = write!(out, " {:>24}", format!("{n} id/truth [{unit}]"));
         }
         out.push('\n');
@@ -188,7 +198,9 @@ impl Experiment {
         {
             let root = SVGBackend::with_string(&mut buf, (1000, 760)).into_drawing_area();
             root.fill(&WHITE).map_err(|e| e.to_string())?;
-            let root = root.titled(title, ("sans-serif", 18)).map_err(|e| e.to_string())?;
+            let root = root
+                .titled(title, ("sans-serif", 18))
+                .map_err(|e| e.to_string())?;
             let panels = root.split_evenly((2, 1));
             let start = self.simulation.truth.first().map(|t| t.t_ns).unwrap_or(0);
             let groups: [(&str, &[&str]); 2] = [
@@ -220,7 +232,12 @@ impl Experiment {
                     hi = 1.0;
                 }
                 let pad = 0.05 * (hi - lo).max(1.0);
-                let t_end = self.simulation.truth.last().map(|t| (t.t_ns - start) as f64 / 60e9).unwrap_or(1.0);
+                let t_end = self
+                    .simulation
+                    .truth
+                    .last()
+                    .map(|t| (t.t_ns - start) as f64 / 60e9)
+                    .unwrap_or(1.0);
                 let mut chart = ChartBuilder::on(panel)
                     .margin(10)
                     .x_label_area_size(35)
@@ -238,7 +255,11 @@ impl Experiment {
                         .simulation
                         .truth
                         .iter()
-                        .filter_map(|t| t.apparent.get(*n).map(|v| ((t.t_ns - start) as f64 / 60e9, *v)))
+                        .filter_map(|t| {
+                            t.apparent
+                                .get(*n)
+                                .map(|v| ((t.t_ns - start) as f64 / 60e9, *v))
+                        })
                         .collect();
                     chart
                         .draw_series(LineSeries::new(truth, color.stroke_width(1)))
@@ -252,11 +273,21 @@ impl Experiment {
                         .collect();
                     chart
                         .draw_series(pts.iter().map(|(t, v, s)| {
-                            ErrorBar::new_vertical(*t, v - 2.0 * s, *v, v + 2.0 * s, color.filled(), 6)
+                            ErrorBar::new_vertical(
+                                *t,
+                                v - 2.0 * s,
+                                *v,
+                                v + 2.0 * s,
+                                color.filled(),
+                                6,
+                            )
                         }))
                         .map_err(|e| e.to_string())?;
                     chart
-                        .draw_series(pts.iter().map(|(t, v, _)| Circle::new((*t, *v), 3, color.filled())))
+                        .draw_series(
+                            pts.iter()
+                                .map(|(t, v, _)| Circle::new((*t, *v), 3, color.filled())),
+                        )
                         .map_err(|e| e.to_string())?;
                 }
                 chart
@@ -271,4 +302,3 @@ impl Experiment {
         Ok(buf)
     }
 }
-

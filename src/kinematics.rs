@@ -20,10 +20,8 @@ use crate::geometry::{Affine, Mat3, Vec3, deg_to_rad, rotation};
 pub const MAX_ROTARY: usize = 3;
 
 /// Built-in machine descriptions, by name.
-pub const BUILTIN_MACHINES: &[(&str, &str)] = &[(
-    "table_bc",
-    include_str!("../config/machines/table_bc.toml"),
-)];
+pub const BUILTIN_MACHINES: &[(&str, &str)] =
+    &[("table_bc", include_str!("../config/machines/table_bc.toml"))];
 
 #[derive(Debug, Error)]
 pub enum MachineError {
@@ -204,6 +202,9 @@ pub struct Setter {
     pub sigma_um: f64,
     pub latency_s: f64,
 }
+
+/// Offsets of the axis lines from their nominal points and their actual directions.
+pub type AxisLines = ([Vec3; MAX_ROTARY], [Vec3; MAX_ROTARY]);
 
 /// A validated machine description.
 #[derive(Debug, Clone)]
@@ -434,9 +435,7 @@ impl Kinematics {
                 .error_id(name)
                 .ok_or_else(|| invalid(format!("held names unknown error '{name}'")))?;
             if k.identify.contains(&id) {
-                return Err(invalid(format!(
-                    "'{name}' is both identified and held"
-                )));
+                return Err(invalid(format!("'{name}' is both identified and held")));
             }
             if !v.is_finite() {
                 return Err(invalid(format!("held value of '{name}' is not finite")));
@@ -499,7 +498,18 @@ impl Kinematics {
 
     /// The work-side transform table -> machine at the commanded angles (deg).
     pub fn pose_transform(&self, state: &MachineState, angles_deg: &[f64]) -> Affine {
-        let (offsets, dirs) = self.lines(state);
+        self.pose_transform_on(&self.lines(state), state, angles_deg)
+    }
+
+    /// As [`Kinematics::pose_transform`], with the axis lines of `state` already computed
+    /// (many poses of one state share them).
+    pub fn pose_transform_on(
+        &self,
+        lines: &AxisLines,
+        state: &MachineState,
+        angles_deg: &[f64],
+    ) -> Affine {
+        let (offsets, dirs) = lines;
         let mut total = Affine::identity();
         for (i, ax) in self.rotary.iter().enumerate() {
             let angle =
@@ -511,7 +521,7 @@ impl Kinematics {
     }
 
     /// Absolute offsets of each axis line from its nominal point and the actual directions.
-    fn lines(&self, state: &MachineState) -> ([Vec3; MAX_ROTARY], [Vec3; MAX_ROTARY]) {
+    pub fn lines(&self, state: &MachineState) -> AxisLines {
         let mut offsets = [Vec3::zeros(); MAX_ROTARY];
         let mut dirs = [Vec3::zeros(); MAX_ROTARY];
         let mut parent = Vec3::zeros();
@@ -674,7 +684,11 @@ mod tests {
             ([90.0, -90.0, 0.0], Axis::Z, -1, Vec3::new(-70.0, 0.0, 0.0)),
         ];
         for (angles, axis, direction, c) in probes {
-            let ap = Approach { axis, direction, feed_mm_min: 100.0 };
+            let ap = Approach {
+                axis,
+                direction,
+                feed_mm_min: 100.0,
+            };
             let v1 = latched(&k, &s, &angles, &ap, &c, None).unwrap();
             let v2 = latched(&k, &a, &angles, &ap, &c, None).unwrap();
             assert!((v1 - v2).abs() < 1e-12, "{angles:?}: {v1} vs {v2}");
@@ -684,6 +698,9 @@ mod tests {
     #[test]
     fn unknown_machine_is_named() {
         let e = Kinematics::load("no_such_machine").unwrap_err().to_string();
-        assert!(e.contains("no_such_machine") && e.contains("table_bc"), "{e}");
+        assert!(
+            e.contains("no_such_machine") && e.contains("table_bc"),
+            "{e}"
+        );
     }
 }

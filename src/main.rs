@@ -20,7 +20,11 @@ use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
 #[derive(Parser)]
-#[command(name = "driftwatch", version, about = "Keeps a 5-axis machine's rotary-axis compensation true while it heats and cools")]
+#[command(
+    name = "driftwatch",
+    version,
+    about = "Keeps a 5-axis machine's rotary-axis compensation true while it heats and cools"
+)]
 struct Cli {
     /// Log as JSON lines instead of text.
     #[arg(long, global = true)]
@@ -129,7 +133,9 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let sub = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    let sub = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
     if cli.log_json {
         sub.json().init();
     } else {
@@ -161,7 +167,11 @@ fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
 
 fn run(cmd: Command) -> Result<ExitCode> {
     match cmd {
-        Command::Simulate { scenario, out, plan } => cmd_simulate(&scenario, &out, plan.as_deref()),
+        Command::Simulate {
+            scenario,
+            out,
+            plan,
+        } => cmd_simulate(&scenario, &out, plan.as_deref()),
         Command::Solve {
             machine,
             recording,
@@ -169,7 +179,14 @@ fn run(cmd: Command) -> Result<ExitCode> {
             plan,
             recover,
             solver,
-        } => cmd_solve(&machine, &recording, json, plan.as_deref(), recover, &solver),
+        } => cmd_solve(
+            &machine,
+            &recording,
+            json,
+            plan.as_deref(),
+            recover,
+            &solver,
+        ),
         Command::Experiment {
             which: Which::Patent,
             out_dir,
@@ -214,9 +231,18 @@ fn write_recording(
     let mut items: Vec<(i64, u8, usize)> = Vec::new();
     items.extend(sim.states.iter().enumerate().map(|(i, m)| (m.t_ns, 0, i)));
     items.extend(sim.spindle.iter().enumerate().map(|(i, m)| (m.t_ns, 1, i)));
-    items.extend(sim.temperatures.iter().enumerate().map(|(i, m)| (m.t_ns, 2, i)));
+    items.extend(
+        sim.temperatures
+            .iter()
+            .enumerate()
+            .map(|(i, m)| (m.t_ns, 2, i)),
+    );
     items.extend(sim.truth.iter().enumerate().map(|(i, m)| (m.t_ns, 3, i)));
-    let dets: Vec<&Timed<rec::DetectionMsg>> = sim.cycles.iter().flat_map(|c| c.detections.iter()).collect();
+    let dets: Vec<&Timed<rec::DetectionMsg>> = sim
+        .cycles
+        .iter()
+        .flat_map(|c| c.detections.iter())
+        .collect();
     items.extend(dets.iter().enumerate().map(|(i, m)| (m.t_ns, 4, i)));
     let mut results: Vec<(i64, rec::CycleResultMsg)> = Vec::new();
     for (o, c) in outcomes.iter().zip(&sim.cycles) {
@@ -225,7 +251,12 @@ fn write_recording(
         results.push((t, o.message()));
     }
     items.extend(results.iter().enumerate().map(|(i, m)| (m.0, 5, i)));
-    items.extend(sim.cycles.iter().enumerate().map(|(i, c)| (c.truth.t_ns, 6, i)));
+    items.extend(
+        sim.cycles
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (c.truth.t_ns, 6, i)),
+    );
     items.sort();
     let mut since_flush = 0;
     for (t, kind, i) in items {
@@ -256,7 +287,10 @@ fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCo
         .cycles
         .iter()
         .flat_map(|c| c.detections.iter())
-        .map(|d| Timed { t_ns: d.t_ns, msg: Ok(d.msg.clone()) })
+        .map(|d| Timed {
+            t_ns: d.t_ns,
+            msg: Ok(d.msg.clone()),
+        })
         .collect();
     let mut checks = CycleChecks::new(&k);
     checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
@@ -284,7 +318,12 @@ fn cmd_solve(
     args: &SolverArgs,
 ) -> Result<ExitCode> {
     let k = Kinematics::load(machine)?;
-    let recording = read_file(path, &ReadOptions { recover_truncated: recover })?;
+    let recording = read_file(
+        path,
+        &ReadOptions {
+            recover_truncated: recover,
+        },
+    )?;
     if let Some(t) = &recording.truncated {
         eprintln!("warning: {}: {t}", path.display());
     }
@@ -308,10 +347,19 @@ fn cmd_solve(
     }
     if let Some(plan) = plan {
         let p = Plan::build(&k, &PlanConfig::load(plan)?)?;
-        checks.expected_steps = Some(p.steps.iter().map(|s| s.label.clone()).collect::<BTreeSet<_>>());
+        checks.expected_steps = Some(
+            p.steps
+                .iter()
+                .map(|s| s.label.clone())
+                .collect::<BTreeSet<_>>(),
+        );
     } else if let Some((steps, n)) = infer_expected_steps(&groups) {
         if !json {
-            println!("expected steps: the {} shared by {n} of {} cycles", steps.len(), groups.len());
+            println!(
+                "expected steps: the {} shared by {n} of {} cycles",
+                steps.len(),
+                groups.len()
+            );
         }
         checks.expected_steps = Some(steps);
     }
@@ -320,7 +368,10 @@ fn cmd_solve(
     }
     let names = k.identify_names();
     if !json {
-        print!("{:>5} {:>30} {:>8}", "cycle", "reference time (UTC)", "status");
+        print!(
+            "{:>5} {:>30} {:>8}",
+            "cycle", "reference time (UTC)", "status"
+        );
         for n in &names {
             print!(" {:>18}", n);
         }
@@ -378,7 +429,13 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
     println!(
         "scenario '{}': {} on {}, plan '{}' ({} approaches, {:.1} s machine time), seed {}",
-        scn.name, scn.description, k.name, plan.name, plan.steps.len(), plan.machine_time_s, scn.seed
+        scn.name,
+        scn.description,
+        k.name,
+        plan.name,
+        plan.steps.len(),
+        plan.machine_time_s,
+        scn.seed
     );
     print!("{}", ex.table());
     let s = &ex.summary;
@@ -405,7 +462,13 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     write_recording(&mcap, &ex.simulation, &ex.outcomes)?;
     let summary = out_dir.join("summary.json");
     std::fs::write(&summary, serde_json::to_string_pretty(&ex.summary)?)?;
-    println!("wrote {}, {}, {}, {}", csv.display(), svg.display(), mcap.display(), summary.display());
+    println!(
+        "wrote {}, {}, {}, {}",
+        csv.display(),
+        svg.display(),
+        mcap.display(),
+        summary.display()
+    );
     Ok(ExitCode::SUCCESS)
 }
 
@@ -440,7 +503,15 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
     for m in &plan.moves {
         println!(
             "{:>8.2} {:>7.2} {:>9.3} {:>9.3} {:>9.3} {:>8.1} {:>8.1}  {:?} {}",
-            m.t_start_s, m.duration_s, m.to[0], m.to[1], m.to[2], m.angles_deg[0], m.angles_deg[1], m.kind, m.note
+            m.t_start_s,
+            m.duration_s,
+            m.to[0],
+            m.to[1],
+            m.to[2],
+            m.angles_deg[0],
+            m.angles_deg[1],
+            m.kind,
+            m.note
         );
     }
     println!(

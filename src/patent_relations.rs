@@ -35,7 +35,9 @@ use crate::measurement::Axis;
 
 #[derive(Debug, Error, PartialEq)]
 pub enum RelationsError {
-    #[error("the relations need the patent layout (beam along table X through (0, -R, H)); this setter differs")]
+    #[error(
+        "the relations need the patent layout (beam along table X through (0, -R, H)); this setter differs"
+    )]
     Layout,
     #[error("reading {0} (pose and axis of the patent cycle) is missing")]
     Missing(&'static str),

@@ -283,9 +283,8 @@ impl Plan {
                     direction,
                     feed_mm_min: cfg.feed_mm_min,
                 };
-                let expected = latched(k, &nominal, &angles, &approach, &held, None).map_err(
-                    |e: NoTrip| invalid(format!("pose {label_pose}, {spec_text}: {e}")),
-                )?;
+                let expected = latched(k, &nominal, &angles, &approach, &held, None)
+                    .map_err(|e: NoTrip| invalid(format!("pose {label_pose}, {spec_text}: {e}")))?;
                 let mut start = held;
                 start[axis.index()] = expected - f64::from(direction) * cfg.clearance_mm;
                 for rep in 0..pose.repeats.max(1) {
@@ -322,7 +321,10 @@ impl Plan {
                     .chain(per_pose.iter().filter(|(t, _)| *t))
                     .flat_map(|(_, s)| s.iter())
                     .collect();
-                for (pass, seq) in [(1, forward.clone()), (2, forward.into_iter().rev().collect())] {
+                for (pass, seq) in [
+                    (1, forward.clone()),
+                    (2, forward.into_iter().rev().collect()),
+                ] {
                     for s in seq {
                         let mut s = s.clone();
                         s.label.push_str(&format!("#{pass}"));
@@ -353,13 +355,13 @@ impl Plan {
         let mut angles = [0.0; MAX_ROTARY];
         let mut moves = Vec::new();
         let push = |moves: &mut Vec<Move>,
-                        t: &mut f64,
-                        kind: MoveKind,
-                        d: f64,
-                        to: Vec3,
-                        a: [f64; MAX_ROTARY],
-                        step: Option<usize>,
-                        note: String| {
+                    t: &mut f64,
+                    kind: MoveKind,
+                    d: f64,
+                    to: Vec3,
+                    a: [f64; MAX_ROTARY],
+                    step: Option<usize>,
+                    note: String| {
             moves.push(Move {
                 kind,
                 t_start_s: *t,
@@ -380,14 +382,25 @@ impl Plan {
                 if pos.z < k.motion.safe_z_mm {
                     let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
                     let d = (k.motion.safe_z_mm - pos.z) / rapid;
-                    push(&mut moves, &mut t, MoveKind::Rapid, d, to, angles, None, "retract to safe Z".into());
+                    push(
+                        &mut moves,
+                        &mut t,
+                        MoveKind::Rapid,
+                        d,
+                        to,
+                        angles,
+                        None,
+                        "retract to safe Z".into(),
+                    );
                     pos = to;
                 }
                 let dur = k
                     .rotary
                     .iter()
                     .enumerate()
-                    .map(|(j, ax)| wrap_deg(step.angles[j] - angles[j]).abs() / (ax.speed_deg_min / 60.0))
+                    .map(|(j, ax)| {
+                        wrap_deg(step.angles[j] - angles[j]).abs() / (ax.speed_deg_min / 60.0)
+                    })
                     .fold(0.0, f64::max);
                 push(
                     &mut moves,
@@ -403,30 +416,97 @@ impl Plan {
             }
             // Over the start at a height clear of the beam, then down to the start.
             let clear_z = step.start.z.max(step.expected + self.config.clearance_mm) + 5.0;
-            let clear_z = if same_pose { clear_z } else { pos.z.max(clear_z) };
+            let clear_z = if same_pose {
+                clear_z
+            } else {
+                pos.z.max(clear_z)
+            };
             if pos.z < clear_z {
                 let to = Vec3::new(pos.x, pos.y, clear_z);
-                push(&mut moves, &mut t, MoveKind::Rapid, (clear_z - pos.z) / rapid, to, angles, None, "up clear of the setter".into());
+                push(
+                    &mut moves,
+                    &mut t,
+                    MoveKind::Rapid,
+                    (clear_z - pos.z) / rapid,
+                    to,
+                    angles,
+                    None,
+                    "up clear of the setter".into(),
+                );
                 pos = to;
             }
             let over = Vec3::new(step.start.x, step.start.y, pos.z);
             let dxy = (over - pos).norm();
             if dxy > 0.0 {
-                push(&mut moves, &mut t, MoveKind::Rapid, dxy / rapid, over, angles, None, "to the approach".into());
+                push(
+                    &mut moves,
+                    &mut t,
+                    MoveKind::Rapid,
+                    dxy / rapid,
+                    over,
+                    angles,
+                    None,
+                    "to the approach".into(),
+                );
             }
             let dz = (pos.z - step.start.z).abs();
-            push(&mut moves, &mut t, MoveKind::Rapid, dz / rapid, step.start, angles, None, "down to the start".into());
-            push(&mut moves, &mut t, MoveKind::Dwell, self.config.dwell_s, step.start, angles, Some(i), "air blast, settle".into());
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rapid,
+                dz / rapid,
+                step.start,
+                angles,
+                None,
+                "down to the start".into(),
+            );
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Dwell,
+                self.config.dwell_s,
+                step.start,
+                angles,
+                Some(i),
+                "air blast, settle".into(),
+            );
             step.t_start_s = t;
             let probe_len = self.config.clearance_mm;
             let mut end = step.start;
             end[step.approach.axis.index()] = step.expected;
-            push(&mut moves, &mut t, MoveKind::Probe, probe_len / feed, end, angles, Some(i), step.label.clone());
-            push(&mut moves, &mut t, MoveKind::Rapid, probe_len / rapid, step.start, angles, Some(i), "back off".into());
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Probe,
+                probe_len / feed,
+                end,
+                angles,
+                Some(i),
+                step.label.clone(),
+            );
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rapid,
+                probe_len / rapid,
+                step.start,
+                angles,
+                Some(i),
+                "back off".into(),
+            );
             pos = step.start;
         }
         let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
-        push(&mut moves, &mut t, MoveKind::Rapid, (k.motion.safe_z_mm - pos.z).max(0.0) / rapid, to, angles, None, "retract to safe Z".into());
+        push(
+            &mut moves,
+            &mut t,
+            MoveKind::Rapid,
+            (k.motion.safe_z_mm - pos.z).max(0.0) / rapid,
+            to,
+            angles,
+            None,
+            "retract to safe Z".into(),
+        );
         if angles.iter().any(|a| wrap_deg(*a).abs() > 1e-9) {
             let dur = k
                 .rotary
@@ -434,7 +514,16 @@ impl Plan {
                 .enumerate()
                 .map(|(j, ax)| wrap_deg(angles[j]).abs() / (ax.speed_deg_min / 60.0))
                 .fold(0.0, f64::max);
-            push(&mut moves, &mut t, MoveKind::Rotary, dur + k.motion.clamp_s, to, [0.0; MAX_ROTARY], None, "back to the zero pose".into());
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rotary,
+                dur + k.motion.clamp_s,
+                to,
+                [0.0; MAX_ROTARY],
+                None,
+                "back to the zero pose".into(),
+            );
         }
         self.moves = moves;
         self.machine_time_s = t;
@@ -456,18 +545,30 @@ mod tests {
         let plan = Plan::build(&k, &cfg).unwrap();
         assert_eq!(plan.steps.len(), 24);
         let first: Vec<_> = plan.steps[..12].iter().map(|s| s.label.clone()).collect();
-        let last: Vec<_> = plan.steps[12..].iter().rev().map(|s| s.label.replace("#2", "#1")).collect();
+        let last: Vec<_> = plan.steps[12..]
+            .iter()
+            .rev()
+            .map(|s| s.label.replace("#2", "#1"))
+            .collect();
         assert_eq!(first, last);
         // The tilted poses sit in the middle.
         assert!(plan.steps[8..16].iter().all(|s| s.b_deg != 0.0));
         // Patent approach directions: C = 0 from -Y moving +Y; B = -90 from +X moving -X.
         let y1 = &plan.steps[1];
         assert_eq!((y1.approach.axis, y1.approach.direction), (Axis::Y, 1));
-        let x5 = plan.steps.iter().find(|s| s.label.starts_with("B-90C-270/x")).unwrap();
+        let x5 = plan
+            .steps
+            .iter()
+            .find(|s| s.label.starts_with("B-90C-270/x"))
+            .unwrap();
         assert_eq!((x5.approach.axis, x5.approach.direction), (Axis::X, -1));
         assert!((x5.expected - 75.0).abs() < 1e-9);
         // Approach times increase, and their mean is the middle of the probing.
-        assert!(plan.steps.windows(2).all(|w| w[1].t_start_s > w[0].t_start_s));
+        assert!(
+            plan.steps
+                .windows(2)
+                .all(|w| w[1].t_start_s > w[0].t_start_s)
+        );
     }
 
     #[test]
@@ -478,8 +579,18 @@ mod tests {
         assert_eq!(
             labels,
             [
-                "B0C0/z", "B0C0/y", "B0C-90/z", "B0C-90/x", "B0C-180/z", "B0C-180/y", "B0C-270/z",
-                "B0C-270/x", "B-90C-270/z", "B-90C-270/x", "B90C-90/z", "B90C-90/x"
+                "B0C0/z",
+                "B0C0/y",
+                "B0C-90/z",
+                "B0C-90/x",
+                "B0C-180/z",
+                "B0C-180/y",
+                "B0C-270/z",
+                "B0C-270/x",
+                "B-90C-270/z",
+                "B-90C-270/x",
+                "B90C-90/z",
+                "B90C-90/x"
             ]
         );
     }

@@ -275,14 +275,14 @@ impl Scenario {
         if self.spindle.is_empty() {
             return bad("the spindle program needs at least one segment");
         }
-        if self
-            .spindle
-            .windows(2)
-            .any(|w| w[1].at_min <= w[0].at_min)
-        {
+        if self.spindle.windows(2).any(|w| w[1].at_min <= w[0].at_min) {
             return bad("spindle segments must have increasing at_min");
         }
-        if self.spindle.iter().any(|s| !s.rpm.is_finite() || s.rpm < 0.0) {
+        if self
+            .spindle
+            .iter()
+            .any(|s| !s.rpm.is_finite() || s.rpm < 0.0)
+        {
             return bad("spindle rpm must be finite and >= 0");
         }
         if !(self.noise.sigma_um >= 0.0)

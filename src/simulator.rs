@@ -24,9 +24,13 @@ use crate::thermal::LagModel;
 
 #[derive(Debug, Error)]
 pub enum SimError {
-    #[error("scenario channel '{0}' is not a location error of the machine nor one of sx, sy, sz, setter_x, setter_y, setter_z, radius, kx, ky, kz, sxy, sxz, syz")]
+    #[error(
+        "scenario channel '{0}' is not a location error of the machine nor one of sx, sy, sz, setter_x, setter_y, setter_z, radius, kx, ky, kz, sxy, sxz, syz"
+    )]
     UnknownChannel(String),
-    #[error("scenario '{scenario}' uses machine '{scenario_machine}' but was given machine '{machine}'")]
+    #[error(
+        "scenario '{scenario}' uses machine '{scenario_machine}' but was given machine '{machine}'"
+    )]
     MachineMismatch {
         scenario: String,
         scenario_machine: String,
@@ -248,7 +252,10 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
         t += 10.0;
     }
     events.retain(|(t, _)| *t >= 0.0 && *t < duration_s);
-    events.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal)));
+    events.sort_by(|a, b| {
+        a.0.total_cmp(&b.0)
+            .then(a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal))
+    });
 
     let mut sim = Simulation {
         info: MachineInfo {
@@ -359,7 +366,14 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
                     let mut peek = vm.clone();
                     peek.advance(t_trip - te, rpm_now, ambient_at(scn, t_ns));
                     let s = peek.state(rpm_now);
-                    let r = latched(k, &s, &step.angles, &step.approach, &step.start, Some(travel));
+                    let r = latched(
+                        k,
+                        &s,
+                        &step.angles,
+                        &step.approach,
+                        &step.start,
+                        Some(travel),
+                    );
                     if let Ok(v) = r {
                         t_trip = te + ((v - lat) - travel.start).abs() / feed;
                     }
@@ -382,10 +396,7 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
                     }
                     _ => {
                         pos[axis] = travel.start + dir * travel.max_mm;
-                        (
-                            Some(DetectionStatus::NoTrip),
-                            te + travel.max_mm / feed,
-                        )
+                        (Some(DetectionStatus::NoTrip), te + travel.max_mm / feed)
                     }
                 };
                 if let Some(cy) = open.as_mut() {

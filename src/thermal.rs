@@ -171,10 +171,7 @@ impl LagModel {
     /// Value of channel `i` with the spindle at `rpm` now.
     pub fn value(&self, i: usize, rpm: f64) -> f64 {
         let ch = &self.channels[i];
-        let lagged: f64 = self.terms[i]
-            .iter()
-            .map(|(l, g)| g * self.lags[*l].x)
-            .sum();
+        let lagged: f64 = self.terms[i].iter().map(|(l, g)| g * self.lags[*l].x).sum();
         ch.offset + lagged + ch.instant * self.inputs.instant_factor(rpm)
     }
 }
@@ -213,7 +210,10 @@ mod tests {
     #[test]
     fn shared_lags_are_integrated_once() {
         let ch = Channel {
-            spindle: vec![LagTerm { gain: 2.0, tau_min: 10.0 }],
+            spindle: vec![LagTerm {
+                gain: 2.0,
+                tau_min: 10.0,
+            }],
             ..Default::default()
         };
         let m = LagModel::new(

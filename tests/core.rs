@@ -23,7 +23,13 @@ fn plan(k: &Kinematics, name: &str) -> Plan {
 }
 
 /// Readings of a plan on a machine in state `truth`, with Gaussian noise of `sigma_um`.
-fn observe(k: &Kinematics, plan: &Plan, truth: &MachineState, sigma_um: f64, rng: &mut ChaCha8Rng) -> Vec<Observation> {
+fn observe(
+    k: &Kinematics,
+    plan: &Plan,
+    truth: &MachineState,
+    sigma_um: f64,
+    rng: &mut ChaCha8Rng,
+) -> Vec<Observation> {
     plan.steps
         .iter()
         .map(|s| {
@@ -59,7 +65,11 @@ fn conventions_c_minus_90_is_counter_clockwise_and_b_minus_90_is_met_from_plus_x
     let t = k.pose_transform(&s, &[-90.0, 0.0, 0.0]);
     assert!((t.vector(&Vec3::z()) - Vec3::x()).norm() < 1e-12);
     let p = plan(&k, "patent");
-    let x5 = p.steps.iter().find(|s| s.b_deg == -90.0 && s.approach.axis == Axis::X).unwrap();
+    let x5 = p
+        .steps
+        .iter()
+        .find(|s| s.b_deg == -90.0 && s.approach.axis == Axis::X)
+        .unwrap();
     assert_eq!(x5.approach.direction, -1);
     assert!(x5.start.x > x5.expected, "starts on the +X side");
 }
@@ -95,12 +105,23 @@ fn noise_free_round_trip_recovers_errors_and_setter_placement() {
                     worst.1 = worst.1.max(d);
                 }
             }
-            let height = sol.nuisance.iter().find(|n| n.name == "setter_height_um").unwrap();
+            let height = sol
+                .nuisance
+                .iter()
+                .find(|n| n.name == "setter_height_um")
+                .unwrap();
             let dz = (truth.beam_point.z - k.setter.point.z) * 1e3;
-            assert!((height.value - dz).abs() < 1e-3, "setter height {} vs {dz}", height.value);
+            assert!(
+                (height.value - dz).abs() < 1e-3,
+                "setter height {} vs {dz}",
+                height.value
+            );
         }
     }
-    println!("worst noise-free error: {:.2e} um, {:.2e} urad", worst.0, worst.1);
+    println!(
+        "worst noise-free error: {:.2e} um, {:.2e} urad",
+        worst.0, worst.1
+    );
     assert!(worst.0 < 1e-3 && worst.1 < 1e-2, "{worst:?}");
 }
 
@@ -110,7 +131,9 @@ fn monte_carlo_matches_reported_uncertainty_and_cramer_rao() {
     let p = plan(&k, "patent_sequential");
     let sigma = 0.5;
     let mut truth = k.nominal_state();
-    let vals = [20.0, 80.0, 4.0, 2.0, 30.0, -40.0];
+    // Orientation errors chosen so that no beam slope comes near zero (the flat tool end
+    // makes the model kink there; see measurement.rs).
+    let vals = [20.0, 80.0, 4.0, 2.0, 60.0, -150.0];
     set_errors(&k, &mut truth, &vals);
     let mut rng = ChaCha8Rng::seed_from_u64(2024);
     let template = observe(&k, &p, &k.nominal_state(), 0.0, &mut rng);
@@ -143,9 +166,21 @@ fn monte_carlo_matches_reported_uncertainty_and_cramer_rao() {
             crb[i].sigma,
             (mean - vals[i]) / sd
         );
-        assert!((sd / reported[i] - 1.0).abs() < 0.05, "{name}: sd {sd} vs reported {}", reported[i]);
-        assert!((sd / crb[i].sigma - 1.0).abs() < 0.05, "{name}: sd {sd} vs CRB {}", crb[i].sigma);
-        assert!(((mean - vals[i]) / sd).abs() < 0.05, "{name}: bias {}", mean - vals[i]);
+        assert!(
+            (sd / reported[i] - 1.0).abs() < 0.05,
+            "{name}: sd {sd} vs reported {}",
+            reported[i]
+        );
+        assert!(
+            (sd / crb[i].sigma - 1.0).abs() < 0.05,
+            "{name}: sd {sd} vs CRB {}",
+            crb[i].sigma
+        );
+        assert!(
+            ((mean - vals[i]) / sd).abs() < 0.05,
+            "{name}: bias {}",
+            mean - vals[i]
+        );
     }
     println!("mean chi2 {chi2:.3} for {dof} dof");
     assert!(dof > 0 && (chi2 / dof as f64 - 1.0).abs() < 0.05);
@@ -164,10 +199,20 @@ fn first_order_relations_agree_within_second_order_terms() {
         for _ in 0..100 {
             let mut truth = k.nominal_state();
             let vals: Vec<f64> = (0..6)
-                .map(|i| if i < 4 { rng.random_range(-10.0..10.0) } else { rng.random_range(-50.0..50.0) })
+                .map(|i| {
+                    if i < 4 {
+                        rng.random_range(-10.0..10.0)
+                    } else {
+                        rng.random_range(-50.0..50.0)
+                    }
+                })
                 .collect();
             set_errors(&k, &mut truth, &vals);
-            truth.beam_point += Vec3::new(0.0, rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1));
+            truth.beam_point += Vec3::new(
+                0.0,
+                rng.random_range(-0.1..0.1),
+                rng.random_range(-0.1..0.1),
+            );
             let obs = observe(&k, &p, &truth, 0.0, &mut rng);
             let exact = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
             let first = patent_relations::estimate(&k, &obs).unwrap();
@@ -181,7 +226,10 @@ fn first_order_relations_agree_within_second_order_terms() {
             }
         }
     }
-    println!("largest difference exact vs first-order: {:.4} um, {:.4} urad", worst.0, worst.1);
+    println!(
+        "largest difference exact vs first-order: {:.4} um, {:.4} urad",
+        worst.0, worst.1
+    );
     assert!(worst.0 < 0.01 && worst.1 < 0.05, "{worst:?}");
 }
 
@@ -200,7 +248,10 @@ fn the_quoted_x_difference_relation_has_the_wrong_sign() {
     let quoted = (r("B0C-270/x") - r("B0C-90/x")) * beta;
     let derived = (r("B0C-90/x") - r("B0C-270/x")) * beta;
     // The lever is 2R, not x2 - x4 = 2(R + r): a 5 % difference.
-    assert!((lhs - derived).abs() < 0.06 * lhs.abs(), "{lhs} vs {derived}");
+    assert!(
+        (lhs - derived).abs() < 0.06 * lhs.abs(),
+        "{lhs} vs {derived}"
+    );
     assert!((lhs - quoted).abs() > 1.5 * lhs.abs());
 }
 
@@ -216,7 +267,10 @@ fn a_plan_without_tilted_pose_names_what_it_cannot_separate() {
     let text = err.to_string();
     println!("{text}");
     assert!(matches!(err, SolveError::NotIdentifiable { .. }));
-    assert!(text.contains("EZ0B") && text.contains("EX0B") && text.contains("EX0C"), "{text}");
+    assert!(
+        text.contains("EZ0B") && text.contains("EX0B") && text.contains("EX0C"),
+        "{text}"
+    );
     assert!(text.contains("tilted pose"), "{text}");
 }
 
@@ -253,13 +307,18 @@ fn in_cycle_drift_aliases_in_sequential_order_and_cancels_in_symmetric_order() {
     slow_sym.feed_mm_min = 20.0;
     let (seq_slow, t_seq_slow) = worst_orientation_alias(&slow_seq, false);
     let (sym_slow, t_sym_slow) = worst_orientation_alias(&slow_sym, false);
-    let (seq, t_seq) = worst_orientation_alias(&PlanConfig::load("patent_sequential").unwrap(), false);
+    let (seq, t_seq) =
+        worst_orientation_alias(&PlanConfig::load("patent_sequential").unwrap(), false);
     let (sym, t_sym) = worst_orientation_alias(&PlanConfig::load("patent").unwrap(), false);
     let (seq_rates, _) = worst_orientation_alias(&slow_seq, true);
     println!("largest |EA0C, EB0C identified - truth| in warm-up, noise-free:");
-    println!("  sequential {t_seq_slow:.0} s cycle: {seq_slow:.2} urad; with drift rates: {seq_rates:.2} urad");
+    println!(
+        "  sequential {t_seq_slow:.0} s cycle: {seq_slow:.2} urad; with drift rates: {seq_rates:.2} urad"
+    );
     println!("  time-symmetric {t_sym_slow:.0} s cycle: {sym_slow:.2} urad");
-    println!("  sequential {t_seq:.0} s cycle: {seq:.2} urad; time-symmetric {t_sym:.0} s: {sym:.2} urad");
+    println!(
+        "  sequential {t_seq:.0} s cycle: {seq:.2} urad; time-symmetric {t_sym:.0} s: {sym:.2} urad"
+    );
     assert!(seq_slow >= 20.0, "tens of urad expected, got {seq_slow}");
     // At the default feeds the time-symmetric cycle is under 2 urad; at equal (slow) cycle
     // length what remains is the curvature of the 11-min lag over the cycle.

@@ -200,7 +200,9 @@ pub fn parse_detection(data: &[u8]) -> Result<DetectionMsg, DetectionIssue> {
         match map.get(key) {
             None => return Err(fail(format!("field '{key}' is missing"))),
             Some(Value::Null) if nonfinite => {
-                return Err(fail(format!("field '{key}' is not a finite number (NaN or Infinity)")));
+                return Err(fail(format!(
+                    "field '{key}' is not a finite number (NaN or Infinity)"
+                )));
             }
             Some(Value::Null) => return Err(fail(format!("field '{key}' is null"))),
             _ => {}
@@ -209,7 +211,10 @@ pub fn parse_detection(data: &[u8]) -> Result<DetectionMsg, DetectionIssue> {
     let msg: DetectionMsg = serde_json::from_value(value.clone())
         .map_err(|e| fail(format!("field types do not match the contract: {e}")))?;
     if msg.direction != 1 && msg.direction != -1 {
-        return Err(fail(format!("direction must be -1 or 1, not {}", msg.direction)));
+        return Err(fail(format!(
+            "direction must be -1 or 1, not {}",
+            msg.direction
+        )));
     }
     Ok(msg)
 }
@@ -305,11 +310,24 @@ pub fn schema(topic: &str) -> (String, Value) {
                 "x_mm": num, "y_mm": num, "z_mm": num,
                 "status": {"enum": ["ok", "no_trip", "aborted"]}
             }),
-            &["cycle", "step", "b_deg", "c_deg", "axis", "direction", "feed_mm_min",
-              "spindle_rpm", "tool_id", "x_mm", "y_mm", "z_mm"],
+            &[
+                "cycle",
+                "step",
+                "b_deg",
+                "c_deg",
+                "axis",
+                "direction",
+                "feed_mm_min",
+                "spindle_rpm",
+                "tool_id",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+            ],
         ),
         TOPIC_RESULT => {
-            let map = json!({"type": ["object", "null"], "additionalProperties": {"type": "number"}});
+            let map =
+                json!({"type": ["object", "null"], "additionalProperties": {"type": "number"}});
             s(
                 "driftwatch.CycleResult",
                 json!({
@@ -320,7 +338,15 @@ pub fn schema(topic: &str) -> (String, Value) {
                     "nuisance": {"type": "object", "additionalProperties": num},
                     "redundancy_um": {"type": "array", "items": num}
                 }),
-                &["cycle", "t_ns", "status", "reason", "errors", "sigma", "residual_rms_um"],
+                &[
+                    "cycle",
+                    "t_ns",
+                    "status",
+                    "reason",
+                    "errors",
+                    "sigma",
+                    "residual_rms_um",
+                ],
             )
         }
         _ => (
@@ -353,7 +379,11 @@ mod tests {
         let text = good().to_string().replace("70.001", "NaN");
         let e = parse_detection(text.as_bytes()).unwrap_err();
         assert_eq!(e.cycle, Some(3));
-        assert!(e.message.contains("z_mm") && e.message.contains("NaN"), "{}", e.message);
+        assert!(
+            e.message.contains("z_mm") && e.message.contains("NaN"),
+            "{}",
+            e.message
+        );
         let mut v = good();
         v.as_object_mut().unwrap().remove("feed_mm_min");
         let e = parse_detection(v.to_string().as_bytes()).unwrap_err();
