@@ -56,6 +56,9 @@ impl Affine {
 /// Angle in degrees reduced to (-180, 180], so that C = -270 and C = +90 give the same
 /// floating-point pose.
 pub fn wrap_deg(a: f64) -> f64 {
+    if a > -180.0 && a <= 180.0 {
+        return a;
+    }
     let mut x = a % 360.0;
     if x <= -180.0 {
         x += 360.0;

@@ -76,8 +76,25 @@ pub struct SolveOptions {
     pub huber_k: Option<f64>,
     /// Nuisance parameters to estimate where the plan supports them, in priority order.
     pub nuisance: Vec<Nuisance>,
+    /// Tool-tip drift rates within the cycle (event-level use of the timestamps).
+    pub drift_rates: DriftRates,
     pub max_iterations: usize,
 }
+
+/// When to estimate the tool-tip drift rates of a cycle.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DriftRates {
+    /// Where the plan separates them from the location errors: no identified error's
+    /// uncertainty grows by more than 10 % (a time-symmetric plan).
+    Auto,
+    /// Wherever the plan can determine them at all.
+    Always,
+    Never,
+}
+
+/// Largest growth of an identified error's uncertainty that `DriftRates::Auto` accepts.
+const MAX_INFLATION: f64 = 0.10;
 
 impl SolveOptions {
     pub fn new(sigma_um: f64) -> Self {
@@ -89,15 +106,14 @@ impl SolveOptions {
                 Nuisance::SetterLateral,
                 Nuisance::Radius,
             ],
+            drift_rates: DriftRates::Auto,
             max_iterations: 30,
         }
     }
 
-    /// Also estimate the tool-tip drift rates (event-level use of the timestamps).
+    /// Estimate the tool-tip drift rates wherever the plan determines them.
     pub fn with_drift_rates(mut self) -> Self {
-        for a in [Axis::X, Axis::Y, Axis::Z] {
-            self.nuisance.push(Nuisance::DriftRate(a));
-        }
+        self.drift_rates = DriftRates::Always;
         self
     }
 }
@@ -244,11 +260,22 @@ impl<'a> Identifier<'a> {
                 hint: identifiability_hint(k, template),
             });
         }
-        for nu in &opts.nuisance {
-            if let Nuisance::DriftRate(a) = nu
-                && !template.iter().any(|o| o.approach.axis == *a)
-            {
-                continue;
+        let rates: Vec<Nuisance> = match opts.drift_rates {
+            DriftRates::Never => Vec::new(),
+            _ => [Axis::X, Axis::Y, Axis::Z]
+                .into_iter()
+                .filter(|a| template.iter().any(|o| o.approach.axis == *a))
+                .map(Nuisance::DriftRate)
+                .collect(),
+        };
+        let n_loc = me.params.len();
+        let mut baseline: Option<Vec<f64>> = None;
+        for nu in opts.nuisance.iter().chain(&rates) {
+            let is_rate = matches!(nu, Nuisance::DriftRate(_));
+            if is_rate && baseline.is_none() {
+                let zero = vec![0.0; me.params.len()];
+                let j = me.jacobian_central(template, &zero, t_ref)?;
+                baseline = Some(variances(&j, n_loc));
             }
             me.params.push(Param::Nuisance(*nu));
             me.steps.push(1e-3);
@@ -259,15 +286,38 @@ impl<'a> Identifier<'a> {
             } else {
                 null_combinations(&j, &me.param_names())
             };
-            if !null.is_empty() {
+            let mut reason = (!null.is_empty()).then(|| {
+                format!(
+                    "held at its configured value: the plan cannot separate {}",
+                    null.join("; ")
+                )
+            });
+            if reason.is_none()
+                && is_rate
+                && opts.drift_rates == DriftRates::Auto
+                && let Some(base) = &baseline
+            {
+                let now = variances(&j, n_loc);
+                let (worst, growth) = now
+                    .iter()
+                    .zip(base)
+                    .enumerate()
+                    .map(|(i, (a, b))| (i, (a / b).sqrt() - 1.0))
+                    .fold((0, 0.0), |acc, x| if x.1 > acc.1 { x } else { acc });
+                if growth > MAX_INFLATION {
+                    reason = Some(format!(
+                        "not estimated: with this plan's timing it would raise the uncertainty of {} by {:.0} % (a time-symmetric plan separates drift from the errors)",
+                        me.param_names()[worst],
+                        growth * 100.0
+                    ));
+                }
+            }
+            if let Some(reason) = reason {
                 me.params.pop();
                 me.steps.pop();
                 me.held.push(Held {
                     name: nu.name(),
-                    reason: format!(
-                        "held at its configured value: the plan cannot separate {}",
-                        null.join("; ")
-                    ),
+                    reason,
                 });
             }
         }
@@ -596,7 +646,7 @@ pub fn identify(
 }
 
 fn same_angles(a: &[f64; MAX_ROTARY], b: &[f64; MAX_ROTARY]) -> bool {
-    a.iter().zip(b).all(|(x, y)| wrap_deg(x - y).abs() < 1e-12)
+    a == b || a.iter().zip(b).all(|(x, y)| wrap_deg(x - y).abs() < 1e-12)
 }
 
 fn check_finite(obs: &[Observation]) -> Result<(), SolveError> {
@@ -657,6 +707,15 @@ fn covariance_from_weighted(wj: &DMatrix<f64>) -> DMatrix<f64> {
 
 fn covariance(j: &DMatrix<f64>, sigma: f64) -> DMatrix<f64> {
     covariance_from_weighted(&weighted(j, &vec![1.0; j.nrows()], sigma))
+}
+
+/// Variances (up to sigma^2) of the first `k` parameters for sensitivities `j`.
+fn variances(j: &DMatrix<f64>, k: usize) -> Vec<f64> {
+    let info = j.transpose() * j;
+    match info.try_inverse() {
+        Some(c) => (0..k).map(|i| c[(i, i)]).collect(),
+        None => vec![f64::INFINITY; k],
+    }
 }
 
 /// Components of the residuals in the left null space of the (weighted) sensitivity matrix.

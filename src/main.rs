@@ -19,6 +19,21 @@ use driftwatch::recording::{self as rec, Timed};
 use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
+/// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        write!(std::io::stdout().lock(), $($arg)*)?
+    }};
+}
+
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*)?
+    }};
+}
+
 #[derive(Parser)]
 #[command(
     name = "driftwatch",
@@ -143,6 +158,14 @@ fn main() -> ExitCode {
     }
     match run(cli.command) {
         Ok(code) => code,
+        Err(e)
+            if e.chain().any(|c| {
+                c.downcast_ref::<std::io::Error>()
+                    .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+            }) =>
+        {
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
@@ -297,7 +320,7 @@ fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCo
     let (outcomes, _) = driftwatch::cycle::process_all(&k, &dets, &checks);
     write_recording(out, &sim, &outcomes)?;
     let ok = outcomes.iter().filter(|o| o.is_ok()).count();
-    println!(
+    outln!(
         "wrote {}: scenario '{}', {} cycles ({} ok), {} detections, {:.0} min",
         out.display(),
         scn.name,
@@ -355,7 +378,7 @@ fn cmd_solve(
         );
     } else if let Some((steps, n)) = infer_expected_steps(&groups) {
         if !json {
-            println!(
+            outln!(
                 "expected steps: the {} shared by {n} of {} cycles",
                 steps.len(),
                 groups.len()
@@ -368,14 +391,16 @@ fn cmd_solve(
     }
     let names = k.identify_names();
     if !json {
-        print!(
+        out!(
             "{:>5} {:>30} {:>8}",
-            "cycle", "reference time (UTC)", "status"
+            "cycle",
+            "reference time (UTC)",
+            "status"
         );
         for n in &names {
-            print!(" {:>18}", n);
+            out!(" {:>18}", n);
         }
-        println!(" {:>8} {:>6}", "rms/um", "chi2");
+        outln!(" {:>8} {:>6}", "rms/um", "chi2");
     }
     let mut rejected = 0;
     for (c, entries) in &groups {
@@ -384,19 +409,19 @@ fn cmd_solve(
             rejected += 1;
         }
         if json {
-            println!("{}", serde_json::to_string(&o.message())?);
+            outln!("{}", serde_json::to_string(&o.message())?);
             continue;
         }
         let t = chrono::DateTime::from_timestamp_nanos(o.t_ref_ns).format("%Y-%m-%d %H:%M:%S%.3f");
         match &o.solution {
             Some(s) => {
-                print!("{:>5} {:>30} {:>8}", c, t, "ok");
+                out!("{:>5} {:>30} {:>8}", c, t, "ok");
                 for e in &s.errors {
-                    print!(" {:>18}", format!("{:.2}+-{:.2}", e.value, e.sigma));
+                    out!(" {:>18}", format!("{:.2}+-{:.2}", e.value, e.sigma));
                 }
-                println!(" {:>8.3} {:>6.2}", s.residual_rms_um(), s.chi2);
+                outln!(" {:>8.3} {:>6.2}", s.residual_rms_um(), s.chi2);
             }
-            None => println!(
+            None => outln!(
                 "{:>5} {:>30} {:>8} {}",
                 c,
                 t,
@@ -406,7 +431,7 @@ fn cmd_solve(
         }
     }
     if !json {
-        println!(
+        outln!(
             "{} cycles, {} rejected; errors in um and urad (apparent, tool-relative)",
             groups.len(),
             rejected
@@ -427,7 +452,7 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
         .unwrap_or(scn.duration_min);
     let ex = experiment::run(&scn, &k, &plan, &checks, stop)?;
     std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
-    println!(
+    outln!(
         "scenario '{}': {} on {}, plan '{}' ({} approaches, {:.1} s machine time), seed {}",
         scn.name,
         scn.description,
@@ -437,14 +462,15 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
         plan.machine_time_s,
         scn.seed
     );
-    print!("{}", ex.table());
+    out!("{}", ex.table());
     let s = &ex.summary;
-    println!(
+    outln!(
         "EZ0B rise over 0..{stop:.0} min: {:.1} um (patent: about 80); drop in 30 min after the stop: {:.1} um (patent: about 45)",
-        s.ez0b_rise_um, s.ez0b_drop_um
+        s.ez0b_rise_um,
+        s.ez0b_drop_um
     );
-    println!("EX0B rise: {:.1} um (patent: about 20)", s.ex0b_rise_um);
-    println!(
+    outln!("EX0B rise: {:.1} um (patent: about 20)", s.ex0b_rise_um);
+    outln!(
         "largest |identified - truth| / sigma: {:.2} over {} values; {} of {} cycles ok",
         s.max_abs_z,
         ex.rows.iter().map(|r| r.values.len()).sum::<usize>(),
@@ -462,7 +488,7 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     write_recording(&mcap, &ex.simulation, &ex.outcomes)?;
     let summary = out_dir.join("summary.json");
     std::fs::write(&summary, serde_json::to_string_pretty(&ex.summary)?)?;
-    println!(
+    outln!(
         "wrote {}, {}, {}, {}",
         csv.display(),
         svg.display(),
@@ -495,13 +521,20 @@ fn template(k: &Kinematics, plan: &Plan) -> Result<Vec<Observation>> {
 fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) -> Result<ExitCode> {
     let k = Kinematics::load(machine)?;
     let plan = Plan::build(&k, &PlanConfig::load(plan)?)?;
-    println!("plan '{}': {}", plan.name, plan.description);
-    println!(
+    outln!("plan '{}': {}", plan.name, plan.description);
+    outln!(
         "{:>8} {:>7} {:>9} {:>9} {:>9} {:>8} {:>8}  {}",
-        "t/s", "dur/s", "x/mm", "y/mm", "z/mm", "B/deg", "C/deg", "move"
+        "t/s",
+        "dur/s",
+        "x/mm",
+        "y/mm",
+        "z/mm",
+        "B/deg",
+        "C/deg",
+        "move"
     );
     for m in &plan.moves {
-        println!(
+        outln!(
             "{:>8.2} {:>7.2} {:>9.3} {:>9.3} {:>9.3} {:>8.1} {:>8.1}  {:?} {}",
             m.t_start_s,
             m.duration_s,
@@ -514,7 +547,7 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
             m.note
         );
     }
-    println!(
+    outln!(
         "{} approaches; machine time {:.1} s (rapid {} mm/min, probing {} mm/min, clearance {} mm, dwell {} s, B {} deg/min, C {} deg/min, clamp {} s)",
         plan.steps.len(),
         plan.machine_time_s,
@@ -533,9 +566,9 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
     }
     let obs = template(&k, &plan)?;
     let id = Identifier::new(&k, &obs, &opts)?;
-    println!("Cramer-Rao standard deviations at sigma = {sigma} um:");
+    outln!("Cramer-Rao standard deviations at sigma = {sigma} um:");
     for e in id.cramer_rao(&obs)? {
-        println!("  {:>28} {:>9.3} {}", e.name, e.sigma, e.unit);
+        outln!("  {:>28} {:>9.3} {}", e.name, e.sigma, e.unit);
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -568,7 +601,7 @@ fn cmd_bench_solve(plan: &str, n: usize) -> Result<ExitCode> {
         sum += s.errors[0].value;
     }
     let dt = t.elapsed().as_secs_f64();
-    println!(
+    outln!(
         "{} solves of the {}-detection plan '{}' in {:.3} s on one thread: {:.0} solves/s (checksum {:.3})",
         n,
         obs.len(),
