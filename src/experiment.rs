@@ -292,6 +292,7 @@ impl Experiment {
                 }
                 chart
                     .configure_series_labels()
+                    .position(SeriesLabelPosition::UpperLeft)
                     .background_style(WHITE.mix(0.8))
                     .border_style(BLACK)
                     .draw()

@@ -584,7 +584,7 @@ impl<'a> Identifier<'a> {
                         true
                     }
                 };
-                if refresh && !(distance(&p, &j_at) < 0.1) {
+                if refresh && distance(&p, &j_at) >= 0.1 {
                     j = self.jacobian_forward(obs, &p, &f, t_ref)?;
                     j_at = p.clone();
                 }

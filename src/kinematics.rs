@@ -356,7 +356,7 @@ impl Kinematics {
                     r.name
                 )));
             }
-            if !(r.speed_deg_min > 0.0) || r.travel_deg[0] >= r.travel_deg[1] {
+            if !crate::positive(r.speed_deg_min) || r.travel_deg[0] >= r.travel_deg[1] {
                 return Err(invalid(format!(
                     "axis {} needs a positive speed and travel_deg [min, max]",
                     r.name
@@ -394,7 +394,7 @@ impl Kinematics {
             return Err(invalid("location error names must be unique".into()));
         }
         let s = &cfg.setter;
-        if !(s.sigma_um > 0.0) || !s.latency_ms.is_finite() || s.latency_ms < 0.0 {
+        if !crate::positive(s.sigma_um) || !crate::non_negative(s.latency_ms) {
             return Err(invalid(
                 "setter.sigma_um must be > 0 and latency_ms >= 0".into(),
             ));
@@ -405,7 +405,7 @@ impl Kinematics {
             sigma_um: s.sigma_um,
             latency_s: s.latency_ms * 1e-3,
         };
-        if !(cfg.tool.radius_mm > 0.0) {
+        if !crate::positive(cfg.tool.radius_mm) {
             return Err(invalid("tool.radius_mm must be > 0".into()));
         }
         let mut k = Kinematics {

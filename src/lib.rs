@@ -17,3 +17,13 @@ pub mod recording;
 pub mod scenario;
 pub mod simulator;
 pub mod thermal;
+
+/// A finite number above zero (false for NaN).
+pub(crate) fn positive(x: f64) -> bool {
+    x.is_finite() && x > 0.0
+}
+
+/// A finite number of at least zero (false for NaN).
+pub(crate) fn non_negative(x: f64) -> bool {
+    x.is_finite() && x >= 0.0
+}

@@ -181,7 +181,7 @@ fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
         c.solve = c.solve.with_drift_rates();
     }
     c.solve.huber_k = args.huber;
-    if !(args.max_deviation_mm > 0.0) {
+    if !(args.max_deviation_mm.is_finite() && args.max_deviation_mm > 0.0) {
         bail!("--max-deviation-mm must be > 0");
     }
     c.max_deviation_mm = args.max_deviation_mm;

@@ -216,7 +216,7 @@ impl Plan {
             ("lateral_depth_mm", cfg.lateral_depth_mm),
         ];
         for (name, v) in positive {
-            if !(v > 0.0 && v.is_finite()) {
+            if !crate::positive(v) {
                 return Err(invalid(format!("{name} must be a positive number")));
             }
         }

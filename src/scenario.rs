@@ -269,7 +269,7 @@ impl Scenario {
                 message: m.to_string(),
             })
         };
-        if !(self.duration_min > 0.0) {
+        if !crate::positive(self.duration_min) {
             return bad("duration_min must be > 0");
         }
         if self.spindle.is_empty() {
@@ -285,17 +285,17 @@ impl Scenario {
         {
             return bad("spindle rpm must be finite and >= 0");
         }
-        if !(self.noise.sigma_um >= 0.0)
+        if !crate::non_negative(self.noise.sigma_um)
             || !(0.0..=1.0).contains(&self.noise.outlier_rate)
             || !(0.0..=1.0).contains(&self.noise.no_trip_rate)
         {
             return bad("noise: sigma_um >= 0, rates within [0, 1]");
         }
-        if !(self.sample_s > 0.0) {
+        if !crate::positive(self.sample_s) {
             return bad("sample_s must be > 0");
         }
         if let Some(e) = self.cycles.every_min
-            && !(e > 0.0)
+            && !crate::positive(e)
         {
             return bad("cycles.every_min must be > 0");
         }

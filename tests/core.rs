@@ -141,8 +141,8 @@ fn monte_carlo_matches_reported_uncertainty_and_cramer_rao() {
     let id = Identifier::new(&k, &template, &opts).unwrap();
     let crb = id.cramer_rao(&template).unwrap();
     let trials = 4000;
-    let mut est = vec![Vec::with_capacity(trials); 6];
-    let mut reported = vec![0.0; 6];
+    let mut est: Vec<Vec<f64>> = (0..6).map(|_| Vec::with_capacity(trials)).collect();
+    let mut reported = [0.0; 6];
     let mut chi2 = 0.0;
     let mut dof = 0;
     for _ in 0..trials {
@@ -343,4 +343,56 @@ fn patent_experiment_reproduces_the_published_drift() {
     assert!((s.ez0b_drop_um - 45.0).abs() <= 5.0, "{}", s.ez0b_drop_um);
     assert!((s.ex0b_rise_um - 20.0).abs() <= 5.0, "{}", s.ex0b_rise_um);
     assert!(s.max_abs_z < 3.0, "{}", s.max_abs_z);
+}
+
+mod properties {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+        /// Any errors within the stated ranges and any setter placement within 0.5 mm are
+        /// recovered from noise-free readings.
+        #[test]
+        fn solver_recovers_any_state_in_range(
+            vals in proptest::collection::vec(-1.0f64..1.0, 6),
+            setter in proptest::collection::vec(-0.5f64..0.5, 3),
+            sequential in any::<bool>(),
+        ) {
+            let k = table_bc();
+            let p = plan(&k, if sequential { "patent_sequential" } else { "patent" });
+            let vals: Vec<f64> = vals.iter().enumerate().map(|(i, v)| v * if i < 4 { 100.0 } else { 300.0 }).collect();
+            let mut truth = k.nominal_state();
+            set_errors(&k, &mut truth, &vals);
+            truth.beam_point += Vec3::new(setter[0], setter[1], setter[2]);
+            let mut rng = ChaCha8Rng::seed_from_u64(0);
+            let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+            let sol = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+            for (e, v) in sol.errors.iter().zip(&vals) {
+                let tol = if e.unit == "um" { 1e-3 } else { 1e-2 };
+                prop_assert!((e.value - v).abs() < tol, "{} {} vs {}", e.name, e.value, v);
+            }
+        }
+
+        /// Arbitrary readings never panic the solver: a solution or a typed error.
+        #[test]
+        fn solver_never_panics_on_arbitrary_readings(
+            shifts in proptest::collection::vec(-1e4f64..1e4, 12),
+            drop in 0usize..13,
+        ) {
+            let k = table_bc();
+            let p = plan(&k, "patent_sequential");
+            let mut rng = ChaCha8Rng::seed_from_u64(0);
+            let mut obs = observe(&k, &p, &k.nominal_state(), 0.0, &mut rng);
+            for (o, s) in obs.iter_mut().zip(&shifts) {
+                let a = o.approach.axis.index();
+                o.position[a] += s * 1e-3;
+            }
+            if drop < obs.len() {
+                obs.remove(drop);
+            }
+            let _ = identify(&k, &obs, &SolveOptions::new(0.5));
+        }
+    }
 }

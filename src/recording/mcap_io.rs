@@ -175,16 +175,26 @@ impl<W: Write + Seek> RecordingWriter<W> {
         t_ns: i64,
         msg: &T,
     ) -> Result<(), RecordingError> {
+        let data = serde_json::to_vec(msg).map_err(|e| RecordingError::Json {
+            topic: topic.to_string(),
+            detail: e.to_string(),
+        })?;
+        self.write_json_bytes(topic, t_ns, &data)
+    }
+
+    /// Appends an already encoded JSON payload (relayed or imported messages, test input).
+    pub fn write_json_bytes(
+        &mut self,
+        topic: &str,
+        t_ns: i64,
+        data: &[u8],
+    ) -> Result<(), RecordingError> {
         let Ok(time) = u64::try_from(t_ns) else {
             return Err(RecordingError::NegativeTime {
                 topic: topic.to_string(),
                 t_ns,
             });
         };
-        let data = serde_json::to_vec(msg).map_err(|e| RecordingError::Json {
-            topic: topic.to_string(),
-            detail: e.to_string(),
-        })?;
         let channel = self.channel(topic)?;
         let sequence = channel.next_sequence;
         channel.next_sequence = sequence.wrapping_add(1);
@@ -195,7 +205,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
             publish_time: time,
         };
         self.inner
-            .write_to_known_channel(&header, &data)
+            .write_to_known_channel(&header, data)
             .map_err(RecordingError::from_mcap_write)
     }
 

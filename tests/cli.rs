@@ -1,0 +1,311 @@
+//! The command line end to end: simulate and solve contract recordings, and refuse bad input
+//! with a clear reason while carrying on with the rest.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use driftwatch::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
+use driftwatch::recording::{self as rec, CycleResultMsg, ResultStatus};
+use serde_json::Value;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_driftwatch"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("cli");
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn run(args: &[&str]) -> (bool, String, String) {
+    let out = bin().args(args).output().unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn simulated(name: &str) -> PathBuf {
+    let path = tmp(name);
+    let (ok, out, err) = run(&[
+        "simulate",
+        "--scenario",
+        "patent",
+        "--out",
+        path.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    path
+}
+
+#[test]
+fn simulate_writes_every_contract_topic_and_solve_reproduces_its_results() {
+    let path = simulated("patent.mcap");
+    let bytes = std::fs::read(&path).unwrap();
+    let summary = mcap::Summary::read(&bytes)
+        .unwrap()
+        .expect("a summary section");
+    let mut topics = std::collections::BTreeMap::new();
+    for ch in summary.channels.values() {
+        assert_eq!(ch.message_encoding, "json", "{}", ch.topic);
+        let schema = ch.schema.as_ref().expect("every channel has a schema");
+        assert_eq!(schema.encoding, "jsonschema");
+        let doc: Value = serde_json::from_slice(&schema.data).unwrap();
+        assert_eq!(doc["type"], "object");
+        let count = summary.stats.as_ref().unwrap().channel_message_counts[&ch.id];
+        topics.insert(ch.topic.clone(), count);
+    }
+    for t in [
+        rec::TOPIC_INFO,
+        rec::TOPIC_STATE,
+        rec::TOPIC_SPINDLE,
+        rec::TOPIC_TEMPERATURE,
+        rec::TOPIC_DETECTION,
+        rec::TOPIC_RESULT,
+    ] {
+        assert!(topics.contains_key(t), "missing {t}: {topics:?}");
+    }
+    assert_eq!(topics[rec::TOPIC_DETECTION], 15 * 24);
+    assert_eq!(topics[rec::TOPIC_RESULT], 15);
+    // The solver, run again on the file, gives the results the file holds.
+    let recording = read_file(&path, &ReadOptions::default()).unwrap();
+    let (ok, out, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        path.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let lines: Vec<CycleResultMsg> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), recording.results.len());
+    for (a, b) in lines.iter().zip(&recording.results) {
+        assert_eq!(a.cycle, b.msg.cycle);
+        assert_eq!(a.status, ResultStatus::Ok);
+        assert_eq!(a.t_ns, b.msg.t_ns);
+        let (ea, eb) = (a.errors.as_ref().unwrap(), b.msg.errors.as_ref().unwrap());
+        for (k, v) in ea {
+            assert!((v - eb[k]).abs() < 1e-9, "{k}");
+        }
+    }
+}
+
+/// Rewrite a recording, changing the detections of some cycles with `edit`.
+fn rewrite(src: &Path, dst: &Path, edit: impl Fn(i64, &str, &mut Value) -> Vec<String>) {
+    let r = read_file(src, &ReadOptions::default()).unwrap();
+    let mut w = RecordingWriter::create_file(dst).unwrap();
+    if let Some(info) = &r.info {
+        w.write(rec::TOPIC_INFO, r.detections[0].t_ns, info)
+            .unwrap();
+    }
+    for d in &r.detections {
+        let m = d.msg.as_ref().unwrap();
+        let mut v = serde_json::to_value(m).unwrap();
+        for text in edit(m.cycle, &m.step, &mut v) {
+            w.write_json_bytes(rec::TOPIC_DETECTION, d.t_ns, text.as_bytes())
+                .unwrap();
+        }
+    }
+    w.finish().unwrap();
+}
+
+#[test]
+fn bad_detections_reject_their_cycle_with_the_reason_and_the_rest_is_solved() {
+    let good = simulated("good.mcap");
+    let bad = tmp("bad.mcap");
+    rewrite(&good, &bad, |cycle, step, v| {
+        let one = |v: &Value| vec![v.to_string()];
+        match (cycle, step) {
+            (2, "B0C-90/z#1") => vec![v.to_string().replace(&v["z_mm"].to_string(), "NaN")],
+            (3, "B0C0/y#2") => vec![v.to_string().replace(&v["y_mm"].to_string(), "-Infinity")],
+            (4, "B-90C-270/x#1") => vec![],
+            (5, "B0C-180/z#2") => vec![v.to_string(), v.to_string()],
+            (6, "B90C-90/x#2") => {
+                v["status"] = "no_trip".into();
+                one(v)
+            }
+            (7, "B0C-270/x#1") => {
+                let x = v["x_mm"].as_f64().unwrap() * 1000.0;
+                v["x_mm"] = x.into();
+                one(v)
+            }
+            _ => one(v),
+        }
+    });
+    let (ok, out, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        bad.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let results: Vec<CycleResultMsg> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(results.len(), 15);
+    let reason = |c: i64| {
+        let r = results.iter().find(|r| r.cycle == c).unwrap();
+        assert_eq!(
+            r.status,
+            ResultStatus::Rejected,
+            "cycle {c} should be rejected"
+        );
+        assert!(r.errors.is_none());
+        r.reason.clone().unwrap()
+    };
+    let expect = [
+        (2, vec!["B0C-90/z#1", "z_mm", "NaN"]),
+        (3, vec!["B0C0/y#2", "y_mm", "finite"]),
+        (4, vec!["missing steps", "B-90C-270/x#1"]),
+        (5, vec!["B0C-180/z#2", "appears 2 times"]),
+        (6, vec!["B90C-90/x#2", "no_trip"]),
+        (7, vec!["B0C-270/x#1", "1000 times"]),
+    ];
+    for (c, words) in expect {
+        let r = reason(c);
+        println!("cycle {c}: {r}");
+        for w in words {
+            assert!(r.contains(w), "cycle {c}: '{w}' not in: {r}");
+        }
+    }
+    for r in results
+        .iter()
+        .filter(|r| ![2, 3, 4, 5, 6, 7].contains(&r.cycle))
+    {
+        assert_eq!(
+            r.status,
+            ResultStatus::Ok,
+            "cycle {}: {:?}",
+            r.cycle,
+            r.reason
+        );
+    }
+}
+
+#[test]
+fn unknown_machine_and_malformed_or_truncated_recordings_are_named() {
+    let good = simulated("trunc-src.mcap");
+    let g = good.to_str().unwrap();
+    let (ok, _, err) = run(&["solve", "--machine", "no_such_machine", "--recording", g]);
+    assert!(
+        !ok && err.contains("no_such_machine") && err.contains("table_bc"),
+        "{err}"
+    );
+
+    let garbage = tmp("garbage.mcap");
+    std::fs::write(&garbage, b"this is not a recording at all").unwrap();
+    let (ok, _, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        garbage.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("garbage.mcap") && err.contains("not an MCAP"),
+        "{err}"
+    );
+
+    let missing = tmp("does-not-exist.mcap");
+    let (ok, _, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        missing.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("does-not-exist.mcap"), "{err}");
+
+    let bytes = std::fs::read(&good).unwrap();
+    let cut = tmp("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let c = cut.to_str().unwrap();
+    let (ok, _, err) = run(&["solve", "--machine", "table_bc", "--recording", c]);
+    assert!(!ok && err.contains("--recover"), "{err}");
+    let (ok, out, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        c,
+        "--recover",
+    ]);
+    assert!(ok, "{err}");
+    assert!(err.contains("warning"), "{err}");
+    assert!(out.contains(" ok "), "{out}");
+
+    // A recording of another machine's kinematics is refused by name.
+    let other = tmp("other.mcap");
+    let r = read_file(&good, &ReadOptions::default()).unwrap();
+    let mut w = RecordingWriter::create_file(&other).unwrap();
+    let mut info = r.info.clone().unwrap();
+    info.kinematics = "head_d".into();
+    w.write(rec::TOPIC_INFO, 1, &info).unwrap();
+    w.finish().unwrap();
+    let (ok, _, err) = run(&[
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        other.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("head_d"), "{err}");
+}
+
+#[test]
+fn experiment_and_plan_commands_report_their_figures() {
+    let dir = tmp("experiment");
+    let (ok, out, err) = run(&["experiment", "patent", "--out-dir", dir.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(out.contains("EZ0B rise"), "{out}");
+    for f in [
+        "patent_experiment.csv",
+        "patent_experiment.svg",
+        "patent_experiment.mcap",
+        "summary.json",
+    ] {
+        assert!(dir.join(f).exists(), "{f}");
+    }
+    let csv = std::fs::read_to_string(dir.join("patent_experiment.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 16);
+    let svg = std::fs::read_to_string(dir.join("patent_experiment.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("EZ0B"));
+    let (ok, out, err) = run(&[
+        "plan",
+        "--machine",
+        "table_bc",
+        "--plan",
+        "patent_sequential",
+        "--sigma-um",
+        "1",
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("12 approaches") && out.contains("Cramer-Rao"),
+        "{out}"
+    );
+    // The Cramer-Rao bound of the patent design with B = +90 (physics.md 5.1, R and H
+    // re-estimated, sigma 1 um): EX0B 0.71, EY0C 0.86, EZ0B 0.61, EX0C 0.62 um, EA0C 7.07 urad.
+    for (name, v) in [
+        ("EX0B", "0.707"),
+        ("EY0C", "0.86"),
+        ("EZ0B", "0.612"),
+        ("EX0C", "0.6"),
+        ("EA0C", "7.07"),
+    ] {
+        let line = out
+            .lines()
+            .find(|l| l.trim_start().starts_with(name))
+            .unwrap();
+        assert!(line.contains(v), "{line}");
+    }
+}
