@@ -396,3 +396,117 @@ mod properties {
         }
     }
 }
+
+/// Readings of the first cycle of the warm-up scenario, noise-free, with `edit` applied.
+fn first_cycle(edit: impl Fn(&mut Scenario)) -> Vec<driftwatch::recording::DetectionMsg> {
+    let mut scn = Scenario::load("warmup").unwrap();
+    scn.noise.sigma_um = 0.0;
+    scn.cycles.every_min = None;
+    scn.cycles.at_min = vec![1.0];
+    edit(&mut scn);
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+    sim.cycles[0]
+        .detections
+        .iter()
+        .map(|d| d.msg.clone())
+        .collect()
+}
+
+fn reading(d: &driftwatch::recording::DetectionMsg) -> f64 {
+    match d.axis {
+        Axis::X => d.x_mm,
+        Axis::Y => d.y_mm,
+        Axis::Z => d.z_mm,
+    }
+}
+
+#[test]
+fn simulator_effects_switch_on_with_their_signatures() {
+    use driftwatch::thermal::{Channel, LagTerm};
+    let base = first_cycle(|_| {});
+    let shift = |edit: &dyn Fn(&mut Scenario)| -> Vec<(driftwatch::recording::DetectionMsg, f64)> {
+        first_cycle(edit)
+            .into_iter()
+            .zip(&base)
+            .map(|(d, b)| {
+                let s = (reading(&d) - reading(b)) * 1e3;
+                (d, s)
+            })
+            .collect()
+    };
+    // Skip latency: every reading moves feed * latency along its motion (100 mm/min, 2 ms).
+    for (d, s) in shift(&|s| s.skip.latency_ms = 2.0) {
+        let expect = f64::from(d.direction) * 100.0 / 60.0 * 2e-3 * 1e3;
+        assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
+    }
+    // Effective radius with speed: a bigger envelope trips earlier on lateral approaches only.
+    let radius = Channel {
+        instant: 2.0,
+        ..Default::default()
+    };
+    for (d, s) in shift(&|s| {
+        s.truth.channels.insert("radius".into(), radius.clone());
+    }) {
+        let expect = if d.axis == Axis::Z {
+            0.0
+        } else {
+            -f64::from(d.direction) * 2.0
+        };
+        assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
+    }
+    // Setter mount drift: a 3 um rise of the beam moves every B = 0 z reading up by 3 um.
+    let setter = Channel {
+        offset: 3.0,
+        ..Default::default()
+    };
+    for (d, s) in shift(&|s| {
+        s.truth.channels.insert("setter_z".into(), setter.clone());
+    }) {
+        if d.b_deg == 0.0 && d.axis == Axis::Z {
+            assert!((s - 3.0).abs() < 0.01, "{}: {s}", d.step);
+        }
+    }
+    // Scale expansion driven by ambient: 10 ppm/K on X at +2 K shrinks |x| readings by 20 ppm.
+    let scale = Channel {
+        ambient: vec![LagTerm {
+            gain: 10.0,
+            tau_min: 1e-6,
+        }],
+        ..Default::default()
+    };
+    for (d, s) in shift(&|s| {
+        s.ambient.mean_c = 22.0;
+        s.truth.channels.insert("kx".into(), scale.clone());
+    }) {
+        if d.axis == Axis::X {
+            let expect = -20e-6 * d.x_mm * 1e3;
+            assert!((s - expect).abs() < 0.02, "{}: {s} vs {expect}", d.step);
+        }
+    }
+    // X-Z squareness: x readings move by -Sxz * z.
+    let sq = Channel {
+        offset: 50.0,
+        ..Default::default()
+    };
+    for (d, s) in shift(&|s| {
+        s.truth.channels.insert("sxz".into(), sq.clone());
+    }) {
+        if d.axis == Axis::X {
+            let expect = -50e-6 * d.z_mm * 1e3;
+            assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
+        }
+    }
+    // Outliers: every reading off by 5 to 30 um.
+    for (d, s) in shift(&|s| s.noise.outlier_rate = 1.0) {
+        assert!((5.0..=30.0).contains(&s.abs()), "{}: {s}", d.step);
+    }
+    // Failed approaches: no_trip at the end of the move.
+    let failed = first_cycle(|s| s.noise.no_trip_rate = 1.0);
+    assert!(
+        failed
+            .iter()
+            .all(|d| d.status == Some(driftwatch::recording::DetectionStatus::NoTrip))
+    );
+}
