@@ -510,3 +510,56 @@ fn simulator_effects_switch_on_with_their_signatures() {
             .all(|d| d.status == Some(driftwatch::recording::DetectionStatus::NoTrip))
     );
 }
+
+#[test]
+fn huber_weighting_limits_the_pull_of_an_outlier() {
+    let k = table_bc();
+    let p = plan(&k, "patent");
+    let mut truth = k.nominal_state();
+    let vals = [10.0, 40.0, 3.0, 1.0, 60.0, -150.0];
+    set_errors(&k, &mut truth, &vals);
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut obs = observe(&k, &p, &truth, 0.5, &mut rng);
+    // A chip on the tool: one z reading at C = -180 is 20 um high.
+    let i = obs.iter().position(|o| o.label == "B0C-180/z#1").unwrap();
+    obs[i].position.z += 0.020;
+    let plain = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+    let mut opts = SolveOptions::new(0.5);
+    opts.huber_k = Some(1.5);
+    let robust = identify(&k, &obs, &opts).unwrap();
+    let err = |s: &driftwatch::identify::Solution| (s.error("EA0C").unwrap().value - 60.0).abs();
+    println!(
+        "EA0C error: plain {:.2} urad, Huber {:.2} urad; outlier weight {:.3}",
+        err(&plain),
+        err(&robust),
+        robust.weights[i]
+    );
+    assert!(robust.weights[i] < 0.2);
+    assert!(err(&robust) < 0.5 * err(&plain));
+    // The plain fit sees it in its chi-square: far beyond the 99.9 % point.
+    assert!(plain.chi2 > 40.0, "{}", plain.chi2);
+}
+
+#[test]
+fn the_simulator_is_deterministic_for_a_seed() {
+    let run = |seed: u64| {
+        let mut scn = Scenario::load("warmup").unwrap();
+        scn.seed = seed;
+        let k = Kinematics::load(&scn.machine).unwrap();
+        let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+        let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+        sim.cycles
+            .iter()
+            .flat_map(|c| {
+                c.detections
+                    .iter()
+                    .map(|d| (d.t_ns, d.msg.x_mm, d.msg.y_mm, d.msg.z_mm))
+            })
+            .collect::<Vec<_>>()
+    };
+    let a = run(7);
+    assert_eq!(a, run(7));
+    assert_ne!(a, run(8));
+    // Each detection has its own time, increasing within the recording.
+    assert!(a.windows(2).all(|w| w[1].0 > w[0].0));
+}
