@@ -11,7 +11,6 @@ use serde::Serialize;
 use crate::cycle::{CycleChecks, CycleOutcome, process_all};
 use crate::kinematics::Kinematics;
 use crate::plan::Plan;
-use crate::recording::Timed;
 use crate::scenario::Scenario;
 use crate::simulator::{SimError, Simulation, simulate};
 
@@ -56,15 +55,7 @@ pub fn run(
     stop_min: f64,
 ) -> Result<Experiment, SimError> {
     let simulation = simulate(scn, k, plan)?;
-    let detections: Vec<_> = simulation
-        .cycles
-        .iter()
-        .flat_map(|c| c.detections.iter())
-        .map(|d| Timed {
-            t_ns: d.t_ns,
-            msg: Ok(d.msg.clone()),
-        })
-        .collect();
+    let detections = simulation.detection_stream();
     let (outcomes, _) = process_all(k, &detections, checks);
     let start = scn.start_ns();
     let mut rows = Vec::new();

@@ -9,7 +9,6 @@
 //! the table frame is the machine frame whatever the position and orientation errors.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -25,25 +24,12 @@ pub const BUILTIN_MACHINES: &[(&str, &str)] =
 
 #[derive(Debug, Error)]
 pub enum MachineError {
-    #[error("unknown machine '{0}': not a built-in ({builtins}) and no such file", builtins = builtin_names())]
-    Unknown(String),
-    #[error("cannot read machine file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Source(#[from] crate::source::SourceError),
     #[error("machine description {origin} is not valid TOML for a machine: {message}")]
     Parse { origin: String, message: String },
     #[error("machine '{machine}': {message}")]
     Invalid { machine: String, message: String },
-}
-
-fn builtin_names() -> String {
-    BUILTIN_MACHINES
-        .iter()
-        .map(|(n, _)| *n)
-        .collect::<Vec<_>>()
-        .join(", ")
 }
 
 /// Whether a positive command turns the carried body positively (`direct`) or negatively
@@ -291,26 +277,16 @@ fn unit(v: [f64; 3], what: &str, machine: &str) -> Result<Vec3, MachineError> {
 impl Kinematics {
     /// A built-in machine by name, or a machine TOML file by path.
     pub fn load(name_or_path: &str) -> Result<Self, MachineError> {
-        if let Some((_, text)) = BUILTIN_MACHINES.iter().find(|(n, _)| *n == name_or_path) {
-            return Self::from_config(MachineConfig::from_toml(text, name_or_path)?);
-        }
-        let path = Path::new(name_or_path);
-        if !path.exists() {
-            return Err(MachineError::Unknown(name_or_path.to_string()));
-        }
-        let text = std::fs::read_to_string(path).map_err(|source| MachineError::Read {
-            path: name_or_path.to_string(),
-            source,
-        })?;
+        let text = crate::source::builtin_or_file("machine", name_or_path, BUILTIN_MACHINES)?;
         Self::from_config(MachineConfig::from_toml(&text, name_or_path)?)
     }
 
+    /// A built-in machine by name (never a file).
     pub fn builtin(name: &str) -> Result<Self, MachineError> {
-        let (_, text) = BUILTIN_MACHINES
-            .iter()
-            .find(|(n, _)| *n == name)
-            .ok_or_else(|| MachineError::Unknown(name.to_string()))?;
-        Self::from_config(MachineConfig::from_toml(text, name)?)
+        match BUILTIN_MACHINES.iter().find(|(n, _)| *n == name) {
+            Some((_, text)) => Self::from_config(MachineConfig::from_toml(text, name)?),
+            None => Self::load(&format!("<no built-in machine {name}>")),
+        }
     }
 
     pub fn from_config(cfg: MachineConfig) -> Result<Self, MachineError> {

@@ -16,6 +16,7 @@ pub mod plan;
 pub mod recording;
 pub mod scenario;
 pub mod simulator;
+pub mod source;
 pub mod thermal;
 
 /// A finite number above zero (false for NaN).

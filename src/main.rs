@@ -12,7 +12,6 @@ use driftwatch::cycle::{CycleChecks, group_by_cycle, infer_expected_steps, proce
 use driftwatch::experiment;
 use driftwatch::identify::{Identifier, Observation, SolveOptions};
 use driftwatch::kinematics::Kinematics;
-use driftwatch::measurement::latched;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch::recording::{self as rec, Timed};
@@ -306,15 +305,7 @@ fn write_recording(
 fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCode> {
     let (scn, k, plan) = load_scenario(scenario, plan)?;
     let sim = simulate(&scn, &k, &plan)?;
-    let dets: Vec<_> = sim
-        .cycles
-        .iter()
-        .flat_map(|c| c.detections.iter())
-        .map(|d| Timed {
-            t_ns: d.t_ns,
-            msg: Ok(d.msg.clone()),
-        })
-        .collect();
+    let dets = sim.detection_stream();
     let mut checks = CycleChecks::new(&k);
     checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
     let (outcomes, _) = driftwatch::cycle::process_all(&k, &dets, &checks);
@@ -499,23 +490,7 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
 }
 
 fn template(k: &Kinematics, plan: &Plan) -> Result<Vec<Observation>> {
-    let nominal = k.nominal_state();
-    plan.steps
-        .iter()
-        .map(|s| {
-            let v = latched(k, &nominal, &s.angles, &s.approach, &s.start, None)
-                .map_err(|e| anyhow::anyhow!("step {}: {e}", s.label))?;
-            let mut position = s.start;
-            position[s.approach.axis.index()] = v;
-            Ok(Observation {
-                label: s.label.clone(),
-                angles: s.angles,
-                approach: s.approach,
-                position,
-                t_ns: (s.t_start_s * 1e9) as i64,
-            })
-        })
-        .collect()
+    Ok(plan.observations(k, &k.nominal_state())?)
 }
 
 fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) -> Result<ExitCode> {

@@ -11,7 +11,8 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::geometry::{Vec3, wrap_deg};
-use crate::kinematics::{Kinematics, MAX_ROTARY};
+use crate::identify::Observation;
+use crate::kinematics::{Kinematics, MAX_ROTARY, MachineState};
 use crate::measurement::{Approach, Axis, NoTrip, Travel, latched};
 
 pub const BUILTIN_PLANS: &[(&str, &str)] = &[
@@ -24,13 +25,8 @@ pub const BUILTIN_PLANS: &[(&str, &str)] = &[
 
 #[derive(Debug, Error)]
 pub enum PlanError {
-    #[error("unknown plan '{0}': not a built-in (patent, patent_sequential) and no such file")]
-    Unknown(String),
-    #[error("cannot read plan file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Source(#[from] crate::source::SourceError),
     #[error("plan {origin} is not valid TOML for a plan: {message}")]
     Parse { origin: String, message: String },
     #[error("plan '{plan}': {message}")]
@@ -94,17 +90,7 @@ impl PlanConfig {
     }
 
     pub fn load(name_or_path: &str) -> Result<Self, PlanError> {
-        if let Some((_, text)) = BUILTIN_PLANS.iter().find(|(n, _)| *n == name_or_path) {
-            return Self::from_toml(text, name_or_path);
-        }
-        let path = std::path::Path::new(name_or_path);
-        if !path.exists() {
-            return Err(PlanError::Unknown(name_or_path.to_string()));
-        }
-        let text = std::fs::read_to_string(path).map_err(|source| PlanError::Read {
-            path: name_or_path.to_string(),
-            source,
-        })?;
+        let text = crate::source::builtin_or_file("plan", name_or_path, BUILTIN_PLANS)?;
         Self::from_toml(&text, name_or_path)
     }
 }
@@ -527,6 +513,35 @@ impl Plan {
         }
         self.moves = moves;
         self.machine_time_s = t;
+    }
+
+    /// The observations a machine in `state` gives for this plan, without noise, each at its
+    /// approach's start time (a template for the solver, a noise-free test cycle).
+    pub fn observations(
+        &self,
+        k: &Kinematics,
+        state: &MachineState,
+    ) -> Result<Vec<Observation>, PlanError> {
+        self.steps
+            .iter()
+            .map(|s| {
+                let v = latched(k, state, &s.angles, &s.approach, &s.start, None).map_err(|e| {
+                    PlanError::Invalid {
+                        plan: self.name.clone(),
+                        message: format!("step {}: {e}", s.label),
+                    }
+                })?;
+                let mut position = s.start;
+                position[s.approach.axis.index()] = v;
+                Ok(Observation {
+                    label: s.label.clone(),
+                    angles: s.angles,
+                    approach: s.approach,
+                    position,
+                    t_ns: (s.t_start_s * 1e9) as i64,
+                })
+            })
+            .collect()
     }
 
     pub fn step_index(&self, label: &str) -> Option<usize> {

@@ -17,13 +17,8 @@ pub const BUILTIN_SCENARIOS: &[(&str, &str)] = &[
 
 #[derive(Debug, Error)]
 pub enum ScenarioError {
-    #[error("unknown scenario '{0}': not a built-in (patent, warmup) and no such file")]
-    Unknown(String),
-    #[error("cannot read scenario file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Source(#[from] crate::source::SourceError),
     #[error("scenario {origin} is not valid TOML for a scenario: {message}")]
     Parse { origin: String, message: String },
     #[error("scenario '{name}': {message}")]
@@ -248,17 +243,7 @@ impl Scenario {
     }
 
     pub fn load(name_or_path: &str) -> Result<Self, ScenarioError> {
-        if let Some((_, text)) = BUILTIN_SCENARIOS.iter().find(|(n, _)| *n == name_or_path) {
-            return Self::from_toml(text, name_or_path);
-        }
-        let path = std::path::Path::new(name_or_path);
-        if !path.exists() {
-            return Err(ScenarioError::Unknown(name_or_path.to_string()));
-        }
-        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Read {
-            path: name_or_path.to_string(),
-            source,
-        })?;
+        let text = crate::source::builtin_or_file("scenario", name_or_path, BUILTIN_SCENARIOS)?;
         Self::from_toml(&text, name_or_path)
     }
 

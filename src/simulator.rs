@@ -69,6 +69,22 @@ pub struct Simulation {
     pub cycles: Vec<SimCycle>,
 }
 
+impl Simulation {
+    /// Every detection of every cycle, as a reader of the recording would take them.
+    pub fn detection_stream(
+        &self,
+    ) -> Vec<Timed<Result<DetectionMsg, crate::recording::DetectionIssue>>> {
+        self.cycles
+            .iter()
+            .flat_map(|c| c.detections.iter())
+            .map(|d| Timed {
+                t_ns: d.t_ns,
+                msg: Ok(d.msg.clone()),
+            })
+            .collect()
+    }
+}
+
 #[derive(Clone, Copy)]
 enum Target {
     Location(usize, usize, f64),

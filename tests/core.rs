@@ -6,7 +6,7 @@ use driftwatch::experiment;
 use driftwatch::geometry::Vec3;
 use driftwatch::identify::{Identifier, Observation, SolveError, SolveOptions, identify};
 use driftwatch::kinematics::{Kinematics, MachineState};
-use driftwatch::measurement::{Axis, latched};
+use driftwatch::measurement::Axis;
 use driftwatch::patent_relations;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::scenario::Scenario;
@@ -30,22 +30,12 @@ fn observe(
     sigma_um: f64,
     rng: &mut ChaCha8Rng,
 ) -> Vec<Observation> {
-    plan.steps
-        .iter()
-        .map(|s| {
-            let v = latched(k, truth, &s.angles, &s.approach, &s.start, None).unwrap();
-            let z: f64 = StandardNormal.sample(rng);
-            let mut position = s.start;
-            position[s.approach.axis.index()] = v + sigma_um * z * 1e-3;
-            Observation {
-                label: s.label.clone(),
-                angles: s.angles,
-                approach: s.approach,
-                position,
-                t_ns: (s.t_start_s * 1e9) as i64,
-            }
-        })
-        .collect()
+    let mut obs = plan.observations(k, truth).unwrap();
+    for o in &mut obs {
+        let z: f64 = StandardNormal.sample(rng);
+        o.position[o.approach.axis.index()] += sigma_um * z * 1e-3;
+    }
+    obs
 }
 
 fn set_errors(k: &Kinematics, s: &mut MachineState, values: &[f64]) {

@@ -157,6 +157,22 @@ pub struct Recording {
     pub truncated: Option<String>,
 }
 
+/// The fields every `/probe/detection` message must have.
+pub const DETECTION_FIELDS: [&str; 12] = [
+    "cycle",
+    "step",
+    "b_deg",
+    "c_deg",
+    "axis",
+    "direction",
+    "feed_mm_min",
+    "spindle_rpm",
+    "tool_id",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+];
+
 /// Parse a `/probe/detection` payload. Non-finite numbers (`NaN`, `Infinity`, as some JSON
 /// writers emit them), missing fields and wrong types are reported by field name.
 pub fn parse_detection(data: &[u8]) -> Result<DetectionMsg, DetectionIssue> {
@@ -183,20 +199,7 @@ pub fn parse_detection(data: &[u8]) -> Result<DetectionMsg, DetectionIssue> {
     let cycle = map.get("cycle").and_then(Value::as_i64);
     let step = map.get("step").and_then(Value::as_str).map(str::to_string);
     let fail = |m: String| issue(cycle, step.clone(), m);
-    for key in [
-        "cycle",
-        "step",
-        "b_deg",
-        "c_deg",
-        "axis",
-        "direction",
-        "feed_mm_min",
-        "spindle_rpm",
-        "tool_id",
-        "x_mm",
-        "y_mm",
-        "z_mm",
-    ] {
+    for key in DETECTION_FIELDS {
         match map.get(key) {
             None => return Err(fail(format!("field '{key}' is missing"))),
             Some(Value::Null) if nonfinite => {
@@ -310,20 +313,7 @@ pub fn schema(topic: &str) -> (String, Value) {
                 "x_mm": num, "y_mm": num, "z_mm": num,
                 "status": {"enum": ["ok", "no_trip", "aborted"]}
             }),
-            &[
-                "cycle",
-                "step",
-                "b_deg",
-                "c_deg",
-                "axis",
-                "direction",
-                "feed_mm_min",
-                "spindle_rpm",
-                "tool_id",
-                "x_mm",
-                "y_mm",
-                "z_mm",
-            ],
+            &DETECTION_FIELDS,
         ),
         TOPIC_RESULT => {
             let map =
