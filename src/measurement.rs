@@ -268,22 +268,28 @@ mod tests {
         assert!((z5.unwrap() - rr).abs() < 1e-12);
     }
 
-    #[test]
-    fn latency_moves_the_reading_along_the_motion() {
-        let (k, mut s) = setup();
-        s.latency_s = 0.003;
-        let a = ap(Axis::Y, 1);
-        let y = latched(&k, &s, &[0.0, 0.0], &a, &Vec3::new(0.0, 0.0, 65.0), None).unwrap();
-        assert!((y - (-105.0 + 200.0 / 60.0 * 0.003)).abs() < 1e-12);
+    /// The y and z readings at B = 0, C = 0 (the setter on the -Y side).
+    fn y1_z1(k: &Kinematics, s: &MachineState) -> (f64, f64) {
+        let c = [0.0, 0.0];
+        let y = latched(k, s, &c, &ap(Axis::Y, 1), &Vec3::new(0.0, 0.0, 65.0), None).unwrap();
         let z = latched(
-            &k,
-            &s,
-            &[0.0, 0.0],
+            k,
+            s,
+            &c,
             &ap(Axis::Z, -1),
             &Vec3::new(0.0, -100.0, 0.0),
             None,
         )
         .unwrap();
+        (y, z)
+    }
+
+    #[test]
+    fn latency_moves_the_reading_along_the_motion() {
+        let (k, mut s) = setup();
+        s.latency_s = 0.003;
+        let (y, z) = y1_z1(&k, &s);
+        assert!((y - (-105.0 + 200.0 / 60.0 * 0.003)).abs() < 1e-12);
         assert!((z - (70.0 - 0.01)).abs() < 1e-12);
     }
 
@@ -291,25 +297,8 @@ mod tests {
     fn tool_tip_drift_shifts_readings_by_minus_s() {
         let (k, mut s) = setup();
         s.tool_tip = Vec3::new(0.004, -0.002, -0.030);
-        let y = latched(
-            &k,
-            &s,
-            &[0.0, 0.0],
-            &ap(Axis::Y, 1),
-            &Vec3::new(0.0, 0.0, 65.0),
-            None,
-        )
-        .unwrap();
+        let (y, z) = y1_z1(&k, &s);
         assert!((y - (-105.0 + 0.002)).abs() < 1e-12);
-        let z = latched(
-            &k,
-            &s,
-            &[0.0, 0.0],
-            &ap(Axis::Z, -1),
-            &Vec3::new(0.0, -100.0, 0.0),
-            None,
-        )
-        .unwrap();
         assert!((z - 70.030).abs() < 1e-12);
     }
 
