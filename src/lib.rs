@@ -5,18 +5,26 @@
 //! plans, the thermal model, the truth simulator and the identification are pure code (no I/O,
 //! no globals, deterministic for a given seed). `recording` and the binary are the shell.
 
+pub mod alerts;
+pub mod compensation;
 pub mod cycle;
+pub mod daemon;
 pub mod experiment;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;
+pub mod link;
 pub mod measurement;
 pub mod patent_relations;
+pub mod phase;
 pub mod plan;
+pub mod recorder;
 pub mod recording;
 pub mod scenario;
+pub mod scheduler;
 pub mod simulator;
 pub mod source;
+pub mod store;
 pub mod thermal;
 
 /// A finite number above zero (false for NaN).

@@ -13,6 +13,10 @@ use crate::thermal::{Channel, InputConfig, LagTerm};
 pub const BUILTIN_SCENARIOS: &[(&str, &str)] = &[
     ("patent", include_str!("../config/scenarios/patent.toml")),
     ("warmup", include_str!("../config/scenarios/warmup.toml")),
+    (
+        "two_shift",
+        include_str!("../config/scenarios/two_shift.toml"),
+    ),
 ];
 
 #[derive(Debug, Error)]

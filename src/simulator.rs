@@ -198,6 +198,173 @@ impl Virtual {
     }
 }
 
+/// The virtual machine of a scenario, driven step by step: the truth simulator's state, its
+/// noise and its clock. The batch `simulate` and the daemon's simulated link both use it.
+#[derive(Clone)]
+pub struct VirtualMachine {
+    vm: Virtual,
+    rng: ChaCha8Rng,
+    noise: crate::scenario::NoiseConfig,
+    ambient: crate::scenario::AmbientConfig,
+    unlogged: Vec<String>,
+    start_ns: i64,
+    /// Seconds since `start_ns`.
+    now_s: f64,
+}
+
+impl VirtualMachine {
+    /// The machine of a scenario at the scenario's start, settled cold at ambient.
+    pub fn new(k: &Kinematics, scn: &Scenario) -> Result<Self, SimError> {
+        let mut vm = Virtual::new(k, scn)?;
+        let start_ns = scn.start_ns();
+        let amb = ambient_at(&scn.ambient, start_ns);
+        vm.model.settle(0.0, amb);
+        vm.sensors.settle(0.0, amb);
+        Ok(VirtualMachine {
+            vm,
+            rng: ChaCha8Rng::seed_from_u64(scn.seed),
+            noise: scn.noise.clone(),
+            ambient: scn.ambient.clone(),
+            unlogged: scn.truth.unlogged.clone(),
+            start_ns,
+            now_s: 0.0,
+        })
+    }
+
+    pub fn start_ns(&self) -> i64 {
+        self.start_ns
+    }
+
+    pub fn now_ns(&self) -> i64 {
+        self.to_ns(self.now_s)
+    }
+
+    fn to_ns(&self, t_s: f64) -> i64 {
+        self.start_ns + (t_s * 1e9).round() as i64
+    }
+
+    /// Advance to `t_ns` with the spindle held at `rpm` (ambient in steps of at most 60 s).
+    pub fn advance_to(&mut self, t_ns: i64, rpm: f64) {
+        let te = (t_ns - self.start_ns) as f64 / 1e9;
+        while self.now_s < te {
+            let dt = (te - self.now_s).min(60.0);
+            let amb = ambient_at(&self.ambient, self.to_ns(self.now_s + dt / 2.0));
+            self.vm.advance(dt, rpm, amb);
+            self.now_s += dt;
+        }
+        self.now_s = self.now_s.max(te);
+    }
+
+    /// One approach starting now, the spindle at `rpm`: the detection with its own time, in
+    /// exact geometry, with noise, outliers and failed approaches. The state is not advanced
+    /// (the trip lies within seconds; the caller advances the clock).
+    pub fn probe(
+        &mut self,
+        k: &Kinematics,
+        step: &crate::plan::Step,
+        cycle: i64,
+        rpm: f64,
+    ) -> Timed<DetectionMsg> {
+        let te = self.now_s;
+        let amb = ambient_at(&self.ambient, self.now_ns());
+        let feed = step.approach.feed_mm_min / 60.0;
+        let travel = step.travel();
+        let dir = f64::from(step.approach.direction);
+        let lat = step.approach.latency_shift(self.vm.base.latency_s);
+        // The trip time depends on where the beam is: two passes.
+        let mut t_trip = te + (step.expected - travel.start).abs() / feed;
+        let mut outcome = None;
+        for _ in 0..2 {
+            let mut peek = self.vm.clone();
+            peek.advance(t_trip - te, rpm, amb);
+            let s = peek.state(rpm);
+            let r = latched(
+                k,
+                &s,
+                &step.angles,
+                &step.approach,
+                &step.start,
+                Some(travel),
+            );
+            if let Ok(v) = r {
+                t_trip = te + ((v - lat) - travel.start).abs() / feed;
+            }
+            outcome = Some(r);
+        }
+        let mut pos = step.start;
+        let axis = step.approach.axis.index();
+        let forced_no_trip = self.rng.random::<f64>() < self.noise.no_trip_rate;
+        let (status, t_det) = match outcome {
+            Some(Ok(v)) if !forced_no_trip => {
+                let z: f64 = StandardNormal.sample(&mut self.rng);
+                let mut e_um = self.noise.sigma_um * z;
+                if self.rng.random::<f64>() < self.noise.outlier_rate {
+                    let [lo, hi] = self.noise.outlier_um;
+                    let size = lo + (hi - lo) * self.rng.random::<f64>();
+                    e_um += if self.rng.random::<bool>() {
+                        size
+                    } else {
+                        -size
+                    };
+                }
+                pos[axis] = v + e_um * 1e-3;
+                (None, t_trip + self.vm.base.latency_s)
+            }
+            _ => {
+                pos[axis] = travel.start + dir * travel.max_mm;
+                (Some(DetectionStatus::NoTrip), te + travel.max_mm / feed)
+            }
+        };
+        Timed {
+            t_ns: self.to_ns(t_det),
+            msg: DetectionMsg {
+                cycle,
+                step: step.label.clone(),
+                b_deg: step.b_deg,
+                c_deg: step.c_deg,
+                axis: step.approach.axis,
+                direction: step.approach.direction,
+                feed_mm_min: step.approach.feed_mm_min,
+                spindle_rpm: rpm,
+                tool_id: k.tool_id.clone(),
+                x_mm: pos.x,
+                y_mm: pos.y,
+                z_mm: pos.z,
+                status,
+            },
+        }
+    }
+
+    /// The truth now, the spindle at `rpm`.
+    pub fn truth(&self, k: &Kinematics, rpm: f64, cycle: Option<i64>) -> TruthSample {
+        self.vm.sample(k, self.now_ns(), rpm, cycle)
+    }
+
+    /// The truth at an earlier or later time `t_ns` of a cycle run at `rpm`, from this state.
+    pub fn truth_at(&self, k: &Kinematics, t_ns: i64, rpm: f64, cycle: Option<i64>) -> TruthSample {
+        let mut v = self.clone();
+        v.advance_to(t_ns, rpm);
+        v.truth(k, rpm, cycle)
+    }
+
+    /// Logged temperatures now: the ambient (if logged) and every logged sensor.
+    pub fn temperatures(&self, rpm: f64) -> Vec<(String, f64)> {
+        let mut out = Vec::new();
+        if self.ambient.logged {
+            out.push((
+                "ambient".to_string(),
+                ambient_at(&self.ambient, self.now_ns()),
+            ));
+        }
+        for (i, name) in self.vm.sensors.names().iter().enumerate() {
+            if !self.unlogged.contains(name) {
+                out.push((name.clone(), self.vm.sensors.value(i, rpm)));
+            }
+        }
+        out
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, PartialOrd)]
 enum Event {
     Segment(usize),
@@ -208,8 +375,7 @@ enum Event {
     Heartbeat,
 }
 
-fn ambient_at(scn: &Scenario, t_ns: i64) -> f64 {
-    let a = &scn.ambient;
+fn ambient_at(a: &crate::scenario::AmbientConfig, t_ns: i64) -> f64 {
     if a.amplitude_k == 0.0 {
         return a.mean_c;
     }
@@ -219,10 +385,9 @@ fn ambient_at(scn: &Scenario, t_ns: i64) -> f64 {
 
 /// Run a scenario.
 pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulation, SimError> {
-    let mut vm = Virtual::new(k, scn)?;
-    let start_ns = scn.start_ns();
+    let mut vm = VirtualMachine::new(k, scn)?;
+    let start_ns = vm.start_ns();
     let to_ns = |t_s: f64| start_ns + (t_s * 1e9).round() as i64;
-    let mut rng = ChaCha8Rng::seed_from_u64(scn.seed);
     let duration_s = scn.duration_min * 60.0;
     let cycle_len = plan.machine_time_s;
 
@@ -285,26 +450,18 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
         truth: Vec::new(),
         cycles: Vec::new(),
     };
-    vm.model.settle(0.0, ambient_at(scn, start_ns));
-    vm.sensors.settle(0.0, ambient_at(scn, start_ns));
     let mut now = 0.0;
     let mut last_rpm = f64::NAN;
     let mut last_state: Option<(MachineStateKind, Option<String>)> = None;
     // Snapshots of the virtual machine at each probe start of the open cycle.
-    let mut snapshots: Vec<(f64, Virtual)> = Vec::new();
+    let mut snapshots: Vec<VirtualMachine> = Vec::new();
     let mut open: Option<SimCycle> = None;
 
     for (te, ev) in events {
-        // Advance with the inputs held since `now` (every speed change is an event).
-        let rpm = rpm_at(now);
-        while now < te {
-            let dt = (te - now).min(60.0);
-            let amb = ambient_at(scn, to_ns(now + dt / 2.0));
-            vm.advance(dt, rpm, amb);
-            now += dt;
-        }
-        now = te;
+        // Every speed change is an event: the speed since `now` held until `te`.
         let t_ns = to_ns(te);
+        vm.advance_to(t_ns, rpm_at(now));
+        now = te;
         let rpm_now = rpm_at(te);
         if rpm_now != last_rpm || (matches!(ev, Event::Heartbeat) && rpm_now > 0.0) {
             sim.spindle.push(Timed {
@@ -335,29 +492,13 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
         }
         match ev {
             Event::Sample => {
-                let amb = ambient_at(scn, t_ns);
-                if scn.ambient.logged {
+                for (sensor, celsius) in vm.temperatures(rpm_now) {
                     sim.temperatures.push(Timed {
                         t_ns,
-                        msg: TemperatureMsg {
-                            sensor: "ambient".into(),
-                            celsius: amb,
-                        },
+                        msg: TemperatureMsg { sensor, celsius },
                     });
                 }
-                for (i, name) in vm.sensors.names().iter().enumerate() {
-                    if scn.truth.unlogged.contains(name) {
-                        continue;
-                    }
-                    sim.temperatures.push(Timed {
-                        t_ns,
-                        msg: TemperatureMsg {
-                            sensor: name.clone(),
-                            celsius: vm.sensors.value(i, rpm_now),
-                        },
-                    });
-                }
-                sim.truth.push(vm.sample(k, t_ns, rpm_now, None));
+                sim.truth.push(vm.truth(k, rpm_now, None));
             }
             Event::CycleStart(c) => {
                 snapshots.clear();
@@ -365,75 +506,14 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
                     number: c as i64 + 1,
                     start_ns: t_ns,
                     detections: Vec::new(),
-                    truth: vm.sample(k, t_ns, rpm_now, Some(c as i64 + 1)),
+                    truth: vm.truth(k, rpm_now, Some(c as i64 + 1)),
                 });
             }
             Event::Probe(c, i) => {
-                let step = &plan.steps[i];
-                snapshots.push((te, vm.clone()));
-                let feed = step.approach.feed_mm_min / 60.0;
-                let travel = step.travel();
-                let dir = f64::from(step.approach.direction);
-                let lat = step.approach.latency_shift(vm.base.latency_s);
-                // The trip time depends on where the beam is: two passes.
-                let mut t_trip = te + plan.config.clearance_mm / feed;
-                let mut outcome = None;
-                for _ in 0..2 {
-                    let mut peek = vm.clone();
-                    peek.advance(t_trip - te, rpm_now, ambient_at(scn, t_ns));
-                    let s = peek.state(rpm_now);
-                    let r = latched(
-                        k,
-                        &s,
-                        &step.angles,
-                        &step.approach,
-                        &step.start,
-                        Some(travel),
-                    );
-                    if let Ok(v) = r {
-                        t_trip = te + ((v - lat) - travel.start).abs() / feed;
-                    }
-                    outcome = Some(r);
-                }
-                let mut pos = step.start;
-                let axis = step.approach.axis.index();
-                let forced_no_trip = rng.random::<f64>() < scn.noise.no_trip_rate;
-                let (status, t_det) = match outcome {
-                    Some(Ok(v)) if !forced_no_trip => {
-                        let z: f64 = StandardNormal.sample(&mut rng);
-                        let mut e_um = scn.noise.sigma_um * z;
-                        if rng.random::<f64>() < scn.noise.outlier_rate {
-                            let [lo, hi] = scn.noise.outlier_um;
-                            let size = lo + (hi - lo) * rng.random::<f64>();
-                            e_um += if rng.random::<bool>() { size } else { -size };
-                        }
-                        pos[axis] = v + e_um * 1e-3;
-                        (None, t_trip + vm.base.latency_s)
-                    }
-                    _ => {
-                        pos[axis] = travel.start + dir * travel.max_mm;
-                        (Some(DetectionStatus::NoTrip), te + travel.max_mm / feed)
-                    }
-                };
+                snapshots.push(vm.clone());
+                let d = vm.probe(k, &plan.steps[i], c as i64 + 1, rpm_now);
                 if let Some(cy) = open.as_mut() {
-                    cy.detections.push(Timed {
-                        t_ns: to_ns(t_det),
-                        msg: DetectionMsg {
-                            cycle: c as i64 + 1,
-                            step: step.label.clone(),
-                            b_deg: step.b_deg,
-                            c_deg: step.c_deg,
-                            axis: step.approach.axis,
-                            direction: step.approach.direction,
-                            feed_mm_min: step.approach.feed_mm_min,
-                            spindle_rpm: plan.config.spindle_rpm,
-                            tool_id: k.tool_id.clone(),
-                            x_mm: pos.x,
-                            y_mm: pos.y,
-                            z_mm: pos.z,
-                            status,
-                        },
-                    });
+                    cy.detections.push(d);
                 }
             }
             Event::CycleEnd(_) => {
@@ -444,17 +524,13 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
                         .filter(|d| d.msg.status() == DetectionStatus::Ok)
                         .map(|d| d.t_ns);
                     let t_ref = crate::identify::mean_time_ns(ok);
-                    let t_ref_s = (t_ref - start_ns) as f64 / 1e9;
                     let snap = snapshots
                         .iter()
                         .rev()
-                        .find(|(ts, _)| *ts <= t_ref_s)
+                        .find(|v| v.now_ns() <= t_ref)
                         .or(snapshots.first());
-                    if let Some((ts, v)) = snap {
-                        let mut v = v.clone();
-                        let cycle_rpm = plan.config.spindle_rpm;
-                        v.advance(t_ref_s - ts, cycle_rpm, ambient_at(scn, t_ref));
-                        cy.truth = v.sample(k, t_ref, cycle_rpm, Some(cy.number));
+                    if let Some(v) = snap {
+                        cy.truth = v.truth_at(k, t_ref, plan.config.spindle_rpm, Some(cy.number));
                     }
                     sim.cycles.push(cy);
                 }

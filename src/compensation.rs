@@ -1,0 +1,1429 @@
+//! From a `/cycle/result` to the compensation the NC applies: validation against limits,
+//! versioned compensation sets, the NC offsets of the `table_bc` machine, step limiting of
+//! served values, and the `/compensation` message.
+//!
+//! Compensation values move a real machine, so this module fails closed: a set is only ever
+//! built from a result that passed [`validate`], every refusal names each failed check with
+//! its numbers, and a limit that is not a usable number refuses rather than waving values
+//! through (a comparison with NaN is false, which would otherwise pass everything).
+//!
+//! # Offsets of the `table_bc` convention
+//!
+//! The location errors are actual minus nominal (`docs/kinematics-conventions.md`): the B line
+//! passes through `(EX0B, 0, EZ0B)`, the C line at B = 0 through `(EX0B + EX0C, EY0C, 0)` with
+//! the direction `+Z` turned by `EA0C` about X and `EB0C` about Y (to first order
+//! `(EB0C, -EA0C, 1)`). The NC's kinematic model must put its axis lines where the actual lines
+//! are, so each offset is the nominal-to-actual move of one line, in machine coordinates at
+//! B = C = 0:
+//!
+//! | offset | value | meaning |
+//! |---|---|---|
+//! | `B_pivot_x_um` | `EX0B` | X of the B line |
+//! | `B_pivot_z_um` | `EZ0B` | Z of the B line |
+//! | `C_pivot_x_um` | `EX0B + EX0C` | X of the C line at B = 0 (EX0C is relative to the B line) |
+//! | `C_pivot_y_um` | `EY0C` | Y of the C line |
+//! | `C_tilt_a_urad` | `EA0C` | tilt of the C line about X, right-hand rule |
+//! | `C_tilt_b_urad` | `EB0C` | tilt of the C line about Y, right-hand rule |
+//!
+//! A line's position along its own direction has no meaning (no Y for B, no Z for C), so there
+//! is no offset for it. The errors are the apparent (tool-relative) values a cycle measures:
+//! the tool-tip drift is already folded into `EX0B`, `EY0C` and `EZ0B`, and that is what the NC
+//! must compensate, since it positions the tool, not the spindle nose.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use thiserror::Error;
+
+use crate::positive;
+use crate::recording::{CycleResultMsg, ResultStatus};
+
+/// The location errors a `table_bc` cycle identifies, in report order.
+pub const TABLE_BC_ERRORS: [&str; 6] = ["EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"];
+
+/// The unit of a location error by its name: orientation errors (`EA..`, `EB..`, `EC..`) are
+/// in urad, position errors in um.
+pub fn unit(name: &str) -> &'static str {
+    if is_angular(name) { "urad" } else { "um" }
+}
+
+fn is_angular(name: &str) -> bool {
+    name.starts_with("EA") || name.starts_with("EB") || name.starts_with("EC")
+}
+
+// ---------------------------------------------------------------------------------------------
+// Chi-square quantile
+// ---------------------------------------------------------------------------------------------
+
+/// The chi-square quantile: the `x` with `P(chi2_dof <= x) = p`, to 1e-10 relative or better.
+///
+/// `p = 0` gives 0 and `p = 1` infinity; `p` outside `[0, 1]` or NaN, and `dof = 0` (no
+/// distribution to test against), give NaN, which every caller here treats as a refusal.
+pub fn chi2_quantile(p: f64, dof: usize) -> f64 {
+    if dof == 0 || !(0.0..=1.0).contains(&p) {
+        return f64::NAN;
+    }
+    if p == 0.0 {
+        return 0.0;
+    }
+    if p == 1.0 {
+        return f64::INFINITY;
+    }
+    let a = dof as f64 / 2.0;
+    let ln_gamma_a = ln_gamma(a);
+    // In the upper tail solve Q = 1 - p instead of P = p: 1 - p is exact there (Sterbenz) and Q
+    // keeps its relative precision where P = 1 - Q would round it away.
+    let upper = p > 0.5;
+    let q_target = 1.0 - p;
+    // Increasing in x in both forms, so the bracket logic is the same.
+    let g = |x: f64| {
+        let (pp, qq) = gamma_pq(a, x / 2.0, ln_gamma_a);
+        if upper { q_target - qq } else { pp - p }
+    };
+    let density = |x: f64| 0.5 * ((a - 1.0) * (x / 2.0).ln() - x / 2.0 - ln_gamma_a).exp();
+
+    let mut lo = 0.0_f64;
+    let mut hi = (dof as f64).max(1.0);
+    let mut guard = 0;
+    while g(hi) < 0.0 {
+        lo = hi;
+        hi *= 2.0;
+        guard += 1;
+        if guard > 2000 || !hi.is_finite() {
+            return f64::NAN;
+        }
+    }
+    // Newton inside a shrinking bracket, falling back to bisection whenever Newton leaves it.
+    let mut x = 0.5 * (lo + hi);
+    for _ in 0..500 {
+        let gx = g(x);
+        if gx == 0.0 {
+            return x;
+        }
+        if gx < 0.0 {
+            lo = x;
+        } else {
+            hi = x;
+        }
+        let newton = x - gx / density(x);
+        let next = if newton.is_finite() && newton > lo && newton < hi {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        let converged = (next - x).abs() <= 1e-14 * next.abs() || hi - lo <= 1e-14 * hi;
+        x = next;
+        if converged {
+            break;
+        }
+    }
+    x
+}
+
+/// ln Gamma(x) for x >= 0.5 (Lanczos, g = 7, 9 terms; about 1e-15 relative). The chi-square
+/// uses only a = dof / 2 >= 0.5.
+fn ln_gamma(x: f64) -> f64 {
+    const G: f64 = 7.0;
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    let x = x - 1.0;
+    let mut sum = C[0];
+    for (i, c) in C.iter().enumerate().skip(1) {
+        sum += c / (x + i as f64);
+    }
+    let t = x + G + 0.5;
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + sum.ln()
+}
+
+/// The regularized incomplete gamma functions `(P(a, x), Q(a, x))`: the series where it
+/// converges fast (x < a + 1), the continued fraction otherwise (Numerical Recipes `gser` and
+/// `gcf`); the other one is the complement, so each is computed where it is accurate.
+fn gamma_pq(a: f64, x: f64, ln_gamma_a: f64) -> (f64, f64) {
+    const EPS: f64 = 1e-16;
+    const FPMIN: f64 = 1e-300;
+    const MAX_ITER: usize = 100_000;
+    if x <= 0.0 {
+        return (0.0, 1.0);
+    }
+    let prefactor = (-x + a * x.ln() - ln_gamma_a).exp();
+    if x < a + 1.0 {
+        let mut ap = a;
+        let mut del = 1.0 / a;
+        let mut sum = del;
+        for _ in 0..MAX_ITER {
+            ap += 1.0;
+            del *= x / ap;
+            sum += del;
+            if del.abs() < sum.abs() * EPS {
+                break;
+            }
+        }
+        let p = (sum * prefactor).min(1.0);
+        (p, 1.0 - p)
+    } else {
+        // Modified Lentz.
+        let mut b = x + 1.0 - a;
+        let mut c = 1.0 / FPMIN;
+        let mut d = 1.0 / b;
+        let mut h = d;
+        for i in 1..MAX_ITER {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < FPMIN {
+                d = FPMIN;
+            }
+            c = b + an / c;
+            if c.abs() < FPMIN {
+                c = FPMIN;
+            }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < EPS {
+                break;
+            }
+        }
+        let q = (prefactor * h).min(1.0);
+        (1.0 - q, q)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Validation
+// ---------------------------------------------------------------------------------------------
+
+/// What a cycle result must meet before it may become compensation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ValidationLimits {
+    /// Probability of the chi-square point the fit's chi-square must stay within (default
+    /// 0.999: a correct model and noise level exceed it once in a thousand cycles).
+    pub chi2_quantile: f64,
+    /// Largest standard uncertainty of a position error, um (default 2.0).
+    pub max_sigma_um: f64,
+    /// Largest standard uncertainty of an orientation error, urad (default 15.0).
+    pub max_sigma_urad: f64,
+    /// Largest believable position error from zero, um (default 200: no thermal drift of a
+    /// machine in working order gets there; a value beyond is a wrong setup or a unit error).
+    pub max_abs_um: f64,
+    /// Largest believable orientation error from zero, urad (default 500).
+    pub max_abs_urad: f64,
+    /// Largest change of a position error from the served value in one step, um (default 50,
+    /// HEIDENHAIN KinematicsOpt's change limit).
+    pub max_step_um: f64,
+    /// Largest change of an orientation error from the served value in one step, urad
+    /// (default 100).
+    pub max_step_urad: f64,
+    /// The step limits grow by this much per minute since the served set: a machine that
+    /// cooled overnight has legitimately moved more than one step, a cycle minutes after the
+    /// last has not. um/min (default 4: above the 3.5 um/min the patent's fastest drift shows).
+    pub max_rate_um_per_min: f64,
+    /// The same for orientation errors, urad/min (default 10).
+    pub max_rate_urad_per_min: f64,
+}
+
+impl Default for ValidationLimits {
+    fn default() -> Self {
+        ValidationLimits {
+            chi2_quantile: 0.999,
+            max_sigma_um: 2.0,
+            max_sigma_urad: 15.0,
+            max_abs_um: 200.0,
+            max_abs_urad: 500.0,
+            max_step_um: 50.0,
+            max_step_urad: 100.0,
+            max_rate_um_per_min: 4.0,
+            max_rate_urad_per_min: 10.0,
+        }
+    }
+}
+
+/// The verdict on one cycle result: `ok` only when `reasons` is empty.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    pub ok: bool,
+    /// Every failed check, with its numbers.
+    pub reasons: Vec<String>,
+}
+
+/// Check a cycle result before it may become compensation: the solver's verdict, the six
+/// `table_bc` errors present, finite and believable, their uncertainties within limits, the
+/// chi-square of the fit within its `chi2_quantile` point, the step from the served set
+/// (`previous`) within limits, and the cycle newer than the served one. Every failed check is
+/// named; nothing stops at the first.
+pub fn validate(
+    result: &CycleResultMsg,
+    previous: Option<&CompensationSet>,
+    limits: &ValidationLimits,
+) -> Validation {
+    let mut reasons = result_shape_reasons(result);
+    let limit = usable_limits(limits, &mut reasons);
+
+    match (result.chi2, result.dof) {
+        (None, _) | (_, None) => reasons.push(
+            "no chi-square and dof in the result: the fit cannot be checked against the noise"
+                .into(),
+        ),
+        (Some(_), Some(0)) => reasons.push(
+            "0 dof: the cycle has no redundancy, so the fit cannot be checked against the noise"
+                .into(),
+        ),
+        (Some(chi2), Some(_)) if !(chi2.is_finite() && chi2 >= 0.0) => {
+            reasons.push(format!(
+                "chi-square {chi2} is not a finite non-negative number"
+            ));
+        }
+        (Some(chi2), Some(dof)) => {
+            if let Some(p) = limit.chi2_quantile {
+                let q = chi2_quantile(p, dof);
+                if !within(chi2, q) {
+                    reasons.push(format!(
+                        "chi-square {} beyond its {} % point {q:.2} for {dof} dof",
+                        shown(chi2, q, 1),
+                        percent(p)
+                    ));
+                }
+            }
+        }
+    }
+    if let Some(rms) = result.residual_rms_um
+        && !rms.is_finite()
+    {
+        reasons.push(format!("residual rms {rms} um is not a finite number"));
+    }
+
+    let errors = result.errors.as_ref();
+    let sigma = result.sigma.as_ref();
+    for name in TABLE_BC_ERRORS {
+        let Some(&value) = errors.and_then(|e| e.get(name)) else {
+            continue; // named by result_shape_reasons
+        };
+        if !value.is_finite() {
+            continue; // named by result_shape_reasons
+        }
+        let u = unit(name);
+        let angular = is_angular(name);
+        let max_abs = if angular {
+            limit.max_abs_urad
+        } else {
+            limit.max_abs_um
+        };
+        if let Some(max) = max_abs
+            && !within(value.abs(), max)
+        {
+            reasons.push(format!(
+                "{name} {} {u} from zero beyond the believable {} {u}",
+                shown(value.abs(), max, 1),
+                limit_str(max)
+            ));
+        }
+        let max_sigma = if angular {
+            limit.max_sigma_urad
+        } else {
+            limit.max_sigma_um
+        };
+        if let (Some(max), Some(&s)) = (max_sigma, sigma.and_then(|s| s.get(name)))
+            && positive(s)
+            && !within(s, max)
+        {
+            reasons.push(format!(
+                "{name} uncertainty {} {u} over its limit {} {u}",
+                shown(s, max, 1),
+                limit_str(max)
+            ));
+        }
+        if let Some(prev) = previous {
+            let max_step = if angular {
+                limit.max_step_urad
+            } else {
+                limit.max_step_um
+            };
+            match prev.errors.get(name) {
+                None => reasons.push(format!(
+                    "{name} has no value in the served set {} to measure the step from",
+                    prev.version
+                )),
+                Some(&served) if !served.is_finite() => reasons.push(format!(
+                    "{name} served value {served} in set {} is not a finite number to measure \
+                     the step from",
+                    prev.version
+                )),
+                Some(&served) => {
+                    let step = (value - served).abs();
+                    let rate = if angular {
+                        limit.max_rate_urad_per_min
+                    } else {
+                        limit.max_rate_um_per_min
+                    };
+                    let minutes = ((result.t_ns - prev.valid_from_ns) as f64 / 60e9).max(0.0);
+                    if let Some(base) = max_step {
+                        let max = base + rate * minutes;
+                        if !within(step, max) {
+                            reasons.push(format!(
+                                "{name} step {} {u} from the served value {} {u} to {} {u} over \
+                                 the limit {} {u} ({} {u} + {} {u}/min over {:.0} min)",
+                                shown(step, max, 1),
+                                fixed(served),
+                                fixed(value),
+                                limit_str(max),
+                                limit_str(base),
+                                limit_str(rate),
+                                minutes
+                            ));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    if let Some(prev) = previous
+        && let Some(served_cycle) = prev.cycle
+        && result.cycle <= served_cycle
+    {
+        reasons.push(format!(
+            "cycle {} is not newer than cycle {served_cycle} of the served set {}",
+            result.cycle, prev.version
+        ));
+    }
+
+    Validation {
+        ok: reasons.is_empty(),
+        reasons,
+    }
+}
+
+/// `x` at most `max`; false when either is NaN, so that a NaN fails the check it is in.
+fn within(x: f64, max: f64) -> bool {
+    x <= max
+}
+
+/// The limits that are usable numbers; each one that is not is a reason, and the checks that
+/// need it are skipped rather than run against a NaN.
+struct Usable {
+    chi2_quantile: Option<f64>,
+    max_sigma_um: Option<f64>,
+    max_sigma_urad: Option<f64>,
+    max_abs_um: Option<f64>,
+    max_abs_urad: Option<f64>,
+    max_step_um: Option<f64>,
+    max_step_urad: Option<f64>,
+    max_rate_um_per_min: f64,
+    max_rate_urad_per_min: f64,
+}
+
+fn usable_limits(l: &ValidationLimits, reasons: &mut Vec<String>) -> Usable {
+    let mut pos = |name: &str, v: f64| {
+        if positive(v) {
+            Some(v)
+        } else {
+            reasons.push(format!(
+                "limit {name} = {v} is not a positive finite number"
+            ));
+            None
+        }
+    };
+    let max_sigma_um = pos("max_sigma_um", l.max_sigma_um);
+    let max_sigma_urad = pos("max_sigma_urad", l.max_sigma_urad);
+    let max_abs_um = pos("max_abs_um", l.max_abs_um);
+    let max_abs_urad = pos("max_abs_urad", l.max_abs_urad);
+    let max_step_um = pos("max_step_um", l.max_step_um);
+    let max_step_urad = pos("max_step_urad", l.max_step_urad);
+    let mut rate = |name: &str, v: f64| {
+        if crate::non_negative(v) {
+            v
+        } else {
+            reasons.push(format!("limit {name} = {v} is not a finite number >= 0"));
+            0.0
+        }
+    };
+    let max_rate_um_per_min = rate("max_rate_um_per_min", l.max_rate_um_per_min);
+    let max_rate_urad_per_min = rate("max_rate_urad_per_min", l.max_rate_urad_per_min);
+    let p = l.chi2_quantile;
+    let chi2_quantile = if p > 0.0 && p < 1.0 {
+        Some(p)
+    } else {
+        reasons.push(format!(
+            "limit chi2_quantile = {p} is not a probability strictly between 0 and 1"
+        ));
+        None
+    };
+    Usable {
+        chi2_quantile,
+        max_sigma_um,
+        max_sigma_urad,
+        max_abs_um,
+        max_abs_urad,
+        max_step_um,
+        max_step_urad,
+        max_rate_um_per_min,
+        max_rate_urad_per_min,
+    }
+}
+
+/// The checks that need no limits: the solver's verdict and exactly the six `table_bc` errors,
+/// finite, each with a finite positive uncertainty. [`next_set`] repeats them, so a set can
+/// never be built from a result without usable numbers, whatever `Validation` it is handed.
+fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
+    let mut reasons = Vec::new();
+    if result.status == ResultStatus::Rejected {
+        reasons.push(format!(
+            "rejected by the solver: {}",
+            result.reason.as_deref().unwrap_or("no reason given")
+        ));
+    }
+    let errors = match &result.errors {
+        Some(e) if !e.is_empty() => e,
+        _ => {
+            reasons.push("no errors".into());
+            return reasons;
+        }
+    };
+    for name in TABLE_BC_ERRORS {
+        match errors.get(name) {
+            None => reasons.push(format!("{name} missing from the errors")),
+            Some(v) if !v.is_finite() => {
+                reasons.push(format!("{name} = {v} is not a finite number"));
+            }
+            Some(_) => {}
+        }
+    }
+    for name in errors.keys() {
+        if !TABLE_BC_ERRORS.contains(&name.as_str()) {
+            reasons.push(format!(
+                "unexpected error {name}: a table_bc set holds only {}",
+                TABLE_BC_ERRORS.join(", ")
+            ));
+        }
+    }
+    match &result.sigma {
+        None => reasons.push("no uncertainties (sigma)".into()),
+        Some(sigma) => {
+            for name in TABLE_BC_ERRORS {
+                if !errors.contains_key(name) {
+                    continue;
+                }
+                match sigma.get(name) {
+                    None => reasons.push(format!("{name} has no uncertainty")),
+                    Some(&s) if !positive(s) => reasons.push(format!(
+                        "{name} uncertainty {s} {} is not a positive finite number",
+                        unit(name)
+                    )),
+                    Some(_) => {}
+                }
+            }
+        }
+    }
+    reasons
+}
+
+// ---------------------------------------------------------------------------------------------
+// Compensation sets
+// ---------------------------------------------------------------------------------------------
+
+/// Where a set's values come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Source {
+    /// Identified in a measurement cycle.
+    Measured,
+    /// From the thermal model between cycles.
+    Predicted,
+}
+
+/// One version of the compensation served to the NC.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CompensationSet {
+    /// 1 for the first set, then one more for each set.
+    pub version: u64,
+    /// From when the NC may apply it, ns since the Unix epoch.
+    pub valid_from_ns: i64,
+    pub source: Source,
+    /// The cycle it was measured in.
+    pub cycle: Option<i64>,
+    /// Apparent location errors, um and urad.
+    pub errors: BTreeMap<String, f64>,
+    /// Their standard uncertainties, same units.
+    pub sigma: BTreeMap<String, f64>,
+    /// The errors in the form the NC applies (see the module docs).
+    pub offsets: BTreeMap<String, f64>,
+    /// Why this set exists, for the operator.
+    pub reason: String,
+}
+
+/// A set that may not be built, with every reason.
+#[derive(Debug, Clone, PartialEq, Error)]
+#[error("no compensation set: {}", .reasons.join("; "))]
+pub struct Refused {
+    pub reasons: Vec<String>,
+}
+
+/// The next compensation set from a validated cycle result.
+///
+/// `validation` must be the verdict of [`validate`] on this `result` against this `previous`.
+/// The checks that need no limits are repeated here, so a result without usable numbers is
+/// refused even with a `Validation` that says ok. `now_ns` becomes `valid_from_ns` and may not
+/// lie before the served set's, so that the newest version is also the latest in time.
+pub fn next_set(
+    previous: Option<&CompensationSet>,
+    result: &CycleResultMsg,
+    validation: &Validation,
+    now_ns: i64,
+) -> Result<CompensationSet, Refused> {
+    let mut reasons = Vec::new();
+    if !validation.ok {
+        reasons.extend(validation.reasons.iter().cloned());
+        if reasons.is_empty() {
+            reasons.push("the result did not pass validation".into());
+        }
+    } else if !validation.reasons.is_empty() {
+        reasons.push("the validation says ok but names failed checks".into());
+        reasons.extend(validation.reasons.iter().cloned());
+    }
+    for r in result_shape_reasons(result) {
+        if !reasons.contains(&r) {
+            reasons.push(r);
+        }
+    }
+    let version = match previous {
+        None => Some(1),
+        Some(prev) => {
+            if now_ns < prev.valid_from_ns {
+                reasons.push(format!(
+                    "valid from {now_ns} ns would lie before the served set {} (valid from {} ns)",
+                    prev.version, prev.valid_from_ns
+                ));
+            }
+            prev.version.checked_add(1)
+        }
+    };
+    let Some(version) = version else {
+        reasons.push("no version number after u64::MAX".into());
+        return Err(Refused { reasons });
+    };
+    if !reasons.is_empty() {
+        return Err(Refused { reasons });
+    }
+
+    // Both maps are present with every name: result_shape_reasons found nothing.
+    let (Some(all_errors), Some(all_sigma)) = (&result.errors, &result.sigma) else {
+        return Err(Refused {
+            reasons: vec!["no errors".into()],
+        });
+    };
+    let pick = |m: &BTreeMap<String, f64>| -> BTreeMap<String, f64> {
+        TABLE_BC_ERRORS
+            .iter()
+            .filter_map(|&n| m.get(n).map(|&v| (n.to_string(), v)))
+            .collect()
+    };
+    let errors = pick(all_errors);
+    let sigma = pick(all_sigma);
+    let fit = match (result.chi2, result.dof) {
+        (Some(chi2), Some(dof)) => format!(", chi-square {chi2:.1} for {dof} dof"),
+        _ => String::new(),
+    };
+    Ok(CompensationSet {
+        version,
+        valid_from_ns: now_ns,
+        source: Source::Measured,
+        cycle: Some(result.cycle),
+        offsets: offsets(&errors),
+        errors,
+        sigma,
+        reason: format!(
+            "measured in cycle {} (reference time {} ns{fit})",
+            result.cycle, result.t_ns
+        ),
+    })
+}
+
+/// The NC offsets of the `table_bc` convention (module docs). An offset whose inputs are
+/// missing or not finite is left out rather than guessed.
+pub fn offsets(errors: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
+    let get = |n: &str| errors.get(n).copied().filter(|v| v.is_finite());
+    let ex0b = get("EX0B");
+    let entries = [
+        ("B_pivot_x_um", ex0b),
+        ("B_pivot_z_um", get("EZ0B")),
+        ("C_pivot_x_um", ex0b.zip(get("EX0C")).map(|(b, c)| b + c)),
+        ("C_pivot_y_um", get("EY0C")),
+        ("C_tilt_a_urad", get("EA0C")),
+        ("C_tilt_b_urad", get("EB0C")),
+    ];
+    entries
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| (k.to_string(), v)))
+        .collect()
+}
+
+/// The served errors moved towards `to` by at most `max_step_um` (positions) or
+/// `max_step_urad` (orientations) per value, so the NC never sees a jump.
+///
+/// A name served in `from` but absent (or not finite) in `to` holds its value. A name new in
+/// `to`, or served as a non-finite value, starts from 0, which is what the NC applies without
+/// compensation. A step limit that is not a positive finite number moves nothing.
+pub fn ramp(
+    from: &CompensationSet,
+    to: &BTreeMap<String, f64>,
+    max_step_um: f64,
+    max_step_urad: f64,
+) -> BTreeMap<String, f64> {
+    let mut out = BTreeMap::new();
+    let names = from.errors.keys().chain(to.keys());
+    for name in names {
+        if out.contains_key(name) {
+            continue;
+        }
+        let served = from.errors.get(name).copied().filter(|v| v.is_finite());
+        let target = to.get(name).copied().filter(|v| v.is_finite());
+        let current = match (served, target) {
+            (None, None) => continue,
+            (Some(s), _) => s,
+            (None, Some(_)) => 0.0,
+        };
+        let Some(target) = target else {
+            out.insert(name.clone(), current);
+            continue;
+        };
+        let max = if is_angular(name) {
+            max_step_urad
+        } else {
+            max_step_um
+        };
+        let step = if positive(max) { max } else { 0.0 };
+        let d = target - current;
+        let next = if d.abs() <= step {
+            target
+        } else {
+            current + step.copysign(d)
+        };
+        out.insert(name.clone(), next);
+    }
+    out
+}
+
+/// The `/compensation` message of a set (the contract's fields plus `sigma`, `cycle` and
+/// `reason`).
+pub fn compensation_message(set: &CompensationSet) -> Value {
+    json!({
+        "version": set.version,
+        "valid_from_ns": set.valid_from_ns,
+        "source": set.source,
+        "errors": set.errors,
+        "offsets": set.offsets,
+        "sigma": set.sigma,
+        "cycle": set.cycle,
+        "reason": set.reason,
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Number formatting for reasons
+// ---------------------------------------------------------------------------------------------
+
+/// `value` with the fewest decimals (at least `min_dec`) at which it does not read the same as
+/// `limit`, so that "50.0 over the limit 50.0" never appears.
+fn shown(value: f64, limit: f64, min_dec: usize) -> String {
+    for d in min_dec..=6 {
+        let v = format!("{value:.d$}");
+        if v != format!("{limit:.d$}") {
+            return v;
+        }
+    }
+    format!("{value}")
+}
+
+/// A limit as configured: one decimal for whole numbers, otherwise every digit it has.
+fn limit_str(x: f64) -> String {
+    if x.fract() == 0.0 {
+        format!("{x:.1}")
+    } else {
+        format!("{x}")
+    }
+}
+
+fn fixed(x: f64) -> String {
+    format!("{x:.1}")
+}
+
+/// A probability as a percentage without trailing zeros (0.999 -> "99.9").
+fn percent(p: f64) -> String {
+    let s = format!("{:.6}", p * 100.0);
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const T0: i64 = 1_700_000_000_000_000_000;
+
+    fn map(pairs: &[(&str, f64)]) -> BTreeMap<String, f64> {
+        pairs.iter().map(|&(k, v)| (k.to_string(), v)).collect()
+    }
+
+    fn clean_errors() -> BTreeMap<String, f64> {
+        map(&[
+            ("EX0B", 12.0),
+            ("EZ0B", 40.0),
+            ("EY0C", -5.0),
+            ("EX0C", 3.0),
+            ("EA0C", 20.0),
+            ("EB0C", -30.0),
+        ])
+    }
+
+    fn clean(cycle: i64) -> CycleResultMsg {
+        CycleResultMsg {
+            cycle,
+            t_ns: T0 + cycle * 1_800_000_000_000,
+            status: ResultStatus::Ok,
+            reason: None,
+            errors: Some(clean_errors()),
+            sigma: Some(map(&[
+                ("EX0B", 0.7),
+                ("EZ0B", 0.6),
+                ("EY0C", 0.9),
+                ("EX0C", 0.6),
+                ("EA0C", 7.0),
+                ("EB0C", 6.0),
+            ])),
+            residual_rms_um: Some(0.5),
+            chi2: Some(12.0),
+            dof: Some(16),
+            n_detections: Some(24),
+            nuisance: None,
+            redundancy_um: None,
+        }
+    }
+
+    fn set_error(r: &mut CycleResultMsg, name: &str, v: f64) {
+        r.errors.as_mut().unwrap().insert(name.into(), v);
+    }
+
+    fn set_sigma(r: &mut CycleResultMsg, name: &str, v: f64) {
+        r.sigma.as_mut().unwrap().insert(name.into(), v);
+    }
+
+    /// Validation fails with exactly one reason containing every fragment, and no set follows.
+    fn refused_with(
+        r: &CycleResultMsg,
+        prev: Option<&CompensationSet>,
+        limits: &ValidationLimits,
+        fragments: &[&str],
+    ) {
+        let v = validate(r, prev, limits);
+        assert!(!v.ok, "passed: {r:?}");
+        assert_eq!(v.reasons.len(), 1, "{:?}", v.reasons);
+        for f in fragments {
+            assert!(v.reasons[0].contains(f), "'{f}' not in '{}'", v.reasons[0]);
+        }
+        let e = next_set(prev, r, &v, T0 + 10_i64.pow(13)).unwrap_err();
+        assert!(e.reasons.contains(&v.reasons[0]), "{e}");
+    }
+
+    #[test]
+    fn chi2_quantiles_match_tables() {
+        let cases = [
+            (0.999, 4, 18.466_826_952_903),
+            (0.999, 6, 22.457_744_484_825),
+            (0.999, 16, 39.252_354_790_768),
+            (0.95, 1, 3.841_458_820_694),
+            (0.95, 10, 18.307_038_053_275),
+            (0.99, 1, 6.634_896_601_021),
+            (0.5, 1, 0.454_936_423_120),
+            (0.999, 100, 149.449_252_779_038),
+            (0.01, 5, 0.554_298),
+            (0.975, 3, 9.348_404),
+            (0.05, 10, 3.940_299),
+        ];
+        for (p, dof, want) in cases {
+            let got = chi2_quantile(p, dof);
+            assert!(
+                (got - want).abs() < 1e-3,
+                "p {p} dof {dof}: {got} vs {want}"
+            );
+        }
+        // The values computed here to 12 digits (closed forms) hold to 1e-10 relative.
+        for (p, dof, want) in &cases[..8] {
+            let got = chi2_quantile(*p, *dof);
+            assert!((got / want - 1.0).abs() < 1e-10, "p {p} dof {dof}: {got}");
+        }
+    }
+
+    #[test]
+    fn chi2_quantile_inverts_closed_forms_to_1e10() {
+        // Two dof: an exponential of mean 2, q = -2 ln(1 - p).
+        for p in [
+            1e-9_f64,
+            0.001,
+            0.3,
+            0.5,
+            0.9,
+            0.999,
+            0.999_999,
+            1.0 - 1e-12,
+        ] {
+            let want = -2.0 * (-p).ln_1p();
+            let got = chi2_quantile(p, 2);
+            assert!((got / want - 1.0).abs() < 1e-10, "p {p}: {got} vs {want}");
+        }
+        // Even dof: Q(x) = exp(-x/2) sum_{k < dof/2} (x/2)^k / k!.
+        for dof in [4, 6, 16, 40] {
+            for p in [0.01, 0.5, 0.999] {
+                let x = chi2_quantile(p, dof);
+                let (mut term, mut sum) = (1.0, 0.0);
+                for k in 0..dof / 2 {
+                    sum += term;
+                    term *= x / 2.0 / (k + 1) as f64;
+                }
+                let q = (-x / 2.0).exp() * sum;
+                assert!(
+                    ((1.0 - q) - p).abs() < 1e-12,
+                    "dof {dof} p {p}: P = {}",
+                    1.0 - q
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn chi2_quantile_edges() {
+        assert_eq!(chi2_quantile(0.0, 3), 0.0);
+        assert_eq!(chi2_quantile(1.0, 3), f64::INFINITY);
+        assert!(chi2_quantile(f64::NAN, 3).is_nan());
+        assert!(chi2_quantile(1.5, 3).is_nan());
+        assert!(chi2_quantile(-0.1, 3).is_nan());
+        assert!(chi2_quantile(0.5, 0).is_nan());
+        // Increasing in p and in dof.
+        assert!(chi2_quantile(0.9, 5) < chi2_quantile(0.99, 5));
+        assert!(chi2_quantile(0.99, 5) < chi2_quantile(0.99, 6));
+    }
+
+    #[test]
+    fn a_clean_result_passes_and_yields_version_1_then_2() {
+        let limits = ValidationLimits::default();
+        let r1 = clean(1);
+        let v1 = validate(&r1, None, &limits);
+        assert!(v1.ok && v1.reasons.is_empty(), "{:?}", v1.reasons);
+        let s1 = next_set(None, &r1, &v1, T0 + 100).unwrap();
+        assert_eq!(s1.version, 1);
+        assert_eq!(s1.valid_from_ns, T0 + 100);
+        assert_eq!(s1.source, Source::Measured);
+        assert_eq!(s1.cycle, Some(1));
+        assert_eq!(s1.errors, clean_errors());
+        assert_eq!(s1.sigma, r1.sigma.clone().unwrap());
+        assert_eq!(s1.offsets["C_pivot_x_um"], 15.0);
+        assert!(s1.reason.contains("cycle 1"), "{}", s1.reason);
+
+        // 45 um away from zero but only 5 um from the served value: the step is what counts.
+        let mut r2 = clean(2);
+        set_error(&mut r2, "EZ0B", 45.0);
+        let v2 = validate(&r2, Some(&s1), &limits);
+        assert!(v2.ok, "{:?}", v2.reasons);
+        let s2 = next_set(Some(&s1), &r2, &v2, T0 + 200).unwrap();
+        assert_eq!(s2.version, 2);
+        assert_eq!(s2.errors["EZ0B"], 45.0);
+        assert_eq!(s2.offsets["B_pivot_z_um"], 45.0);
+    }
+
+    #[test]
+    fn a_result_rejected_by_the_solver_gives_its_reason() {
+        let mut r = clean(1);
+        r.status = ResultStatus::Rejected;
+        r.reason = Some("step C-90/x did not trip".into());
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["rejected by the solver: step C-90/x did not trip"],
+        );
+    }
+
+    #[test]
+    fn a_rejected_result_without_numbers_gives_both_reasons() {
+        let mut r = clean(1);
+        r.status = ResultStatus::Rejected;
+        r.reason = Some("did not converge".into());
+        r.errors = None;
+        r.sigma = None;
+        r.chi2 = None;
+        r.dof = None;
+        let v = validate(&r, None, &ValidationLimits::default());
+        assert!(!v.ok);
+        assert!(
+            v.reasons
+                .contains(&"rejected by the solver: did not converge".to_string())
+        );
+        assert!(v.reasons.contains(&"no errors".to_string()));
+        assert!(next_set(None, &r, &v, T0).is_err());
+    }
+
+    #[test]
+    fn empty_errors_are_no_errors() {
+        let mut r = clean(1);
+        r.errors = Some(BTreeMap::new());
+        refused_with(&r, None, &ValidationLimits::default(), &["no errors"]);
+    }
+
+    #[test]
+    fn chi_square_beyond_its_point_is_refused_with_numbers() {
+        let mut r = clean(1);
+        r.chi2 = Some(41.2);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["chi-square 41.2 beyond its 99.9 % point 39.25 for 16 dof"],
+        );
+        // Just inside passes.
+        r.chi2 = Some(39.25);
+        assert!(validate(&r, None, &ValidationLimits::default()).ok);
+    }
+
+    #[test]
+    fn a_fit_that_cannot_be_checked_is_refused() {
+        let mut r = clean(1);
+        r.chi2 = None;
+        refused_with(&r, None, &ValidationLimits::default(), &["no chi-square"]);
+        let mut r = clean(1);
+        r.dof = Some(0);
+        refused_with(&r, None, &ValidationLimits::default(), &["0 dof"]);
+        let mut r = clean(1);
+        r.chi2 = Some(f64::NAN);
+        refused_with(&r, None, &ValidationLimits::default(), &["chi-square NaN"]);
+    }
+
+    #[test]
+    fn an_uncertainty_over_its_limit_is_refused() {
+        let mut r = clean(1);
+        set_sigma(&mut r, "EZ0B", 2.6);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EZ0B uncertainty 2.6 um over its limit 2.0 um"],
+        );
+        let mut r = clean(1);
+        set_sigma(&mut r, "EB0C", 16.0);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EB0C uncertainty 16.0 urad over its limit 15.0 urad"],
+        );
+        // Barely over still reads as over.
+        let mut r = clean(1);
+        set_sigma(&mut r, "EX0B", 2.004);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EX0B uncertainty 2.004 um over its limit 2.0 um"],
+        );
+    }
+
+    #[test]
+    fn unusable_uncertainties_are_refused() {
+        for (s, what) in [(f64::NAN, "NaN"), (-1.0, "-1"), (0.0, "0")] {
+            let mut r = clean(1);
+            set_sigma(&mut r, "EY0C", s);
+            refused_with(
+                &r,
+                None,
+                &ValidationLimits::default(),
+                &["EY0C uncertainty", what, "not a positive finite number"],
+            );
+        }
+        let mut r = clean(1);
+        r.sigma.as_mut().unwrap().remove("EX0C");
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EX0C has no uncertainty"],
+        );
+        let mut r = clean(1);
+        r.sigma = None;
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["no uncertainties"],
+        );
+    }
+
+    #[test]
+    fn an_unbelievable_error_is_refused() {
+        let mut r = clean(1);
+        set_error(&mut r, "EZ0B", -250.0);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EZ0B 250.0 um from zero beyond the believable 200.0 um"],
+        );
+        let mut r = clean(1);
+        set_error(&mut r, "EA0C", 600.0);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EA0C 600.0 urad from zero beyond the believable 500.0 urad"],
+        );
+    }
+
+    #[test]
+    fn missing_non_finite_and_foreign_errors_are_refused() {
+        let mut r = clean(1);
+        r.errors.as_mut().unwrap().remove("EY0C");
+        r.sigma.as_mut().unwrap().remove("EY0C");
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EY0C missing from the errors"],
+        );
+        let mut r = clean(1);
+        set_error(&mut r, "EX0C", f64::INFINITY);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["EX0C = inf is not a finite number"],
+        );
+        let mut r = clean(1);
+        set_error(&mut r, "EC0B", 1.0);
+        refused_with(
+            &r,
+            None,
+            &ValidationLimits::default(),
+            &["unexpected error EC0B"],
+        );
+    }
+
+    #[test]
+    fn the_step_limit_grows_with_the_time_since_the_served_set() {
+        let limits = ValidationLimits::default();
+        let r1 = clean(1);
+        let s1 = next_set(None, &r1, &validate(&r1, None, &limits), r1.t_ns).unwrap();
+        // A 90 um step: refused 5 min after the served set (limit 70 um), accepted an hour
+        // after it (limit 290 um).
+        let mut r2 = clean(2);
+        set_error(&mut r2, "EZ0B", 130.0);
+        r2.t_ns = s1.valid_from_ns + 5 * 60_000_000_000;
+        let v = validate(&r2, Some(&s1), &limits);
+        assert!(
+            !v.ok && v.reasons[0].contains("limit 70.0 um (50.0 um + 4.0 um/min over 5 min)"),
+            "{:?}",
+            v.reasons
+        );
+        r2.t_ns = s1.valid_from_ns + 60 * 60_000_000_000;
+        assert!(validate(&r2, Some(&s1), &limits).ok);
+    }
+
+    #[test]
+    fn a_step_over_the_limit_is_refused_with_both_values() {
+        // Without the allowance for elapsed time (the cycles here are an hour apart).
+        let limits = ValidationLimits {
+            max_rate_um_per_min: 0.0,
+            max_rate_urad_per_min: 0.0,
+            ..Default::default()
+        };
+        let r1 = clean(1);
+        let s1 = next_set(None, &r1, &validate(&r1, None, &limits), T0).unwrap();
+        let mut r2 = clean(2);
+        set_error(&mut r2, "EZ0B", 103.0);
+        refused_with(
+            &r2,
+            Some(&s1),
+            &limits,
+            &[
+                "EZ0B step 63.0 um",
+                "served value 40.0 um",
+                "to 103.0 um",
+                "limit 50.0 um",
+            ],
+        );
+        let mut r2 = clean(2);
+        set_error(&mut r2, "EA0C", -90.5);
+        refused_with(
+            &r2,
+            Some(&s1),
+            &limits,
+            &[
+                "EA0C step 110.5 urad",
+                "served value 20.0 urad",
+                "to -90.5 urad",
+                "100.0 urad",
+            ],
+        );
+        // Without a served set the same value is only checked against zero.
+        assert!(validate(&r2, None, &limits).ok);
+    }
+
+    #[test]
+    fn a_step_against_a_served_set_without_the_value_is_refused() {
+        let limits = ValidationLimits::default();
+        let r1 = clean(1);
+        let mut s1 = next_set(None, &r1, &validate(&r1, None, &limits), T0).unwrap();
+        s1.errors.remove("EB0C");
+        refused_with(
+            &clean(2),
+            Some(&s1),
+            &limits,
+            &["EB0C has no value in the served set 1"],
+        );
+    }
+
+    #[test]
+    fn an_older_cycle_than_the_served_one_is_refused() {
+        let limits = ValidationLimits::default();
+        let r5 = clean(5);
+        let s = next_set(None, &r5, &validate(&r5, None, &limits), T0).unwrap();
+        refused_with(
+            &clean(4),
+            Some(&s),
+            &limits,
+            &["cycle 4 is not newer than cycle 5 of the served set 1"],
+        );
+        refused_with(&clean(5), Some(&s), &limits, &["cycle 5 is not newer"]);
+    }
+
+    #[test]
+    fn unusable_limits_refuse_instead_of_passing_everything() {
+        let limits = ValidationLimits {
+            max_sigma_um: f64::NAN,
+            ..ValidationLimits::default()
+        };
+        refused_with(
+            &clean(1),
+            None,
+            &limits,
+            &["limit max_sigma_um = NaN is not a positive finite number"],
+        );
+        let limits = ValidationLimits {
+            chi2_quantile: 1.0,
+            ..ValidationLimits::default()
+        };
+        refused_with(&clean(1), None, &limits, &["limit chi2_quantile = 1"]);
+    }
+
+    #[test]
+    fn every_failed_check_is_named_at_once() {
+        let mut r = clean(1);
+        r.chi2 = Some(100.0);
+        set_sigma(&mut r, "EZ0B", 3.0);
+        set_error(&mut r, "EX0B", 300.0);
+        let v = validate(&r, None, &ValidationLimits::default());
+        assert_eq!(v.reasons.len(), 3, "{:?}", v.reasons);
+        let e = next_set(None, &r, &v, T0).unwrap_err();
+        assert_eq!(e.reasons, v.reasons);
+        assert!(e.to_string().contains("chi-square 100.0"), "{e}");
+    }
+
+    #[test]
+    fn a_forged_validation_does_not_produce_a_set() {
+        let ok = Validation {
+            ok: true,
+            reasons: vec![],
+        };
+        let mut r = clean(1);
+        r.status = ResultStatus::Rejected;
+        r.reason = Some("singular".into());
+        let e = next_set(None, &r, &ok, T0).unwrap_err();
+        assert_eq!(
+            e.reasons,
+            vec!["rejected by the solver: singular".to_string()]
+        );
+
+        let mut r = clean(1);
+        set_error(&mut r, "EZ0B", f64::NAN);
+        let e = next_set(None, &r, &ok, T0).unwrap_err();
+        assert!(e.reasons[0].contains("EZ0B = NaN"), "{e}");
+
+        let inconsistent = Validation {
+            ok: true,
+            reasons: vec!["EZ0B uncertainty 3.0 um over its limit 2.0 um".into()],
+        };
+        let e = next_set(None, &clean(1), &inconsistent, T0).unwrap_err();
+        assert_eq!(e.reasons.len(), 2, "{e}");
+
+        let failed_silently = Validation {
+            ok: false,
+            reasons: vec![],
+        };
+        let e = next_set(None, &clean(1), &failed_silently, T0).unwrap_err();
+        assert_eq!(
+            e.reasons,
+            vec!["the result did not pass validation".to_string()]
+        );
+    }
+
+    #[test]
+    fn a_set_never_lies_before_the_served_one() {
+        let limits = ValidationLimits::default();
+        let r1 = clean(1);
+        let s1 = next_set(None, &r1, &validate(&r1, None, &limits), T0 + 1000).unwrap();
+        let r2 = clean(2);
+        let v2 = validate(&r2, Some(&s1), &limits);
+        let e = next_set(Some(&s1), &r2, &v2, T0 + 999).unwrap_err();
+        assert!(e.reasons[0].contains("before the served set 1"), "{e}");
+        assert!(next_set(Some(&s1), &r2, &v2, T0 + 1000).is_ok());
+
+        let mut last = s1.clone();
+        last.version = u64::MAX;
+        let e = next_set(Some(&last), &r2, &v2, T0 + 2000).unwrap_err();
+        assert!(e.reasons[0].contains("u64::MAX"), "{e}");
+    }
+
+    #[test]
+    fn offsets_follow_the_table_bc_convention() {
+        let o = offsets(&clean_errors());
+        assert_eq!(
+            o,
+            map(&[
+                ("B_pivot_x_um", 12.0),
+                ("B_pivot_z_um", 40.0),
+                ("C_pivot_x_um", 15.0),
+                ("C_pivot_y_um", -5.0),
+                ("C_tilt_a_urad", 20.0),
+                ("C_tilt_b_urad", -30.0),
+            ])
+        );
+        // Without EX0C the C line's X is unknown, and is not guessed.
+        let mut e = clean_errors();
+        e.remove("EX0C");
+        e.insert("EY0C".into(), f64::NAN);
+        let o = offsets(&e);
+        assert!(!o.contains_key("C_pivot_x_um") && !o.contains_key("C_pivot_y_um"));
+        assert_eq!(o["B_pivot_x_um"], 12.0);
+    }
+
+    fn served(errors: BTreeMap<String, f64>) -> CompensationSet {
+        CompensationSet {
+            version: 1,
+            valid_from_ns: T0,
+            source: Source::Measured,
+            cycle: Some(1),
+            offsets: offsets(&errors),
+            sigma: BTreeMap::new(),
+            errors,
+            reason: String::new(),
+        }
+    }
+
+    #[test]
+    fn repeated_ramping_reaches_the_target_and_never_exceeds_the_step() {
+        let from = clean_errors();
+        let to = map(&[
+            ("EX0B", -20.0),
+            ("EZ0B", 163.0),
+            ("EY0C", -5.0),
+            ("EX0C", 3.4),
+            ("EA0C", -250.0),
+            ("EB0C", 170.0),
+        ]);
+        let (step_um, step_urad) = (10.0, 25.0);
+        let mut set = served(from);
+        let mut n = 0;
+        while set.errors != to {
+            let next = ramp(&set, &to, step_um, step_urad);
+            for (name, &v) in &next {
+                let before = set.errors[name];
+                let max = if unit(name) == "urad" {
+                    step_urad
+                } else {
+                    step_um
+                };
+                assert!(
+                    (v - before).abs() <= max * (1.0 + 1e-12),
+                    "{name}: {before} -> {v}"
+                );
+                // Never past the target.
+                assert!((to[name] - v).abs() <= (to[name] - before).abs(), "{name}");
+            }
+            set = served(next);
+            n += 1;
+            assert!(n <= 13, "not there after {n} steps: {:?}", set.errors);
+        }
+        // EZ0B needs ceil(123 / 10) = 13 steps, the slowest of all.
+        assert_eq!(n, 13);
+    }
+
+    #[test]
+    fn ramp_holds_and_starts_from_zero_where_it_must() {
+        let set = served(map(&[("EX0B", 5.0), ("EZ0B", 1.0)]));
+        let to = map(&[("EX0B", f64::NAN), ("EY0C", 30.0)]);
+        let out = ramp(&set, &to, 10.0, 10.0);
+        // EX0B: the target is not a number, so the served value holds; EZ0B: no target.
+        assert_eq!(out["EX0B"], 5.0);
+        assert_eq!(out["EZ0B"], 1.0);
+        // EY0C: new, from no compensation at all.
+        assert_eq!(out["EY0C"], 10.0);
+        // An unusable step moves nothing.
+        let out = ramp(&set, &map(&[("EX0B", 50.0)]), f64::NAN, 10.0);
+        assert_eq!(out["EX0B"], 5.0);
+        let out = ramp(&set, &map(&[("EX0B", 50.0)]), -1.0, 10.0);
+        assert_eq!(out["EX0B"], 5.0);
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn ramp_never_exceeds_its_step(
+            a in -500.0..500.0_f64, b in -500.0..500.0_f64, step in 0.001..100.0_f64
+        ) {
+            let set = served(map(&[("EZ0B", a), ("EB0C", a)]));
+            let to = map(&[("EZ0B", b), ("EB0C", b)]);
+            let out = ramp(&set, &to, step, 2.0 * step);
+            proptest::prop_assert!((out["EZ0B"] - a).abs() <= step * (1.0 + 1e-12) + 1e-12);
+            proptest::prop_assert!((out["EB0C"] - a).abs() <= 2.0 * step * (1.0 + 1e-12) + 1e-12);
+            proptest::prop_assert!((b - out["EZ0B"]).abs() <= (b - a).abs());
+        }
+    }
+
+    #[test]
+    fn the_compensation_message_has_the_contract_fields() {
+        let limits = ValidationLimits::default();
+        let r = clean(3);
+        let set = next_set(None, &r, &validate(&r, None, &limits), T0 + 5).unwrap();
+        let m = compensation_message(&set);
+        assert_eq!(m["version"], 1);
+        assert_eq!(m["valid_from_ns"], T0 + 5);
+        assert_eq!(m["source"], "measured");
+        assert_eq!(m["errors"]["EZ0B"], 40.0);
+        assert_eq!(m["offsets"]["C_pivot_x_um"], 15.0);
+        assert_eq!(m["sigma"]["EA0C"], 7.0);
+        assert_eq!(m["cycle"], 3);
+        assert_eq!(
+            serde_json::to_value(Source::Predicted).unwrap(),
+            Value::from("predicted")
+        );
+        // A set survives a round trip through its own serialisation.
+        let back: CompensationSet =
+            serde_json::from_str(&serde_json::to_string(&set).unwrap()).unwrap();
+        assert_eq!(back, set);
+    }
+
+    #[test]
+    fn limits_default_from_an_empty_config_and_refuse_unknown_keys() {
+        let l: ValidationLimits = toml::from_str("").unwrap();
+        assert_eq!(l, ValidationLimits::default());
+        let l: ValidationLimits = toml::from_str("max_step_um = 20.0").unwrap();
+        assert_eq!(l.max_step_um, 20.0);
+        assert_eq!(l.max_sigma_um, 2.0);
+        assert!(toml::from_str::<ValidationLimits>("max_step = 20.0").is_err());
+    }
+}

@@ -1,0 +1,452 @@
+//! The service's loop for one machine: take what the machine reports, keep its phase, start
+//! cycles when the policy says so and the machine is idle, solve and validate each cycle,
+//! store everything (SQLite and MCAP), serve only validated compensation, raise alerts.
+//!
+//! Time comes from the caller (`step(now)`), so a simulated day runs in seconds in tests and
+//! at any time scale live. This is shell code around the pure core.
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use thiserror::Error;
+use tracing::{info, warn};
+
+use crate::alerts::{AlertEngine, AlertEvent, Input, Rule};
+use crate::compensation::{self, CompensationSet, ValidationLimits};
+use crate::cycle::{CycleChecks, process_cycle};
+use crate::kinematics::Kinematics;
+use crate::link::{LinkEvent, MachineLink};
+use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
+use crate::plan::Plan;
+use crate::recorder::{Recorder, RecorderError};
+use crate::recording::{
+    self as rec, CycleResultMsg, DetectionIssue, DetectionMsg, ResultStatus, Timed,
+};
+use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
+use crate::store::{Store, StoreError};
+
+#[derive(Debug, Error)]
+pub enum DaemonError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(transparent)]
+    Recorder(#[from] RecorderError),
+    #[error("machine {machine}: {source}")]
+    Phase { machine: String, source: PhaseError },
+    #[error("machine {machine}: alert rules: {message}")]
+    Alerts { machine: String, message: String },
+}
+
+/// What the API may see of a machine, shared with the loop.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct MachineView {
+    pub id: String,
+    pub kinematics: String,
+    pub phase: Option<PhaseInfo>,
+    pub last_cycle: Option<i64>,
+    pub open_cycle: Option<i64>,
+    /// Why the scheduler waits, or why the last cycle started.
+    pub schedule: String,
+    pub next_due_ns: Option<i64>,
+    /// The set the NC reads: the last validated one.
+    pub compensation: Option<CompensationSet>,
+}
+
+/// Operator requests waiting for the loop.
+#[derive(Debug, Default)]
+pub struct Inbox {
+    pub requests: Vec<(String, i64)>,
+}
+
+pub struct Settings {
+    pub phase: PhaseConfig,
+    pub schedule: SchedulePolicy,
+    pub validation: ValidationLimits,
+    pub alert_rules: Vec<Rule>,
+}
+
+struct OpenCycle {
+    number: i64,
+    detections: Vec<Timed<Result<DetectionMsg, DetectionIssue>>>,
+}
+
+pub struct MachineRuntime {
+    pub id: String,
+    k: Kinematics,
+    link: Box<dyn MachineLink>,
+    phase: PhaseTracker,
+    policy: SchedulePolicy,
+    sched: SchedulerState,
+    checks: CycleChecks,
+    limits: ValidationLimits,
+    alerts: AlertEngine,
+    recorder: Recorder,
+    store: Store,
+    open: Option<OpenCycle>,
+    served: Option<CompensationSet>,
+    /// Minute of the last stored spindle sample and per-sensor temperature sample.
+    last_spindle_minute: i64,
+    last_temp_minute: BTreeMap<String, i64>,
+    pub view: Arc<Mutex<MachineView>>,
+    pub inbox: Arc<Mutex<Inbox>>,
+    /// Every alert event so far (also stored), newest last.
+    pub alert_log: Vec<AlertEvent>,
+}
+
+fn minute(t_ns: i64) -> i64 {
+    t_ns.div_euclid(60_000_000_000)
+}
+
+impl MachineRuntime {
+    #[allow(clippy::too_many_arguments)]
+    pub async fn new(
+        id: &str,
+        k: Kinematics,
+        plan: Plan,
+        link: Box<dyn MachineLink>,
+        settings: &Settings,
+        store: Store,
+        recorder: Recorder,
+        now_ns: i64,
+    ) -> Result<Self, DaemonError> {
+        store.ensure_machine(id, &k.name, now_ns).await?;
+        // A cycle left open by a crash cannot be finished: its machine moved on.
+        for c in store.open_cycles(id).await? {
+            store
+                .abandon_cycle(id, c, now_ns, "the service stopped during the cycle")
+                .await?;
+        }
+        for f in recorder.recover()? {
+            info!(machine = id, path = %f.path.display(), messages = f.messages, "recovered a recording left open");
+            store
+                .mcap_file_closed(
+                    id,
+                    &f.partial.display().to_string(),
+                    &f.path.display().to_string(),
+                    now_ns,
+                    "recovered",
+                    f.messages as i64,
+                )
+                .await?;
+        }
+        let served = match store.latest_compensation(id).await? {
+            Some(v) => serde_json::from_value(v).ok(),
+            None => None,
+        };
+        let mut checks = CycleChecks::new(&k);
+        checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+        let phase =
+            PhaseTracker::new(settings.phase.clone()).map_err(|source| DaemonError::Phase {
+                machine: id.to_string(),
+                source,
+            })?;
+        let alerts =
+            AlertEngine::new(settings.alert_rules.clone()).map_err(|e| DaemonError::Alerts {
+                machine: id.to_string(),
+                message: e.to_string(),
+            })?;
+        let view = MachineView {
+            id: id.to_string(),
+            kinematics: k.name.clone(),
+            compensation: served.clone(),
+            ..Default::default()
+        };
+        Ok(MachineRuntime {
+            id: id.to_string(),
+            k,
+            link,
+            phase,
+            policy: settings.schedule.clone(),
+            sched: SchedulerState::default(),
+            checks,
+            limits: settings.validation.clone(),
+            alerts,
+            recorder,
+            store,
+            open: None,
+            served,
+            last_spindle_minute: i64::MIN,
+            last_temp_minute: BTreeMap::new(),
+            view: Arc::new(Mutex::new(view)),
+            inbox: Arc::new(Mutex::new(Inbox::default())),
+            alert_log: Vec::new(),
+        })
+    }
+
+    /// Handle everything up to `now_ns`; returns when to call again at the latest.
+    pub async fn step(&mut self, now_ns: i64) -> Result<i64, DaemonError> {
+        for ev in self.link.poll(now_ns) {
+            self.on_event(ev).await?;
+        }
+        let requests = match self.inbox.lock() {
+            Ok(mut inbox) => std::mem::take(&mut inbox.requests),
+            Err(_) => Vec::new(),
+        };
+        for (by, t) in requests {
+            self.sched.request(by, t);
+        }
+        let phase = self.phase.phase(now_ns);
+        let decision = decide(&self.policy, &phase, &self.sched, now_ns);
+        let mut next_due = None;
+        let schedule = match &decision {
+            Decision::Start { reason } => {
+                let number = self.store.next_cycle_number(&self.id).await?;
+                match self.link.request_cycle(number, now_ns) {
+                    Ok(()) => {
+                        info!(machine = %self.id, cycle = number, reason = %reason, "cycle started");
+                        self.store
+                            .open_cycle(
+                                &self.id,
+                                number,
+                                now_ns,
+                                &reason.to_string(),
+                                i64::from(self.sched.failures) + 1,
+                            )
+                            .await?;
+                        self.sched.started(number, now_ns);
+                        let _ = self.phase.on_cycle(now_ns, true);
+                        self.open = Some(OpenCycle {
+                            number,
+                            detections: Vec::new(),
+                        });
+                        format!("cycle {number} started: {reason}")
+                    }
+                    Err(e) => format!("a cycle is due ({reason}) but the machine refused: {e}"),
+                }
+            }
+            Decision::Wait {
+                next_due_ns,
+                reason,
+            } => {
+                next_due = *next_due_ns;
+                reason.to_string()
+            }
+            Decision::Abandon { cycle, retry } => {
+                warn!(machine = %self.id, cycle, retry, "cycle timed out, abandoned");
+                self.link.abort_cycle(*cycle, now_ns);
+                self.store
+                    .abandon_cycle(
+                        &self.id,
+                        *cycle,
+                        now_ns,
+                        "timed out before every step arrived",
+                    )
+                    .await?;
+                self.sched.abandoned(now_ns);
+                let _ = self.phase.on_cycle(now_ns, false);
+                self.open = None;
+                format!("cycle {cycle} abandoned (timeout)")
+            }
+        };
+        if let Ok(mut v) = self.view.lock() {
+            v.phase = Some(self.phase.phase(now_ns));
+            v.open_cycle = self.open.as_ref().map(|c| c.number);
+            v.schedule = schedule;
+            v.next_due_ns = next_due;
+        }
+        let mut wake = now_ns + 60_000_000_000;
+        for t in [self.link.next_event_ns(), next_due, phase.changes_at_ns]
+            .into_iter()
+            .flatten()
+        {
+            if t > now_ns {
+                wake = wake.min(t);
+            }
+        }
+        Ok(wake)
+    }
+
+    async fn on_event(&mut self, ev: LinkEvent) -> Result<(), DaemonError> {
+        match ev {
+            LinkEvent::Spindle(m) => {
+                let _ = self.phase.on_spindle(m.t_ns, m.msg.rpm);
+                self.record(rec::TOPIC_SPINDLE, m.t_ns, &m.msg).await?;
+                if minute(m.t_ns) != self.last_spindle_minute {
+                    self.last_spindle_minute = minute(m.t_ns);
+                    self.store
+                        .add_spindle_sample(&self.id, m.t_ns, m.msg.rpm)
+                        .await?;
+                }
+            }
+            LinkEvent::State(m) => {
+                let _ = self.phase.on_state(m.t_ns, m.msg.state);
+                self.record(rec::TOPIC_STATE, m.t_ns, &m.msg).await?;
+            }
+            LinkEvent::Temperature(m) => {
+                self.record(rec::TOPIC_TEMPERATURE, m.t_ns, &m.msg).await?;
+                let last = self
+                    .last_temp_minute
+                    .entry(m.msg.sensor.clone())
+                    .or_insert(i64::MIN);
+                if minute(m.t_ns) != *last {
+                    *last = minute(m.t_ns);
+                    self.store
+                        .add_temperature_sample(&self.id, m.t_ns, &m.msg.sensor, m.msg.celsius)
+                        .await?;
+                }
+            }
+            LinkEvent::Truth(t) => {
+                self.record(rec::TOPIC_TRUTH, t.t_ns, &t).await?;
+            }
+            LinkEvent::Detection(d) => {
+                self.record(rec::TOPIC_DETECTION, d.t_ns, &d.msg).await?;
+                if let Some(open) = self.open.as_mut().filter(|o| o.number == d.msg.cycle) {
+                    let seq = open.detections.len() as i64;
+                    let payload = serde_json::to_string(&d.msg).unwrap_or_default();
+                    self.store
+                        .add_detection(&self.id, d.msg.cycle, seq, d.t_ns, &d.msg.step, &payload)
+                        .await?;
+                    open.detections.push(Timed {
+                        t_ns: d.t_ns,
+                        msg: Ok(d.msg),
+                    });
+                } else {
+                    warn!(machine = %self.id, cycle = d.msg.cycle, "detection of a cycle that is not open: kept in the recording only");
+                }
+            }
+            LinkEvent::CycleDone { cycle, t_ns } => {
+                if self.open.as_ref().is_some_and(|o| o.number == cycle) {
+                    self.close_cycle(t_ns).await?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    async fn record<T: serde::Serialize>(
+        &mut self,
+        topic: &str,
+        t_ns: i64,
+        msg: &T,
+    ) -> Result<(), DaemonError> {
+        let rotation = self.recorder.write(topic, t_ns, msg)?;
+        if let Some(closed) = rotation.closed {
+            self.file_closed(&closed, t_ns).await?;
+        }
+        if let Some(opened) = rotation.opened {
+            self.store
+                .mcap_file_opened(&self.id, &opened.display().to_string(), t_ns)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Solve, validate, store, serve and alert on the open cycle.
+    async fn close_cycle(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        let Some(open) = self.open.take() else {
+            return Ok(());
+        };
+        let _ = self.phase.on_cycle(now_ns, false);
+        let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
+        let mut result: CycleResultMsg = outcome.message();
+        if result.status == ResultStatus::Ok {
+            let v = compensation::validate(&result, self.served.as_ref(), &self.limits);
+            if v.ok {
+                match compensation::next_set(self.served.as_ref(), &result, &v, now_ns) {
+                    Ok(set) => {
+                        self.store
+                            .insert_compensation(
+                                &self.id,
+                                set.version as i64,
+                                set.valid_from_ns,
+                                "measured",
+                                set.cycle,
+                                &set.reason,
+                                &serde_json::to_value(&set).unwrap_or_default(),
+                            )
+                            .await?;
+                        self.record(
+                            rec::TOPIC_COMPENSATION,
+                            now_ns,
+                            &compensation::compensation_message(&set),
+                        )
+                        .await?;
+                        info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
+                        self.served = Some(set);
+                    }
+                    Err(refused) => {
+                        result.status = ResultStatus::Rejected;
+                        result.reason = Some(refused.reasons.join("; "));
+                    }
+                }
+            } else {
+                result.status = ResultStatus::Rejected;
+                result.reason = Some(v.reasons.join("; "));
+            }
+        }
+        if result.status == ResultStatus::Rejected {
+            warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
+        }
+        self.store.close_cycle(&self.id, &result, now_ns).await?;
+        self.record(rec::TOPIC_RESULT, now_ns, &result).await?;
+        self.recorder.flush()?;
+        self.sched
+            .finished(result.status == ResultStatus::Ok, now_ns);
+        for ev in self.alerts.evaluate(&Input::from(&result), now_ns) {
+            warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
+            self.store
+                .add_alert_event(
+                    &self.id,
+                    ev.id as i64,
+                    ev.t_ns,
+                    &format!("{:?}", ev.kind).to_lowercase(),
+                    &ev.rule,
+                    &format!("{:?}", ev.severity).to_lowercase(),
+                    &ev.message,
+                    Some(ev.value),
+                )
+                .await?;
+            self.alert_log.push(ev);
+        }
+        if let Ok(mut v) = self.view.lock() {
+            v.last_cycle = Some(open.number);
+            v.compensation = self.served.clone();
+        }
+        Ok(())
+    }
+
+    /// Close the recording cleanly (shutdown).
+    pub async fn shutdown(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        if let Some(open) = self.open.take() {
+            self.link.abort_cycle(open.number, now_ns);
+            self.store
+                .abandon_cycle(
+                    &self.id,
+                    open.number,
+                    now_ns,
+                    "the service shut down during the cycle",
+                )
+                .await?;
+        }
+        if let Some(closed) = self.recorder.close()? {
+            self.file_closed(&closed, now_ns).await?;
+        }
+        Ok(())
+    }
+
+    async fn file_closed(
+        &self,
+        f: &crate::recorder::ClosedFile,
+        now_ns: i64,
+    ) -> Result<(), DaemonError> {
+        self.store
+            .mcap_file_closed(
+                &self.id,
+                &f.partial.display().to_string(),
+                &f.path.display().to_string(),
+                now_ns,
+                "closed",
+                f.messages as i64,
+            )
+            .await?;
+        Ok(())
+    }
+
+    pub fn served(&self) -> Option<&CompensationSet> {
+        self.served.as_ref()
+    }
+
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+}

@@ -1,0 +1,724 @@
+//! Storage of the service: SQLite through sqlx, schema in `migrations/` (embedded, applied at
+//! open), WAL with synchronous NORMAL, foreign keys on. Runtime queries in portable SQL.
+//! Shell code, with `recorder` and `recording::mcap_io` the only modules that touch files.
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Duration;
+
+use serde::Serialize;
+use serde_json::Value;
+use sqlx::Row;
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+};
+use thiserror::Error;
+
+use crate::recording::{CycleResultMsg, ResultStatus};
+
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error("cannot open database {path}: {source}")]
+    Open { path: String, source: sqlx::Error },
+    #[error("cannot apply the database migrations: {0}")]
+    Migrate(#[from] sqlx::migrate::MigrateError),
+    #[error("database: {0}")]
+    Sql(#[from] sqlx::Error),
+    #[error("stored JSON: {0}")]
+    Json(#[from] serde_json::Error),
+}
+
+/// A cycle as stored.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CycleRow {
+    pub cycle: i64,
+    pub started_ns: i64,
+    pub trigger: String,
+    pub attempt: i64,
+    pub status: String,
+    pub finished_ns: Option<i64>,
+    pub reason: Option<String>,
+}
+
+/// One value of one error at a cycle's reference time.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ErrorSample {
+    pub t_ns: i64,
+    pub cycle: i64,
+    pub name: String,
+    pub value: f64,
+    pub sigma: f64,
+}
+
+#[derive(Clone)]
+pub struct Store {
+    pool: SqlitePool,
+}
+
+impl Store {
+    /// Open (creating if needed) the database file and apply the migrations.
+    pub async fn open(path: &Path) -> Result<Self, StoreError> {
+        let url = format!("sqlite://{}", path.display());
+        let opts = SqliteConnectOptions::from_str(&url)
+            .map_err(|source| StoreError::Open {
+                path: path.display().to_string(),
+                source,
+            })?
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            // NORMAL in WAL mode never corrupts and keeps every commit through a process crash;
+            // only a power loss can take the last commits.
+            .synchronous(SqliteSynchronous::Normal)
+            .foreign_keys(true)
+            .busy_timeout(Duration::from_secs(5));
+        let pool = SqlitePoolOptions::new()
+            .max_connections(4)
+            .connect_with(opts)
+            .await
+            .map_err(|source| StoreError::Open {
+                path: path.display().to_string(),
+                source,
+            })?;
+        sqlx::migrate!().run(&pool).await?;
+        Ok(Store { pool })
+    }
+
+    /// `PRAGMA integrity_check`: "ok" for a sound database.
+    pub async fn integrity_check(&self) -> Result<String, StoreError> {
+        let row = sqlx::query("PRAGMA integrity_check")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<String, _>(0)?)
+    }
+
+    pub async fn journal_mode(&self) -> Result<String, StoreError> {
+        let row = sqlx::query("PRAGMA journal_mode")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<String, _>(0)?)
+    }
+
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    pub async fn ensure_machine(
+        &self,
+        id: &str,
+        kinematics: &str,
+        now_ns: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO machines (id, kinematics, created_ns) VALUES ($1, $2, $3)
+             ON CONFLICT (id) DO UPDATE SET kinematics = excluded.kinematics",
+        )
+        .bind(id)
+        .bind(kinematics)
+        .bind(now_ns)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The number the next cycle of a machine gets (1 for the first).
+    pub async fn next_cycle_number(&self, machine: &str) -> Result<i64, StoreError> {
+        let row =
+            sqlx::query("SELECT COALESCE(MAX(cycle), 0) + 1 FROM cycles WHERE machine_id = $1")
+                .bind(machine)
+                .fetch_one(&self.pool)
+                .await?;
+        Ok(row.try_get::<i64, _>(0)?)
+    }
+
+    pub async fn open_cycle(
+        &self,
+        machine: &str,
+        cycle: i64,
+        started_ns: i64,
+        trigger: &str,
+        attempt: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status)
+             VALUES ($1, $2, $3, $4, $5, 'open')",
+        )
+        .bind(machine)
+        .bind(cycle)
+        .bind(started_ns)
+        .bind(trigger)
+        .bind(attempt)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn add_detection(
+        &self,
+        machine: &str,
+        cycle: i64,
+        seq: i64,
+        t_ns: i64,
+        step: &str,
+        payload: &str,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload)
+             VALUES ($1, $2, $3, $4, $5, $6)",
+        )
+        .bind(machine)
+        .bind(cycle)
+        .bind(seq)
+        .bind(t_ns)
+        .bind(step)
+        .bind(payload)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Close a cycle with its result, in one transaction: the cycle's status, the result and
+    /// one row per error.
+    pub async fn close_cycle(
+        &self,
+        machine: &str,
+        result: &CycleResultMsg,
+        finished_ns: i64,
+    ) -> Result<(), StoreError> {
+        let status = match result.status {
+            ResultStatus::Ok => "ok",
+            ResultStatus::Rejected => "rejected",
+        };
+        let payload = serde_json::to_string(result)?;
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(
+            "UPDATE cycles SET status = $3, finished_ns = $4, reason = $5
+             WHERE machine_id = $1 AND cycle = $2",
+        )
+        .bind(machine)
+        .bind(result.cycle)
+        .bind(status)
+        .bind(finished_ns)
+        .bind(result.reason.as_deref())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "INSERT INTO results (machine_id, cycle, t_ns, status, reason, residual_rms_um, chi2, dof, payload)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+        )
+        .bind(machine)
+        .bind(result.cycle)
+        .bind(result.t_ns)
+        .bind(status)
+        .bind(result.reason.as_deref())
+        .bind(result.residual_rms_um)
+        .bind(result.chi2)
+        .bind(result.dof.map(|d| d as i64))
+        .bind(&payload)
+        .execute(&mut *tx)
+        .await?;
+        if let (Some(errors), Some(sigma)) = (&result.errors, &result.sigma) {
+            for (name, value) in errors {
+                sqlx::query(
+                    "INSERT INTO result_values (machine_id, cycle, name, t_ns, value, sigma)
+                     VALUES ($1, $2, $3, $4, $5, $6)",
+                )
+                .bind(machine)
+                .bind(result.cycle)
+                .bind(name)
+                .bind(result.t_ns)
+                .bind(value)
+                .bind(sigma.get(name).copied().unwrap_or(f64::NAN))
+                .execute(&mut *tx)
+                .await?;
+            }
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    pub async fn abandon_cycle(
+        &self,
+        machine: &str,
+        cycle: i64,
+        now_ns: i64,
+        reason: &str,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "UPDATE cycles SET status = 'abandoned', finished_ns = $3, reason = $4
+             WHERE machine_id = $1 AND cycle = $2 AND status = 'open'",
+        )
+        .bind(machine)
+        .bind(cycle)
+        .bind(now_ns)
+        .bind(reason)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Cycles still open (left by a crash), oldest first.
+    pub async fn open_cycles(&self, machine: &str) -> Result<Vec<i64>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT cycle FROM cycles WHERE machine_id = $1 AND status = 'open' ORDER BY cycle",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter().map(|r| Ok(r.try_get::<i64, _>(0)?)).collect()
+    }
+
+    pub async fn cycles(&self, machine: &str, limit: i64) -> Result<Vec<CycleRow>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT cycle, started_ns, trigger, attempt, status, finished_ns, reason FROM cycles
+             WHERE machine_id = $1 ORDER BY cycle DESC LIMIT $2",
+        )
+        .bind(machine)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(CycleRow {
+                    cycle: r.try_get(0)?,
+                    started_ns: r.try_get(1)?,
+                    trigger: r.try_get(2)?,
+                    attempt: r.try_get(3)?,
+                    status: r.try_get(4)?,
+                    finished_ns: r.try_get(5)?,
+                    reason: r.try_get(6)?,
+                })
+            })
+            .collect()
+    }
+
+    /// The detections of a cycle as received, in order.
+    pub async fn detections(
+        &self,
+        machine: &str,
+        cycle: i64,
+    ) -> Result<Vec<(i64, Value)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT t_ns, payload FROM detections WHERE machine_id = $1 AND cycle = $2 ORDER BY seq",
+        )
+        .bind(machine)
+        .bind(cycle)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                let text: String = r.try_get(1)?;
+                Ok((r.try_get(0)?, serde_json::from_str(&text)?))
+            })
+            .collect()
+    }
+
+    pub async fn result(
+        &self,
+        machine: &str,
+        cycle: i64,
+    ) -> Result<Option<CycleResultMsg>, StoreError> {
+        let row = sqlx::query("SELECT payload FROM results WHERE machine_id = $1 AND cycle = $2")
+            .bind(machine)
+            .bind(cycle)
+            .fetch_optional(&self.pool)
+            .await?;
+        match row {
+            Some(r) => Ok(Some(serde_json::from_str(&r.try_get::<String, _>(0)?)?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Validated error values between two times, oldest first.
+    pub async fn error_series(
+        &self,
+        machine: &str,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<ErrorSample>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT v.t_ns, v.cycle, v.name, v.value, v.sigma FROM result_values v
+             JOIN results r ON r.machine_id = v.machine_id AND r.cycle = v.cycle
+             WHERE v.machine_id = $1 AND v.t_ns >= $2 AND v.t_ns <= $3 AND r.status = 'ok'
+             ORDER BY v.t_ns, v.name",
+        )
+        .bind(machine)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(ErrorSample {
+                    t_ns: r.try_get(0)?,
+                    cycle: r.try_get(1)?,
+                    name: r.try_get(2)?,
+                    value: r.try_get(3)?,
+                    sigma: r.try_get(4)?,
+                })
+            })
+            .collect()
+    }
+
+    /// Store a new compensation set; versions must increase (the primary key refuses a
+    /// repeated version).
+    #[allow(clippy::too_many_arguments)]
+    pub async fn insert_compensation(
+        &self,
+        machine: &str,
+        version: i64,
+        valid_from_ns: i64,
+        source: &str,
+        cycle: Option<i64>,
+        reason: &str,
+        payload: &Value,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
+             VALUES ($1, $2, $3, $4, $5, $6, $7)",
+        )
+        .bind(machine)
+        .bind(version)
+        .bind(valid_from_ns)
+        .bind(source)
+        .bind(cycle)
+        .bind(reason)
+        .bind(serde_json::to_string(payload)?)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The newest compensation set of a machine.
+    pub async fn latest_compensation(&self, machine: &str) -> Result<Option<Value>, StoreError> {
+        let row = sqlx::query(
+            "SELECT payload FROM compensation_sets WHERE machine_id = $1 ORDER BY version DESC LIMIT 1",
+        )
+        .bind(machine)
+        .fetch_optional(&self.pool)
+        .await?;
+        match row {
+            Some(r) => Ok(Some(serde_json::from_str(&r.try_get::<String, _>(0)?)?)),
+            None => Ok(None),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    pub async fn add_alert_event(
+        &self,
+        machine: &str,
+        alert_id: i64,
+        t_ns: i64,
+        kind: &str,
+        rule: &str,
+        severity: &str,
+        message: &str,
+        value: Option<f64>,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO alert_events (machine_id, alert_id, seq, t_ns, kind, rule, severity, message, value)
+             VALUES ($1, $2, (SELECT COALESCE(MAX(seq), 0) + 1 FROM alert_events WHERE machine_id = $1 AND alert_id = $2),
+                     $3, $4, $5, $6, $7, $8)",
+        )
+        .bind(machine)
+        .bind(alert_id)
+        .bind(t_ns)
+        .bind(kind)
+        .bind(rule)
+        .bind(severity)
+        .bind(message)
+        .bind(value)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn add_spindle_sample(
+        &self,
+        machine: &str,
+        t_ns: i64,
+        rpm: f64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO spindle_samples (machine_id, t_ns, rpm) VALUES ($1, $2, $3)
+             ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm",
+        )
+        .bind(machine)
+        .bind(t_ns)
+        .bind(rpm)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn add_temperature_sample(
+        &self,
+        machine: &str,
+        t_ns: i64,
+        sensor: &str,
+        celsius: f64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO temperature_samples (machine_id, t_ns, sensor, celsius) VALUES ($1, $2, $3, $4)
+             ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
+        )
+        .bind(machine)
+        .bind(t_ns)
+        .bind(sensor)
+        .bind(celsius)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn mcap_file_opened(
+        &self,
+        machine: &str,
+        path: &str,
+        opened_ns: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, 'open')
+             ON CONFLICT (path) DO UPDATE SET status = 'open', closed_ns = NULL",
+        )
+        .bind(machine)
+        .bind(path)
+        .bind(opened_ns)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Mark a file written as `partial` closed under `path` (`closed`), or rescued from a
+    /// crash (`recovered`).
+    #[allow(clippy::too_many_arguments)]
+    pub async fn mcap_file_closed(
+        &self,
+        machine: &str,
+        partial: &str,
+        path: &str,
+        closed_ns: i64,
+        status: &str,
+        messages: i64,
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, 'open')
+             ON CONFLICT (path) DO NOTHING",
+        )
+        .bind(machine)
+        .bind(partial)
+        .bind(closed_ns)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE mcap_files SET path = $2, closed_ns = $3, status = $4, messages = $5 WHERE path = $1",
+        )
+        .bind(partial)
+        .bind(path)
+        .bind(closed_ns)
+        .bind(status)
+        .bind(messages)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// (path, status) of every MCAP file of a machine, oldest first.
+    pub async fn mcap_files(&self, machine: &str) -> Result<Vec<(String, String)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT path, status FROM mcap_files WHERE machine_id = $1 ORDER BY opened_ns",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeMap;
+
+    fn temp_db(name: &str) -> std::path::PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("driftwatch-store-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join("driftwatch.db")
+    }
+
+    fn result(cycle: i64, ok: bool) -> CycleResultMsg {
+        let errors: BTreeMap<String, f64> =
+            [("EZ0B".to_string(), 12.5), ("EX0B".to_string(), 3.0)].into();
+        let sigma: BTreeMap<String, f64> =
+            [("EZ0B".to_string(), 0.2), ("EX0B".to_string(), 0.25)].into();
+        CycleResultMsg {
+            cycle,
+            t_ns: 1_000 + cycle,
+            status: if ok {
+                ResultStatus::Ok
+            } else {
+                ResultStatus::Rejected
+            },
+            reason: (!ok).then(|| "missing steps".to_string()),
+            errors: ok.then_some(errors),
+            sigma: ok.then_some(sigma),
+            residual_rms_um: ok.then_some(0.4),
+            chi2: ok.then_some(4.2),
+            dof: ok.then_some(4),
+            n_detections: Some(12),
+            nuisance: None,
+            redundancy_um: None,
+        }
+    }
+
+    #[tokio::test]
+    async fn a_cycle_round_trips_with_its_detections_result_and_series() {
+        let store = Store::open(&temp_db("cycle")).await.unwrap();
+        assert_eq!(store.journal_mode().await.unwrap(), "wal");
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 1);
+        store.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
+        store
+            .add_detection("m1", 1, 0, 11, "B0C0/z", r#"{"step":"B0C0/z"}"#)
+            .await
+            .unwrap();
+        assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
+        store.close_cycle("m1", &result(1, true), 20).await.unwrap();
+        assert!(store.open_cycles("m1").await.unwrap().is_empty());
+        assert_eq!(
+            store.result("m1", 1).await.unwrap().unwrap(),
+            result(1, true)
+        );
+        let d = store.detections("m1", 1).await.unwrap();
+        assert_eq!(d[0].1["step"], "B0C0/z");
+        store
+            .open_cycle("m1", 2, 30, "after stop", 1)
+            .await
+            .unwrap();
+        store
+            .close_cycle("m1", &result(2, false), 40)
+            .await
+            .unwrap();
+        // Only validated values make the series.
+        let series = store.error_series("m1", 0, i64::MAX).await.unwrap();
+        assert_eq!(series.len(), 2);
+        assert!(series.iter().all(|s| s.cycle == 1));
+        let cycles = store.cycles("m1", 10).await.unwrap();
+        assert_eq!(cycles[0].status, "rejected");
+        assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
+        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);
+        assert_eq!(store.integrity_check().await.unwrap(), "ok");
+    }
+
+    #[tokio::test]
+    async fn foreign_keys_and_versions_are_enforced() {
+        let store = Store::open(&temp_db("fk")).await.unwrap();
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        // A detection of a cycle that was never opened is refused.
+        assert!(store.add_detection("m1", 9, 0, 1, "x", "{}").await.is_err());
+        let v = serde_json::json!({"version": 1});
+        store
+            .insert_compensation("m1", 1, 5, "measured", Some(1), "cycle 1", &v)
+            .await
+            .unwrap();
+        assert!(
+            store
+                .insert_compensation("m1", 1, 6, "measured", Some(2), "again", &v)
+                .await
+                .is_err()
+        );
+        store
+            .insert_compensation(
+                "m1",
+                2,
+                7,
+                "measured",
+                Some(2),
+                "cycle 2",
+                &serde_json::json!({"version": 2}),
+            )
+            .await
+            .unwrap();
+        assert_eq!(
+            store.latest_compensation("m1").await.unwrap().unwrap()["version"],
+            2
+        );
+        assert!(
+            store
+                .insert_compensation("m1", 3, 8, "guessed", None, "bad source", &v)
+                .await
+                .is_err()
+        );
+    }
+
+    #[tokio::test]
+    async fn data_survives_reopening() {
+        let path = temp_db("reopen");
+        {
+            let store = Store::open(&path).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            store.add_spindle_sample("m1", 60, 20000.0).await.unwrap();
+            store
+                .add_temperature_sample("m1", 60, "ambient", 20.5)
+                .await
+                .unwrap();
+            store
+                .mcap_file_opened("m1", "m1/2026-03-02.mcap.partial", 1)
+                .await
+                .unwrap();
+            store
+                .add_alert_event(
+                    "m1",
+                    1,
+                    5,
+                    "raised",
+                    "threshold:EZ0B",
+                    "warning",
+                    "EZ0B high",
+                    Some(31.0),
+                )
+                .await
+                .unwrap();
+            store
+                .add_alert_event(
+                    "m1",
+                    1,
+                    6,
+                    "resolved",
+                    "threshold:EZ0B",
+                    "warning",
+                    "EZ0B back",
+                    Some(20.0),
+                )
+                .await
+                .unwrap();
+            store.close().await;
+        }
+        let store = Store::open(&path).await.unwrap();
+        assert_eq!(
+            store.mcap_files("m1").await.unwrap(),
+            vec![("m1/2026-03-02.mcap.partial".to_string(), "open".to_string())]
+        );
+        store
+            .mcap_file_closed(
+                "m1",
+                "m1/2026-03-02.mcap.partial",
+                "m1/2026-03-02.mcap",
+                9,
+                "recovered",
+                42,
+            )
+            .await
+            .unwrap();
+        assert_eq!(
+            store.mcap_files("m1").await.unwrap(),
+            vec![("m1/2026-03-02.mcap".to_string(), "recovered".to_string())]
+        );
+        assert_eq!(store.integrity_check().await.unwrap(), "ok");
+    }
+}

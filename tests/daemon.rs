@@ -1,0 +1,184 @@
+//! The service loop on a simulated machine through a simulated day, on simulated time: no
+//! wall clock, hours in seconds.
+
+use std::path::PathBuf;
+
+use driftwatch::alerts::default_rules;
+use driftwatch::compensation::ValidationLimits;
+use driftwatch::daemon::{MachineRuntime, Settings};
+use driftwatch::kinematics::Kinematics;
+use driftwatch::link::{LinkError, LinkEvent, MachineLink, Simulated};
+use driftwatch::phase::PhaseConfig;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::recorder::Recorder;
+use driftwatch::recording::mcap_io::{ReadOptions, read_file};
+use driftwatch::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
+use driftwatch::scenario::Scenario;
+use driftwatch::scheduler::SchedulePolicy;
+use driftwatch::store::Store;
+
+const MIN: i64 = 60_000_000_000;
+
+/// A simulated machine whose cycle `bad` has one failed approach.
+struct Tamper {
+    inner: Simulated,
+    bad: i64,
+}
+
+impl MachineLink for Tamper {
+    fn poll(&mut self, now_ns: i64) -> Vec<LinkEvent> {
+        let mut ev = self.inner.poll(now_ns);
+        for e in &mut ev {
+            if let LinkEvent::Detection(d) = e
+                && d.msg.cycle == self.bad
+                && d.msg.step == "B0C-90/x#1"
+            {
+                d.msg.status = Some(DetectionStatus::NoTrip);
+            }
+        }
+        ev
+    }
+    fn request_cycle(&mut self, number: i64, now_ns: i64) -> Result<(), LinkError> {
+        self.inner.request_cycle(number, now_ns)
+    }
+    fn abort_cycle(&mut self, number: i64, now_ns: i64) {
+        self.inner.abort_cycle(number, now_ns)
+    }
+    fn next_event_ns(&self) -> Option<i64> {
+        self.inner.next_event_ns()
+    }
+}
+
+fn dir(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("daemon-{name}"));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[tokio::test]
+async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_sets() {
+    let d = dir("day");
+    let scn = Scenario::load("two_shift").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = Simulated::new(k.clone(), plan.clone(), scn.clone()).unwrap();
+    let t0 = sim.start_ns();
+    let link = Tamper { inner: sim, bad: 3 };
+    let store = Store::open(&d.join("driftwatch.db")).await.unwrap();
+    let info = MachineInfo {
+        machine_id: "sim-1".into(),
+        kinematics: k.name.clone(),
+        software: "test".into(),
+    };
+    let recorder = Recorder::new(&d.join("mcap"), info, 256 << 20).unwrap();
+    let settings = Settings {
+        phase: PhaseConfig::default(),
+        schedule: SchedulePolicy::default(),
+        validation: ValidationLimits::default(),
+        alert_rules: default_rules(),
+    };
+    let mut rt = MachineRuntime::new(
+        "sim-1",
+        k,
+        plan,
+        Box::new(link),
+        &settings,
+        store.clone(),
+        recorder,
+        t0,
+    )
+    .await
+    .unwrap();
+    // 31 h: a production day, the night, the next morning's start.
+    let end = t0 + 31 * 60 * MIN;
+    let mut now = t0;
+    let mut versions = Vec::new();
+    while now < end {
+        let wake = rt.step(now).await.unwrap();
+        if let Some(set) = rt.served()
+            && versions.last() != Some(&set.version)
+        {
+            versions.push(set.version);
+        }
+        now = wake.min(end).max(now + 1);
+    }
+    rt.shutdown(end).await.unwrap();
+
+    let cycles = store.cycles("sim-1", 1000).await.unwrap();
+    println!("{} cycles", cycles.len());
+    for c in cycles.iter().rev() {
+        println!(
+            "cycle {:>3} at {:>7.1} min: {:<9} {} {}",
+            c.cycle,
+            (c.started_ns - t0) as f64 / MIN as f64,
+            c.status,
+            c.trigger,
+            c.reason.clone().unwrap_or_default()
+        );
+    }
+    assert!(cycles.len() >= 10, "{}", cycles.len());
+    // No cycle while cutting: each started when the last state reported was idle (the
+    // state history read back from the recording).
+    let files: Vec<_> = std::fs::read_dir(d.join("mcap").join("sim-1"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert!(
+        files.iter().all(|p| p.extension().unwrap() == "mcap"),
+        "{files:?}"
+    );
+    let mut dets = 0;
+    let mut results = Vec::new();
+    let mut states = Vec::new();
+    for f in &files {
+        let r = read_file(f, &ReadOptions::default()).unwrap();
+        dets += r.detections.len();
+        results.extend(r.results.iter().map(|m| m.msg.clone()));
+        states.extend(r.states.iter().map(|s| (s.t_ns, s.msg.state)));
+    }
+    states.sort_by_key(|s| s.0);
+    for c in &cycles {
+        // The state the NC reported up to the start, other than the cycle's own Measuring.
+        let before = states
+            .iter()
+            .rfind(|s| s.0 <= c.started_ns && s.1 != MachineStateKind::Measuring)
+            .unwrap();
+        assert_eq!(
+            before.1,
+            MachineStateKind::Idle,
+            "cycle {} started while {:?}",
+            c.cycle,
+            before.1
+        );
+    }
+    // Every cycle is in SQLite and in MCAP.
+    assert_eq!(
+        results.len(),
+        cycles.iter().filter(|c| c.status != "abandoned").count()
+    );
+    assert_eq!(dets, 24 * cycles.len());
+    // The tampered cycle is rejected with its reason, and the compensation did not move.
+    let bad = store.result("sim-1", 3).await.unwrap().unwrap();
+    assert_eq!(bad.status, ResultStatus::Rejected);
+    assert!(
+        bad.reason.as_ref().unwrap().contains("no_trip"),
+        "{:?}",
+        bad.reason
+    );
+    // Versions only go up, one per validated cycle.
+    let ok = cycles.iter().filter(|c| c.status == "ok").count() as u64;
+    assert_eq!(versions.last().copied(), Some(ok));
+    assert!(versions.windows(2).all(|w| w[1] == w[0] + 1));
+    // EZ0B passes 30 um during production (alert raised) and falls back overnight (resolved).
+    let log = &rt.alert_log;
+    let raised = log
+        .iter()
+        .find(|e| e.rule == "threshold:EZ0B" && format!("{:?}", e.kind) == "Raised");
+    let resolved = log
+        .iter()
+        .find(|e| e.rule == "threshold:EZ0B" && format!("{:?}", e.kind) == "Resolved");
+    assert!(raised.is_some() && resolved.is_some(), "{log:?}");
+    assert!(resolved.unwrap().t_ns > raised.unwrap().t_ns);
+    assert_eq!(store.integrity_check().await.unwrap(), "ok");
+}
