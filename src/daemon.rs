@@ -182,8 +182,9 @@ impl MachineRuntime {
             Ok(mut inbox) => std::mem::take(&mut inbox.requests),
             Err(_) => Vec::new(),
         };
-        for (by, t) in requests {
-            self.sched.request(by, t);
+        // Stamped with the loop's time: a simulated machine's clock is not the wall clock.
+        for (by, _) in requests {
+            self.sched.request(by, now_ns);
         }
         let phase = self.phase.phase(now_ns);
         let decision = decide(&self.policy, &phase, &self.sched, now_ns);

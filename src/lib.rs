@@ -6,7 +6,9 @@
 //! no globals, deterministic for a given seed). `recording` and the binary are the shell.
 
 pub mod alerts;
+pub mod api;
 pub mod compensation;
+pub mod config;
 pub mod cycle;
 pub mod daemon;
 pub mod experiment;

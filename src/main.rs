@@ -18,6 +18,8 @@ use driftwatch::recording::{self as rec, Timed};
 use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
+mod serve;
+
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
 macro_rules! out {
     ($($arg:tt)*) => {{
@@ -49,6 +51,25 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the service: machines, scheduler, storage, HTTP API (the shipped default runs one
+    /// simulated machine through a two-shift day at 60x).
+    Serve {
+        /// Configuration TOML (default: the built-in `config/default.toml`).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Simulated seconds per wall second (overrides the configuration).
+        #[arg(long)]
+        time_scale: Option<f64>,
+        /// Stop after this many minutes of machine time.
+        #[arg(long)]
+        until: Option<f64>,
+        /// Listen address (overrides the configuration).
+        #[arg(long)]
+        listen: Option<std::net::SocketAddr>,
+        /// Data directory (overrides the configuration).
+        #[arg(long)]
+        data_dir: Option<PathBuf>,
+    },
     /// Run the truth simulator over a scenario and write a contract recording (MCAP).
     Simulate {
         /// Scenario TOML, or a built-in name (patent, warmup).
@@ -189,6 +210,25 @@ fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
 
 fn run(cmd: Command) -> Result<ExitCode> {
     match cmd {
+        Command::Serve {
+            config,
+            time_scale,
+            until,
+            listen,
+            data_dir,
+        } => {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("starting the async runtime")?;
+            rt.block_on(serve::run(serve::Options {
+                config,
+                time_scale,
+                until,
+                listen,
+                data_dir,
+            }))
+        }
         Command::Simulate {
             scenario,
             out,

@@ -1,0 +1,368 @@
+//! The HTTP API (axum, JSON under `/api/v1`): machines, the NC's compensation endpoint with
+//! ETag and 304, cycles, error series, operator requests. Bearer tokens with roles; reads may
+//! be anonymous by configuration. Shell code: it reads what the machine loops publish and
+//! the store, and never blocks on a running solve.
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use axum::Json;
+use axum::Router;
+use axum::extract::{Path, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use serde::Deserialize;
+use serde_json::json;
+
+use crate::compensation::compensation_message;
+use crate::config::Role;
+use crate::daemon::{Inbox, MachineView};
+use crate::store::Store;
+
+#[derive(Clone)]
+pub struct MachineHandle {
+    pub view: Arc<Mutex<MachineView>>,
+    pub inbox: Arc<Mutex<Inbox>>,
+}
+
+pub struct Auth {
+    /// (holder, token, role)
+    pub tokens: Vec<(String, String, Role)>,
+    pub anonymous_read: bool,
+}
+
+pub struct ApiState {
+    pub machines: BTreeMap<String, MachineHandle>,
+    pub store: Store,
+    pub auth: Auth,
+}
+
+type Shared = Arc<ApiState>;
+
+/// An error as the API answers it: a status, a stable code and a message for people.
+pub struct ApiError {
+    status: StatusCode,
+    code: &'static str,
+    message: String,
+}
+
+impl ApiError {
+    fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+        ApiError {
+            status,
+            code,
+            message: message.into(),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let mut r = (
+            self.status,
+            Json(json!({"code": self.code, "message": self.message})),
+        )
+            .into_response();
+        if self.status == StatusCode::UNAUTHORIZED {
+            r.headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        r
+    }
+}
+
+impl From<crate::store::StoreError> for ApiError {
+    fn from(e: crate::store::StoreError) -> Self {
+        tracing::error!(error = %e, "store error in a request");
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "storage",
+            "the database could not answer",
+        )
+    }
+}
+
+/// Who made a request (after authentication).
+#[derive(Clone, Debug)]
+pub struct Caller {
+    pub name: String,
+    pub role: Option<Role>,
+}
+
+/// Equal-time comparison: the time taken does not tell how much of a token matched.
+fn same(a: &[u8], b: &[u8]) -> bool {
+    let mut diff = a.len() ^ b.len();
+    for i in 0..a.len().max(b.len()) {
+        diff |= usize::from(a.get(i).copied().unwrap_or(0) ^ b.get(i).copied().unwrap_or(0));
+    }
+    diff == 0
+}
+
+async fn authenticate(
+    State(st): State<Shared>,
+    mut req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
+    let presented = req
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(str::trim);
+    let caller = match presented {
+        None => Caller {
+            name: "anonymous".into(),
+            role: None,
+        },
+        Some(tok) => {
+            let found = st.auth.tokens.iter().fold(None, |acc, (name, t, role)| {
+                if same(t.as_bytes(), tok.as_bytes()) {
+                    Some((name.clone(), *role))
+                } else {
+                    acc
+                }
+            });
+            match found {
+                Some((name, role)) => Caller {
+                    name,
+                    role: Some(role),
+                },
+                None => {
+                    return Err(ApiError::new(
+                        StatusCode::UNAUTHORIZED,
+                        "bad_token",
+                        "the bearer token is not known",
+                    ));
+                }
+            }
+        }
+    };
+    let needed =
+        if req.method() == axum::http::Method::GET || req.method() == axum::http::Method::HEAD {
+            Role::Read
+        } else {
+            Role::Write
+        };
+    match caller.role {
+        None if needed == Role::Read && st.auth.anonymous_read => {}
+        None => {
+            return Err(ApiError::new(
+                StatusCode::UNAUTHORIZED,
+                "token_required",
+                format!("this endpoint needs a bearer token with role {needed:?}").to_lowercase(),
+            ));
+        }
+        Some(r) if !r.allows(needed) => {
+            return Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "role",
+                format!(
+                    "the token of '{}' has role {r:?}; this endpoint needs {needed:?}",
+                    caller.name
+                )
+                .to_lowercase(),
+            ));
+        }
+        Some(_) => {}
+    }
+    req.extensions_mut().insert(caller);
+    Ok(next.run(req).await)
+}
+
+pub fn router(state: Shared) -> Router {
+    let api = Router::new()
+        .route("/machines", get(machines))
+        .route("/machines/{id}", get(machine))
+        .route("/machines/{id}/compensation", get(compensation))
+        .route("/machines/{id}/cycles", get(cycles).post(request_cycle))
+        .route("/machines/{id}/cycles/{n}", get(cycle))
+        .route("/machines/{id}/errors", get(errors))
+        .layer(middleware::from_fn_with_state(state.clone(), authenticate))
+        .with_state(state.clone());
+    Router::new()
+        .nest("/api/v1", api)
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/readyz", get(ready))
+        .with_state(state)
+        .fallback(|| async {
+            ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such endpoint")
+        })
+}
+
+fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle, ApiError> {
+    st.machines.get(id).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown_machine",
+            format!("no machine '{id}'"),
+        )
+    })
+}
+
+fn view(h: &MachineHandle) -> MachineView {
+    h.view.lock().map(|v| v.clone()).unwrap_or_default()
+}
+
+async fn ready(State(st): State<Shared>) -> Response {
+    let waiting: Vec<String> = st
+        .machines
+        .iter()
+        .filter(|(_, h)| view(h).phase.is_none())
+        .map(|(id, _)| id.clone())
+        .collect();
+    if waiting.is_empty() {
+        (StatusCode::OK, "ready").into_response()
+    } else {
+        (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("waiting for {}", waiting.join(", ")),
+        )
+            .into_response()
+    }
+}
+
+fn summary(v: &MachineView) -> serde_json::Value {
+    json!({
+        "id": v.id,
+        "kinematics": v.kinematics,
+        "phase": v.phase,
+        "last_cycle": v.last_cycle,
+        "open_cycle": v.open_cycle,
+        "schedule": v.schedule,
+        "next_due_ns": v.next_due_ns,
+        "compensation_version": v.compensation.as_ref().map(|c| c.version),
+    })
+}
+
+async fn machines(State(st): State<Shared>) -> Json<serde_json::Value> {
+    Json(json!(
+        st.machines
+            .values()
+            .map(|h| summary(&view(h)))
+            .collect::<Vec<_>>()
+    ))
+}
+
+async fn machine(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    Ok(Json(summary(&view(handle(&st, &id)?))))
+}
+
+/// The NC's endpoint: the last validated set, with its version as ETag.
+async fn compensation(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let v = view(handle(&st, &id)?);
+    let Some(set) = v.compensation else {
+        return Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "no_compensation",
+            format!(
+                "machine '{id}' has no validated compensation yet: the NC keeps its own values"
+            ),
+        ));
+    };
+    let etag = format!("\"{id}-v{}\"", set.version);
+    let matches = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|h| h.to_str().ok())
+        .is_some_and(|h| h.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let mut r = if matches {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        Json(compensation_message(&set)).into_response()
+    };
+    if let Ok(h) = HeaderValue::from_str(&etag) {
+        r.headers_mut().insert(header::ETAG, h);
+    }
+    Ok(r)
+}
+
+#[derive(Deserialize)]
+struct Limit {
+    limit: Option<i64>,
+}
+
+async fn cycles(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    Query(q): Query<Limit>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    handle(&st, &id)?;
+    let limit = q.limit.unwrap_or(100).clamp(1, 10_000);
+    Ok(Json(json!(st.store.cycles(&id, limit).await?)))
+}
+
+async fn cycle(
+    State(st): State<Shared>,
+    Path((id, n)): Path<(String, i64)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    handle(&st, &id)?;
+    let row = st
+        .store
+        .cycles(&id, i64::MAX)
+        .await?
+        .into_iter()
+        .find(|c| c.cycle == n)
+        .ok_or_else(|| {
+            ApiError::new(
+                StatusCode::NOT_FOUND,
+                "unknown_cycle",
+                format!("machine '{id}' has no cycle {n}"),
+            )
+        })?;
+    let detections = st.store.detections(&id, n).await?;
+    let result = st.store.result(&id, n).await?;
+    Ok(Json(json!({
+        "cycle": row,
+        "detections": detections.into_iter().map(|(t, d)| json!({"t_ns": t, "detection": d})).collect::<Vec<_>>(),
+        "result": result,
+    })))
+}
+
+#[derive(Deserialize)]
+struct Window {
+    from: Option<i64>,
+    to: Option<i64>,
+}
+
+async fn errors(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    Query(w): Query<Window>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    handle(&st, &id)?;
+    let (from, to) = (w.from.unwrap_or(i64::MIN), w.to.unwrap_or(i64::MAX));
+    if from > to {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad_window",
+            "'from' is after 'to'",
+        ));
+    }
+    Ok(Json(json!(st.store.error_series(&id, from, to).await?)))
+}
+
+async fn request_cycle(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    axum::Extension(caller): axum::Extension<Caller>,
+) -> Result<Response, ApiError> {
+    let h = handle(&st, &id)?;
+    let now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
+    if let Ok(mut inbox) = h.inbox.lock() {
+        inbox.requests.push((caller.name.clone(), now));
+    }
+    tracing::info!(machine = %id, by = %caller.name, "operator requested a cycle");
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(json!({"message": format!("a cycle will run on '{id}' at the next idle moment"), "by": caller.name})),
+    )
+        .into_response())
+}

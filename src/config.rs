@@ -1,0 +1,228 @@
+//! The service's configuration: one TOML file (the shipped default, `config/default.toml`,
+//! documents every key). Each part is owned by the module it configures.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::alerts::{Rule, default_rules};
+use crate::compensation::ValidationLimits;
+use crate::phase::PhaseConfig;
+use crate::scheduler::SchedulePolicy;
+
+pub const DEFAULT_CONFIG: &str = include_str!("../config/default.toml");
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read configuration {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("configuration {origin}: {message}")]
+    Parse { origin: String, message: String },
+    #[error("configuration {origin}: {message}")]
+    Invalid { origin: String, message: String },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    Read,
+    Write,
+    Admin,
+}
+
+impl Role {
+    pub fn allows(self, needed: Role) -> bool {
+        matches!(
+            (self, needed),
+            (Role::Admin, _) | (Role::Write, Role::Read | Role::Write) | (Role::Read, Role::Read)
+        )
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Token {
+    /// Who holds it (for the log; the token itself is never logged).
+    pub name: String,
+    /// The bearer token, or `env:VAR` to read it from an environment variable.
+    pub token: String,
+    pub role: Role,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HttpConfig {
+    pub listen: SocketAddr,
+    /// Whether reads need no token (dashboards and NCs on a trusted network).
+    pub anonymous_read: bool,
+    #[serde(default)]
+    pub tokens: Vec<Token>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
+pub enum LinkConfig {
+    /// The truth simulator's virtual machine running a scenario's day program.
+    Simulated { scenario: String },
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineConfigEntry {
+    pub id: String,
+    /// Built-in machine name or path to a machine TOML.
+    pub machine: String,
+    /// Built-in plan name or path to a plan TOML.
+    pub plan: String,
+    pub link: LinkConfig,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// Where the database and the recordings go.
+    pub data_dir: PathBuf,
+    /// Simulated seconds per wall second (1 for real machines).
+    pub time_scale: f64,
+    /// Largest MCAP file before a new one is started, MiB.
+    pub max_file_mib: u64,
+    pub http: HttpConfig,
+    pub machines: Vec<MachineConfigEntry>,
+    #[serde(default)]
+    pub phase: PhaseConfig,
+    #[serde(default)]
+    pub schedule: SchedulePolicy,
+    #[serde(default)]
+    pub validation: ValidationLimits,
+    #[serde(default = "default_rules")]
+    pub alerts: Vec<Rule>,
+}
+
+impl ServiceConfig {
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        let cfg: ServiceConfig = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        cfg.validate(origin)?;
+        Ok(cfg)
+    }
+
+    /// The shipped default, or a file.
+    pub fn load(path: Option<&std::path::Path>) -> Result<Self, ConfigError> {
+        match path {
+            None => Self::from_toml(DEFAULT_CONFIG, "config/default.toml (built in)"),
+            Some(p) => {
+                let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read {
+                    path: p.display().to_string(),
+                    source,
+                })?;
+                Self::from_toml(&text, &p.display().to_string())
+            }
+        }
+    }
+
+    fn validate(&self, origin: &str) -> Result<(), ConfigError> {
+        let bad = |m: String| {
+            Err(ConfigError::Invalid {
+                origin: origin.to_string(),
+                message: m,
+            })
+        };
+        if !crate::positive(self.time_scale) {
+            return bad(format!("time_scale must be > 0, not {}", self.time_scale));
+        }
+        if self.machines.is_empty() {
+            return bad("no machines configured".into());
+        }
+        let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();
+        ids.sort_unstable();
+        if ids.windows(2).any(|w| w[0] == w[1]) {
+            return bad("machine ids must be unique".into());
+        }
+        if let Some(m) = self.machines.iter().find(|m| {
+            m.id.is_empty()
+                || !m
+                    .id
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        }) {
+            return bad(format!(
+                "machine id '{}' may hold only letters, digits, '-' and '_'",
+                m.id
+            ));
+        }
+        if let Err(e) = self.phase.validate() {
+            return bad(e.to_string());
+        }
+        if let Err(e) = self.schedule.validate() {
+            return bad(e.to_string());
+        }
+        if let Err(e) = crate::alerts::validate_rules(&self.alerts) {
+            return bad(e.to_string());
+        }
+        for t in &self.http.tokens {
+            if t.token.trim().is_empty() {
+                return bad(format!("token of '{}' is empty", t.name));
+            }
+        }
+        Ok(())
+    }
+
+    /// The tokens with `env:` references resolved; a token whose variable is not set is
+    /// left out (that holder cannot write) and named in the second list.
+    pub fn resolved_tokens(&self) -> (Vec<(String, String, Role)>, Vec<String>) {
+        let mut ok = Vec::new();
+        let mut disabled = Vec::new();
+        for t in &self.http.tokens {
+            match t.token.strip_prefix("env:") {
+                Some(var) => match std::env::var(var) {
+                    Ok(v) if !v.trim().is_empty() => ok.push((t.name.clone(), v, t.role)),
+                    _ => disabled.push(format!("token of '{}' is off: {var} is not set", t.name)),
+                },
+                None => ok.push((t.name.clone(), t.token.clone(), t.role)),
+            }
+        }
+        (ok, disabled)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_default_parses_and_runs_one_simulated_machine() {
+        let c = ServiceConfig::load(None).unwrap();
+        assert_eq!(c.machines.len(), 1);
+        assert_eq!(c.http.listen.to_string(), "127.0.0.1:8080");
+        assert_eq!(c.time_scale, 60.0);
+        assert!(
+            matches!(&c.machines[0].link, LinkConfig::Simulated { scenario } if scenario == "two_shift")
+        );
+    }
+
+    #[test]
+    fn bad_configurations_are_named() {
+        let text = DEFAULT_CONFIG.replace("time_scale = 60.0", "time_scale = 0.0");
+        let e = ServiceConfig::from_toml(&text, "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("time_scale"), "{e}");
+        let text = DEFAULT_CONFIG.replace("data_dir", "data_folder");
+        assert!(ServiceConfig::from_toml(&text, "t").is_err());
+    }
+
+    #[test]
+    fn roles_nest() {
+        assert!(Role::Admin.allows(Role::Write));
+        assert!(Role::Write.allows(Role::Read));
+        assert!(!Role::Read.allows(Role::Write));
+        assert!(!Role::Write.allows(Role::Admin));
+    }
+}

@@ -1,0 +1,218 @@
+//! `driftwatch serve`: wire the configured machines, the store, the recorder and the HTTP API,
+//! and run the machine loops on the service clock until stopped.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+
+use driftwatch::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch::config::{LinkConfig, ServiceConfig};
+use driftwatch::daemon::{MachineRuntime, Settings};
+use driftwatch::kinematics::Kinematics;
+use driftwatch::link::Simulated;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::recorder::Recorder;
+use driftwatch::recording::{MachineInfo, MachineStateKind};
+use driftwatch::scenario::Scenario;
+use driftwatch::store::Store;
+
+pub struct Options {
+    pub config: Option<PathBuf>,
+    pub time_scale: Option<f64>,
+    pub until: Option<f64>,
+    pub listen: Option<std::net::SocketAddr>,
+    pub data_dir: Option<PathBuf>,
+}
+
+/// The service clock: machine time advancing `scale` times faster than the wall clock.
+struct Clock {
+    t0_ns: i64,
+    wall0: Instant,
+    scale: f64,
+}
+
+impl Clock {
+    fn now_ns(&self) -> i64 {
+        self.t0_ns + (self.wall0.elapsed().as_secs_f64() * self.scale * 1e9) as i64
+    }
+    fn wall_until(&self, t_ns: i64) -> Duration {
+        let dt = (t_ns - self.now_ns()) as f64 / 1e9 / self.scale;
+        Duration::from_secs_f64(dt.clamp(0.0, 3600.0))
+    }
+}
+
+pub async fn run(o: Options) -> Result<ExitCode> {
+    let mut cfg = ServiceConfig::load(o.config.as_deref())?;
+    if let Some(s) = o.time_scale {
+        anyhow::ensure!(s.is_finite() && s > 0.0, "--time-scale must be > 0");
+        cfg.time_scale = s;
+    }
+    if let Some(l) = o.listen {
+        cfg.http.listen = l;
+    }
+    if let Some(d) = o.data_dir {
+        cfg.data_dir = d;
+    }
+    std::fs::create_dir_all(&cfg.data_dir)
+        .with_context(|| format!("creating data directory {}", cfg.data_dir.display()))?;
+    let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;
+    let settings = Settings {
+        phase: cfg.phase.clone(),
+        schedule: cfg.schedule.clone(),
+        validation: cfg.validation.clone(),
+        alert_rules: cfg.alerts.clone(),
+    };
+    // Simulated machines start just before their first power-on, so that a newcomer sees the
+    // morning's warm-up at once.
+    let mut machines = Vec::new();
+    let mut t0 = i64::MAX;
+    for m in &cfg.machines {
+        let k = Kinematics::load(&m.machine).with_context(|| format!("machine '{}'", m.id))?;
+        let plan = Plan::build(&k, &PlanConfig::load(&m.plan)?)
+            .with_context(|| format!("machine '{}'", m.id))?;
+        let LinkConfig::Simulated { scenario } = &m.link;
+        let mut scn = Scenario::load(scenario).with_context(|| format!("machine '{}'", m.id))?;
+        scn.machine_id = m.id.clone();
+        let first_on = scn
+            .spindle
+            .iter()
+            .find(|s| s.state != MachineStateKind::Off)
+            .map(|s| s.at_min)
+            .unwrap_or(0.0);
+        let link = Simulated::new(k.clone(), plan.clone(), scn)?;
+        t0 = t0.min(link.start_ns() + ((first_on - 5.0).max(0.0) * 60e9) as i64);
+        machines.push((m.id.clone(), k, plan, link));
+    }
+    let mut runtimes = Vec::new();
+    for (id, k, plan, link) in machines {
+        let info = MachineInfo {
+            machine_id: id.clone(),
+            kinematics: k.name.clone(),
+            software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
+        };
+        let recorder = Recorder::new(&cfg.data_dir.join("mcap"), info, cfg.max_file_mib << 20)?;
+        let rt = MachineRuntime::new(
+            &id,
+            k,
+            plan,
+            Box::new(link),
+            &settings,
+            store.clone(),
+            recorder,
+            t0,
+        )
+        .await?;
+        runtimes.push(rt);
+    }
+    let (tokens, disabled) = cfg.resolved_tokens();
+    for d in &disabled {
+        tracing::warn!("{d}");
+    }
+    let handles: BTreeMap<String, MachineHandle> = runtimes
+        .iter()
+        .map(|rt| {
+            (
+                rt.id.clone(),
+                MachineHandle {
+                    view: rt.view.clone(),
+                    inbox: rt.inbox.clone(),
+                },
+            )
+        })
+        .collect();
+    let state = Arc::new(ApiState {
+        machines: handles,
+        store: store.clone(),
+        auth: Auth {
+            tokens,
+            anonymous_read: cfg.http.anonymous_read,
+        },
+    });
+    let listener = tokio::net::TcpListener::bind(cfg.http.listen)
+        .await
+        .with_context(|| format!("listening on {}", cfg.http.listen))?;
+    let addr = listener.local_addr()?;
+    let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
+    let mut server_stop = stop_rx.clone();
+    let server = tokio::spawn(async move {
+        axum::serve(listener, router(state))
+            .with_graceful_shutdown(async move {
+                let _ = server_stop.wait_for(|s| *s).await;
+            })
+            .await
+    });
+    tokio::spawn(async move {
+        shutdown_signal().await;
+        let _ = stop_tx.send(true);
+    });
+    let first = cfg
+        .machines
+        .first()
+        .map(|m| m.id.clone())
+        .unwrap_or_default();
+    println!(
+        "driftwatch serving {} machine(s) on http://{addr} ({}x machine time, data in {})",
+        runtimes.len(),
+        cfg.time_scale,
+        cfg.data_dir.display()
+    );
+    println!("  compensation: curl http://{addr}/api/v1/machines/{first}/compensation");
+    println!("  machines:     curl http://{addr}/api/v1/machines");
+    let clock = Clock {
+        t0_ns: t0,
+        wall0: Instant::now(),
+        scale: cfg.time_scale,
+    };
+    let end = o.until.map(|m| t0 + (m * 60e9) as i64);
+    loop {
+        let now = clock.now_ns();
+        let now = end.map_or(now, |e| now.min(e));
+        let mut wake = i64::MAX;
+        for rt in &mut runtimes {
+            wake = wake.min(rt.step(now).await?);
+        }
+        if end.is_some_and(|e| now >= e) || *stop_rx.borrow() {
+            break;
+        }
+        // Look again at least every 200 ms of wall time, for operator requests.
+        let nap = clock.wall_until(wake).min(Duration::from_millis(200));
+        tokio::select! {
+            _ = tokio::time::sleep(nap) => {}
+            _ = stop_rx.changed() => {}
+        }
+    }
+    let now = clock.now_ns();
+    for rt in &mut runtimes {
+        rt.shutdown(end.map_or(now, |e| now.min(e))).await?;
+    }
+    store.close().await;
+    server.abort();
+    println!("driftwatch stopped; data in {}", cfg.data_dir.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(_) => {
+                    let _ = tokio::signal::ctrl_c().await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

@@ -1,0 +1,202 @@
+//! The HTTP API over a machine loop run on simulated time: the NC's compensation endpoint with
+//! ETag and 304, operator requests and their authorisation, errors as JSON.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use http_body_util::BodyExt;
+use serde_json::Value;
+use tower::ServiceExt;
+
+use driftwatch::alerts::default_rules;
+use driftwatch::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch::compensation::ValidationLimits;
+use driftwatch::config::Role;
+use driftwatch::daemon::{MachineRuntime, Settings};
+use driftwatch::kinematics::Kinematics;
+use driftwatch::link::Simulated;
+use driftwatch::phase::PhaseConfig;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::recorder::Recorder;
+use driftwatch::recording::MachineInfo;
+use driftwatch::scenario::Scenario;
+use driftwatch::scheduler::SchedulePolicy;
+use driftwatch::store::Store;
+
+const MIN: i64 = 60_000_000_000;
+
+async fn runtime(name: &str) -> (MachineRuntime, i64, Store) {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("api-{name}"));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    let scn = Scenario::load("patent").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+    let link = Simulated::new(k.clone(), plan.clone(), scn).unwrap();
+    let t0 = link.start_ns();
+    let store = Store::open(&d.join("db.sqlite")).await.unwrap();
+    let info = MachineInfo {
+        machine_id: "m1".into(),
+        kinematics: k.name.clone(),
+        software: "test".into(),
+    };
+    let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
+    let settings = Settings {
+        phase: PhaseConfig::default(),
+        schedule: SchedulePolicy::default(),
+        validation: ValidationLimits::default(),
+        alert_rules: default_rules(),
+    };
+    let rt = MachineRuntime::new(
+        "m1",
+        k,
+        plan,
+        Box::new(link),
+        &settings,
+        store.clone(),
+        rec,
+        t0,
+    )
+    .await
+    .unwrap();
+    (rt, t0, store)
+}
+
+async fn run_to(rt: &mut MachineRuntime, from: i64, to: i64) {
+    let mut now = from;
+    while now < to {
+        now = rt.step(now).await.unwrap().min(to).max(now + 1);
+    }
+}
+
+fn app(rt: &MachineRuntime, store: Store, anonymous_read: bool) -> axum::Router {
+    let mut machines = BTreeMap::new();
+    machines.insert(
+        "m1".to_string(),
+        MachineHandle {
+            view: rt.view.clone(),
+            inbox: rt.inbox.clone(),
+        },
+    );
+    router(Arc::new(ApiState {
+        machines,
+        store,
+        auth: Auth {
+            tokens: vec![
+                ("dashboard".into(), "read-token".into(), Role::Read),
+                ("operator".into(), "write-token".into(), Role::Write),
+            ],
+            anonymous_read,
+        },
+    }))
+}
+
+async fn call(
+    app: &axum::Router,
+    req: Request<Body>,
+) -> (StatusCode, axum::http::HeaderMap, Value) {
+    let r = app.clone().oneshot(req).await.unwrap();
+    let status = r.status();
+    let headers = r.headers().clone();
+    let bytes = r.into_body().collect().await.unwrap().to_bytes();
+    let body = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+    (status, headers, body)
+}
+
+fn get(uri: &str) -> Request<Body> {
+    Request::get(uri).body(Body::empty()).unwrap()
+}
+
+#[tokio::test]
+async fn the_nc_reads_the_last_validated_set_with_etag_and_304() {
+    let (mut rt, t0, store) = runtime("etag").await;
+    let app = app(&rt, store, true);
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/compensation")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_eq!(body["code"], "no_compensation");
+    run_to(&mut rt, t0, t0 + 45 * MIN).await;
+    let (s, h, body) = call(&app, get("/api/v1/machines/m1/compensation")).await;
+    assert_eq!(s, StatusCode::OK);
+    let v1 = body["version"].as_u64().unwrap();
+    assert!(v1 >= 1);
+    assert!(body["offsets"]["B_pivot_z_um"].is_number());
+    let etag = h[header::ETAG].to_str().unwrap().to_string();
+    let req = Request::get("/api/v1/machines/m1/compensation")
+        .header(header::IF_NONE_MATCH, &etag)
+        .body(Body::empty())
+        .unwrap();
+    let (s, _, _) = call(&app, req).await;
+    assert_eq!(s, StatusCode::NOT_MODIFIED);
+    run_to(&mut rt, t0 + 45 * MIN, t0 + 100 * MIN).await;
+    let req = Request::get("/api/v1/machines/m1/compensation")
+        .header(header::IF_NONE_MATCH, &etag)
+        .body(Body::empty())
+        .unwrap();
+    let (s, h, body) = call(&app, req).await;
+    assert_eq!(s, StatusCode::OK, "a newer set replaces the old ETag");
+    assert!(body["version"].as_u64().unwrap() > v1);
+    assert_ne!(h[header::ETAG].to_str().unwrap(), etag);
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/cycles")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.as_array().unwrap().len() >= 2);
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/cycles/1")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(body["detections"].as_array().unwrap().len(), 24);
+    let (s, _, body) = call(&app, get("/api/v1/machines/nope")).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::NOT_FOUND, Some("unknown_machine"))
+    );
+}
+
+#[tokio::test]
+async fn write_endpoints_need_a_write_token() {
+    let (mut rt, t0, store) = runtime("auth").await;
+    run_to(&mut rt, t0, t0 + 5 * MIN).await;
+    let app = app(&rt, store.clone(), true);
+    let post = |token: Option<&str>| {
+        let mut b = Request::post("/api/v1/machines/m1/cycles");
+        if let Some(t) = token {
+            b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
+        }
+        b.body(Body::empty()).unwrap()
+    };
+    let (s, h, body) = call(&app, post(None)).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    assert_eq!(h[header::WWW_AUTHENTICATE], "Bearer");
+    assert_eq!(body["code"], "token_required");
+    let (s, _, _) = call(&app, post(Some("read-token"))).await;
+    assert_eq!(s, StatusCode::FORBIDDEN);
+    let (s, _, _) = call(&app, post(Some("wrong"))).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    let (s, _, body) = call(&app, post(Some("write-token"))).await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    assert_eq!(body["by"], "operator");
+    // The request reaches the loop: a cycle starts at the next idle moment.
+    let before = store.cycles("m1", 100).await.unwrap().len();
+    run_to(&mut rt, t0 + 5 * MIN, t0 + 8 * MIN).await;
+    let after = store.cycles("m1", 100).await.unwrap();
+    assert_eq!(after.len(), before + 1);
+    assert!(
+        after[0].trigger.contains("operator"),
+        "{}",
+        after[0].trigger
+    );
+    // Reads need a token when anonymous reads are off.
+    let closed = app_closed(&rt, store);
+    let (s, _, _) = call(&closed, get("/api/v1/machines")).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    let req = Request::get("/api/v1/machines")
+        .header(header::AUTHORIZATION, "Bearer read-token")
+        .body(Body::empty())
+        .unwrap();
+    let (s, _, _) = call(&closed, req).await;
+    assert_eq!(s, StatusCode::OK);
+}
+
+fn app_closed(rt: &MachineRuntime, store: Store) -> axum::Router {
+    app(rt, store, false)
+}
