@@ -19,12 +19,15 @@ use serde_json::json;
 use crate::compensation::compensation_message;
 use crate::config::Role;
 use crate::daemon::{Inbox, MachineView};
+use crate::nc_push::{EventBatch, NcPushHandle};
 use crate::store::Store;
 
 #[derive(Clone)]
 pub struct MachineHandle {
     pub view: Arc<Mutex<MachineView>>,
     pub inbox: Arc<Mutex<Inbox>>,
+    /// Set for machines on the `nc_push` link.
+    pub nc: Option<NcPushHandle>,
 }
 
 pub struct Auth {
@@ -179,6 +182,8 @@ pub fn router(state: Shared) -> Router {
         .route("/machines/{id}/cycles", get(cycles).post(request_cycle))
         .route("/machines/{id}/cycles/{n}", get(cycle))
         .route("/machines/{id}/errors", get(errors))
+        .route("/machines/{id}/nc/events", axum::routing::post(nc_events))
+        .route("/machines/{id}/nc/request", get(nc_request))
         .layer(middleware::from_fn_with_state(state.clone(), authenticate))
         .with_state(state.clone());
     Router::new()
@@ -365,4 +370,41 @@ async fn request_cycle(
         Json(json!({"message": format!("a cycle will run on '{id}' at the next idle moment"), "by": caller.name})),
     )
         .into_response())
+}
+
+fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiError> {
+    handle(st, id)?.nc.as_ref().ok_or_else(|| {
+        ApiError::new(
+            StatusCode::CONFLICT,
+            "not_nc_push",
+            format!("machine '{id}' is not on the nc_push link"),
+        )
+    })
+}
+
+/// The NC posts what happened (contract message shapes), a batch taken whole or refused whole.
+async fn nc_events(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    body: Result<Json<EventBatch>, axum::extract::rejection::JsonRejection>,
+) -> Result<Response, ApiError> {
+    let nc = nc_handle(&st, &id)?;
+    let Json(batch) =
+        body.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_body", e.body_text()))?;
+    let n = nc
+        .post(&batch)
+        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_event", e.to_string()))?;
+    Ok((StatusCode::ACCEPTED, Json(json!({"accepted": n}))).into_response())
+}
+
+/// The NC polls for a cycle order: 204 when none.
+async fn nc_request(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let nc = nc_handle(&st, &id)?;
+    Ok(match nc.order() {
+        Some(o) => Json(o).into_response(),
+        None => StatusCode::NO_CONTENT.into_response(),
+    })
 }

@@ -69,6 +69,8 @@ pub struct HttpConfig {
 pub enum LinkConfig {
     /// The truth simulator's virtual machine running a scenario's day program.
     Simulated { scenario: String },
+    /// A real NC (or its gateway) posting events and polling for cycle orders over HTTP.
+    NcPush,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -155,6 +157,17 @@ impl ServiceConfig {
             return bad(format!(
                 "machine id '{}' may hold only letters, digits, '-' and '_'",
                 m.id
+            ));
+        }
+        if self
+            .machines
+            .iter()
+            .any(|m| matches!(m.link, LinkConfig::NcPush))
+            && self.time_scale != 1.0
+        {
+            return bad(format!(
+                "time_scale is {}: a real NC (nc_push) runs on the wall clock, time_scale = 1.0",
+                self.time_scale
             ));
         }
         if let Err(e) = self.phase.validate() {

@@ -17,6 +17,7 @@ pub mod identify;
 pub mod kinematics;
 pub mod link;
 pub mod measurement;
+pub mod nc_push;
 pub mod patent_relations;
 pub mod phase;
 pub mod plan;

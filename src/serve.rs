@@ -13,7 +13,8 @@ use driftwatch::api::{ApiState, Auth, MachineHandle, router};
 use driftwatch::config::{LinkConfig, ServiceConfig};
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
-use driftwatch::link::Simulated;
+use driftwatch::link::{MachineLink, Simulated};
+use driftwatch::nc_push::nc_push;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recorder::Recorder;
 use driftwatch::recording::{MachineInfo, MachineStateKind};
@@ -67,25 +68,49 @@ pub async fn run(o: Options) -> Result<ExitCode> {
         alert_rules: cfg.alerts.clone(),
     };
     // Simulated machines start just before their first power-on, so that a newcomer sees the
-    // morning's warm-up at once.
-    let mut machines = Vec::new();
+    // morning's warm-up at once. With a real NC the clock is the wall clock and simulated
+    // machines beside it are moved to start now.
+    let real = cfg
+        .machines
+        .iter()
+        .any(|m| matches!(m.link, LinkConfig::NcPush));
+    let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
+    let mut machines: Vec<(String, Kinematics, Plan, Box<dyn MachineLink>)> = Vec::new();
+    let mut nc_handles = BTreeMap::new();
     let mut t0 = i64::MAX;
     for m in &cfg.machines {
         let k = Kinematics::load(&m.machine).with_context(|| format!("machine '{}'", m.id))?;
         let plan = Plan::build(&k, &PlanConfig::load(&m.plan)?)
             .with_context(|| format!("machine '{}'", m.id))?;
-        let LinkConfig::Simulated { scenario } = &m.link;
-        let mut scn = Scenario::load(scenario).with_context(|| format!("machine '{}'", m.id))?;
-        scn.machine_id = m.id.clone();
-        let first_on = scn
-            .spindle
-            .iter()
-            .find(|s| s.state != MachineStateKind::Off)
-            .map(|s| s.at_min)
-            .unwrap_or(0.0);
-        let link = Simulated::new(k.clone(), plan.clone(), scn)?;
-        t0 = t0.min(link.start_ns() + ((first_on - 5.0).max(0.0) * 60e9) as i64);
-        machines.push((m.id.clone(), k, plan, link));
+        match &m.link {
+            LinkConfig::Simulated { scenario } => {
+                let mut scn =
+                    Scenario::load(scenario).with_context(|| format!("machine '{}'", m.id))?;
+                scn.machine_id = m.id.clone();
+                let lead_ns = ((scn
+                    .spindle
+                    .iter()
+                    .find(|s| s.state != MachineStateKind::Off)
+                    .map(|s| s.at_min)
+                    .unwrap_or(0.0)
+                    - 5.0)
+                    .max(0.0)
+                    * 60e9) as i64;
+                if real {
+                    scn.start_utc =
+                        chrono::DateTime::from_timestamp_nanos(wall_now - lead_ns).to_rfc3339();
+                }
+                let link = Simulated::new(k.clone(), plan.clone(), scn)?;
+                t0 = t0.min(link.start_ns() + lead_ns);
+                machines.push((m.id.clone(), k, plan, Box::new(link)));
+            }
+            LinkConfig::NcPush => {
+                let (link, handle) = nc_push(plan.clone());
+                nc_handles.insert(m.id.clone(), handle);
+                t0 = t0.min(wall_now);
+                machines.push((m.id.clone(), k, plan, Box::new(link)));
+            }
+        }
     }
     let mut runtimes = Vec::new();
     for (id, k, plan, link) in machines {
@@ -95,17 +120,8 @@ pub async fn run(o: Options) -> Result<ExitCode> {
             software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
         };
         let recorder = Recorder::new(&cfg.data_dir.join("mcap"), info, cfg.max_file_mib << 20)?;
-        let rt = MachineRuntime::new(
-            &id,
-            k,
-            plan,
-            Box::new(link),
-            &settings,
-            store.clone(),
-            recorder,
-            t0,
-        )
-        .await?;
+        let rt =
+            MachineRuntime::new(&id, k, plan, link, &settings, store.clone(), recorder, t0).await?;
         runtimes.push(rt);
     }
     let (tokens, disabled) = cfg.resolved_tokens();
@@ -120,6 +136,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
                 MachineHandle {
                     view: rt.view.clone(),
                     inbox: rt.inbox.clone(),
+                    nc: nc_handles.get(&rt.id).cloned(),
                 },
             )
         })

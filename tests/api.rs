@@ -79,6 +79,7 @@ fn app(rt: &MachineRuntime, store: Store, anonymous_read: bool) -> axum::Router 
         MachineHandle {
             view: rt.view.clone(),
             inbox: rt.inbox.clone(),
+            nc: None,
         },
     );
     router(Arc::new(ApiState {

@@ -1,0 +1,243 @@
+//! The `nc_push` flow end to end over HTTP: a test client plays the NC (a virtual machine from
+//! the truth simulator), posts its events, polls for cycle orders and runs them; the service
+//! loop runs on simulated time.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use http_body_util::BodyExt;
+use serde_json::{Value, json};
+use tower::ServiceExt;
+
+use driftwatch::alerts::default_rules;
+use driftwatch::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch::compensation::ValidationLimits;
+use driftwatch::config::Role;
+use driftwatch::daemon::{MachineRuntime, Settings};
+use driftwatch::kinematics::Kinematics;
+use driftwatch::nc_push::{CycleOrder, nc_push};
+use driftwatch::phase::PhaseConfig;
+use driftwatch::plan::{Plan, PlanConfig};
+use driftwatch::recorder::Recorder;
+use driftwatch::recording::{DetectionStatus, MachineInfo};
+use driftwatch::scenario::Scenario;
+use driftwatch::scheduler::SchedulePolicy;
+use driftwatch::simulator::VirtualMachine;
+use driftwatch::store::Store;
+
+const MIN: i64 = 60_000_000_000;
+
+async fn send(
+    app: &axum::Router,
+    method: &str,
+    uri: &str,
+    token: Option<&str>,
+    body: Option<Value>,
+) -> (StatusCode, Value) {
+    let mut b = Request::builder().method(method).uri(uri);
+    if let Some(t) = token {
+        b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
+    }
+    let req = match body {
+        Some(v) => b
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(v.to_string()))
+            .unwrap(),
+        None => b.body(Body::empty()).unwrap(),
+    };
+    let r = app.clone().oneshot(req).await.unwrap();
+    let s = r.status();
+    let bytes = r.into_body().collect().await.unwrap().to_bytes();
+    (s, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+#[tokio::test]
+async fn a_test_nc_drives_the_service_through_nc_push() {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("nc-push");
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    let scn = Scenario::load("patent").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+    let (link, handle) = nc_push(plan.clone());
+    let mut vm = VirtualMachine::new(&k, &scn).unwrap();
+    let t0 = vm.start_ns();
+    let store = Store::open(&d.join("db.sqlite")).await.unwrap();
+    let info = MachineInfo {
+        machine_id: "nc1".into(),
+        kinematics: k.name.clone(),
+        software: "test".into(),
+    };
+    let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
+    let settings = Settings {
+        phase: PhaseConfig::default(),
+        schedule: SchedulePolicy::default(),
+        validation: ValidationLimits::default(),
+        alert_rules: default_rules(),
+    };
+    let mut rt = MachineRuntime::new(
+        "nc1",
+        k.clone(),
+        plan.clone(),
+        Box::new(link),
+        &settings,
+        store.clone(),
+        rec,
+        t0,
+    )
+    .await
+    .unwrap();
+    let mut machines = BTreeMap::new();
+    machines.insert(
+        "nc1".to_string(),
+        MachineHandle {
+            view: rt.view.clone(),
+            inbox: rt.inbox.clone(),
+            nc: Some(handle),
+        },
+    );
+    let app = router(Arc::new(ApiState {
+        machines,
+        store: store.clone(),
+        auth: Auth {
+            tokens: vec![
+                ("nc".into(), "nc-token".into(), Role::Write),
+                ("dash".into(), "read-token".into(), Role::Read),
+            ],
+            anonymous_read: true,
+        },
+    }));
+    let events = "/api/v1/machines/nc1/nc/events";
+    let request = "/api/v1/machines/nc1/nc/request";
+
+    // Authorisation and bad input first.
+    let one = json!({"events": [{"topic": "/spindle", "t_ns": t0, "msg": {"rpm": 20000.0}}]});
+    assert_eq!(
+        send(&app, "POST", events, None, Some(one.clone())).await.0,
+        StatusCode::UNAUTHORIZED
+    );
+    assert_eq!(
+        send(&app, "POST", events, Some("read-token"), Some(one.clone()))
+            .await
+            .0,
+        StatusCode::FORBIDDEN
+    );
+    let bad = json!({"events": [
+        {"topic": "/spindle", "t_ns": t0, "msg": {"rpm": 20000.0}},
+        {"topic": "/machine/state", "t_ns": t0, "msg": {"state": "dancing", "program": null}}
+    ]});
+    let (s, body) = send(&app, "POST", events, Some("nc-token"), Some(bad)).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert!(
+        body["message"].as_str().unwrap().contains("event 1"),
+        "{body}"
+    );
+    let (s, body) = send(
+        &app,
+        "POST",
+        events,
+        Some("nc-token"),
+        Some(json!({"events": [{"topic": "/nope", "t_ns": 1, "msg": {}}]})),
+    )
+    .await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert!(
+        body["message"].as_str().unwrap().contains("/nope"),
+        "{body}"
+    );
+    assert_eq!(
+        send(&app, "GET", request, Some("nc-token"), None).await.0,
+        StatusCode::NO_CONTENT
+    );
+
+    // The NC: idle with the spindle at 20000 min^-1 (the patent's running-in), events every
+    // minute, orders run at once, cycle 2 with a failed approach.
+    let rpm = 20000.0;
+    let mut now = t0;
+    let mut orders = 0;
+    let mut versions = Vec::new();
+    while now < t0 + 100 * MIN {
+        vm.advance_to(now, rpm);
+        let mut evs = vec![
+            json!({"topic": "/spindle", "t_ns": now, "msg": {"rpm": rpm}}),
+            json!({"topic": "/machine/state", "t_ns": now, "msg": {"state": "idle", "program": "running-in"}}),
+        ];
+        for (sensor, celsius) in vm.temperatures(rpm) {
+            evs.push(json!({"topic": "/temperature", "t_ns": now, "msg": {"sensor": sensor, "celsius": celsius}}));
+        }
+        let (s, _) = send(
+            &app,
+            "POST",
+            events,
+            Some("nc-token"),
+            Some(json!({"events": evs})),
+        )
+        .await;
+        assert_eq!(s, StatusCode::ACCEPTED);
+        rt.step(now).await.unwrap();
+        let (s, order) = send(&app, "GET", request, Some("nc-token"), None).await;
+        if s == StatusCode::OK {
+            let order: CycleOrder = serde_json::from_value(order).unwrap();
+            orders += 1;
+            let start = now;
+            let mut dets = vec![
+                json!({"topic": "/machine/state", "t_ns": start, "msg": {"state": "measuring", "program": "cycle"}}),
+            ];
+            for st in &order.steps {
+                let step = plan.steps.iter().find(|s| s.label == st.step).unwrap();
+                vm.advance_to(start + (step.t_start_s * 1e9) as i64, rpm);
+                let mut det = vm.probe(&k, step, order.cycle, rpm);
+                if order.cycle == 2 && st.step == "B0C-180/y#2" {
+                    det.msg.status = Some(DetectionStatus::NoTrip);
+                }
+                dets.push(json!({"topic": "/probe/detection", "t_ns": det.t_ns, "msg": det.msg}));
+            }
+            let end = start + (plan.machine_time_s * 1e9) as i64;
+            dets.push(json!({"topic": "/machine/state", "t_ns": end, "msg": {"state": "idle", "program": "running-in"}}));
+            let (s, body) = send(
+                &app,
+                "POST",
+                events,
+                Some("nc-token"),
+                Some(json!({"events": dets})),
+            )
+            .await;
+            assert_eq!(s, StatusCode::ACCEPTED, "{body}");
+            now = end;
+            rt.step(now).await.unwrap();
+            let (s, comp) =
+                send(&app, "GET", "/api/v1/machines/nc1/compensation", None, None).await;
+            if s == StatusCode::OK {
+                versions.push((order.cycle, comp["version"].as_u64().unwrap()));
+            }
+        }
+        now += MIN;
+    }
+    let cycles = store.cycles("nc1", 100).await.unwrap();
+    println!("{orders} orders; versions after each cycle: {versions:?}");
+    for c in cycles.iter().rev() {
+        println!(
+            "cycle {} {} {} {:?}",
+            c.cycle, c.status, c.trigger, c.reason
+        );
+    }
+    assert!(orders >= 4, "{orders}");
+    assert_eq!(cycles.len(), orders);
+    let two = cycles.iter().find(|c| c.cycle == 2).unwrap();
+    assert_eq!(two.status, "rejected");
+    assert!(two.reason.as_ref().unwrap().contains("no_trip"));
+    assert!(
+        cycles
+            .iter()
+            .filter(|c| c.cycle != 2)
+            .all(|c| c.status == "ok")
+    );
+    // The rejected cycle left the served set as it was; every other one moved it up by one.
+    let v = |c: i64| versions.iter().find(|(n, _)| *n == c).map(|(_, v)| *v);
+    assert_eq!(v(1), Some(1));
+    assert_eq!(v(2), Some(1));
+    assert_eq!(v(3), Some(2));
+}
