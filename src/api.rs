@@ -182,6 +182,11 @@ pub fn router(state: Shared) -> Router {
         .route("/machines/{id}/cycles", get(cycles).post(request_cycle))
         .route("/machines/{id}/cycles/{n}", get(cycle))
         .route("/machines/{id}/errors", get(errors))
+        .route("/machines/{id}/alerts", get(alerts))
+        .route(
+            "/machines/{id}/alerts/{alert}/ack",
+            axum::routing::post(ack_alert),
+        )
         .route("/machines/{id}/nc/events", axum::routing::post(nc_events))
         .route("/machines/{id}/nc/request", get(nc_request))
         .layer(middleware::from_fn_with_state(state.clone(), authenticate))
@@ -190,6 +195,7 @@ pub fn router(state: Shared) -> Router {
         .nest("/api/v1", api)
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(ready))
+        .route("/metrics", get(metrics))
         .with_state(state)
         .fallback(|| async {
             ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such endpoint")
@@ -407,4 +413,93 @@ async fn nc_request(
         Some(o) => Json(o).into_response(),
         None => StatusCode::NO_CONTENT.into_response(),
     })
+}
+
+/// Open alerts (from the loop) and the latest alert events (from the store).
+async fn alerts(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let v = view(handle(&st, &id)?);
+    let events = st.store.alert_events(&id, 200).await?;
+    Ok(Json(json!({"open": v.open_alerts, "events": events})))
+}
+
+async fn ack_alert(
+    State(st): State<Shared>,
+    Path((id, alert)): Path<(String, u64)>,
+    axum::Extension(caller): axum::Extension<Caller>,
+) -> Result<Response, ApiError> {
+    let h = handle(&st, &id)?;
+    if !view(h).open_alerts.iter().any(|a| a.id == alert) {
+        return Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown_alert",
+            format!("machine '{id}' has no open alert {alert}"),
+        ));
+    }
+    if let Ok(mut inbox) = h.inbox.lock() {
+        inbox.acks.push((alert, caller.name.clone()));
+    }
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(json!({"alert": alert, "by": caller.name})),
+    )
+        .into_response())
+}
+
+/// Prometheus text: cycles by status, solve time, compensation version, open alerts.
+async fn metrics(State(st): State<Shared>) -> Response {
+    let mut out = String::new();
+    let mut metric = |name: &str, kind: &str, help: &str, rows: Vec<(String, f64)>| {
+        out.push_str(&format!("# HELP {name} {help}\n# TYPE {name} {kind}\n"));
+        for (labels, v) in rows {
+            out.push_str(&format!("{name}{{{labels}}} {v}\n"));
+        }
+    };
+    let views: Vec<MachineView> = st.machines.values().map(view).collect();
+    let per = |f: &dyn Fn(&MachineView) -> f64| -> Vec<(String, f64)> {
+        views
+            .iter()
+            .map(|v| (format!("machine=\"{}\"", v.id), f(v)))
+            .collect()
+    };
+    let mut cycles = Vec::new();
+    for v in &views {
+        for (status, n) in [
+            ("ok", v.cycles_ok),
+            ("rejected", v.cycles_rejected),
+            ("abandoned", v.cycles_abandoned),
+        ] {
+            cycles.push((
+                format!("machine=\"{}\",status=\"{status}\"", v.id),
+                n as f64,
+            ));
+        }
+    }
+    metric(
+        "driftwatch_cycles_total",
+        "counter",
+        "Measurement cycles by outcome.",
+        cycles,
+    );
+    metric(
+        "driftwatch_solve_seconds_sum",
+        "counter",
+        "Time spent validating and solving cycles.",
+        per(&|v| v.solve_seconds_sum),
+    );
+    metric(
+        "driftwatch_compensation_version",
+        "gauge",
+        "Version of the compensation set served to the NC (0: none).",
+        per(&|v| v.compensation.as_ref().map_or(0.0, |c| c.version as f64)),
+    );
+    metric(
+        "driftwatch_open_alerts",
+        "gauge",
+        "Alerts open now.",
+        per(&|v| v.open_alerts.len() as f64),
+    );
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
 }

@@ -50,12 +50,20 @@ pub struct MachineView {
     pub next_due_ns: Option<i64>,
     /// The set the NC reads: the last validated one.
     pub compensation: Option<CompensationSet>,
+    pub open_alerts: Vec<crate::alerts::Alert>,
+    /// Counters for `/metrics`.
+    pub cycles_ok: u64,
+    pub cycles_rejected: u64,
+    pub cycles_abandoned: u64,
+    pub solve_seconds_sum: f64,
 }
 
-/// Operator requests waiting for the loop.
+/// Operator requests and alert acknowledgements waiting for the loop.
 #[derive(Debug, Default)]
 pub struct Inbox {
     pub requests: Vec<(String, i64)>,
+    /// (alert id, who)
+    pub acks: Vec<(u64, String)>,
 }
 
 pub struct Settings {
@@ -178,10 +186,33 @@ impl MachineRuntime {
         for ev in self.link.poll(now_ns) {
             self.on_event(ev).await?;
         }
-        let requests = match self.inbox.lock() {
-            Ok(mut inbox) => std::mem::take(&mut inbox.requests),
-            Err(_) => Vec::new(),
+        let (requests, acks) = match self.inbox.lock() {
+            Ok(mut inbox) => (
+                std::mem::take(&mut inbox.requests),
+                std::mem::take(&mut inbox.acks),
+            ),
+            Err(_) => (Vec::new(), Vec::new()),
         };
+        for (id, by) in acks {
+            match self.alerts.ack(id, &by, now_ns) {
+                Ok(()) => {
+                    info!(machine = %self.id, alert = id, by = %by, "alert acknowledged");
+                    self.store
+                        .add_alert_event(
+                            &self.id,
+                            id as i64,
+                            now_ns,
+                            "acknowledged",
+                            "",
+                            "",
+                            &format!("acknowledged by {by}"),
+                            None,
+                        )
+                        .await?;
+                }
+                Err(e) => warn!(machine = %self.id, alert = id, "acknowledgement refused: {e}"),
+            }
+        }
         // Stamped with the loop's time: a simulated machine's clock is not the wall clock.
         for (by, _) in requests {
             self.sched.request(by, now_ns);
@@ -236,10 +267,14 @@ impl MachineRuntime {
                 self.sched.abandoned(now_ns);
                 let _ = self.phase.on_cycle(now_ns, false);
                 self.open = None;
+                if let Ok(mut v) = self.view.lock() {
+                    v.cycles_abandoned += 1;
+                }
                 format!("cycle {cycle} abandoned (timeout)")
             }
         };
         if let Ok(mut v) = self.view.lock() {
+            v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
             v.phase = Some(self.phase.phase(now_ns));
             v.open_cycle = self.open.as_ref().map(|c| c.number);
             v.schedule = schedule;
@@ -338,7 +373,9 @@ impl MachineRuntime {
             return Ok(());
         };
         let _ = self.phase.on_cycle(now_ns, false);
+        let solve_started = std::time::Instant::now();
         let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
+        let solve_seconds = solve_started.elapsed().as_secs_f64();
         let mut result: CycleResultMsg = outcome.message();
         if result.status == ResultStatus::Ok {
             let v = compensation::validate(&result, self.served.as_ref(), &self.limits);
@@ -402,6 +439,13 @@ impl MachineRuntime {
         if let Ok(mut v) = self.view.lock() {
             v.last_cycle = Some(open.number);
             v.compensation = self.served.clone();
+            v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
+            v.solve_seconds_sum += solve_seconds;
+            if result.status == ResultStatus::Ok {
+                v.cycles_ok += 1;
+            } else {
+                v.cycles_rejected += 1;
+            }
         }
         Ok(())
     }

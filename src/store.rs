@@ -432,6 +432,32 @@ impl Store {
         Ok(())
     }
 
+    /// Alert events of a machine, newest first.
+    pub async fn alert_events(&self, machine: &str, limit: i64) -> Result<Vec<Value>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT alert_id, seq, t_ns, kind, rule, severity, message, value FROM alert_events
+             WHERE machine_id = $1 ORDER BY t_ns DESC, alert_id DESC, seq DESC LIMIT $2",
+        )
+        .bind(machine)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(serde_json::json!({
+                    "alert": r.try_get::<i64, _>(0)?,
+                    "seq": r.try_get::<i64, _>(1)?,
+                    "t_ns": r.try_get::<i64, _>(2)?,
+                    "kind": r.try_get::<String, _>(3)?,
+                    "rule": r.try_get::<String, _>(4)?,
+                    "severity": r.try_get::<String, _>(5)?,
+                    "message": r.try_get::<String, _>(6)?,
+                    "value": r.try_get::<Option<f64>, _>(7)?,
+                }))
+            })
+            .collect()
+    }
+
     pub async fn add_spindle_sample(
         &self,
         machine: &str,

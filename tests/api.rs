@@ -201,3 +201,65 @@ async fn write_endpoints_need_a_write_token() {
 fn app_closed(rt: &MachineRuntime, store: Store) -> axum::Router {
     app(rt, store, false)
 }
+
+#[tokio::test]
+async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
+    let (mut rt, t0, store) = runtime("alerts").await;
+    run_to(&mut rt, t0, t0 + 100 * MIN).await;
+    let app = app(&rt, store, true);
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/alerts")).await;
+    assert_eq!(s, StatusCode::OK);
+    let open = body["open"].as_array().unwrap();
+    let ez = open
+        .iter()
+        .find(|a| a["rule"] == "threshold:EZ0B")
+        .expect("EZ0B above 30 um");
+    let id = ez["id"].as_u64().unwrap();
+    assert!(
+        body["events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e["kind"] == "raised")
+    );
+    let ack = |id: u64, token: Option<&str>| {
+        let mut b = Request::post(format!("/api/v1/machines/m1/alerts/{id}/ack"));
+        if let Some(t) = token {
+            b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
+        }
+        b.body(Body::empty()).unwrap()
+    };
+    assert_eq!(call(&app, ack(id, None)).await.0, StatusCode::UNAUTHORIZED);
+    assert_eq!(
+        call(&app, ack(id, Some("read-token"))).await.0,
+        StatusCode::FORBIDDEN
+    );
+    assert_eq!(
+        call(&app, ack(999, Some("write-token"))).await.0,
+        StatusCode::NOT_FOUND
+    );
+    assert_eq!(
+        call(&app, ack(id, Some("write-token"))).await.0,
+        StatusCode::ACCEPTED
+    );
+    run_to(&mut rt, t0 + 100 * MIN, t0 + 101 * MIN).await;
+    let (_, _, body) = call(&app, get("/api/v1/machines/m1/alerts")).await;
+    let ez = body["open"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["id"] == id)
+        .unwrap()
+        .clone();
+    assert_eq!(ez["acknowledged"]["by"], "operator", "{ez}");
+    let r = app.clone().oneshot(get("/metrics")).await.unwrap();
+    let text =
+        String::from_utf8(r.into_body().collect().await.unwrap().to_bytes().to_vec()).unwrap();
+    let ok_line = text
+        .lines()
+        .find(|l| l.starts_with("driftwatch_cycles_total{machine=\"m1\",status=\"ok\"}"))
+        .unwrap();
+    let n: f64 = ok_line.rsplit(' ').next().unwrap().parse().unwrap();
+    assert!(n >= 2.0, "{ok_line}");
+    assert!(text.contains("driftwatch_compensation_version{machine=\"m1\"}"));
+}
