@@ -232,6 +232,18 @@ mod tests {
     }
 
     #[test]
+    fn the_deployment_example_parses() {
+        let text = include_str!("../deploy/nc_push.example.toml");
+        let c = ServiceConfig::from_toml(text, "deploy/nc_push.example.toml").unwrap();
+        assert!(matches!(c.machines[0].link, LinkConfig::NcPush));
+        assert!(!c.http.anonymous_read);
+        // A real NC with a sped-up clock is refused.
+        let fast = text.replace("time_scale = 1.0", "time_scale = 60.0");
+        let e = ServiceConfig::from_toml(&fast, "t").unwrap_err().to_string();
+        assert!(e.contains("nc_push"), "{e}");
+    }
+
+    #[test]
     fn roles_nest() {
         assert!(Role::Admin.allows(Role::Write));
         assert!(Role::Write.allows(Role::Read));
