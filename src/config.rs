@@ -239,7 +239,9 @@ mod tests {
         assert!(!c.http.anonymous_read);
         // A real NC with a sped-up clock is refused.
         let fast = text.replace("time_scale = 1.0", "time_scale = 60.0");
-        let e = ServiceConfig::from_toml(&fast, "t").unwrap_err().to_string();
+        let e = ServiceConfig::from_toml(&fast, "t")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("nc_push"), "{e}");
     }
 

@@ -18,6 +18,7 @@ use driftwatch::recording::{self as rec, Timed};
 use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
+mod bench;
 mod serve;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
@@ -135,6 +136,12 @@ enum Command {
         /// Number of solves.
         #[arg(long, default_value_t = 20000)]
         n: usize,
+        /// Simulated days (bench year).
+        #[arg(long, default_value_t = 365.0)]
+        days: f64,
+        /// Scratch directory (bench year; emptied first).
+        #[arg(long, default_value = "out/bench-year")]
+        dir: PathBuf,
     },
 }
 
@@ -161,7 +168,10 @@ enum Which {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum BenchWhich {
+    /// Solves per second of one thread.
     Solve,
+    /// One simulated year of one machine through the service pipeline.
+    Year,
 }
 
 fn main() -> ExitCode {
@@ -264,7 +274,18 @@ fn run(cmd: Command) -> Result<ExitCode> {
             which: BenchWhich::Solve,
             plan,
             n,
+            ..
         } => cmd_bench_solve(&plan, n),
+        Command::Bench {
+            which: BenchWhich::Year,
+            days,
+            dir,
+            ..
+        } => tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .context("starting the async runtime")?
+            .block_on(bench::year(days, dir)),
     }
 }
 
