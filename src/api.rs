@@ -174,6 +174,29 @@ async fn authenticate(
     Ok(next.run(req).await)
 }
 
+/// The OpenAPI document of the API, generated from the handlers.
+#[derive(utoipa::OpenApi)]
+#[openapi(
+    info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
+    paths(ready, machines, machine, compensation, cycles, cycle, errors, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request),
+    components(schemas(EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
+    modifiers(&BearerAuth)
+)]
+pub struct ApiDoc;
+
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
 pub fn router(state: Shared) -> Router {
     let api = Router::new()
         .route("/machines", get(machines))
@@ -191,7 +214,12 @@ pub fn router(state: Shared) -> Router {
         .route("/machines/{id}/nc/request", get(nc_request))
         .layer(middleware::from_fn_with_state(state.clone(), authenticate))
         .with_state(state.clone());
+    use utoipa::OpenApi as _;
     Router::new()
+        .merge(
+            utoipa_swagger_ui::SwaggerUi::new("/api/v1/docs")
+                .url("/api/v1/openapi.json", ApiDoc::openapi()),
+        )
         .nest("/api/v1", api)
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(ready))
@@ -216,6 +244,7 @@ fn view(h: &MachineHandle) -> MachineView {
     h.view.lock().map(|v| v.clone()).unwrap_or_default()
 }
 
+#[utoipa::path(get, path = "/readyz", responses((status = 200, description = "every machine loop is running"), (status = 503, description = "waiting for a machine loop")))]
 async fn ready(State(st): State<Shared>) -> Response {
     let waiting: Vec<String> = st
         .machines
@@ -247,6 +276,7 @@ fn summary(v: &MachineView) -> serde_json::Value {
     })
 }
 
+#[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, compensation version")), security((), ("bearer" = [])))]
 async fn machines(State(st): State<Shared>) -> Json<serde_json::Value> {
     Json(json!(
         st.machines
@@ -256,6 +286,7 @@ async fn machines(State(st): State<Shared>) -> Json<serde_json::Value> {
     ))
 }
 
+#[utoipa::path(get, path = "/api/v1/machines/{id}", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "one machine"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn machine(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -264,6 +295,7 @@ async fn machine(
 }
 
 /// The NC's endpoint: the last validated set, with its version as ETag.
+#[utoipa::path(get, path = "/api/v1/machines/{id}/compensation", params(("id" = String, Path, description = "machine id"), ("If-None-Match" = Option<String>, Header, description = "the ETag last read")), responses((status = 200, description = "the last validated compensation set (version, valid_from_ns, source, errors, offsets, sigma); ETag header"), (status = 304, description = "unchanged since the ETag given"), (status = 404, description = "no validated set yet")), security((), ("bearer" = [])))]
 async fn compensation(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -300,6 +332,7 @@ struct Limit {
     limit: Option<i64>,
 }
 
+#[utoipa::path(get, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "newest first, at most this many (default 100)")), responses((status = 200, description = "cycles with status and reason")), security((), ("bearer" = [])))]
 async fn cycles(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -310,6 +343,7 @@ async fn cycles(
     Ok(Json(json!(st.store.cycles(&id, limit).await?)))
 }
 
+#[utoipa::path(get, path = "/api/v1/machines/{id}/cycles/{n}", params(("id" = String, Path, description = "machine id"), ("n" = i64, Path, description = "cycle number")), responses((status = 200, description = "the cycle, its detections and its result"), (status = 404, description = "no such cycle")), security((), ("bearer" = [])))]
 async fn cycle(
     State(st): State<Shared>,
     Path((id, n)): Path<(String, i64)>,
@@ -343,6 +377,7 @@ struct Window {
     to: Option<i64>,
 }
 
+#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time"), (status = 400, description = "from after to")), security((), ("bearer" = [])))]
 async fn errors(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -360,6 +395,7 @@ async fn errors(
     Ok(Json(json!(st.store.error_series(&id, from, to).await?)))
 }
 
+#[utoipa::path(post, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id")), responses((status = 202, description = "a cycle will run at the next idle moment"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
 async fn request_cycle(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -389,6 +425,7 @@ fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiErro
 }
 
 /// The NC posts what happened (contract message shapes), a batch taken whole or refused whole.
+#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole"), (status = 400, description = "the batch was refused whole; the message names the bad event"), (status = 409, description = "the machine is not on the nc_push link")), security(("bearer" = [])))]
 async fn nc_events(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -404,6 +441,7 @@ async fn nc_events(
 }
 
 /// The NC polls for a cycle order: 204 when none.
+#[utoipa::path(get, path = "/api/v1/machines/{id}/nc/request", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the cycle order to run", body = crate::nc_push::CycleOrder), (status = 204, description = "nothing asked")), security(("bearer" = [])))]
 async fn nc_request(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -416,6 +454,7 @@ async fn nc_request(
 }
 
 /// Open alerts (from the loop) and the latest alert events (from the store).
+#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "open alerts and the latest alert events")), security((), ("bearer" = [])))]
 async fn alerts(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -425,6 +464,7 @@ async fn alerts(
     Ok(Json(json!({"open": v.open_alerts, "events": events})))
 }
 
+#[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "acknowledged"), (status = 404, description = "no such open alert"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
 async fn ack_alert(
     State(st): State<Shared>,
     Path((id, alert)): Path<(String, u64)>,
@@ -449,6 +489,7 @@ async fn ack_alert(
 }
 
 /// Prometheus text: cycles by status, solve time, compensation version, open alerts.
+#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Prometheus text: cycles by outcome, solve time, compensation version, open alerts")))]
 async fn metrics(State(st): State<Shared>) -> Response {
     let mut out = String::new();
     let mut metric = |name: &str, kind: &str, help: &str, rows: Vec<(String, f64)>| {

@@ -44,27 +44,32 @@ pub enum NcPushError {
     Time { index: usize, t_ns: i64 },
 }
 
-/// One event as the NC posts it.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+/// One event as the NC posts it: a contract topic, its time, its message.
+#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PostedEvent {
+    /// `/spindle`, `/machine/state`, `/temperature` or `/probe/detection`.
     pub topic: String,
+    /// ns since the Unix epoch.
     pub t_ns: i64,
+    /// The message in the recording contract's shape for that topic.
+    #[schema(value_type = Object)]
     pub msg: Value,
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct EventBatch {
     pub events: Vec<PostedEvent>,
 }
 
 /// One step of a cycle order.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct OrderStep {
     pub step: String,
     pub b_deg: f64,
     pub c_deg: f64,
+    #[schema(value_type = String)]
     pub axis: crate::measurement::Axis,
     pub direction: i8,
     pub feed_mm_min: f64,
@@ -75,7 +80,7 @@ pub struct OrderStep {
 }
 
 /// What the NC is asked to run.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct CycleOrder {
     pub cycle: i64,
     pub requested_ns: i64,

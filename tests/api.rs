@@ -263,3 +263,32 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
     assert!(n >= 2.0, "{ok_line}");
     assert!(text.contains("driftwatch_compensation_version{machine=\"m1\"}"));
 }
+
+#[tokio::test]
+async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
+    let (rt, _, store) = runtime("openapi").await;
+    let app = app(&rt, store, true);
+    let (s, _, doc) = call(&app, get("/api/v1/openapi.json")).await;
+    assert_eq!(s, StatusCode::OK);
+    let paths = doc["paths"].as_object().unwrap();
+    for p in [
+        "/api/v1/machines",
+        "/api/v1/machines/{id}/compensation",
+        "/api/v1/machines/{id}/cycles",
+        "/api/v1/machines/{id}/cycles/{n}",
+        "/api/v1/machines/{id}/errors",
+        "/api/v1/machines/{id}/alerts",
+        "/api/v1/machines/{id}/alerts/{alert}/ack",
+        "/api/v1/machines/{id}/nc/events",
+        "/api/v1/machines/{id}/nc/request",
+        "/metrics",
+    ] {
+        assert!(
+            paths.contains_key(p),
+            "{p} missing from the OpenAPI document"
+        );
+    }
+    assert!(doc["components"]["securitySchemes"]["bearer"].is_object());
+    let r = app.clone().oneshot(get("/api/v1/docs/")).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+}
