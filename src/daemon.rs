@@ -157,6 +157,7 @@ impl MachineRuntime {
             id: id.to_string(),
             kinematics: k.name.clone(),
             compensation: served.clone(),
+            last_cycle: store.last_closed_cycle(id).await?,
             ..Default::default()
         };
         Ok(MachineRuntime {
@@ -377,31 +378,12 @@ impl MachineRuntime {
         let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
         let solve_seconds = solve_started.elapsed().as_secs_f64();
         let mut result: CycleResultMsg = outcome.message();
+        let mut new_set = None;
         if result.status == ResultStatus::Ok {
             let v = compensation::validate(&result, self.served.as_ref(), &self.limits);
             if v.ok {
                 match compensation::next_set(self.served.as_ref(), &result, &v, now_ns) {
-                    Ok(set) => {
-                        self.store
-                            .insert_compensation(
-                                &self.id,
-                                set.version as i64,
-                                set.valid_from_ns,
-                                "measured",
-                                set.cycle,
-                                &set.reason,
-                                &serde_json::to_value(&set).unwrap_or_default(),
-                            )
-                            .await?;
-                        self.record(
-                            rec::TOPIC_COMPENSATION,
-                            now_ns,
-                            &compensation::compensation_message(&set),
-                        )
-                        .await?;
-                        info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
-                        self.served = Some(set);
-                    }
+                    Ok(set) => new_set = Some(set),
                     Err(refused) => {
                         result.status = ResultStatus::Rejected;
                         result.reason = Some(refused.reasons.join("; "));
@@ -415,7 +397,35 @@ impl MachineRuntime {
         if result.status == ResultStatus::Rejected {
             warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
         }
-        self.store.close_cycle(&self.id, &result, now_ns).await?;
+        // The result and the set it makes go in one transaction, before anything is served.
+        let payload = new_set
+            .as_ref()
+            .map(|s| serde_json::to_value(s).unwrap_or_default());
+        let stored = match (&new_set, &payload) {
+            (Some(set), Some(p)) => Some(crate::store::NewCompensation {
+                version: set.version as i64,
+                valid_from_ns: set.valid_from_ns,
+                source: "measured",
+                cycle: set.cycle,
+                reason: &set.reason,
+                payload: p,
+            }),
+            _ => None,
+        };
+        self.store
+            .close_cycle_with(&self.id, &result, now_ns, stored.as_ref())
+            .await?;
+        if let Some(set) = new_set {
+            self.record(
+                rec::TOPIC_COMPENSATION,
+                now_ns,
+                &compensation::compensation_message(&set),
+            )
+            .await?;
+            info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
+            self.served = Some(set);
+        }
+
         self.record(rec::TOPIC_RESULT, now_ns, &result).await?;
         self.recorder.flush()?;
         self.sched

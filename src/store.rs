@@ -28,6 +28,16 @@ pub enum StoreError {
     Json(#[from] serde_json::Error),
 }
 
+/// A compensation set to store with the cycle that produced it.
+pub struct NewCompensation<'a> {
+    pub version: i64,
+    pub valid_from_ns: i64,
+    pub source: &'a str,
+    pub cycle: Option<i64>,
+    pub reason: &'a str,
+    pub payload: &'a Value,
+}
+
 /// A cycle as stored.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CycleRow {
@@ -184,6 +194,19 @@ impl Store {
         result: &CycleResultMsg,
         finished_ns: i64,
     ) -> Result<(), StoreError> {
+        self.close_cycle_with(machine, result, finished_ns, None)
+            .await
+    }
+
+    /// Close a cycle and, when it produced one, store its compensation set in the same
+    /// transaction: a crash leaves either both or neither.
+    pub async fn close_cycle_with(
+        &self,
+        machine: &str,
+        result: &CycleResultMsg,
+        finished_ns: i64,
+        compensation: Option<&NewCompensation<'_>>,
+    ) -> Result<(), StoreError> {
         let status = match result.status {
             ResultStatus::Ok => "ok",
             ResultStatus::Rejected => "rejected",
@@ -232,8 +255,47 @@ impl Store {
                 .await?;
             }
         }
+        if let Some(c) = compensation {
+            sqlx::query(
+                "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7)",
+            )
+            .bind(machine)
+            .bind(c.version)
+            .bind(c.valid_from_ns)
+            .bind(c.source)
+            .bind(c.cycle)
+            .bind(c.reason)
+            .bind(serde_json::to_string(c.payload)?)
+            .execute(&mut *tx)
+            .await?;
+        }
         tx.commit().await?;
         Ok(())
+    }
+
+    /// The last cycle of a machine that has a result, if any.
+    pub async fn last_closed_cycle(&self, machine: &str) -> Result<Option<i64>, StoreError> {
+        let row = sqlx::query("SELECT MAX(cycle) FROM results WHERE machine_id = $1")
+            .bind(machine)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<Option<i64>, _>(0)?)
+    }
+
+    /// The latest time anything of a machine was stored (cycles, results, samples), ns.
+    pub async fn last_activity_ns(&self, machine: &str) -> Result<Option<i64>, StoreError> {
+        let row = sqlx::query(
+            "SELECT MAX(t) FROM (
+                 SELECT MAX(started_ns) AS t FROM cycles WHERE machine_id = $1
+                 UNION ALL SELECT MAX(finished_ns) FROM cycles WHERE machine_id = $1
+                 UNION ALL SELECT MAX(t_ns) FROM spindle_samples WHERE machine_id = $1
+                 UNION ALL SELECT MAX(valid_from_ns) FROM compensation_sets WHERE machine_id = $1)",
+        )
+        .bind(machine)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(row.try_get::<Option<i64>, _>(0)?)
     }
 
     pub async fn abandon_cycle(
