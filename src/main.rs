@@ -397,6 +397,7 @@ fn cmd_solve(
         path,
         &ReadOptions {
             recover_truncated: recover,
+            ..Default::default()
         },
     )?;
     if let Some(t) = &recording.truncated {

@@ -115,6 +115,7 @@ impl Recorder {
                 &partial,
                 &ReadOptions {
                     recover_truncated: true,
+                    keep_raw: true,
                 },
             ) {
                 Ok(r) => r,
@@ -273,48 +274,15 @@ impl Recorder {
     }
 }
 
-/// Write everything a reader took from a recording into a new, closed file.
+/// Copy every message a reader took from a recording, as written and in file order, into a
+/// new, closed file.
 fn rewrite(r: &Recording, path: &Path) -> Result<u64, RecordingError> {
     let mut w = RecordingWriter::create_file(path)?;
-    let mut n = 0;
-    let t0 = r
-        .detections
-        .first()
-        .map(|d| d.t_ns)
-        .or(r.spindle.first().map(|s| s.t_ns))
-        .unwrap_or(0);
-    if let Some(info) = &r.info {
-        w.write(rec::TOPIC_INFO, t0, info)?;
-        n += 1;
-    }
-    for m in &r.states {
-        w.write(rec::TOPIC_STATE, m.t_ns, &m.msg)?;
-        n += 1;
-    }
-    for m in &r.spindle {
-        w.write(rec::TOPIC_SPINDLE, m.t_ns, &m.msg)?;
-        n += 1;
-    }
-    for m in &r.temperatures {
-        w.write(rec::TOPIC_TEMPERATURE, m.t_ns, &m.msg)?;
-        n += 1;
-    }
-    for m in &r.displacements {
-        w.write(rec::TOPIC_DISPLACEMENT, m.t_ns, &m.msg)?;
-        n += 1;
-    }
-    for m in &r.detections {
-        if let Ok(d) = &m.msg {
-            w.write(rec::TOPIC_DETECTION, m.t_ns, d)?;
-            n += 1;
-        }
-    }
-    for m in &r.results {
-        w.write(rec::TOPIC_RESULT, m.t_ns, &m.msg)?;
-        n += 1;
+    for m in &r.raw {
+        w.write_json_bytes(&m.topic, m.t_ns, &m.data)?;
     }
     w.finish()?;
-    Ok(n)
+    Ok(r.raw.len() as u64)
 }
 
 #[cfg(test)]
@@ -393,5 +361,7 @@ mod tests {
         assert!(!partial.exists());
         let back = read_file(&rec[0].path, &ReadOptions::default()).unwrap();
         assert!(back.spindle.len() >= 50, "{}", back.spindle.len());
+        // Topics the reader does not interpret are copied too (the served sets' audit trail).
+        assert_eq!(back.other_topics.get(rec::TOPIC_COMPENSATION), Some(&1));
     }
 }

@@ -320,6 +320,7 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
         &rec_dir.join(&kill_partial),
         &ReadOptions {
             recover_truncated: true,
+            ..Default::default()
         },
     )
     .unwrap();

@@ -277,6 +277,9 @@ pub struct ReadOptions {
     /// Read a file that ends early (or has damaged data) up to the first record that cannot be
     /// read, instead of failing. `Recording::truncated` then says what was lost.
     pub recover_truncated: bool,
+    /// Also keep every message as it was written (topic, log time, bytes), in file order, in
+    /// `Recording::raw`: for copying a file whole, topics this reader does not know included.
+    pub keep_raw: bool,
 }
 
 /// Reads the recording in `path`. Errors name the file where they concern it as a whole.
@@ -298,6 +301,7 @@ pub fn read_recording(bytes: &[u8], opts: &ReadOptions) -> Result<Recording, Rec
         channels: HashMap::new(),
         rec: Recording::default(),
         messages: 0,
+        keep_raw: opts.keep_raw,
     };
     let outcome = match check_start_magic(bytes) {
         Ok(()) => scan.records(),
@@ -494,6 +498,7 @@ fn parse_message(body: &[u8]) -> Result<RawMessage<'_>, String> {
 }
 
 struct Scan<'a> {
+    keep_raw: bool,
     bytes: &'a [u8],
     channels: HashMap<u16, ChannelDef>,
     rec: Recording,
@@ -702,6 +707,13 @@ impl Scan<'_> {
                 m.log_time
             )));
         };
+        if self.keep_raw {
+            self.rec.raw.push(super::RawMessage {
+                topic: topic.to_string(),
+                t_ns,
+                data: m.data.to_vec(),
+            });
+        }
         if !KNOWN_TOPICS.contains(&topic) {
             *self.rec.other_topics.entry(topic.to_string()).or_insert(0) += 1;
             self.messages += 1;
@@ -841,6 +853,7 @@ mod tests {
             bytes,
             &ReadOptions {
                 recover_truncated: true,
+                ..Default::default()
             },
         )
     }
@@ -1146,6 +1159,7 @@ mod tests {
                 ReadOptions::default(),
                 ReadOptions {
                     recover_truncated: true,
+                    ..Default::default()
                 },
             ] {
                 let e = read_recording(bytes, &opts).unwrap_err();
@@ -1302,6 +1316,7 @@ mod tests {
             ReadOptions::default(),
             ReadOptions {
                 recover_truncated: true,
+                ..Default::default()
             },
         ] {
             let e = read_recording(&bytes, &opts).unwrap_err();
@@ -1507,7 +1522,7 @@ mod tests {
     proptest::proptest! {
         #[test]
         fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..2048)) {
-            for opts in [ReadOptions::default(), ReadOptions { recover_truncated: true }] {
+            for opts in [ReadOptions::default(), ReadOptions { recover_truncated: true, ..Default::default() }] {
                 let _ = read_recording(&bytes, &opts);
                 let mut with_magic = MAGIC.to_vec();
                 with_magic.extend_from_slice(&bytes);
@@ -1535,7 +1550,7 @@ mod tests {
                 let i = at.index(damaged.len());
                 damaged[i] ^= mask;
             }
-            for opts in [ReadOptions::default(), ReadOptions { recover_truncated: true }] {
+            for opts in [ReadOptions::default(), ReadOptions { recover_truncated: true, ..Default::default() }] {
                 let _ = read_recording(&damaged, &opts);
                 let _ = read_recording(&bytes[..cut.index(bytes.len())], &opts);
             }

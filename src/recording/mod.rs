@@ -139,6 +139,14 @@ pub struct DetectionIssue {
     pub message: String,
 }
 
+/// A message as written: its topic, log time and JSON bytes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawMessage {
+    pub topic: String,
+    pub t_ns: i64,
+    pub data: Vec<u8>,
+}
+
 /// Everything a reader takes from one recording, per topic, each in log-time order.
 #[derive(Debug, Clone, Default)]
 pub struct Recording {
@@ -155,6 +163,8 @@ pub struct Recording {
     pub problems: Vec<String>,
     /// Set when the file ended early and only its complete chunks were read.
     pub truncated: Option<String>,
+    /// Every message in file order, when asked for (`ReadOptions::keep_raw`).
+    pub raw: Vec<RawMessage>,
 }
 
 /// The fields every `/probe/detection` message must have.
