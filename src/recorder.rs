@@ -345,6 +345,12 @@ mod tests {
                 r.write(rec::TOPIC_SPINDLE, t0 + i, &SpindleMsg { rpm: i as f64 })
                     .unwrap();
             }
+            r.write(
+                rec::TOPIC_COMPENSATION,
+                t0 + 50,
+                &serde_json::json!({"version": 1}),
+            )
+            .unwrap();
             r.flush().unwrap();
             for i in 50..60 {
                 r.write(rec::TOPIC_SPINDLE, t0 + i, &SpindleMsg { rpm: i as f64 })
