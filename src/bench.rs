@@ -43,12 +43,7 @@ pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
         software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
     };
     let recorder = Recorder::new(&dir.join("mcap"), info, cfg.max_file_mib << 20)?;
-    let settings = Settings {
-        phase: cfg.phase.clone(),
-        schedule: cfg.schedule.clone(),
-        validation: cfg.validation.clone(),
-        alert_rules: cfg.alerts.clone(),
-    };
+    let settings = Settings::from_config(&cfg);
     let mut rt = MachineRuntime::new(
         "sim-1",
         k,

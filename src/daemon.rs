@@ -73,6 +73,28 @@ pub struct Settings {
     pub alert_rules: Vec<Rule>,
 }
 
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            phase: PhaseConfig::default(),
+            schedule: SchedulePolicy::default(),
+            validation: ValidationLimits::default(),
+            alert_rules: crate::alerts::default_rules(),
+        }
+    }
+}
+
+impl Settings {
+    pub fn from_config(cfg: &crate::config::ServiceConfig) -> Self {
+        Settings {
+            phase: cfg.phase.clone(),
+            schedule: cfg.schedule.clone(),
+            validation: cfg.validation.clone(),
+            alert_rules: cfg.alerts.clone(),
+        }
+    }
+}
+
 struct OpenCycle {
     number: i64,
     detections: Vec<Timed<Result<DetectionMsg, DetectionIssue>>>,

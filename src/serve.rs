@@ -61,12 +61,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     std::fs::create_dir_all(&cfg.data_dir)
         .with_context(|| format!("creating data directory {}", cfg.data_dir.display()))?;
     let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;
-    let settings = Settings {
-        phase: cfg.phase.clone(),
-        schedule: cfg.schedule.clone(),
-        validation: cfg.validation.clone(),
-        alert_rules: cfg.alerts.clone(),
-    };
+    let settings = Settings::from_config(&cfg);
     // Simulated machines start just before their first power-on, so that a newcomer sees the
     // morning's warm-up at once. With a real NC the clock is the wall clock and simulated
     // machines beside it are moved to start now.

@@ -28,6 +28,27 @@ pub enum StoreError {
     Json(#[from] serde_json::Error),
 }
 
+async fn insert_set(
+    conn: &mut sqlx::SqliteConnection,
+    machine: &str,
+    c: &NewCompensation<'_>,
+) -> Result<(), StoreError> {
+    sqlx::query(
+        "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
+         VALUES ($1, $2, $3, $4, $5, $6, $7)",
+    )
+    .bind(machine)
+    .bind(c.version)
+    .bind(c.valid_from_ns)
+    .bind(c.source)
+    .bind(c.cycle)
+    .bind(c.reason)
+    .bind(serde_json::to_string(c.payload)?)
+    .execute(&mut *conn)
+    .await?;
+    Ok(())
+}
+
 /// A compensation set to store with the cycle that produced it.
 pub struct NewCompensation<'a> {
     pub version: i64,
@@ -256,19 +277,7 @@ impl Store {
             }
         }
         if let Some(c) = compensation {
-            sqlx::query(
-                "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7)",
-            )
-            .bind(machine)
-            .bind(c.version)
-            .bind(c.valid_from_ns)
-            .bind(c.source)
-            .bind(c.cycle)
-            .bind(c.reason)
-            .bind(serde_json::to_string(c.payload)?)
-            .execute(&mut *tx)
-            .await?;
+            insert_set(&mut tx, machine, c).await?;
         }
         tx.commit().await?;
         Ok(())
@@ -423,30 +432,14 @@ impl Store {
 
     /// Store a new compensation set; versions must increase (the primary key refuses a
     /// repeated version).
-    #[allow(clippy::too_many_arguments)]
     pub async fn insert_compensation(
         &self,
         machine: &str,
-        version: i64,
-        valid_from_ns: i64,
-        source: &str,
-        cycle: Option<i64>,
-        reason: &str,
-        payload: &Value,
+        c: &NewCompensation<'_>,
     ) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
-             VALUES ($1, $2, $3, $4, $5, $6, $7)",
-        )
-        .bind(machine)
-        .bind(version)
-        .bind(valid_from_ns)
-        .bind(source)
-        .bind(cycle)
-        .bind(reason)
-        .bind(serde_json::to_string(payload)?)
-        .execute(&self.pool)
-        .await?;
+        let mut tx = self.pool.begin().await?;
+        insert_set(&mut tx, machine, c).await?;
+        tx.commit().await?;
         Ok(())
     }
 
@@ -711,24 +704,46 @@ mod tests {
         assert!(store.add_detection("m1", 9, 0, 1, "x", "{}").await.is_err());
         let v = serde_json::json!({"version": 1});
         store
-            .insert_compensation("m1", 1, 5, "measured", Some(1), "cycle 1", &v)
+            .insert_compensation(
+                "m1",
+                &NewCompensation {
+                    version: 1,
+                    valid_from_ns: 5,
+                    source: "measured",
+                    cycle: Some(1),
+                    reason: "cycle 1",
+                    payload: &v,
+                },
+            )
             .await
             .unwrap();
         assert!(
             store
-                .insert_compensation("m1", 1, 6, "measured", Some(2), "again", &v)
+                .insert_compensation(
+                    "m1",
+                    &NewCompensation {
+                        version: 1,
+                        valid_from_ns: 6,
+                        source: "measured",
+                        cycle: Some(2),
+                        reason: "again",
+                        payload: &v
+                    }
+                )
                 .await
                 .is_err()
         );
         store
             .insert_compensation(
                 "m1",
-                2,
-                7,
-                "measured",
-                Some(2),
-                "cycle 2",
-                &serde_json::json!({"version": 2}),
+                &NewCompensation {
+                    version: 2,
+                    valid_from_ns: 7,
+                    source: "measured",
+                    cycle: Some(2),
+                    reason: "cycle 2",
+                    payload: &serde_json::json!({"version": 2}),
+                },
             )
             .await
             .unwrap();
@@ -738,7 +753,17 @@ mod tests {
         );
         assert!(
             store
-                .insert_compensation("m1", 3, 8, "guessed", None, "bad source", &v)
+                .insert_compensation(
+                    "m1",
+                    &NewCompensation {
+                        version: 3,
+                        valid_from_ns: 8,
+                        source: "guessed",
+                        cycle: None,
+                        reason: "bad source",
+                        payload: &v
+                    }
+                )
                 .await
                 .is_err()
         );

@@ -11,19 +11,15 @@ use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
 
-use driftwatch::alerts::default_rules;
 use driftwatch::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch::compensation::ValidationLimits;
 use driftwatch::config::Role;
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
 use driftwatch::link::Simulated;
-use driftwatch::phase::PhaseConfig;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recorder::Recorder;
 use driftwatch::recording::MachineInfo;
 use driftwatch::scenario::Scenario;
-use driftwatch::scheduler::SchedulePolicy;
 use driftwatch::store::Store;
 
 const MIN: i64 = 60_000_000_000;
@@ -44,12 +40,7 @@ async fn runtime(name: &str) -> (MachineRuntime, i64, Store) {
         software: "test".into(),
     };
     let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
-    let settings = Settings {
-        phase: PhaseConfig::default(),
-        schedule: SchedulePolicy::default(),
-        validation: ValidationLimits::default(),
-        alert_rules: default_rules(),
-    };
+    let settings = Settings::default();
     let rt = MachineRuntime::new(
         "m1",
         k,

@@ -3,18 +3,14 @@
 
 use std::path::PathBuf;
 
-use driftwatch::alerts::default_rules;
-use driftwatch::compensation::ValidationLimits;
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
 use driftwatch::link::{LinkError, LinkEvent, MachineLink, Simulated};
-use driftwatch::phase::PhaseConfig;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recorder::Recorder;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
 use driftwatch::scenario::Scenario;
-use driftwatch::scheduler::SchedulePolicy;
 use driftwatch::store::Store;
 
 const MIN: i64 = 60_000_000_000;
@@ -72,12 +68,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         software: "test".into(),
     };
     let recorder = Recorder::new(&d.join("mcap"), info, 256 << 20).unwrap();
-    let settings = Settings {
-        phase: PhaseConfig::default(),
-        schedule: SchedulePolicy::default(),
-        validation: ValidationLimits::default(),
-        alert_rules: default_rules(),
-    };
+    let settings = Settings::default();
     let mut rt = MachineRuntime::new(
         "sim-1",
         k,

@@ -12,19 +12,15 @@ use http_body_util::BodyExt;
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
-use driftwatch::alerts::default_rules;
 use driftwatch::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch::compensation::ValidationLimits;
 use driftwatch::config::Role;
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
 use driftwatch::nc_push::{CycleOrder, nc_push};
-use driftwatch::phase::PhaseConfig;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recorder::Recorder;
 use driftwatch::recording::{DetectionStatus, MachineInfo};
 use driftwatch::scenario::Scenario;
-use driftwatch::scheduler::SchedulePolicy;
 use driftwatch::simulator::VirtualMachine;
 use driftwatch::store::Store;
 
@@ -72,12 +68,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         software: "test".into(),
     };
     let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
-    let settings = Settings {
-        phase: PhaseConfig::default(),
-        schedule: SchedulePolicy::default(),
-        validation: ValidationLimits::default(),
-        alert_rules: default_rules(),
-    };
+    let settings = Settings::default();
     let mut rt = MachineRuntime::new(
         "nc1",
         k.clone(),
