@@ -349,19 +349,13 @@ async fn cycle(
     Path((id, n)): Path<(String, i64)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     handle(&st, &id)?;
-    let row = st
-        .store
-        .cycles(&id, i64::MAX)
-        .await?
-        .into_iter()
-        .find(|c| c.cycle == n)
-        .ok_or_else(|| {
-            ApiError::new(
-                StatusCode::NOT_FOUND,
-                "unknown_cycle",
-                format!("machine '{id}' has no cycle {n}"),
-            )
-        })?;
+    let row = st.store.cycle(&id, n).await?.ok_or_else(|| {
+        ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown_cycle",
+            format!("machine '{id}' has no cycle {n}"),
+        )
+    })?;
     let detections = st.store.detections(&id, n).await?;
     let result = st.store.result(&id, n).await?;
     Ok(Json(json!({

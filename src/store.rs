@@ -49,6 +49,18 @@ async fn insert_set(
     Ok(())
 }
 
+fn cycle_row(r: &sqlx::sqlite::SqliteRow) -> Result<CycleRow, StoreError> {
+    Ok(CycleRow {
+        cycle: r.try_get(0)?,
+        started_ns: r.try_get(1)?,
+        trigger: r.try_get(2)?,
+        attempt: r.try_get(3)?,
+        status: r.try_get(4)?,
+        finished_ns: r.try_get(5)?,
+        reason: r.try_get(6)?,
+    })
+}
+
 /// A compensation set to store with the cycle that produced it.
 pub struct NewCompensation<'a> {
     pub version: i64,
@@ -347,19 +359,20 @@ impl Store {
         .bind(limit)
         .fetch_all(&self.pool)
         .await?;
-        rows.iter()
-            .map(|r| {
-                Ok(CycleRow {
-                    cycle: r.try_get(0)?,
-                    started_ns: r.try_get(1)?,
-                    trigger: r.try_get(2)?,
-                    attempt: r.try_get(3)?,
-                    status: r.try_get(4)?,
-                    finished_ns: r.try_get(5)?,
-                    reason: r.try_get(6)?,
-                })
-            })
-            .collect()
+        rows.iter().map(cycle_row).collect()
+    }
+
+    /// One cycle of a machine, if it exists.
+    pub async fn cycle(&self, machine: &str, cycle: i64) -> Result<Option<CycleRow>, StoreError> {
+        let row = sqlx::query(
+            "SELECT cycle, started_ns, trigger, attempt, status, finished_ns, reason FROM cycles
+             WHERE machine_id = $1 AND cycle = $2",
+        )
+        .bind(machine)
+        .bind(cycle)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.as_ref().map(cycle_row).transpose()
     }
 
     /// The detections of a cycle as received, in order.
