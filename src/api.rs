@@ -21,6 +21,7 @@ use crate::config::Role;
 use crate::daemon::{Inbox, MachineView};
 use crate::nc_push::{EventBatch, NcPushHandle};
 use crate::store::Store;
+use crate::webhook::WebhookStats;
 
 #[derive(Clone)]
 pub struct MachineHandle {
@@ -40,6 +41,92 @@ pub struct ApiState {
     pub machines: BTreeMap<String, MachineHandle>,
     pub store: Store,
     pub auth: Auth,
+    pub latency: RequestLatency,
+    pub webhooks: Arc<WebhookStats>,
+}
+
+impl ApiState {
+    pub fn new(machines: BTreeMap<String, MachineHandle>, store: Store, auth: Auth) -> Self {
+        ApiState {
+            machines,
+            store,
+            auth,
+            latency: RequestLatency::default(),
+            webhooks: Arc::default(),
+        }
+    }
+}
+
+/// Upper bounds of the request-latency histogram, seconds.
+const LATENCY_BUCKETS: [f64; 12] = [
+    0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5, 2.5,
+];
+
+/// Request latency per route (the route pattern, never the raw path, so ids do not make
+/// new series): cumulative bucket counts, count and sum as Prometheus histograms want them.
+#[derive(Default)]
+pub struct RequestLatency {
+    routes: Mutex<BTreeMap<String, LatencyHistogram>>,
+}
+
+#[derive(Default, Clone)]
+struct LatencyHistogram {
+    buckets: [u64; LATENCY_BUCKETS.len()],
+    count: u64,
+    sum: f64,
+}
+
+impl RequestLatency {
+    fn observe(&self, route: &str, seconds: f64) {
+        if let Ok(mut m) = self.routes.lock() {
+            let h = match m.get_mut(route) {
+                Some(h) => h,
+                None => m.entry(route.to_string()).or_default(),
+            };
+            for (b, le) in h.buckets.iter_mut().zip(LATENCY_BUCKETS) {
+                if seconds <= le {
+                    *b += 1;
+                }
+            }
+            h.count += 1;
+            h.sum += seconds;
+        }
+    }
+
+    fn render(&self, out: &mut String) {
+        let name = "driftwatch_http_request_duration_seconds";
+        out.push_str(&format!(
+            "# HELP {name} Time to answer an HTTP request, by route.\n# TYPE {name} histogram\n"
+        ));
+        let routes = match self.routes.lock() {
+            Ok(m) => m.clone(),
+            Err(_) => return,
+        };
+        for (route, h) in routes {
+            for (n, le) in h.buckets.iter().zip(LATENCY_BUCKETS) {
+                out.push_str(&format!(
+                    "{name}_bucket{{route=\"{route}\",le=\"{le}\"}} {n}\n"
+                ));
+            }
+            out.push_str(&format!(
+                "{name}_bucket{{route=\"{route}\",le=\"+Inf\"}} {c}\n{name}_sum{{route=\"{route}\"}} {s}\n{name}_count{{route=\"{route}\"}} {c}\n",
+                c = h.count,
+                s = h.sum
+            ));
+        }
+    }
+}
+
+async fn timed(State(st): State<Shared>, req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<axum::extract::MatchedPath>()
+        .map_or("unmatched", |p| p.as_str())
+        .to_string();
+    let t0 = std::time::Instant::now();
+    let res = next.run(req).await;
+    st.latency.observe(&route, t0.elapsed().as_secs_f64());
+    res
 }
 
 type Shared = Arc<ApiState>;
@@ -224,6 +311,7 @@ pub fn router(state: Shared) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
+        .route_layer(middleware::from_fn_with_state(state.clone(), timed))
         .with_state(state)
         .fallback(|| async {
             ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such endpoint")
@@ -536,5 +624,22 @@ async fn metrics(State(st): State<Shared>) -> Response {
         "Alerts open now.",
         per(&|v| v.open_alerts.len() as f64),
     );
+    use std::sync::atomic::Ordering::Relaxed;
+    let w = &st.webhooks;
+    metric(
+        "driftwatch_webhook_events_total",
+        "counter",
+        "Alert events by webhook outcome (retried counts attempts that failed and were retried).",
+        [
+            ("delivered", &w.delivered),
+            ("retried", &w.retried),
+            ("failed", &w.failed),
+            ("dropped", &w.dropped),
+        ]
+        .into_iter()
+        .map(|(k, n)| (format!("outcome=\"{k}\""), n.load(Relaxed) as f64))
+        .collect(),
+    );
+    st.latency.render(&mut out);
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
 }

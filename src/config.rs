@@ -103,6 +103,9 @@ pub struct ServiceConfig {
     pub validation: ValidationLimits,
     #[serde(default = "default_rules")]
     pub alerts: Vec<Rule>,
+    /// Where alert events are POSTed.
+    #[serde(default)]
+    pub webhooks: Vec<crate::webhook::WebhookConfig>,
 }
 
 impl ServiceConfig {
@@ -179,12 +182,47 @@ impl ServiceConfig {
         if let Err(e) = crate::alerts::validate_rules(&self.alerts) {
             return bad(e.to_string());
         }
+        for w in &self.webhooks {
+            if let Err(e) = w.validate() {
+                return bad(e);
+            }
+        }
         for t in &self.http.tokens {
             if t.token.trim().is_empty() {
                 return bad(format!("token of '{}' is empty", t.name));
             }
         }
         Ok(())
+    }
+
+    /// The webhooks with their `env:` tokens resolved; a webhook whose variable is not set
+    /// is sent without a token and named in the second list.
+    pub fn resolved_webhooks(
+        &self,
+    ) -> (
+        Vec<(crate::webhook::WebhookConfig, Option<String>)>,
+        Vec<String>,
+    ) {
+        let mut out = Vec::new();
+        let mut missing = Vec::new();
+        for w in &self.webhooks {
+            let token = match w.token.as_deref().map(|t| (t, t.strip_prefix("env:"))) {
+                None => None,
+                Some((_, Some(var))) => match std::env::var(var) {
+                    Ok(v) if !v.trim().is_empty() => Some(v),
+                    _ => {
+                        missing.push(format!(
+                            "webhook {} goes without a token: {var} is not set",
+                            w.url
+                        ));
+                        None
+                    }
+                },
+                Some((t, None)) => Some(t.to_string()),
+            };
+            out.push((w.clone(), token));
+        }
+        (out, missing)
     }
 
     /// The tokens with `env:` references resolved; a token whose variable is not set is

@@ -121,6 +121,7 @@ pub struct MachineRuntime {
     pub inbox: Arc<Mutex<Inbox>>,
     /// Every alert event so far (also stored), newest last.
     pub alert_log: Vec<AlertEvent>,
+    notifier: crate::webhook::Notifier,
 }
 
 fn minute(t_ns: i64) -> i64 {
@@ -201,7 +202,13 @@ impl MachineRuntime {
             view: Arc::new(Mutex::new(view)),
             inbox: Arc::new(Mutex::new(Inbox::default())),
             alert_log: Vec::new(),
+            notifier: Default::default(),
         })
+    }
+
+    /// Send alert events to these webhooks from now on.
+    pub fn set_notifier(&mut self, notifier: crate::webhook::Notifier) {
+        self.notifier = notifier;
     }
 
     /// Handle everything up to `now_ns`; returns when to call again at the latest.
@@ -466,6 +473,7 @@ impl MachineRuntime {
                     Some(ev.value),
                 )
                 .await?;
+            self.notifier.notify(&self.id, &ev);
             self.alert_log.push(ev);
         }
         if let Ok(mut v) = self.view.lock() {

@@ -3,7 +3,8 @@
 //!
 //! The library is the functional core: kinematics, the tool-setter measurement model, cycle
 //! plans, the thermal model, the truth simulator and the identification are pure code (no I/O,
-//! no globals, deterministic for a given seed). `recording` and the binary are the shell.
+//! no globals, deterministic for a given seed). The service shell around it: `store`, `recorder`,
+//! `link`, `nc_push`, `daemon`, `api`, `webhook` and the binary.
 
 pub mod alerts;
 pub mod api;
@@ -29,6 +30,7 @@ pub mod simulator;
 pub mod source;
 pub mod store;
 pub mod thermal;
+pub mod webhook;
 
 /// A finite number above zero (false for NaN).
 pub(crate) fn positive(x: f64) -> bool {

@@ -20,6 +20,7 @@ use driftwatch::recorder::Recorder;
 use driftwatch::recording::{MachineInfo, MachineStateKind};
 use driftwatch::scenario::Scenario;
 use driftwatch::store::Store;
+use driftwatch::webhook::Notifier;
 
 pub struct Options {
     pub config: Option<PathBuf>,
@@ -123,6 +124,14 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     for d in &disabled {
         tracing::warn!("{d}");
     }
+    let (hooks, missing) = cfg.resolved_webhooks();
+    for m in &missing {
+        tracing::warn!("{m}");
+    }
+    let (notifier, deliveries) = Notifier::start(hooks).map_err(anyhow::Error::msg)?;
+    for rt in &mut runtimes {
+        rt.set_notifier(notifier.clone());
+    }
     let handles: BTreeMap<String, MachineHandle> = runtimes
         .iter()
         .map(|rt| {
@@ -136,14 +145,17 @@ pub async fn run(o: Options) -> Result<ExitCode> {
             )
         })
         .collect();
-    let state = Arc::new(ApiState {
-        machines: handles,
-        store: store.clone(),
-        auth: Auth {
+    let mut state = ApiState::new(
+        handles,
+        store.clone(),
+        Auth {
             tokens,
             anonymous_read: cfg.http.anonymous_read,
         },
-    });
+    );
+    state.webhooks = notifier.stats.clone();
+    drop(notifier);
+    let state = Arc::new(state);
     let listener = tokio::net::TcpListener::bind(cfg.http.listen)
         .await
         .with_context(|| format!("listening on {}", cfg.http.listen))?;
@@ -203,6 +215,19 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     }
     store.close().await;
     server.abort();
+    // Alert events still queued get a short grace to reach their webhooks.
+    drop(runtimes);
+    let grace = tokio::time::sleep(Duration::from_secs(10));
+    tokio::pin!(grace);
+    for d in deliveries {
+        tokio::select! {
+            _ = d => {}
+            _ = &mut grace => {
+                tracing::warn!("webhook deliveries still pending at shutdown were given up (the events are stored)");
+                break;
+            }
+        }
+    }
     println!("driftwatch stopped; data in {}", cfg.data_dir.display());
     Ok(ExitCode::SUCCESS)
 }

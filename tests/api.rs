@@ -73,17 +73,17 @@ fn app(rt: &MachineRuntime, store: Store, anonymous_read: bool) -> axum::Router 
             nc: None,
         },
     );
-    router(Arc::new(ApiState {
+    router(Arc::new(ApiState::new(
         machines,
         store,
-        auth: Auth {
+        Auth {
             tokens: vec![
                 ("dashboard".into(), "read-token".into(), Role::Read),
                 ("operator".into(), "write-token".into(), Role::Write),
             ],
             anonymous_read,
         },
-    }))
+    )))
 }
 
 async fn call(
@@ -253,6 +253,17 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
     let n: f64 = ok_line.rsplit(' ').next().unwrap().parse().unwrap();
     assert!(n >= 2.0, "{ok_line}");
     assert!(text.contains("driftwatch_compensation_version{machine=\"m1\"}"));
+    // Latency is counted per route pattern, not per raw path; this scrape sees the calls before it.
+    let count = |route: &str| -> f64 {
+        let key = format!("driftwatch_http_request_duration_seconds_count{{route=\"{route}\"}} ");
+        text.lines()
+            .find_map(|l| l.strip_prefix(key.as_str()))
+            .map_or(0.0, |v| v.parse().unwrap())
+    };
+    assert_eq!(count("/api/v1/machines/{id}/alerts"), 2.0, "{text}");
+    assert_eq!(count("/api/v1/machines/{id}/alerts/{alert}/ack"), 4.0);
+    assert!(!text.contains("route=\"/api/v1/machines/m1"));
+    assert!(text.contains("driftwatch_webhook_events_total{outcome=\"delivered\"} 0"));
 }
 
 #[tokio::test]

@@ -2,6 +2,7 @@
 //! wall clock, hours in seconds.
 
 use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
 
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
@@ -81,6 +82,11 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     )
     .await
     .unwrap();
+    let (hook_url, hook_seen) = hook_receiver().await;
+    let hook: driftwatch::webhook::WebhookConfig =
+        toml::from_str(&format!("url = \"{hook_url}\"")).unwrap();
+    let (notifier, deliveries) = driftwatch::webhook::Notifier::start(vec![(hook, None)]).unwrap();
+    rt.set_notifier(notifier);
     // 31 h: a production day, the night, the next morning's start.
     let end = t0 + 31 * 60 * MIN;
     let mut now = t0;
@@ -162,7 +168,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     assert_eq!(versions.last().copied(), Some(ok));
     assert!(versions.windows(2).all(|w| w[1] == w[0] + 1));
     // EZ0B passes 30 um during production (alert raised) and falls back overnight (resolved).
-    let log = &rt.alert_log;
+    let log = rt.alert_log.clone();
     let raised = log
         .iter()
         .find(|e| e.rule == "threshold:EZ0B" && format!("{:?}", e.kind) == "Raised");
@@ -171,5 +177,48 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         .find(|e| e.rule == "threshold:EZ0B" && format!("{:?}", e.kind) == "Resolved");
     assert!(raised.is_some() && resolved.is_some(), "{log:?}");
     assert!(resolved.unwrap().t_ns > raised.unwrap().t_ns);
+    // Every alert event reached the webhook, in order.
+    rt.set_notifier(Default::default());
+    for d in deliveries {
+        d.await.unwrap();
+    }
+    let seen = hook_seen.lock().unwrap().clone();
+    let sent: Vec<(u64, String)> = seen
+        .iter()
+        .map(|v| {
+            (
+                v["event"]["id"].as_u64().unwrap(),
+                v["event"]["kind"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    let logged: Vec<(u64, String)> = log
+        .iter()
+        .map(|e| (e.id, format!("{:?}", e.kind).to_lowercase()))
+        .collect();
+    assert_eq!(sent, logged);
+    assert!(seen.iter().all(|v| v["machine"] == "sim-1"));
     assert_eq!(store.integrity_check().await.unwrap(), "ok");
+}
+
+/// A webhook receiver that keeps every JSON body it is sent.
+async fn hook_receiver() -> (String, Arc<Mutex<Vec<serde_json::Value>>>) {
+    let seen: Arc<Mutex<Vec<serde_json::Value>>> = Arc::default();
+    let app = axum::Router::new()
+        .route(
+            "/hook",
+            axum::routing::post(
+                |axum::extract::State(s): axum::extract::State<
+                    Arc<Mutex<Vec<serde_json::Value>>>,
+                >,
+                 axum::Json(v): axum::Json<serde_json::Value>| async move {
+                    s.lock().unwrap().push(v);
+                },
+            ),
+        )
+        .with_state(seen.clone());
+    let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}/hook", l.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(l, app).await });
+    (url, seen)
 }

@@ -90,17 +90,17 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
             nc: Some(handle),
         },
     );
-    let app = router(Arc::new(ApiState {
+    let app = router(Arc::new(ApiState::new(
         machines,
-        store: store.clone(),
-        auth: Auth {
+        store.clone(),
+        Auth {
             tokens: vec![
                 ("nc".into(), "nc-token".into(), Role::Write),
                 ("dash".into(), "read-token".into(), Role::Read),
             ],
             anonymous_read: true,
         },
-    }));
+    )));
     let events = "/api/v1/machines/nc1/nc/events";
     let request = "/api/v1/machines/nc1/nc/request";
 
