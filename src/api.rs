@@ -457,9 +457,10 @@ async fn cycle(
 struct Window {
     from: Option<i64>,
     to: Option<i64>,
+    every: Option<String>,
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time"), (status = 400, description = "from after to")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch"), ("every" = Option<String>, Query, description = "bucket width: seconds or a number with s, m, h or d (15m, 1h); each bucket gives per error n, the inverse-variance weighted mean, its sigma, min, max and the last cycle")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time, or their buckets with `every`"), (status = 400, description = "from after to, or a bad `every`")), security((), ("bearer" = [])))]
 async fn errors(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -474,7 +475,16 @@ async fn errors(
             "'from' is after 'to'",
         ));
     }
-    Ok(Json(json!(st.store.error_series(&id, from, to).await?)))
+    let every = match w.every.as_deref().map(crate::series::parse_every) {
+        None => None,
+        Some(Ok(e)) => Some(e),
+        Some(Err(m)) => return Err(ApiError::new(StatusCode::BAD_REQUEST, "bad_every", m)),
+    };
+    let samples = st.store.error_series(&id, from, to).await?;
+    Ok(Json(match every {
+        None => json!(samples),
+        Some(e) => json!(crate::series::downsample(&samples, e)),
+    }))
 }
 
 #[utoipa::path(post, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id")), responses((status = 202, description = "a cycle will run at the next idle moment"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]

@@ -26,6 +26,7 @@ pub mod recorder;
 pub mod recording;
 pub mod scenario;
 pub mod scheduler;
+pub mod series;
 pub mod simulator;
 pub mod source;
 pub mod store;

@@ -83,15 +83,7 @@ pub struct CycleRow {
     pub reason: Option<String>,
 }
 
-/// One value of one error at a cycle's reference time.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct ErrorSample {
-    pub t_ns: i64,
-    pub cycle: i64,
-    pub name: String,
-    pub value: f64,
-    pub sigma: f64,
-}
+pub use crate::series::ErrorSample;
 
 #[derive(Clone)]
 pub struct Store {

@@ -294,3 +294,61 @@ async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
     let r = app.clone().oneshot(get("/api/v1/docs/")).await.unwrap();
     assert_eq!(r.status(), StatusCode::OK);
 }
+
+#[tokio::test]
+async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
+    let (mut rt, t0, store) = runtime("series").await;
+    run_to(&mut rt, t0, t0 + 240 * MIN).await;
+    let app = app(&rt, store, true);
+    let (s, _, all) = call(&app, get("/api/v1/machines/m1/errors")).await;
+    assert_eq!(s, StatusCode::OK);
+    let all = all.as_array().unwrap().clone();
+    let ez: Vec<&Value> = all.iter().filter(|v| v["name"] == "EZ0B").collect();
+    assert!(ez.len() >= 4, "{} EZ0B values", ez.len());
+    assert_eq!(all.len(), 6 * ez.len(), "six errors per validated cycle");
+    // A window keeps the samples inside it.
+    let mid = ez[ez.len() / 2]["t_ns"].as_i64().unwrap();
+    let (_, _, later) = call(&app, get(&format!("/api/v1/machines/m1/errors?from={mid}"))).await;
+    let later = later.as_array().unwrap();
+    assert!(later.iter().all(|v| v["t_ns"].as_i64().unwrap() >= mid));
+    assert_eq!(
+        later.len(),
+        all.iter()
+            .filter(|v| v["t_ns"].as_i64().unwrap() >= mid)
+            .count()
+    );
+    // Hourly buckets: every EZ0B sample lands in exactly one, the counts add up, and each
+    // mean lies within its bucket's range.
+    let (s, _, hourly) = call(&app, get("/api/v1/machines/m1/errors?every=1h")).await;
+    assert_eq!(s, StatusCode::OK);
+    let buckets: Vec<&Value> = hourly
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|v| v["name"] == "EZ0B")
+        .collect();
+    assert!(buckets.len() < ez.len());
+    let n: u64 = buckets.iter().map(|b| b["n"].as_u64().unwrap()).sum();
+    assert_eq!(n as usize, ez.len());
+    for b in &buckets {
+        assert_eq!(b["t_ns"].as_i64().unwrap() % 3_600_000_000_000, 0);
+        let (v, lo, hi) = (
+            b["value"].as_f64().unwrap(),
+            b["min"].as_f64().unwrap(),
+            b["max"].as_f64().unwrap(),
+        );
+        assert!(lo <= v && v <= hi, "{b}");
+    }
+    for bad in ["0", "soon", "-1h"] {
+        let (s, _, body) = call(
+            &app,
+            get(&format!("/api/v1/machines/m1/errors?every={bad}")),
+        )
+        .await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{bad}");
+        assert_eq!(body["code"], "bad_every");
+    }
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/errors?from=5&to=4")).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert_eq!(body["code"], "bad_window");
+}
