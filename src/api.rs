@@ -358,6 +358,7 @@ fn summary(v: &MachineView) -> serde_json::Value {
         "phase": v.phase,
         "last_cycle": v.last_cycle,
         "open_cycle": v.open_cycle,
+        "open_cycle_progress": v.open_cycle.map(|_| json!({"received": v.open_cycle_received.unwrap_or(0), "expected": v.steps_per_cycle})),
         "schedule": v.schedule,
         "next_due_ns": v.next_due_ns,
         "compensation_version": v.compensation.as_ref().map(|c| c.version),

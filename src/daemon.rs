@@ -23,7 +23,7 @@ use crate::recording::{
     self as rec, CycleResultMsg, DetectionIssue, DetectionMsg, ResultStatus, Timed,
 };
 use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
-use crate::store::{Store, StoreError};
+use crate::store::{DetectionRow, Sample, Store, StoreError};
 
 #[derive(Debug, Error)]
 pub enum DaemonError {
@@ -45,6 +45,10 @@ pub struct MachineView {
     pub phase: Option<PhaseInfo>,
     pub last_cycle: Option<i64>,
     pub open_cycle: Option<i64>,
+    /// Detections the open cycle has received so far (they are stored when it ends).
+    pub open_cycle_received: Option<usize>,
+    /// Steps the plan expects per cycle.
+    pub steps_per_cycle: usize,
     /// Why the scheduler waits, or why the last cycle started.
     pub schedule: String,
     pub next_due_ns: Option<i64>,
@@ -117,12 +121,17 @@ pub struct MachineRuntime {
     /// Minute of the last stored spindle sample and per-sensor temperature sample.
     last_spindle_minute: i64,
     last_temp_minute: BTreeMap<String, i64>,
+    /// Per-minute samples not yet written.
+    samples: Vec<Sample>,
     pub view: Arc<Mutex<MachineView>>,
     pub inbox: Arc<Mutex<Inbox>>,
     /// Every alert event so far (also stored), newest last.
     pub alert_log: Vec<AlertEvent>,
     notifier: crate::webhook::Notifier,
 }
+
+/// Machine time the per-minute samples are held before they are written together.
+const SAMPLE_BATCH_NS: i64 = 10 * 60_000_000_000;
 
 fn minute(t_ns: i64) -> i64 {
     t_ns.div_euclid(60_000_000_000)
@@ -181,6 +190,7 @@ impl MachineRuntime {
             kinematics: k.name.clone(),
             compensation: served.clone(),
             last_cycle: store.last_closed_cycle(id).await?,
+            steps_per_cycle: plan.steps.len(),
             ..Default::default()
         };
         Ok(MachineRuntime {
@@ -199,6 +209,7 @@ impl MachineRuntime {
             served,
             last_spindle_minute: i64::MIN,
             last_temp_minute: BTreeMap::new(),
+            samples: Vec::new(),
             view: Arc::new(Mutex::new(view)),
             inbox: Arc::new(Mutex::new(Inbox::default())),
             alert_log: Vec::new(),
@@ -286,6 +297,9 @@ impl MachineRuntime {
             Decision::Abandon { cycle, retry } => {
                 warn!(machine = %self.id, cycle, retry, "cycle timed out, abandoned");
                 self.link.abort_cycle(*cycle, now_ns);
+                if let Some(open) = self.open.take() {
+                    self.store_detections(&open).await?;
+                }
                 self.store
                     .abandon_cycle(
                         &self.id,
@@ -307,6 +321,7 @@ impl MachineRuntime {
             v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
             v.phase = Some(self.phase.phase(now_ns));
             v.open_cycle = self.open.as_ref().map(|c| c.number);
+            v.open_cycle_received = self.open.as_ref().map(|c| c.detections.len());
             v.schedule = schedule;
             v.next_due_ns = next_due;
         }
@@ -329,9 +344,11 @@ impl MachineRuntime {
                 self.record(rec::TOPIC_SPINDLE, m.t_ns, &m.msg).await?;
                 if minute(m.t_ns) != self.last_spindle_minute {
                     self.last_spindle_minute = minute(m.t_ns);
-                    self.store
-                        .add_spindle_sample(&self.id, m.t_ns, m.msg.rpm)
-                        .await?;
+                    self.buffer_sample(Sample::Spindle {
+                        t_ns: m.t_ns,
+                        rpm: m.msg.rpm,
+                    })
+                    .await?;
                 }
             }
             LinkEvent::State(m) => {
@@ -346,26 +363,29 @@ impl MachineRuntime {
                     .or_insert(i64::MIN);
                 if minute(m.t_ns) != *last {
                     *last = minute(m.t_ns);
-                    self.store
-                        .add_temperature_sample(&self.id, m.t_ns, &m.msg.sensor, m.msg.celsius)
-                        .await?;
+                    self.buffer_sample(Sample::Temperature {
+                        t_ns: m.t_ns,
+                        sensor: m.msg.sensor,
+                        celsius: m.msg.celsius,
+                    })
+                    .await?;
                 }
             }
             LinkEvent::Truth(t) => {
-                self.record(rec::TOPIC_TRUTH, t.t_ns, &t).await?;
+                self.record(rec::TOPIC_TRUTH, t.t_ns, &t.rounded(1e-6))
+                    .await?;
             }
             LinkEvent::Detection(d) => {
                 self.record(rec::TOPIC_DETECTION, d.t_ns, &d.msg).await?;
                 if let Some(open) = self.open.as_mut().filter(|o| o.number == d.msg.cycle) {
-                    let seq = open.detections.len() as i64;
-                    let payload = serde_json::to_string(&d.msg).unwrap_or_default();
-                    self.store
-                        .add_detection(&self.id, d.msg.cycle, seq, d.t_ns, &d.msg.step, &payload)
-                        .await?;
                     open.detections.push(Timed {
                         t_ns: d.t_ns,
                         msg: Ok(d.msg),
                     });
+                    let n = open.detections.len();
+                    if let Ok(mut v) = self.view.lock() {
+                        v.open_cycle_received = Some(n);
+                    }
                 } else {
                     warn!(machine = %self.id, cycle = d.msg.cycle, "detection of a cycle that is not open: kept in the recording only");
                 }
@@ -376,6 +396,30 @@ impl MachineRuntime {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Keep a per-minute sample for the next batch; write the batch once it spans
+    /// `SAMPLE_BATCH_NS` of machine time (a crash loses at most that much of the per-minute
+    /// series; the raw stream is in the recording).
+    async fn buffer_sample(&mut self, s: Sample) -> Result<(), DaemonError> {
+        let t = match &s {
+            Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. } => *t_ns,
+        };
+        let first = match self.samples.first() {
+            Some(Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. }) => *t_ns,
+            None => t,
+        };
+        self.samples.push(s);
+        if t - first >= SAMPLE_BATCH_NS {
+            self.flush_samples().await?;
+        }
+        Ok(())
+    }
+
+    async fn flush_samples(&mut self) -> Result<(), DaemonError> {
+        self.store.add_samples(&self.id, &self.samples).await?;
+        self.samples.clear();
         Ok(())
     }
 
@@ -397,11 +441,34 @@ impl MachineRuntime {
         Ok(())
     }
 
+    /// Store the detections a cycle received, when it ends (finished, timed out or shut
+    /// down): two commits per cycle instead of one per step. A crash during a cycle loses its
+    /// detections from the database only; the cycle is abandoned at restart either way.
+    async fn store_detections(&self, open: &OpenCycle) -> Result<(), DaemonError> {
+        let rows: Vec<DetectionRow> = open
+            .detections
+            .iter()
+            .filter_map(|d| {
+                let m = d.msg.as_ref().ok()?;
+                Some(DetectionRow {
+                    t_ns: d.t_ns,
+                    step: &m.step,
+                    payload: serde_json::to_string(m).ok()?,
+                })
+            })
+            .collect();
+        self.store
+            .add_detections(&self.id, open.number, &rows)
+            .await?;
+        Ok(())
+    }
+
     /// Solve, validate, store, serve and alert on the open cycle.
     async fn close_cycle(&mut self, now_ns: i64) -> Result<(), DaemonError> {
         let Some(open) = self.open.take() else {
             return Ok(());
         };
+        self.store_detections(&open).await?;
         let _ = self.phase.on_cycle(now_ns, false);
         let solve_started = std::time::Instant::now();
         let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
@@ -457,6 +524,7 @@ impl MachineRuntime {
 
         self.record(rec::TOPIC_RESULT, now_ns, &result).await?;
         self.recorder.flush()?;
+        self.flush_samples().await?;
         self.sched
             .finished(result.status == ResultStatus::Ok, now_ns);
         for ev in self.alerts.evaluate(&Input::from(&result), now_ns) {
@@ -492,8 +560,10 @@ impl MachineRuntime {
 
     /// Close the recording cleanly (shutdown).
     pub async fn shutdown(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        self.flush_samples().await?;
         if let Some(open) = self.open.take() {
             self.link.abort_cycle(open.number, now_ns);
+            self.store_detections(&open).await?;
             self.store
                 .abandon_cycle(
                     &self.id,

@@ -50,7 +50,8 @@ pub struct ClosedFile {
 }
 
 struct OpenFile {
-    day: String,
+    /// UTC day of the file (days since the epoch), compared per message.
+    day_number: i64,
     partial: PathBuf,
     writer: RecordingWriter<BufWriter<fs::File>>,
     messages: u64,
@@ -174,15 +175,15 @@ impl Recorder {
         t_ns: i64,
         msg: &T,
     ) -> Result<Rotation, RecorderError> {
-        let day = day_of(t_ns);
+        let day_number = t_ns.div_euclid(86_400_000_000_000);
         let mut rotation = Rotation::default();
         let rotate = match &self.open {
-            Some(f) => f.day != day || f.bytes_hint >= self.max_bytes,
+            Some(f) => f.day_number != day_number || f.bytes_hint >= self.max_bytes,
             None => true,
         };
         if rotate {
             rotation.closed = self.close()?;
-            self.open_file(&day, t_ns)?;
+            self.open_file(&day_of(t_ns), t_ns)?;
             rotation.opened = self.current().map(Path::to_path_buf);
         }
         let Some(f) = self.open.as_mut() else {
@@ -221,7 +222,7 @@ impl Recorder {
                 source,
             })?;
         self.open = Some(OpenFile {
-            day: day.to_string(),
+            day_number: t_ns.div_euclid(86_400_000_000_000),
             partial,
             writer,
             messages: 1,

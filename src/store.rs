@@ -2,6 +2,7 @@
 //! open), WAL with synchronous NORMAL, foreign keys on. Runtime queries in portable SQL.
 //! Shell code, with `recorder` and `recording::mcap_io` the only modules that touch files.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::str::FromStr;
 use std::time::Duration;
@@ -84,6 +85,28 @@ pub struct CycleRow {
 }
 
 pub use crate::series::ErrorSample;
+
+/// One detection as received: its time, step label and contract JSON.
+#[derive(Debug, Clone)]
+pub struct DetectionRow<'a> {
+    pub t_ns: i64,
+    pub step: &'a str,
+    pub payload: String,
+}
+
+/// One sample of a per-minute series.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Sample {
+    Spindle {
+        t_ns: i64,
+        rpm: f64,
+    },
+    Temperature {
+        t_ns: i64,
+        sensor: String,
+        celsius: f64,
+    },
+}
 
 #[derive(Clone)]
 pub struct Store {
@@ -187,27 +210,32 @@ impl Store {
         Ok(())
     }
 
-    pub async fn add_detection(
+    /// Store a cycle's detections in arrival order (`seq` 0, 1, ...), in one statement.
+    pub async fn add_detections(
         &self,
         machine: &str,
         cycle: i64,
-        seq: i64,
-        t_ns: i64,
-        step: &str,
-        payload: &str,
+        rows: &[DetectionRow<'_>],
     ) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload)
-             VALUES ($1, $2, $3, $4, $5, $6)",
-        )
-        .bind(machine)
-        .bind(cycle)
-        .bind(seq)
-        .bind(t_ns)
-        .bind(step)
-        .bind(payload)
-        .execute(&self.pool)
-        .await?;
+        let numbered: Vec<(i64, &DetectionRow)> = rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (i as i64, r))
+            .collect();
+        for chunk in numbered.chunks(1000) {
+            let mut q = sqlx::QueryBuilder::new(
+                "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload) ",
+            );
+            q.push_values(chunk, |mut b, (seq, r)| {
+                b.push_bind(machine)
+                    .push_bind(cycle)
+                    .push_bind(*seq)
+                    .push_bind(r.t_ns)
+                    .push_bind(r.step)
+                    .push_bind(r.payload.as_str());
+            });
+            q.build().execute(&self.pool).await?;
+        }
         Ok(())
     }
 
@@ -518,42 +546,98 @@ impl Store {
             .collect()
     }
 
-    pub async fn add_spindle_sample(
-        &self,
-        machine: &str,
-        t_ns: i64,
-        rpm: f64,
-    ) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO spindle_samples (machine_id, t_ns, rpm) VALUES ($1, $2, $3)
-             ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm",
-        )
-        .bind(machine)
-        .bind(t_ns)
-        .bind(rpm)
-        .execute(&self.pool)
-        .await?;
+    /// Store a batch of spindle and temperature samples in one transaction (one commit
+    /// instead of one per sample: the per-minute series are most of the service's writes).
+    pub async fn add_samples(&self, machine: &str, rows: &[Sample]) -> Result<(), StoreError> {
+        if rows.is_empty() {
+            return Ok(());
+        }
+        // One multi-row statement per table; a repeated key keeps its last value (PostgreSQL
+        // refuses to update one row twice in one statement).
+        let mut spindle = BTreeMap::new();
+        let mut temps = BTreeMap::new();
+        for r in rows {
+            match r {
+                Sample::Spindle { t_ns, rpm } => {
+                    spindle.insert(*t_ns, *rpm);
+                }
+                Sample::Temperature {
+                    t_ns,
+                    sensor,
+                    celsius,
+                } => {
+                    temps.insert((sensor.as_str(), *t_ns), *celsius);
+                }
+            }
+        }
+        let mut tx = self.pool.begin().await?;
+        // SQLite allows 32766 bound values per statement: chunks of 1000 rows stay far below.
+        let spindle: Vec<_> = spindle.into_iter().collect();
+        for chunk in spindle.chunks(1000) {
+            let mut q =
+                sqlx::QueryBuilder::new("INSERT INTO spindle_samples (machine_id, t_ns, rpm) ");
+            q.push_values(chunk, |mut b, (t, rpm)| {
+                b.push_bind(machine).push_bind(*t).push_bind(*rpm);
+            });
+            q.push(" ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm");
+            q.build().execute(&mut *tx).await?;
+        }
+        let temps: Vec<_> = temps.into_iter().collect();
+        for chunk in temps.chunks(1000) {
+            let mut q = sqlx::QueryBuilder::new(
+                "INSERT INTO temperature_samples (machine_id, t_ns, sensor, celsius) ",
+            );
+            q.push_values(chunk, |mut b, ((sensor, t), c)| {
+                b.push_bind(machine)
+                    .push_bind(*t)
+                    .push_bind(*sensor)
+                    .push_bind(*c);
+            });
+            q.push(
+                " ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
+            );
+            q.build().execute(&mut *tx).await?;
+        }
+        tx.commit().await?;
         Ok(())
     }
 
-    pub async fn add_temperature_sample(
+    /// The stored spindle and temperature samples in `[from_ns, to_ns]`, in time order
+    /// (spindle before temperature at the same time).
+    pub async fn samples(
         &self,
         machine: &str,
-        t_ns: i64,
-        sensor: &str,
-        celsius: f64,
-    ) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO temperature_samples (machine_id, t_ns, sensor, celsius) VALUES ($1, $2, $3, $4)
-             ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<Sample>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT t_ns, NULL AS sensor, rpm AS value FROM spindle_samples
+               WHERE machine_id = $1 AND t_ns >= $2 AND t_ns <= $3
+             UNION ALL
+             SELECT t_ns, sensor, celsius AS value FROM temperature_samples
+               WHERE machine_id = $1 AND t_ns >= $2 AND t_ns <= $3
+             ORDER BY t_ns, sensor NULLS FIRST",
         )
         .bind(machine)
-        .bind(t_ns)
-        .bind(sensor)
-        .bind(celsius)
-        .execute(&self.pool)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
         .await?;
-        Ok(())
+        rows.iter()
+            .map(|r| {
+                let t_ns: i64 = r.try_get(0)?;
+                let sensor: Option<String> = r.try_get(1)?;
+                let value: f64 = r.try_get(2)?;
+                Ok(match sensor {
+                    None => Sample::Spindle { t_ns, rpm: value },
+                    Some(sensor) => Sample::Temperature {
+                        t_ns,
+                        sensor,
+                        celsius: value,
+                    },
+                })
+            })
+            .collect()
     }
 
     pub async fn mcap_file_opened(
@@ -670,7 +754,15 @@ mod tests {
         assert_eq!(store.next_cycle_number("m1").await.unwrap(), 1);
         store.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
         store
-            .add_detection("m1", 1, 0, 11, "B0C0/z", r#"{"step":"B0C0/z"}"#)
+            .add_detections(
+                "m1",
+                1,
+                &[DetectionRow {
+                    t_ns: 11,
+                    step: "B0C0/z",
+                    payload: r#"{"step":"B0C0/z"}"#.into(),
+                }],
+            )
             .await
             .unwrap();
         assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
@@ -706,7 +798,12 @@ mod tests {
         let store = Store::open(&temp_db("fk")).await.unwrap();
         store.ensure_machine("m1", "table_bc", 0).await.unwrap();
         // A detection of a cycle that was never opened is refused.
-        assert!(store.add_detection("m1", 9, 0, 1, "x", "{}").await.is_err());
+        let row = DetectionRow {
+            t_ns: 1,
+            step: "x",
+            payload: "{}".into(),
+        };
+        assert!(store.add_detections("m1", 9, &[row]).await.is_err());
         let v = serde_json::json!({"version": 1});
         store
             .insert_compensation(
@@ -780,11 +877,23 @@ mod tests {
         {
             let store = Store::open(&path).await.unwrap();
             store.ensure_machine("m1", "table_bc", 0).await.unwrap();
-            store.add_spindle_sample("m1", 60, 20000.0).await.unwrap();
-            store
-                .add_temperature_sample("m1", 60, "ambient", 20.5)
-                .await
-                .unwrap();
+            let rows = [
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 20000.0,
+                },
+                Sample::Temperature {
+                    t_ns: 60,
+                    sensor: "ambient".into(),
+                    celsius: 20.5,
+                },
+                // A repeated time replaces the value rather than failing the batch.
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 18000.0,
+                },
+            ];
+            store.add_samples("m1", &rows).await.unwrap();
             store
                 .mcap_file_opened("m1", "m1/2026-03-02.mcap.partial", 1)
                 .await
@@ -818,6 +927,21 @@ mod tests {
             store.close().await;
         }
         let store = Store::open(&path).await.unwrap();
+        assert_eq!(
+            store.samples("m1", 0, 100).await.unwrap(),
+            vec![
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 18000.0
+                },
+                Sample::Temperature {
+                    t_ns: 60,
+                    sensor: "ambient".into(),
+                    celsius: 20.5
+                }
+            ]
+        );
+        assert!(store.samples("m1", 61, 100).await.unwrap().is_empty());
         assert_eq!(
             store.mcap_files("m1").await.unwrap(),
             vec![("m1/2026-03-02.mcap.partial".to_string(), "open".to_string())]

@@ -275,8 +275,8 @@ mod tests {
         let c = cfg("http://127.0.0.1:9/hook");
         let d: Vec<f64> = (1..=12).map(|a| c.delay_before(a).as_secs_f64()).collect();
         assert_eq!(&d[..5], &[0.0, 1.0, 2.0, 4.0, 8.0]);
-        assert_eq!(d[10], 256.0);
-        assert_eq!(d[11], 300.0);
+        assert_eq!(d[9], 256.0);
+        assert_eq!((d[10], d[11]), (300.0, 300.0));
     }
 
     #[test]

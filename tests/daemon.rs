@@ -198,6 +198,31 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         .collect();
     assert_eq!(sent, logged);
     assert!(seen.iter().all(|v| v["machine"] == "sim-1"));
+    // The per-minute series: every sensor once a minute, written in batches, all flushed.
+    let samples = store.samples("sim-1", t0, end).await.unwrap();
+    let mut per_sensor: std::collections::BTreeMap<String, Vec<i64>> = Default::default();
+    for s in &samples {
+        if let driftwatch::store::Sample::Temperature { t_ns, sensor, .. } = s {
+            per_sensor
+                .entry(sensor.clone())
+                .or_default()
+                .push(t_ns / MIN);
+        }
+    }
+    assert!(!per_sensor.is_empty());
+    for (sensor, minutes) in &per_sensor {
+        assert!(
+            minutes.len() as i64 >= 31 * 60 - 1,
+            "{sensor}: {}",
+            minutes.len()
+        );
+        assert!(minutes.windows(2).all(|w| w[1] == w[0] + 1), "{sensor}");
+    }
+    assert!(
+        samples
+            .iter()
+            .any(|s| matches!(s, driftwatch::store::Sample::Spindle { rpm, .. } if *rpm > 0.0))
+    );
     assert_eq!(store.integrity_check().await.unwrap(), "ok");
 }
 
