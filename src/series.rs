@@ -57,7 +57,7 @@ pub fn parse_every(text: &str) -> Result<i64, String> {
         .parse()
         .map_err(|_| format!("every = '{text}' is not a duration such as 900, 15m or 1h"))?;
     let s = v * scale;
-    if !s.is_finite() || s < 1.0 || s > 366.0 * 86400.0 {
+    if !(1.0..=366.0 * 86400.0).contains(&s) {
         return Err(format!("every = '{text}' must be between 1 s and 366 d"));
     }
     Ok((s * 1e9).round() as i64)
