@@ -16,7 +16,6 @@ use axum::routing::get;
 use serde::Deserialize;
 use serde_json::json;
 
-use crate::compensation::compensation_message;
 use crate::config::Role;
 use crate::daemon::{Inbox, MachineView};
 use crate::nc_push::{EventBatch, NcPushHandle};
@@ -390,8 +389,14 @@ async fn compensation(
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let v = view(handle(&st, &id)?);
-    let Some(set) = v.compensation else {
+    // Only the prepared body is taken from the view: no clone of the machine's state, no
+    // serialisation per request.
+    let body = handle(&st, &id)?
+        .view
+        .lock()
+        .ok()
+        .and_then(|v| v.nc_body.clone());
+    let Some(body) = body else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
             "no_compensation",
@@ -400,7 +405,7 @@ async fn compensation(
             ),
         ));
     };
-    let etag = format!("\"{id}-v{}\"", set.version);
+    let etag = format!("\"{id}-v{}\"", body.version);
     let matches = headers
         .get(header::IF_NONE_MATCH)
         .and_then(|h| h.to_str().ok())
@@ -408,7 +413,11 @@ async fn compensation(
     let mut r = if matches {
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        Json(compensation_message(&set)).into_response()
+        (
+            [(header::CONTENT_TYPE, "application/json")],
+            body.json.clone(),
+        )
+            .into_response()
     };
     if let Ok(h) = HeaderValue::from_str(&etag) {
         r.headers_mut().insert(header::ETAG, h);

@@ -1,5 +1,9 @@
-//! `driftwatch bench year`: one simulated year of one machine through the service pipeline
-//! (machine link, phase, scheduler, solve, validation, SQLite, MCAP), as fast as it runs.
+//! Service benchmarks (run and reported, never timed tests):
+//! - `bench year`: one simulated year of one machine through the service pipeline (machine
+//!   link, phase, scheduler, solve, validation, SQLite, MCAP), as fast as it runs;
+//! - `bench http`: the NC's compensation endpoint under load on loopback, next to a trivial
+//!   endpoint served by the same server in the same run, while the machine loop keeps
+//!   solving and writing.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -27,9 +31,10 @@ fn size_of(p: &Path) -> u64 {
     }
 }
 
-pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+/// One simulated machine of the shipped default (two-shift day) on a fresh store in `dir`.
+async fn pipeline(dir: &Path) -> Result<(MachineRuntime, Store, i64)> {
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let cfg = ServiceConfig::load(None)?;
     let scn = Scenario::load("two_shift")?;
     let k = Kinematics::load(&scn.machine)?;
@@ -44,7 +49,7 @@ pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
     };
     let recorder = Recorder::new(&dir.join("mcap"), info, cfg.max_file_mib << 20)?;
     let settings = Settings::from_config(&cfg);
-    let mut rt = MachineRuntime::new(
+    let rt = MachineRuntime::new(
         "sim-1",
         k,
         plan,
@@ -55,6 +60,11 @@ pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
         t0,
     )
     .await?;
+    Ok((rt, store, t0))
+}
+
+pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
+    let (mut rt, store, t0) = pipeline(&dir).await?;
     let end = t0 + (days * 86_400e9) as i64;
     let wall = Instant::now();
     let mut now = t0;
@@ -75,6 +85,168 @@ pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
         cycles.len(),
         db as f64 / 1e6,
         mcap as f64 / 1e6
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Latencies of one endpoint, µs, and the time they were collected over.
+struct Load {
+    latencies_us: Vec<u64>,
+    errors: u64,
+    seconds: f64,
+}
+
+impl Load {
+    fn quantile(&self, q: f64) -> f64 {
+        let mut v = self.latencies_us.clone();
+        v.sort_unstable();
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        let i = ((v.len() as f64 - 1.0) * q).round() as usize;
+        v[i] as f64
+    }
+    fn rate(&self) -> f64 {
+        self.latencies_us.len() as f64 / self.seconds
+    }
+}
+
+/// `connections` clients, each on its own keep-alive connection, GET `url` back to back for
+/// `seconds`.
+async fn load(url: &str, connections: usize, seconds: f64) -> Result<Load> {
+    let until = Instant::now() + std::time::Duration::from_secs_f64(seconds);
+    let mut tasks = Vec::new();
+    for _ in 0..connections {
+        let client = reqwest::Client::builder()
+            .pool_max_idle_per_host(1)
+            .build()?;
+        let url = url.to_string();
+        tasks.push(tokio::spawn(async move {
+            let mut lat = Vec::new();
+            let mut errors = 0u64;
+            while Instant::now() < until {
+                let t = Instant::now();
+                match client.get(&url).send().await {
+                    Ok(r) if r.status().is_success() => match r.bytes().await {
+                        Ok(_) => lat.push(t.elapsed().as_micros() as u64),
+                        Err(_) => errors += 1,
+                    },
+                    _ => errors += 1,
+                }
+            }
+            (lat, errors)
+        }));
+    }
+    let t0 = Instant::now();
+    let mut out = Load {
+        latencies_us: Vec::new(),
+        errors: 0,
+        seconds: 0.0,
+    };
+    for t in tasks {
+        let (lat, errors) = t.await?;
+        out.latencies_us.extend(lat);
+        out.errors += errors;
+    }
+    out.seconds = t0.elapsed().as_secs_f64();
+    Ok(out)
+}
+
+pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<ExitCode> {
+    use driftwatch::api::{ApiState, Auth, MachineHandle, router};
+    anyhow::ensure!(connections > 0, "--connections must be at least 1");
+    anyhow::ensure!(seconds > 0.0, "--seconds must be > 0");
+    let (mut rt, store, t0) = pipeline(&dir).await?;
+    // Run the morning until the first validated set exists.
+    let mut now = t0;
+    while rt.served().is_none() {
+        anyhow::ensure!(
+            now < t0 + 12 * 3_600_000_000_000,
+            "no validated set by noon"
+        );
+        now = rt.step(now).await?.max(now + 1);
+    }
+    let version0 = rt.served().map_or(0, |c| c.version);
+    let mut machines = std::collections::BTreeMap::new();
+    machines.insert(
+        rt.id.clone(),
+        MachineHandle {
+            view: rt.view.clone(),
+            inbox: rt.inbox.clone(),
+            nc: None,
+        },
+    );
+    let state = std::sync::Arc::new(ApiState::new(
+        machines,
+        store.clone(),
+        Auth {
+            tokens: Vec::new(),
+            anonymous_read: true,
+        },
+    ));
+    let app = router(state).route("/bench/trivial", axum::routing::get(|| async { "ok" }));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    let server = tokio::spawn(async move { axum::serve(listener, app).await });
+    let trivial = format!("http://{addr}/bench/trivial");
+    let comp = format!("http://{addr}/api/v1/machines/sim-1/compensation");
+
+    // The machine loop keeps running (600x: a cycle about every 3 s of wall time) so that the
+    // endpoint is measured while solves and writes happen. Each endpoint is loaded twice,
+    // alternating, so that drift in the machine's state affects both alike.
+    let half = seconds / 2.0;
+    let (tx, mut rx) = tokio::sync::oneshot::channel();
+    let conns = connections;
+    let (t_url, c_url) = (trivial.clone(), comp.clone());
+    tokio::spawn(async move {
+        let run = async {
+            load(&t_url, conns, 0.5).await?; // warm-up, discarded
+            let mut t = load(&t_url, conns, half).await?;
+            let mut c = load(&c_url, conns, half).await?;
+            let t2 = load(&t_url, conns, half).await?;
+            let c2 = load(&c_url, conns, half).await?;
+            for (a, b) in [(&mut t, t2), (&mut c, c2)] {
+                a.latencies_us.extend(b.latencies_us);
+                a.errors += b.errors;
+                a.seconds += b.seconds;
+            }
+            anyhow::Ok((t, c))
+        };
+        let _ = tx.send(run.await);
+    });
+    let wall = Instant::now();
+    let sim0 = now;
+    let result = loop {
+        if let Ok(r) = rx.try_recv() {
+            break r?;
+        }
+        let target = sim0 + (wall.elapsed().as_secs_f64() * 600.0 * 1e9) as i64;
+        while now < target {
+            now = rt.step(now).await?.min(target).max(now + 1);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    };
+    let (t, c) = result;
+    rt.shutdown(now).await?;
+    server.abort();
+    let cycles = rt.served().map_or(0, |s| s.version) - version0;
+    store.close().await;
+    for (name, l) in [("trivial endpoint", &t), ("GET /compensation", &c)] {
+        println!(
+            "{name:>18}: {:>9.0} req/s  p50 {:>6.0} us  p99 {:>6.0} us  p99.9 {:>6.0} us  ({} requests, {} errors)",
+            l.rate(),
+            l.quantile(0.5),
+            l.quantile(0.99),
+            l.quantile(0.999),
+            l.latencies_us.len(),
+            l.errors
+        );
+    }
+    println!(
+        "compensation / trivial: throughput {:.2}, p99 {:.2}; {connections} connections on loopback, {seconds} s per endpoint; \
+         {cycles} cycles validated by the machine loop meanwhile",
+        c.rate() / t.rate(),
+        c.quantile(0.99) / t.quantile(0.99)
     );
     Ok(ExitCode::SUCCESS)
 }

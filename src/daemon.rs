@@ -54,12 +54,32 @@ pub struct MachineView {
     pub next_due_ns: Option<i64>,
     /// The set the NC reads: the last validated one.
     pub compensation: Option<CompensationSet>,
+    /// The same set as the NC endpoint sends it, serialised once per version.
+    #[serde(skip)]
+    pub nc_body: Option<Arc<NcBody>>,
     pub open_alerts: Vec<crate::alerts::Alert>,
     /// Counters for `/metrics`.
     pub cycles_ok: u64,
     pub cycles_rejected: u64,
     pub cycles_abandoned: u64,
     pub solve_seconds_sum: f64,
+}
+
+/// A compensation set ready to send: its version and its JSON.
+#[derive(Debug)]
+pub struct NcBody {
+    pub version: u64,
+    pub json: bytes::Bytes,
+}
+
+impl NcBody {
+    pub fn of(set: &CompensationSet) -> Option<Arc<NcBody>> {
+        let json = serde_json::to_vec(&compensation::compensation_message(set)).ok()?;
+        Some(Arc::new(NcBody {
+            version: set.version,
+            json: json.into(),
+        }))
+    }
 }
 
 /// Operator requests and alert acknowledgements waiting for the loop.
@@ -189,6 +209,7 @@ impl MachineRuntime {
             id: id.to_string(),
             kinematics: k.name.clone(),
             compensation: served.clone(),
+            nc_body: served.as_ref().and_then(NcBody::of),
             last_cycle: store.last_closed_cycle(id).await?,
             steps_per_cycle: plan.steps.len(),
             ..Default::default()
@@ -546,6 +567,10 @@ impl MachineRuntime {
         }
         if let Ok(mut v) = self.view.lock() {
             v.last_cycle = Some(open.number);
+            if v.compensation.as_ref().map(|c| c.version) != self.served.as_ref().map(|c| c.version)
+            {
+                v.nc_body = self.served.as_ref().and_then(NcBody::of);
+            }
             v.compensation = self.served.clone();
             v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
             v.solve_seconds_sum += solve_seconds;

@@ -139,9 +139,15 @@ enum Command {
         /// Simulated days (bench year).
         #[arg(long, default_value_t = 365.0)]
         days: f64,
-        /// Scratch directory (bench year; emptied first).
-        #[arg(long, default_value = "out/bench-year")]
+        /// Scratch directory (bench year and http; emptied first).
+        #[arg(long, default_value = "out/bench")]
         dir: PathBuf,
+        /// Concurrent keep-alive connections (bench http).
+        #[arg(long, default_value_t = 64)]
+        connections: usize,
+        /// Seconds of load per endpoint (bench http).
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
     },
 }
 
@@ -172,6 +178,8 @@ enum BenchWhich {
     Solve,
     /// One simulated year of one machine through the service pipeline.
     Year,
+    /// GET /compensation under load next to a trivial endpoint, on loopback.
+    Http,
 }
 
 fn main() -> ExitCode {
@@ -286,6 +294,17 @@ fn run(cmd: Command) -> Result<ExitCode> {
             .build()
             .context("starting the async runtime")?
             .block_on(bench::year(days, dir)),
+        Command::Bench {
+            which: BenchWhich::Http,
+            connections,
+            seconds,
+            dir,
+            ..
+        } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .context("starting the async runtime")?
+            .block_on(bench::http(connections, seconds, dir)),
     }
 }
 
