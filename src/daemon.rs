@@ -90,6 +90,7 @@ pub struct Inbox {
     pub acks: Vec<(u64, String)>,
 }
 
+#[derive(Debug, Clone)]
 pub struct Settings {
     pub phase: PhaseConfig,
     pub schedule: SchedulePolicy,
@@ -189,6 +190,20 @@ impl MachineRuntime {
                 )
                 .await?;
         }
+        // The scheduler remembers the last cycle and the last good result across a restart,
+        // so that a restart does not by itself cause a cycle. A store whose times lie ahead of
+        // the clock (a simulated day started again from its morning) is not taken.
+        let mut sched = SchedulerState::default();
+        let (last_start, last_good) = store.schedule_memory(id).await?;
+        if last_start.is_some_and(|t| t <= now_ns) {
+            sched.last_cycle_start_ns = last_start;
+            sched.last_good_ns = last_good.filter(|t| *t <= now_ns);
+        } else if last_start.is_some() {
+            info!(
+                machine = id,
+                "the stored cycles lie ahead of the clock (a simulated day started again): the scheduler starts afresh"
+            );
+        }
         let served = match store.latest_compensation(id).await? {
             Some(v) => serde_json::from_value(v).ok(),
             None => None,
@@ -220,7 +235,7 @@ impl MachineRuntime {
             link,
             phase,
             policy: settings.schedule.clone(),
-            sched: SchedulerState::default(),
+            sched,
             checks,
             limits: settings.validation.clone(),
             alerts,

@@ -325,6 +325,23 @@ impl Store {
     }
 
     /// The latest time anything of a machine was stored (cycles, results, samples), ns.
+    /// When the last cycle started and when the last good (`ok`) cycle finished: what the
+    /// scheduler remembers across a restart.
+    pub async fn schedule_memory(
+        &self,
+        machine: &str,
+    ) -> Result<(Option<i64>, Option<i64>), StoreError> {
+        let row = sqlx::query(
+            "SELECT MAX(started_ns),
+                    MAX(CASE WHEN status = 'ok' THEN finished_ns END)
+             FROM cycles WHERE machine_id = $1",
+        )
+        .bind(machine)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok((row.try_get(0)?, row.try_get(1)?))
+    }
+
     pub async fn last_activity_ns(&self, machine: &str) -> Result<Option<i64>, StoreError> {
         let row = sqlx::query(
             "SELECT MAX(t) FROM (

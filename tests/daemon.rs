@@ -247,3 +247,113 @@ async fn hook_receiver() -> (String, Arc<Mutex<Vec<serde_json::Value>>>) {
     tokio::spawn(async move { axum::serve(l, app).await });
     (url, seen)
 }
+
+/// A machine that reports itself idle with the spindle stopped, and accepts cycle requests.
+struct IdleMachine {
+    said: bool,
+    requested: Arc<Mutex<Vec<i64>>>,
+}
+
+impl MachineLink for IdleMachine {
+    fn poll(&mut self, now_ns: i64) -> Vec<LinkEvent> {
+        if std::mem::replace(&mut self.said, true) {
+            return Vec::new();
+        }
+        vec![
+            LinkEvent::State(driftwatch::recording::Timed {
+                t_ns: now_ns,
+                msg: driftwatch::recording::StateMsg {
+                    state: MachineStateKind::Idle,
+                    program: None,
+                },
+            }),
+            LinkEvent::Spindle(driftwatch::recording::Timed {
+                t_ns: now_ns,
+                msg: driftwatch::recording::SpindleMsg { rpm: 0.0 },
+            }),
+        ]
+    }
+    fn request_cycle(&mut self, number: i64, _now_ns: i64) -> Result<(), LinkError> {
+        self.requested.lock().unwrap().push(number);
+        Ok(())
+    }
+    fn abort_cycle(&mut self, _number: i64, _now_ns: i64) {}
+    fn next_event_ns(&self) -> Option<i64> {
+        None
+    }
+}
+
+#[tokio::test]
+async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() {
+    let d = dir("restart");
+    let scn = Scenario::load("two_shift").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let store = Store::open(&d.join("driftwatch.db")).await.unwrap();
+    let info = MachineInfo {
+        machine_id: "sim-1".into(),
+        kinematics: k.name.clone(),
+        software: "test".into(),
+    };
+    let settings = Settings::default();
+    let recorder = || Recorder::new(&d.join("mcap"), info.clone(), 256 << 20).unwrap();
+    let sim = Simulated::new(k.clone(), plan.clone(), scn.clone()).unwrap();
+    let t0 = sim.start_ns();
+    let mut first = MachineRuntime::new(
+        "sim-1",
+        k.clone(),
+        plan.clone(),
+        Box::new(sim),
+        &settings,
+        store.clone(),
+        recorder(),
+        t0,
+    )
+    .await
+    .unwrap();
+    let end = t0 + 10 * 60 * MIN;
+    let mut now = t0;
+    while now < end {
+        now = first.step(now).await.unwrap().min(end).max(now + 1);
+    }
+    first.shutdown(end).await.unwrap();
+    let (_, last_good) = store.schedule_memory("sim-1").await.unwrap();
+    let last_good = last_good.expect("a good cycle in the first 10 h");
+    assert!(end - last_good < settings.schedule.max_age_min as i64 * MIN);
+
+    // Restarted a minute later beside an idle machine: the last result is fresh, no cycle.
+    let asked = |now: i64| {
+        let store = store.clone();
+        let (k, plan, settings, rec) = (k.clone(), plan.clone(), settings.clone(), recorder());
+        async move {
+            let requested = Arc::new(Mutex::new(Vec::new()));
+            let link = IdleMachine {
+                said: false,
+                requested: requested.clone(),
+            };
+            let mut rt =
+                MachineRuntime::new("sim-1", k, plan, Box::new(link), &settings, store, rec, now)
+                    .await
+                    .unwrap();
+            rt.step(now).await.unwrap();
+            let schedule = rt.view.lock().unwrap().schedule.clone();
+            rt.shutdown(now + 2).await.unwrap();
+            let n = requested.lock().unwrap().len();
+            (n, schedule)
+        }
+    };
+    let (n, schedule) = asked(end + MIN).await;
+    assert_eq!(n, 0, "{schedule}");
+    // Past the maximum age a cycle runs.
+    let late = last_good + settings.schedule.max_age_min as i64 * MIN + MIN;
+    let (n, schedule) = asked(late).await;
+    assert_eq!(n, 1, "{schedule}");
+    assert!(
+        schedule.contains("stale") || schedule.contains("old"),
+        "{schedule}"
+    );
+    // A clock behind the stored cycles (a simulated day started again) starts afresh: no
+    // result is known at that time, so it measures.
+    let (n, schedule) = asked(t0 - 60 * MIN).await;
+    assert_eq!(n, 1, "{schedule}");
+}
