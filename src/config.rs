@@ -275,6 +275,7 @@ mod tests {
         let c = ServiceConfig::from_toml(text, "deploy/nc_push.example.toml").unwrap();
         assert!(matches!(c.machines[0].link, LinkConfig::NcPush));
         assert!(!c.http.anonymous_read);
+        assert_eq!(c.webhooks.len(), 1);
         // A real NC with a sped-up clock is refused.
         let fast = text.replace("time_scale = 1.0", "time_scale = 60.0");
         let e = ServiceConfig::from_toml(&fast, "t")
