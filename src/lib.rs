@@ -31,6 +31,7 @@ pub mod simulator;
 pub mod source;
 pub mod store;
 pub mod thermal;
+pub mod thermal_model;
 pub mod webhook;
 
 /// A finite number above zero (false for NaN).
