@@ -10,6 +10,7 @@ pub mod alerts;
 pub mod api;
 pub mod compensation;
 pub mod config;
+pub mod csv_import;
 pub mod cycle;
 pub mod daemon;
 pub mod experiment;

@@ -19,6 +19,7 @@ use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
 mod bench;
+mod model_cmd;
 mod serve;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
@@ -101,6 +102,15 @@ enum Command {
         #[command(flatten)]
         solver: SolverArgs,
     },
+    /// Turn a table from another tool into a contract recording.
+    Import {
+        #[command(subcommand)]
+        what: ImportWhat,
+    },
+    /// Fit the thermal model to recordings (spindle, temperatures, displacements, cycle results).
+    Fit(model_cmd::FitArgs),
+    /// Replay a recording causally through a fitted model: the prediction at every step.
+    Predict(model_cmd::PredictArgs),
     /// Reproduce an experiment of the source documents end to end.
     Experiment {
         #[arg(value_enum)]
@@ -149,6 +159,12 @@ enum Command {
         #[arg(long, default_value_t = 10.0)]
         seconds: f64,
     },
+}
+
+#[derive(Subcommand)]
+enum ImportWhat {
+    /// A CSV of a thermal test: spindle speed, temperatures, displacements per row.
+    Csv(model_cmd::ImportCsvArgs),
 }
 
 #[derive(clap::Args, Clone)]
@@ -252,6 +268,11 @@ fn run(cmd: Command) -> Result<ExitCode> {
             out,
             plan,
         } => cmd_simulate(&scenario, &out, plan.as_deref()),
+        Command::Import {
+            what: ImportWhat::Csv(a),
+        } => model_cmd::cmd_import_csv(a),
+        Command::Fit(a) => model_cmd::cmd_fit(a),
+        Command::Predict(a) => model_cmd::cmd_predict(a),
         Command::Solve {
             machine,
             recording,

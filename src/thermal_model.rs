@@ -74,13 +74,23 @@ impl Default for ModelConfig {
             gamma: 1.5,
             temperatures: Vec::new(),
             instant_speed: false,
-            ridge_grid: vec![0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0],
+            ridge_grid: vec![0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0],
             offset_walk_um2_per_h: 1.0,
         }
     }
 }
 
+/// The shipped default (`config/thermal.toml`).
+pub const DEFAULT_MODEL_CONFIG: &str = include_str!("../config/thermal.toml");
+
 impl ModelConfig {
+    /// Parse and check a model configuration TOML.
+    pub fn from_toml(text: &str) -> Result<Self, ModelError> {
+        let c: ModelConfig = toml::from_str(text).map_err(|e| ModelError::Config(e.to_string()))?;
+        c.validate()?;
+        Ok(c)
+    }
+
     pub fn validate(&self) -> Result<(), ModelError> {
         let bad = |m: String| Err(ModelError::Config(m));
         if self.taus_min.iter().any(|t| !crate::positive(*t)) {
@@ -108,7 +118,11 @@ impl ModelConfig {
         let mut c = vec!["offset".to_string()];
         c.extend(self.taus_min.iter().map(|t| format!("spindle_lag_{t}min")));
         for s in &self.temperatures {
-            c.extend(s.taus_min.iter().map(|t| format!("{}_lag_{t}min", s.sensor)));
+            c.extend(
+                s.taus_min
+                    .iter()
+                    .map(|t| format!("{}_lag_{t}min", s.sensor)),
+            );
         }
         if self.instant_speed {
             c.push("speed_squared".into());
@@ -439,7 +453,9 @@ pub fn fit(
         }
     }
     if per.is_empty() {
-        return Err(ModelError::NoData(" (no displacement readings or validated cycle results)".into()));
+        return Err(ModelError::NoData(
+            " (no displacement readings or validated cycle results)".into(),
+        ));
     }
     let columns = cfg.columns();
     let channels = per
@@ -458,11 +474,7 @@ pub fn fit(
 }
 
 /// Posterior mean and precision matrix for weights `w` and prior precision `lambda`.
-fn solve(
-    obs: &[&Obs],
-    w: &[f64],
-    lambda: &[f64],
-) -> Option<(DVector<f64>, DMatrix<f64>)> {
+fn solve(obs: &[&Obs], w: &[f64], lambda: &[f64]) -> Option<(DVector<f64>, DMatrix<f64>)> {
     let n = lambda.len();
     let mut a = DMatrix::from_diagonal(&DVector::from_column_slice(lambda));
     let mut b = DVector::zeros(n);
@@ -486,7 +498,10 @@ fn fit_channel(
         message: m,
     };
     if obs.len() < 2 {
-        return Err(err(format!("{} observation(s); at least 2 needed", obs.len())));
+        return Err(err(format!(
+            "{} observation(s); at least 2 needed",
+            obs.len()
+        )));
     }
     // Scale of each column over the data, so that a ridge factor means the same for all.
     let mut ms = vec![0.0; n];
@@ -497,7 +512,11 @@ fn fit_channel(
     }
     let base: Vec<f64> = (0..n)
         .map(|j| {
-            let sd = if j == 0 { PRIOR_SD_OFFSET } else { PRIOR_SD_GAIN };
+            let sd = if j == 0 {
+                PRIOR_SD_OFFSET
+            } else {
+                PRIOR_SD_GAIN
+            };
             1.0 / (sd * sd)
         })
         .collect();
@@ -511,7 +530,6 @@ fn fit_channel(
     let all: Vec<&Obs> = obs.iter().collect();
     // Discrepancy so that chi2/dof = 1 (0 when the stated uncertainties already explain the
     // scatter): two passes are enough, the weights change little after the first.
-    let mut d2 = 0.0;
     let weights = |d2: f64| -> Vec<f64> {
         obs.iter()
             .map(|o| {
@@ -521,32 +539,44 @@ fn fit_channel(
             .collect()
     };
     let dof = (obs.len() as f64 - n as f64).max(1.0);
-    for _ in 0..3 {
-        let w = weights(d2);
-        let (beta, _) = solve(&all, &w, &with_ridge(0.0)).ok_or_else(|| err("singular fit".into()))?;
-        let r2: Vec<(f64, f64)> = obs
-            .iter()
-            .map(|o| ((o.y - o.row.dot(&beta)).powi(2), o.sigma.map_or(0.0, |s| s * s)))
-            .collect();
-        // Solve sum r^2 / (s^2 + d^2) = dof for d^2 by bisection (monotone in d^2).
-        let chi = |d2: f64| -> f64 {
-            r2.iter()
-                .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
-                .sum()
-        };
-        if obs.iter().all(|o| o.sigma.is_none()) {
-            d2 = r2.iter().map(|x| x.0).sum::<f64>() / dof;
-        } else if chi(0.0) <= dof {
-            d2 = 0.0;
-        } else {
-            let (mut lo, mut hi) = (0.0, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
-            for _ in 0..80 {
-                let mid = 0.5 * (lo + hi);
-                if chi(mid) > dof { lo = mid } else { hi = mid }
+    // The discrepancy that makes chi2/dof = 1 for a given ridge (0 when the stated
+    // uncertainties already explain the scatter); a few passes settle the weights.
+    let discrepancy = |k: f64| -> Result<f64, ModelError> {
+        let mut d2 = 0.0;
+        for _ in 0..3 {
+            let (beta, _) = solve(&all, &weights(d2), &with_ridge(k))
+                .ok_or_else(|| err("singular fit".into()))?;
+            let r2: Vec<(f64, f64)> = obs
+                .iter()
+                .map(|o| {
+                    (
+                        (o.y - o.row.dot(&beta)).powi(2),
+                        o.sigma.map_or(0.0, |s| s * s),
+                    )
+                })
+                .collect();
+            let chi = |d2: f64| -> f64 {
+                r2.iter()
+                    .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
+                    .sum()
+            };
+            if obs.iter().all(|o| o.sigma.is_none()) {
+                d2 = r2.iter().map(|x| x.0).sum::<f64>() / dof;
+            } else if chi(0.0) <= dof {
+                d2 = 0.0;
+            } else {
+                // chi(d2) falls as d2 grows: bisect for chi = dof.
+                let (mut lo, mut hi) = (0.0, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
+                for _ in 0..80 {
+                    let mid = 0.5 * (lo + hi);
+                    if chi(mid) > dof { lo = mid } else { hi = mid }
+                }
+                d2 = hi;
             }
-            d2 = hi;
         }
-    }
+        Ok(d2)
+    };
+    let d2 = discrepancy(0.0)?;
     let w = weights(d2);
     // Blocked cross-validation over contiguous stretches of time.
     let blocks = CV_BLOCKS.min(obs.len());
@@ -573,6 +603,8 @@ fn fit_channel(
             best = (rmse, k);
         }
     }
+    let d2 = discrepancy(best.1)?;
+    let w = weights(d2);
     let lambda = with_ridge(best.1);
     let (beta, a) = solve(&all, &w, &lambda).ok_or_else(|| err("singular fit".into()))?;
     let cov = a
@@ -738,6 +770,92 @@ impl Predictor {
     }
 }
 
+/// One step of a causal replay.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReplayStep {
+    pub t_ns: i64,
+    pub predictions: Vec<Prediction>,
+    /// Observations used in the step (since the previous one), by channel: their last value.
+    pub measured: BTreeMap<String, f64>,
+}
+
+/// Predictions against the observations after the last update.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HoldoutScore {
+    pub channel: String,
+    pub n: usize,
+    pub rmse_um: f64,
+    /// Holding the last used observation instead.
+    pub persistence_rmse_um: f64,
+}
+
+/// Replay `events` through the model as the daemon would live: every `step_ns` from the first
+/// event, each prediction from what came before it. Observations up to `update_until_ns`
+/// correct the model; later ones are only scored.
+pub fn replay(
+    model: &ThermalModel,
+    events: &[Event],
+    step_ns: i64,
+    update_until_ns: i64,
+) -> (Vec<ReplayStep>, Vec<HoldoutScore>) {
+    let (Some(first), Some(last)) = (events.first(), events.last()) else {
+        return (Vec::new(), Vec::new());
+    };
+    let step_ns = step_ns.max(1);
+    let mut p = Predictor::new(model, first.t_ns());
+    let mut last_used: BTreeMap<String, f64> = BTreeMap::new();
+    let mut sums: BTreeMap<String, (usize, f64, f64)> = BTreeMap::new();
+    let mut steps = Vec::new();
+    let mut measured = BTreeMap::new();
+    let mut k = 0;
+    let mut t = first.t_ns();
+    while t <= last.t_ns() {
+        while k < events.len() && events[k].t_ns() <= t {
+            let e = &events[k];
+            k += 1;
+            match e {
+                Event::Observation { channel, value, .. } if e.t_ns() > update_until_ns => {
+                    let pred = p
+                        .predict(e.t_ns())
+                        .into_iter()
+                        .find(|x| &x.channel == channel);
+                    if let (Some(pr), Some(prev)) = (pred, last_used.get(channel)) {
+                        let s = sums.entry(channel.clone()).or_default();
+                        s.0 += 1;
+                        s.1 += (pr.value - value).powi(2);
+                        s.2 += (prev - value).powi(2);
+                    }
+                }
+                Event::Observation { channel, value, .. } => {
+                    if p.apply(e) {
+                        last_used.insert(channel.clone(), *value);
+                        measured.insert(channel.clone(), *value);
+                    }
+                }
+                _ => {
+                    p.apply(e);
+                }
+            }
+        }
+        steps.push(ReplayStep {
+            t_ns: t,
+            predictions: p.predict(t),
+            measured: std::mem::take(&mut measured),
+        });
+        t += step_ns;
+    }
+    let scores = sums
+        .into_iter()
+        .map(|(channel, (n, sse, ssp))| HoldoutScore {
+            channel,
+            n,
+            rmse_um: (sse / n as f64).sqrt(),
+            persistence_rmse_um: (ssp / n as f64).sqrt(),
+        })
+        .collect();
+    (steps, scores)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -751,11 +869,26 @@ mod tests {
     fn day(every: i64, sd: f64, seed: u64) -> (Vec<Event>, Vec<(i64, f64)>) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut ev = vec![
-            Event::Spindle { t_ns: 0, rpm: 20000.0 },
-            Event::Spindle { t_ns: 210 * MIN, rpm: 0.0 },
-            Event::Spindle { t_ns: 240 * MIN, rpm: 20000.0 },
-            Event::Spindle { t_ns: 400 * MIN, rpm: 10000.0 },
-            Event::Spindle { t_ns: 500 * MIN, rpm: 0.0 },
+            Event::Spindle {
+                t_ns: 0,
+                rpm: 20000.0,
+            },
+            Event::Spindle {
+                t_ns: 210 * MIN,
+                rpm: 0.0,
+            },
+            Event::Spindle {
+                t_ns: 240 * MIN,
+                rpm: 20000.0,
+            },
+            Event::Spindle {
+                t_ns: 400 * MIN,
+                rpm: 10000.0,
+            },
+            Event::Spindle {
+                t_ns: 500 * MIN,
+                rpm: 0.0,
+            },
         ];
         let truth = |t: f64, lags: &mut (f64, f64), u: f64, dt: f64| {
             let a1 = (-dt / 12.0).exp();
@@ -888,6 +1021,17 @@ mod tests {
             value: 1.0,
             sigma: None,
         }));
+    }
+
+    #[test]
+    fn the_shipped_configuration_is_the_default() {
+        let c = ModelConfig::from_toml(DEFAULT_MODEL_CONFIG).unwrap();
+        assert_eq!(c, ModelConfig::default());
+        let with = format!("{DEFAULT_MODEL_CONFIG}\n[[temperatures]]\nsensor = \"ambient\"\n");
+        let c = ModelConfig::from_toml(&with).unwrap();
+        assert_eq!(c.temperatures[0].taus_min, [0.0, 60.0, 240.0]);
+        assert!(ModelConfig::from_toml("gamma = -1.0").is_err());
+        assert!(ModelConfig::from_toml("tau = 3").is_err());
     }
 
     #[test]

@@ -309,3 +309,148 @@ fn experiment_and_plan_commands_report_their_figures() {
         assert!(line.contains(v), "{line}");
     }
 }
+
+#[test]
+fn import_fit_and_predict_a_thermal_test_table() {
+    // Five hours at 60 s: 10000 min^-1 for 3 h, then stopped; ch1 is a 30-min lag, 12 um.
+    let mut csv = String::from("t_s,rpm,ambient,ch1\n");
+    let mut x = 0.0;
+    for i in 0..=300 {
+        let rpm = if i < 180 { 10000.0 } else { 0.0 };
+        csv.push_str(&format!("{},{rpm},20.0,{:.4}\n", i * 60, 12.0 * x));
+        let u = if rpm > 0.0 { 1.0 } else { 0.0 };
+        let a = (-1.0f64 / 30.0).exp();
+        x = a * x + (1.0 - a) * u;
+    }
+    let csv_path = tmp("table.csv");
+    std::fs::write(&csv_path, csv).unwrap();
+    let rec = tmp("table.mcap");
+    let model = tmp("table-model.json");
+    let (ok, out, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv_path.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--time-column",
+        "t_s",
+        "--spindle-column",
+        "rpm",
+        "--temperature-columns",
+        "ambient",
+        "--displacement-columns",
+        "ch1",
+        "--start",
+        "2026-03-02T06:00:00Z",
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("301 rows"), "{out}");
+    let r = read_file(&rec, &ReadOptions::default()).unwrap();
+    assert_eq!(r.displacements.len(), 301);
+    assert_eq!(r.temperatures.len(), 301);
+    assert_eq!(r.info.as_ref().unwrap().machine_id, "table");
+    let (ok, out, err) = run(&[
+        "fit",
+        "--machine",
+        "table_bc",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--until",
+        "3h",
+        "--n-ref-rpm",
+        "10000",
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("ch1"), "{out}");
+    let (ok, out, err) = run(&[
+        "predict",
+        "--model",
+        model.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--step-s",
+        "600",
+        "--json",
+        "--update-until",
+        "3h",
+    ]);
+    assert!(ok, "{err}");
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 31, "every 10 min over 5 h");
+    for l in &lines {
+        let c = &l["values"]["ch1"];
+        assert!(
+            c["value"].is_number() && c["sigma"].as_f64().unwrap() > 0.0,
+            "{l}"
+        );
+        let after = l["t_ns"].as_i64().unwrap()
+            > lines[0]["t_ns"].as_i64().unwrap() + 3 * 3_600_000_000_000;
+        if after {
+            assert_eq!(c["source"], "predicted", "{l}");
+        }
+    }
+    assert_eq!(lines[3]["values"]["ch1"]["source"], "measured");
+    // The cooling after 3 h is predicted from the fit on the heating alone.
+    assert!(
+        err.contains("ch1: 120 readings after the last update"),
+        "{err}"
+    );
+    let rmse: f64 = err
+        .split("RMSE ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .unwrap()
+        .parse()
+        .unwrap();
+    // A 30-min lag between the basis poles (15, 40 min), 4-decimal data: within 1 um of a
+    // 12-um swing, where holding the last reading is 10 um off.
+    assert!(rmse < 1.0, "{err}");
+    // Bad input is named.
+    let (ok, _, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv_path.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--time-column",
+        "t_s",
+        "--spindle-column",
+        "speed",
+    ]);
+    assert!(!ok && err.contains("'speed'"), "{err}");
+    let (ok, _, err) = run(&[
+        "predict",
+        "--model",
+        csv_path.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("not a driftwatch model"), "{err}");
+}
+
+#[test]
+fn the_thermal_model_fits_the_six_errors_of_a_simulated_recording() {
+    let rec = simulated("patent-fit.mcap");
+    let model = tmp("patent-model.json");
+    let (ok, out, err) = run(&[
+        "fit",
+        "--machine",
+        "table_bc",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("model of 6 channel(s)"), "{out}");
+    for e in ["EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"] {
+        assert!(out.contains(e), "{out}");
+    }
+}

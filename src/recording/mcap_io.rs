@@ -262,6 +262,50 @@ impl RecordingWriter<BufWriter<File>> {
     }
 }
 
+/// Writes a whole recording to `path`: `/machine/info` first, then every message of the
+/// contract topics it holds in time order (detections that could not be parsed are left out).
+pub fn write_recording_file(path: &Path, r: &Recording) -> Result<(), RecordingError> {
+    let mut w = RecordingWriter::create_file(path)?;
+    let mut items: Vec<(i64, &str, serde_json::Value)> = Vec::new();
+    let mut push =
+        |t: i64, topic: &'static str, v: Result<serde_json::Value, serde_json::Error>| {
+            if let Ok(v) = v {
+                items.push((t, topic, v));
+            }
+        };
+    for m in &r.states {
+        push(m.t_ns, TOPIC_STATE, serde_json::to_value(&m.msg));
+    }
+    for m in &r.spindle {
+        push(m.t_ns, TOPIC_SPINDLE, serde_json::to_value(&m.msg));
+    }
+    for m in &r.temperatures {
+        push(m.t_ns, TOPIC_TEMPERATURE, serde_json::to_value(&m.msg));
+    }
+    for m in &r.displacements {
+        push(m.t_ns, TOPIC_DISPLACEMENT, serde_json::to_value(&m.msg));
+    }
+    for m in &r.detections {
+        if let Ok(d) = &m.msg {
+            push(m.t_ns, TOPIC_DETECTION, serde_json::to_value(d));
+        }
+    }
+    for m in &r.results {
+        push(m.t_ns, TOPIC_RESULT, serde_json::to_value(&m.msg));
+    }
+    items.sort_by_key(|i| i.0);
+    let t0 = items.first().map_or(0, |i| i.0);
+    if let Some(info) = &r.info {
+        w.write(TOPIC_INFO, t0, info)
+            .map_err(|e| e.with_path(path))?;
+    }
+    for (t, topic, v) in &items {
+        w.write(topic, *t, v).map_err(|e| e.with_path(path))?;
+    }
+    w.finish().map_err(|e| e.with_path(path))?;
+    Ok(())
+}
+
 /// Creates (or truncates) `path` and starts a recording in it; the same as
 /// [`RecordingWriter::create_file`].
 pub fn create_file(path: &Path) -> Result<RecordingWriter<BufWriter<File>>, RecordingError> {

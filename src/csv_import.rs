@@ -1,0 +1,297 @@
+//! `driftwatch import csv`: a table of a thermal test (one row per sample time; columns of
+//! spindle speed, temperatures and displacements) turned into a contract recording: `/spindle`
+//! (min^-1) at every change and at every row while the spindle turns, `/temperature` (deg C) and
+//! `/displacement` (um) at every row. Pure: text in, recording out; a bad cell is skipped and
+//! counted, a bad time refuses the file with its row.
+
+use std::collections::BTreeMap;
+
+use thiserror::Error;
+
+use crate::recording::{
+    DisplacementMsg, MachineInfo, Recording, SpindleMsg, TemperatureMsg, Timed,
+};
+
+#[derive(Debug, Error, PartialEq)]
+pub enum ImportError {
+    #[error("CSV: {0}")]
+    Csv(String),
+    #[error("column '{0}' is not in the header (columns: {1})")]
+    NoColumn(String, String),
+    #[error("row {row}: time '{text}' is not a number of seconds or an RFC 3339 time")]
+    BadTime { row: usize, text: String },
+    #[error("row {row}: time {t_s} s goes back (previous {prev_s} s)")]
+    TimeBack { row: usize, t_s: f64, prev_s: f64 },
+    #[error("{0}")]
+    Options(String),
+}
+
+/// Where each row's time comes from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RowTime {
+    /// Seconds after `start_ns` in this column (or RFC 3339 times).
+    Column(String),
+    /// Row `i` is at `start_ns + i * interval`.
+    Interval(f64),
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct CsvOptions {
+    pub time: RowTime,
+    /// The time of 0 s, ns since the Unix epoch.
+    pub start_ns: i64,
+    pub spindle: Option<String>,
+    pub temperatures: Vec<String>,
+    pub displacements: Vec<String>,
+    pub machine_id: String,
+}
+
+/// The recording and what was skipped (cells that are empty or not numbers, per column).
+#[derive(Debug)]
+pub struct Imported {
+    pub recording: Recording,
+    pub rows: usize,
+    pub skipped: BTreeMap<String, usize>,
+}
+
+pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
+    if o.spindle.is_none() && o.temperatures.is_empty() && o.displacements.is_empty() {
+        return Err(ImportError::Options(
+            "nothing to import: name a spindle, temperature or displacement column".into(),
+        ));
+    }
+    if let RowTime::Interval(s) = o.time
+        && !crate::positive(s)
+    {
+        return Err(ImportError::Options(format!(
+            "--interval-s must be > 0, not {s}"
+        )));
+    }
+    let mut rd = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_reader(text.as_bytes());
+    let header: Vec<String> = rd
+        .headers()
+        .map_err(|e| ImportError::Csv(e.to_string()))?
+        .iter()
+        .map(str::to_string)
+        .collect();
+    let col = |name: &str| -> Result<usize, ImportError> {
+        header
+            .iter()
+            .position(|h| h == name)
+            .ok_or_else(|| ImportError::NoColumn(name.to_string(), header.join(", ")))
+    };
+    let time_col = match &o.time {
+        RowTime::Column(c) => Some(col(c)?),
+        RowTime::Interval(_) => None,
+    };
+    let spindle = o.spindle.as_deref().map(col).transpose()?;
+    let temps: Vec<(String, usize)> = o
+        .temperatures
+        .iter()
+        .map(|c| Ok((c.clone(), col(c)?)))
+        .collect::<Result<_, ImportError>>()?;
+    let disps: Vec<(String, usize)> = o
+        .displacements
+        .iter()
+        .map(|c| Ok((c.clone(), col(c)?)))
+        .collect::<Result<_, ImportError>>()?;
+
+    let mut rec = Recording {
+        info: Some(MachineInfo {
+            machine_id: o.machine_id.clone(),
+            kinematics: String::new(),
+            software: format!("driftwatch {} import csv", env!("CARGO_PKG_VERSION")),
+        }),
+        ..Default::default()
+    };
+    let mut skipped: BTreeMap<String, usize> = BTreeMap::new();
+    let mut prev_t: Option<i64> = None;
+    let mut last_rpm: Option<f64> = None;
+    let mut rows = 0;
+    for (i, r) in rd.records().enumerate() {
+        let row = i + 2; // 1-based, after the header
+        let r = r.map_err(|e| ImportError::Csv(e.to_string()))?;
+        let t_ns = match (&o.time, time_col) {
+            (RowTime::Interval(s), _) => o.start_ns + (i as f64 * s * 1e9).round() as i64,
+            (_, Some(c)) => {
+                let text = r.get(c).unwrap_or("");
+                let t_ns = match text.parse::<f64>() {
+                    Ok(s) if s.is_finite() => o.start_ns + (s * 1e9).round() as i64,
+                    _ => chrono::DateTime::parse_from_rfc3339(text)
+                        .ok()
+                        .and_then(|d| d.timestamp_nanos_opt())
+                        .ok_or_else(|| ImportError::BadTime {
+                            row,
+                            text: text.to_string(),
+                        })?,
+                };
+                if let Some(p) = prev_t
+                    && t_ns < p
+                {
+                    return Err(ImportError::TimeBack {
+                        row,
+                        t_s: (t_ns - o.start_ns) as f64 / 1e9,
+                        prev_s: (p - o.start_ns) as f64 / 1e9,
+                    });
+                }
+                t_ns
+            }
+            _ => unreachable!("a time column is resolved above"),
+        };
+        prev_t = Some(t_ns);
+        rows += 1;
+        let mut num = |name: &str, c: usize| -> Option<f64> {
+            match r.get(c).map(str::parse::<f64>) {
+                Some(Ok(v)) if v.is_finite() => Some(v),
+                _ => {
+                    *skipped.entry(name.to_string()).or_default() += 1;
+                    None
+                }
+            }
+        };
+        if let (Some(c), Some(name)) = (spindle, o.spindle.as_deref())
+            && let Some(rpm) = num(name, c)
+            && (last_rpm != Some(rpm) || rpm != 0.0)
+        {
+            rec.spindle.push(Timed {
+                t_ns,
+                msg: SpindleMsg { rpm },
+            });
+            last_rpm = Some(rpm);
+        }
+        for (name, c) in &temps {
+            if let Some(celsius) = num(name, *c) {
+                rec.temperatures.push(Timed {
+                    t_ns,
+                    msg: TemperatureMsg {
+                        sensor: name.clone(),
+                        celsius,
+                    },
+                });
+            }
+        }
+        for (name, c) in &disps {
+            if let Some(um) = num(name, *c) {
+                rec.displacements.push(Timed {
+                    t_ns,
+                    msg: DisplacementMsg {
+                        sensor: name.clone(),
+                        um,
+                    },
+                });
+            }
+        }
+    }
+    Ok(Imported {
+        recording: rec,
+        rows,
+        skipped,
+    })
+}
+
+/// Comma-separated column lists (`a,b` or repeated flags) as one list.
+pub fn split_columns(args: &[String]) -> Vec<String> {
+    args.iter()
+        .flat_map(|a| a.split(','))
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(str::to_string)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts() -> CsvOptions {
+        CsvOptions {
+            time: RowTime::Column("time_s".into()),
+            start_ns: 1_000_000_000,
+            spindle: Some("rpm".into()),
+            temperatures: vec!["t1".into()],
+            displacements: vec!["ch1".into()],
+            machine_id: "m".into(),
+        }
+    }
+
+    const TEXT: &str = "time_s, rpm, ch1, t1\n0,0,0.1,20\n15,0,0.2,20.1\n30,1000,0.3,\n45,1000,x,20.3\n60,0,0.5,20.4\n";
+
+    #[test]
+    fn rows_become_contract_messages() {
+        let im = import_csv(TEXT, &opts()).unwrap();
+        assert_eq!(im.rows, 5);
+        let rpm: Vec<(i64, f64)> = im
+            .recording
+            .spindle
+            .iter()
+            .map(|m| ((m.t_ns - 1_000_000_000) / 1_000_000_000, m.msg.rpm))
+            .collect();
+        // At every change, and at every row while turning.
+        assert_eq!(rpm, [(0, 0.0), (30, 1000.0), (45, 1000.0), (60, 0.0)]);
+        assert_eq!(im.recording.temperatures.len(), 4);
+        assert_eq!(im.recording.displacements.len(), 4);
+        assert_eq!(im.skipped.get("t1"), Some(&1));
+        assert_eq!(im.skipped.get("ch1"), Some(&1));
+        assert_eq!(im.recording.displacements[3].msg.um, 0.5);
+        let by_interval = CsvOptions {
+            time: RowTime::Interval(10.0),
+            ..opts()
+        };
+        let im = import_csv(TEXT, &by_interval).unwrap();
+        assert_eq!(im.recording.displacements[1].t_ns, 11_000_000_000);
+    }
+
+    #[test]
+    fn bad_input_is_named() {
+        let e = import_csv(
+            TEXT,
+            &CsvOptions {
+                spindle: Some("speed".into()),
+                ..opts()
+            },
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("'speed'"), "{e}");
+        let e = import_csv(
+            "time_s,rpm\n0,1\nsoon,2\n",
+            &CsvOptions {
+                temperatures: vec![],
+                displacements: vec![],
+                ..opts()
+            },
+        )
+        .unwrap_err();
+        assert_eq!(
+            e,
+            ImportError::BadTime {
+                row: 3,
+                text: "soon".into()
+            }
+        );
+        let e = import_csv(
+            "time_s,rpm\n10,1\n5,2\n",
+            &CsvOptions {
+                temperatures: vec![],
+                displacements: vec![],
+                ..opts()
+            },
+        )
+        .unwrap_err();
+        assert!(matches!(e, ImportError::TimeBack { row: 3, .. }), "{e}");
+        let e = import_csv(
+            TEXT,
+            &CsvOptions {
+                time: RowTime::Interval(0.0),
+                ..opts()
+            },
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("interval"), "{e}");
+        assert_eq!(
+            split_columns(&["a,b".into(), " c ".into()]),
+            ["a", "b", "c"]
+        );
+    }
+}
