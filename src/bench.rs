@@ -250,3 +250,68 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
     );
     Ok(ExitCode::SUCCESS)
 }
+
+/// `bench compensation`: the three strategies on four scenarios, each prediction starting from
+/// a model fitted on an earlier simulated day of the same machine.
+pub fn compensation(json: bool) -> Result<ExitCode> {
+    use driftwatch::strategies::{BENCH_SCENARIOS, Comparison, bench_scenario};
+    let mut all: Vec<(String, String, Comparison)> = Vec::new();
+    for (name, start) in BENCH_SCENARIOS {
+        let c = bench_scenario(name).with_context(|| format!("scenario {name}"))?;
+        all.push((name.to_string(), start.to_string(), c));
+    }
+    if json {
+        let v: Vec<serde_json::Value> = all
+            .iter()
+            .map(|(n, s, c)| serde_json::json!({"scenario": n, "model_from": s, "result": c}))
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "residual against the truth, every minute; tool tip at ({}, {}, {}) mm on the table at B {} C {} deg",
+        driftwatch::strategies::REFERENCE_POINT_MM[0],
+        driftwatch::strategies::REFERENCE_POINT_MM[1],
+        driftwatch::strategies::REFERENCE_POINT_MM[2],
+        driftwatch::strategies::REFERENCE_POSE_DEG[0],
+        driftwatch::strategies::REFERENCE_POSE_DEG[1]
+    );
+    for (name, start, c) in &all {
+        println!(
+            "\n{name}: {} min, {} cycles ({} ok); model from {start}",
+            c.minutes, c.cycles, c.cycles_ok
+        );
+        println!(
+            "  {:<9} {:>19} {:>19} {:>19}",
+            "", "none rms / max", "last meas. rms/max", "predicted rms/max"
+        );
+        let names: Vec<&String> = c.none.errors.keys().collect();
+        for n in names {
+            let f = |r: &driftwatch::strategies::StrategyResult| {
+                let s = r.errors[n];
+                format!("{:>8.2} / {:>8.2}", s.rms, s.max)
+            };
+            println!(
+                "  {:<9} {:>19} {:>19} {:>19}",
+                n,
+                f(&c.none),
+                f(&c.last_measured),
+                f(&c.predicted)
+            );
+        }
+        let t = |s: driftwatch::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
+        println!(
+            "  {:<9} {:>19} {:>19} {:>19}",
+            "tool tip",
+            t(c.none.tool_tip),
+            t(c.last_measured.tool_tip),
+            t(c.predicted.tool_tip)
+        );
+        println!(
+            "  thermal error RMS removed at the tool tip: last measured {:.1} %, predicted {:.1} %",
+            100.0 * (1.0 - c.last_measured.tool_tip.rms / c.none.tool_tip.rms),
+            100.0 * c.tool_tip_reduction()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

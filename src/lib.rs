@@ -31,6 +31,7 @@ pub mod series;
 pub mod simulator;
 pub mod source;
 pub mod store;
+pub mod strategies;
 pub mod thermal;
 pub mod thermal_model;
 pub mod webhook;

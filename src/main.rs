@@ -158,6 +158,9 @@ enum Command {
         /// Seconds of load per endpoint (bench http).
         #[arg(long, default_value_t = 10.0)]
         seconds: f64,
+        /// Print JSON (bench compensation).
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -196,6 +199,8 @@ enum BenchWhich {
     Year,
     /// GET /compensation under load next to a trivial endpoint, on loopback.
     Http,
+    /// No compensation, last measured and predicted against the truth on four scenarios.
+    Compensation,
 }
 
 fn main() -> ExitCode {
@@ -315,6 +320,11 @@ fn run(cmd: Command) -> Result<ExitCode> {
             .build()
             .context("starting the async runtime")?
             .block_on(bench::year(days, dir)),
+        Command::Bench {
+            which: BenchWhich::Compensation,
+            json,
+            ..
+        } => bench::compensation(json),
         Command::Bench {
             which: BenchWhich::Http,
             connections,

@@ -17,6 +17,11 @@ pub const BUILTIN_SCENARIOS: &[(&str, &str)] = &[
         "two_shift",
         include_str!("../config/scenarios/two_shift.toml"),
     ),
+    ("monday", include_str!("../config/scenarios/monday.toml")),
+    (
+        "ambient_swing",
+        include_str!("../config/scenarios/ambient_swing.toml"),
+    ),
 ];
 
 #[derive(Debug, Error)]

@@ -146,3 +146,34 @@ fn the_replay_is_causal() {
     };
     assert_ne!(after(&a), after(&b));
 }
+
+#[test]
+fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
+    use driftwatch::strategies::{BENCH_SCENARIOS, bench_scenario};
+    for (name, _) in BENCH_SCENARIOS {
+        let c = bench_scenario(name).unwrap();
+        let ez = c.predicted.errors["EZ0B"];
+        println!(
+            "{name}: EZ0B predicted rms {:.2} max {:.2} um (last measured max {:.2}); tool tip {:.1} % removed",
+            ez.rms,
+            ez.max,
+            c.last_measured.errors["EZ0B"].max,
+            100.0 * c.tool_tip_reduction()
+        );
+        assert_eq!(c.cycles, c.cycles_ok, "{name}");
+        assert!(
+            c.tool_tip_reduction() >= 0.9,
+            "{name}: {:?}",
+            c.predicted.tool_tip
+        );
+        assert!(
+            c.predicted.tool_tip.rms < c.last_measured.tool_tip.rms,
+            "{name}"
+        );
+        if name == "patent" {
+            assert!(ez.max <= 5.0 && ez.rms <= 1.5, "{ez:?}");
+            // What the patent as it is leaves after the stop.
+            assert!(c.last_measured.errors["EZ0B"].max > 40.0);
+        }
+    }
+}

@@ -1,0 +1,352 @@
+//! Compensation strategies against the truth (`driftwatch bench compensation`): on a simulated
+//! day, what is left of each location error, minute by minute, when the NC gets
+//! - no compensation (the cold-state calibration only),
+//! - the last measured values (the patent as it is: each validated cycle, held until the next),
+//! - the thermal model's prediction, corrected by every validated cycle.
+//!
+//! Cycles run when the service's own scheduler would start them (warm-up cadence, after stops,
+//! only while idle), so every strategy sees the same measurements. Pure code.
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+
+use crate::cycle::{CycleChecks, CycleOutcome, process_all};
+use crate::geometry::Vec3;
+use crate::kinematics::Kinematics;
+use crate::phase::{PhaseConfig, PhaseTracker};
+use crate::plan::Plan;
+use crate::scenario::Scenario;
+use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
+use crate::simulator::{SimError, Simulation, simulate};
+use crate::thermal_model::{Event, ModelConfig, Predictor, TemperatureInput, ThermalModel};
+
+const MIN: i64 = 60_000_000_000;
+
+/// Cycle start times (min from the scenario start) that the service's scheduler would choose
+/// for the scenario's program: its policy, its phase tracking, idle windows only.
+pub fn scheduled_cycles(scn: &Scenario, plan: &Plan, policy: &SchedulePolicy) -> Vec<f64> {
+    let Ok(mut phase) = PhaseTracker::new(PhaseConfig::default()) else {
+        return Vec::new();
+    };
+    let mut st = SchedulerState::default();
+    let cycle_min = (plan.machine_time_s / 60.0).ceil() as i64;
+    let mut out = Vec::new();
+    let mut seg = 0;
+    let mut open_until: Option<i64> = None;
+    let mut n = 0;
+    for m in 0..scn.duration_min as i64 {
+        let t = m * MIN;
+        if let Some(end) = open_until
+            && m >= end
+        {
+            st.finished(true, t);
+            let _ = phase.on_cycle(t, false);
+            open_until = None;
+        }
+        while seg < scn.spindle.len() && scn.spindle[seg].at_min <= m as f64 {
+            let s = &scn.spindle[seg];
+            if open_until.is_none() {
+                let _ = phase.on_state(t, s.state);
+                let _ = phase.on_spindle(t, s.rpm);
+            }
+            seg += 1;
+        }
+        if open_until.is_some() {
+            continue;
+        }
+        // The program's state at this minute (after a cycle, the program resumes).
+        if let Some(s) = scn.spindle.iter().rev().find(|s| s.at_min <= m as f64) {
+            let _ = phase.on_state(t, s.state);
+            let _ = phase.on_spindle(t, s.rpm);
+        }
+        let info = phase.phase(t);
+        if let Decision::Start { .. } = decide(policy, &info, &st, t) {
+            n += 1;
+            st.started(n, t);
+            let _ = phase.on_cycle(t, true);
+            open_until = Some(m + cycle_min);
+            out.push(m as f64);
+        }
+    }
+    out
+}
+
+/// The timeline of a simulation for the model: spindle (cycle spins included), temperatures,
+/// and each validated cycle's errors, known from the end of its cycle on.
+pub fn simulation_events(sim: &Simulation, outcomes: &[CycleOutcome]) -> Vec<Event> {
+    let mut ev: Vec<Event> = sim
+        .spindle
+        .iter()
+        .map(|m| Event::Spindle {
+            t_ns: m.t_ns,
+            rpm: m.msg.rpm,
+        })
+        .collect();
+    ev.extend(sim.temperatures.iter().map(|m| Event::Temperature {
+        t_ns: m.t_ns,
+        sensor: m.msg.sensor.clone(),
+        celsius: m.msg.celsius,
+    }));
+    for (o, c) in outcomes.iter().zip(&sim.cycles) {
+        let (true, Some(s)) = (o.is_ok(), &o.solution) else {
+            continue;
+        };
+        let known = c.detections.last().map_or(o.t_ref_ns, |d| d.t_ns);
+        for e in &s.errors {
+            ev.push(Event::Observation {
+                t_ns: known,
+                channel: e.name.clone(),
+                value: e.value,
+                sigma: Some(e.sigma),
+            });
+        }
+    }
+    ev.sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
+    ev
+}
+
+/// Run a scenario and solve every cycle. A scenario without its own cycle times gets the
+/// scheduler's.
+pub fn run_day(
+    scn: &Scenario,
+    k: &Kinematics,
+    plan: &Plan,
+    policy: &SchedulePolicy,
+) -> Result<(Simulation, Vec<CycleOutcome>), SimError> {
+    let mut scn = scn.clone();
+    if scn.cycle_times_min().is_empty() {
+        scn.cycles.at_min = scheduled_cycles(&scn, plan, policy);
+        scn.cycles.every_min = None;
+    }
+    let sim = simulate(&scn, k, plan)?;
+    let mut checks = CycleChecks::new(k);
+    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    let (outcomes, _) = process_all(k, &sim.detection_stream(), &checks);
+    Ok((sim, outcomes))
+}
+
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Stats {
+    pub rms: f64,
+    pub max: f64,
+}
+
+fn stats(v: &[f64]) -> Stats {
+    let n = v.len().max(1) as f64;
+    Stats {
+        rms: (v.iter().map(|x| x * x).sum::<f64>() / n).sqrt(),
+        max: v.iter().fold(0.0, |m, x| m.max(x.abs())),
+    }
+}
+
+/// Residuals of one strategy: per error (um, urad) and the tool-tip position error at the
+/// reference point (um).
+#[derive(Debug, Clone, Serialize)]
+pub struct StrategyResult {
+    pub errors: BTreeMap<String, Stats>,
+    pub tool_tip: Stats,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    pub minutes: usize,
+    pub cycles: usize,
+    pub cycles_ok: usize,
+    pub none: StrategyResult,
+    pub last_measured: StrategyResult,
+    pub predicted: StrategyResult,
+}
+
+impl Comparison {
+    /// The share of the thermal error RMS the prediction removes, for the tool tip.
+    pub fn tool_tip_reduction(&self) -> f64 {
+        1.0 - self.predicted.tool_tip.rms / self.none.tool_tip.rms
+    }
+}
+
+/// Where the tool-tip error is evaluated: a point on the table (mm, table frame) at a pose
+/// (B, C in deg) that every error reaches.
+pub const REFERENCE_POINT_MM: [f64; 3] = [100.0, 100.0, 50.0];
+pub const REFERENCE_POSE_DEG: [f64; 2] = [-45.0, 30.0];
+
+fn tool_tip_um(k: &Kinematics, residual: &BTreeMap<String, f64>) -> f64 {
+    let nominal = k.nominal_state();
+    let mut s = nominal;
+    for (name, v) in residual {
+        if let Some(id) = k.error_id(name) {
+            s.loc[id.axis][id.slot] += v * id.scale();
+        }
+    }
+    let angles = k.angles_from_fields(REFERENCE_POSE_DEG[0], REFERENCE_POSE_DEG[1]);
+    let p = Vec3::new(
+        REFERENCE_POINT_MM[0],
+        REFERENCE_POINT_MM[1],
+        REFERENCE_POINT_MM[2],
+    );
+    let d = k.pose_transform(&s, &angles).point(&p) - k.pose_transform(&nominal, &angles).point(&p);
+    d.norm() * 1000.0
+}
+
+/// Compare the three strategies over the simulated day at the truth's 1-min samples, the
+/// prediction starting from `model`.
+pub fn compare(
+    k: &Kinematics,
+    sim: &Simulation,
+    outcomes: &[CycleOutcome],
+    model: &ThermalModel,
+) -> Comparison {
+    let names = k.identify_names();
+    let events = simulation_events(sim, outcomes);
+    let t0 = sim.truth.first().map_or(0, |t| t.t_ns);
+    let reference: BTreeMap<String, f64> = names
+        .iter()
+        .map(|n| {
+            let v = sim
+                .truth
+                .first()
+                .and_then(|t| t.apparent.get(n))
+                .copied()
+                .unwrap_or(0.0);
+            (n.clone(), v)
+        })
+        .collect();
+    let mut predictor = Predictor::new(model, t0);
+    let mut last: BTreeMap<String, f64> = reference.clone();
+    let mut res: [BTreeMap<String, Vec<f64>>; 3] = Default::default();
+    let mut tips: [Vec<f64>; 3] = Default::default();
+    let mut k_ev = 0;
+    for truth in &sim.truth {
+        while k_ev < events.len() && events[k_ev].t_ns() <= truth.t_ns {
+            let e = &events[k_ev];
+            predictor.apply(e);
+            if let Event::Observation { channel, value, .. } = e {
+                last.insert(channel.clone(), *value);
+            }
+            k_ev += 1;
+        }
+        let predicted: BTreeMap<String, f64> = predictor
+            .predict(truth.t_ns)
+            .into_iter()
+            .map(|p| (p.channel, p.value))
+            .collect();
+        for (i, served) in [&reference, &last, &predicted].into_iter().enumerate() {
+            let mut residual = BTreeMap::new();
+            for n in &names {
+                let t = truth.apparent.get(n).copied().unwrap_or(0.0);
+                // An error the model does not have is served as last measured.
+                let s = served
+                    .get(n)
+                    .or_else(|| last.get(n))
+                    .copied()
+                    .unwrap_or(0.0);
+                residual.insert(n.clone(), t - s);
+                res[i].entry(n.clone()).or_default().push(t - s);
+            }
+            tips[i].push(tool_tip_um(k, &residual));
+        }
+    }
+    let result = |i: usize| StrategyResult {
+        errors: res[i].iter().map(|(n, v)| (n.clone(), stats(v))).collect(),
+        tool_tip: stats(&tips[i]),
+    };
+    Comparison {
+        minutes: sim.truth.len(),
+        cycles: outcomes.len(),
+        cycles_ok: outcomes.iter().filter(|o| o.is_ok()).count(),
+        none: result(0),
+        last_measured: result(1),
+        predicted: result(2),
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error(transparent)]
+    Scenario(#[from] crate::scenario::ScenarioError),
+    #[error(transparent)]
+    Machine(#[from] crate::kinematics::MachineError),
+    #[error(transparent)]
+    Plan(#[from] crate::plan::PlanError),
+    #[error(transparent)]
+    Sim(#[from] SimError),
+    #[error("fitting the earlier day: {0}")]
+    Model(#[from] crate::thermal_model::ModelError),
+}
+
+/// The benchmark's scenarios and what each one's model starts from.
+pub const BENCH_SCENARIOS: [(&str, &str); 4] = [
+    ("patent", "the same test on an earlier day (other noise)"),
+    ("two_shift", "the previous production day (other noise)"),
+    (
+        "monday",
+        "an ordinary day in the same hall (+-1 K, warmest at 13:00)",
+    ),
+    (
+        "ambient_swing",
+        "an ordinary day in the same hall (+-1 K, warmest at 13:00)",
+    ),
+];
+
+/// The model configuration of the benchmark: the default pole basis and the ambient
+/// temperature with lags of 0, 60 and 240 min.
+pub fn bench_model_config() -> ModelConfig {
+    ModelConfig {
+        temperatures: vec![TemperatureInput {
+            sensor: "ambient".into(),
+            taus_min: vec![0.0, 60.0, 240.0],
+        }],
+        ..ModelConfig::default()
+    }
+}
+
+/// One benchmark scenario: fit the model on the earlier day, then compare on the day itself.
+pub fn bench_scenario(name: &str) -> Result<Comparison, BenchError> {
+    let scn = Scenario::load(name)?;
+    let k = Kinematics::load(&scn.machine)?;
+    let plan = Plan::build(&k, &crate::plan::PlanConfig::load(&scn.plan)?)?;
+    let policy = SchedulePolicy::default();
+    let mut earlier = scn.clone();
+    earlier.seed = scn.seed + 1000;
+    if scn.ambient.amplitude_k > 0.0 {
+        earlier.ambient.mean_c = 20.0;
+        earlier.ambient.amplitude_k = 1.0;
+        earlier.ambient.peak_h = 13.0;
+    }
+    let (train_sim, train_out) = run_day(&earlier, &k, &plan, &policy)?;
+    let model = crate::thermal_model::fit(
+        &bench_model_config(),
+        &simulation_events(&train_sim, &train_out),
+        None,
+    )?;
+    let (sim, outcomes) = run_day(&scn, &k, &plan, &policy)?;
+    Ok(compare(&k, &sim, &outcomes, &model))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::recording::MachineStateKind;
+
+    #[test]
+    fn the_scheduled_cycles_fall_in_idle_windows_and_follow_the_stops() {
+        let scn = Scenario::load("two_shift").unwrap();
+        let k = Kinematics::load(&scn.machine).unwrap();
+        let plan = Plan::build(&k, &crate::plan::PlanConfig::load(&scn.plan).unwrap()).unwrap();
+        let times = scheduled_cycles(&scn, &plan, &SchedulePolicy::default());
+        assert!(times.len() >= 10, "{times:?}");
+        for t in &times {
+            let seg = scn.spindle.iter().rev().find(|s| s.at_min <= *t).unwrap();
+            assert_eq!(
+                seg.state,
+                MachineStateKind::Idle,
+                "cycle at {t} min: {seg:?}"
+            );
+        }
+        // Lunch starts at 690 min: cycles at +15 and +30 min.
+        assert!(
+            times.contains(&705.0) && times.contains(&720.0),
+            "{times:?}"
+        );
+    }
+}
