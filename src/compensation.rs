@@ -668,6 +668,175 @@ pub fn offsets(errors: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
         .collect()
 }
 
+/// What the service does with the thermal model's predictions (the `[thermal]` section).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PredictionPolicy {
+    /// Serve predicted sets between cycles at all.
+    pub enabled: bool,
+    /// Validated cycles before the first fit of the model.
+    pub min_cycles: usize,
+    /// Machine time between predicted sets at most, s: a new set goes out when this has passed
+    /// and a value moved by more than the thresholds below.
+    pub refresh_s: f64,
+    pub move_threshold_um: f64,
+    pub move_threshold_urad: f64,
+    /// A predicted value less certain than this is not served (the last set stays and a
+    /// cycle is asked for).
+    pub max_sigma_um: f64,
+    pub max_sigma_urad: f64,
+    /// A cycle is asked for (in the next idle window) once a prediction is less certain than
+    /// this.
+    pub cycle_above_sigma_um: f64,
+    pub cycle_above_sigma_urad: f64,
+    /// The model (pole basis, inputs, offset walk).
+    pub model: crate::thermal_model::ModelConfig,
+}
+
+impl Default for PredictionPolicy {
+    fn default() -> Self {
+        PredictionPolicy {
+            enabled: true,
+            min_cycles: 6,
+            refresh_s: 60.0,
+            move_threshold_um: 0.5,
+            move_threshold_urad: 3.0,
+            max_sigma_um: 5.0,
+            max_sigma_urad: 30.0,
+            cycle_above_sigma_um: 3.0,
+            cycle_above_sigma_urad: 20.0,
+            model: crate::thermal_model::ModelConfig::default(),
+        }
+    }
+}
+
+impl PredictionPolicy {
+    pub fn validate(&self) -> Result<(), String> {
+        for (k, v) in [
+            ("refresh_s", self.refresh_s),
+            ("max_sigma_um", self.max_sigma_um),
+            ("max_sigma_urad", self.max_sigma_urad),
+            ("cycle_above_sigma_um", self.cycle_above_sigma_um),
+            ("cycle_above_sigma_urad", self.cycle_above_sigma_urad),
+        ] {
+            if !positive(v) {
+                return Err(format!("thermal.{k} must be > 0, not {v}"));
+            }
+        }
+        for (k, v) in [
+            ("move_threshold_um", self.move_threshold_um),
+            ("move_threshold_urad", self.move_threshold_urad),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("thermal.{k} must be >= 0, not {v}"));
+            }
+        }
+        if self.min_cycles < 2 {
+            return Err("thermal.min_cycles must be at least 2".into());
+        }
+        self.model.validate().map_err(|e| e.to_string())
+    }
+
+    /// Whether `predicted` differs enough from the served set to be worth a new version.
+    pub fn moved(&self, served: &CompensationSet, predicted: &BTreeMap<String, f64>) -> bool {
+        predicted.iter().any(|(n, v)| {
+            let limit = if is_angular(n) {
+                self.move_threshold_urad
+            } else {
+                self.move_threshold_um
+            };
+            served.errors.get(n).is_none_or(|s| (s - v).abs() > limit)
+        })
+    }
+}
+
+/// The next compensation set from the thermal model's prediction (`value`, `sigma` per
+/// error). Refused, with every reason, when an error is missing or not finite, less certain
+/// than the policy allows, or beyond the believable size. A step beyond the limit (which grows
+/// with the time since the served set, as for measured sets) is ramped: the set moves by the
+/// limit and says so.
+pub fn predicted_set(
+    previous: Option<&CompensationSet>,
+    predicted: &BTreeMap<String, (f64, f64)>,
+    limits: &ValidationLimits,
+    policy: &PredictionPolicy,
+    now_ns: i64,
+    note: &str,
+) -> Result<CompensationSet, Refused> {
+    let mut reasons = Vec::new();
+    let mut errors = BTreeMap::new();
+    let mut sigma = BTreeMap::new();
+    for n in TABLE_BC_ERRORS {
+        let Some(&(v, s)) = predicted.get(n) else {
+            reasons.push(format!("the model does not predict {n}"));
+            continue;
+        };
+        let ang = is_angular(n);
+        let u = if ang { "urad" } else { "um" };
+        if !(v.is_finite() && s.is_finite()) {
+            reasons.push(format!("{n}: predicted value or sigma is not finite"));
+            continue;
+        }
+        let (max_s, max_abs) = if ang {
+            (policy.max_sigma_urad, limits.max_abs_urad)
+        } else {
+            (policy.max_sigma_um, limits.max_abs_um)
+        };
+        if s > max_s {
+            reasons.push(format!(
+                "{n}: predicted sigma {s:.2} {u} over the {max_s} {u} limit: a cycle is needed"
+            ));
+        }
+        if v.abs() > max_abs {
+            reasons.push(format!(
+                "{n}: predicted {v:.1} {u} beyond the believable {max_abs} {u}"
+            ));
+        }
+        errors.insert(n.to_string(), v);
+        sigma.insert(n.to_string(), s);
+    }
+    if let Some(prev) = previous
+        && now_ns < prev.valid_from_ns
+    {
+        reasons.push("a prediction may not lie before the served set".into());
+    }
+    if !reasons.is_empty() {
+        return Err(Refused { reasons });
+    }
+    let version = previous.map_or(Some(1), |p| p.version.checked_add(1));
+    let Some(version) = version else {
+        return Err(Refused {
+            reasons: vec!["no version number after u64::MAX".into()],
+        });
+    };
+    let mut reason = format!("predicted by {note}");
+    if let Some(prev) = previous {
+        let minutes = (now_ns - prev.valid_from_ns) as f64 / 60e9;
+        let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
+        let step_urad = limits.max_step_urad + limits.max_rate_urad_per_min * minutes;
+        let ramped = ramp(prev, &errors, step_um, step_urad);
+        let held: Vec<String> = errors
+            .iter()
+            .filter(|(n, v)| ramped.get(*n).is_some_and(|r| (r - *v).abs() > 1e-9))
+            .map(|(n, v)| format!("{n} {:.1} of {v:.1}", ramped[n]))
+            .collect();
+        if !held.is_empty() {
+            reason.push_str(&format!("; ramped to the step limit: {}", held.join(", ")));
+        }
+        errors = ramped;
+    }
+    Ok(CompensationSet {
+        version,
+        valid_from_ns: now_ns,
+        source: Source::Predicted,
+        cycle: None,
+        offsets: offsets(&errors),
+        errors,
+        sigma,
+        reason,
+    })
+}
+
 /// The served errors moved towards `to` by at most `max_step_um` (positions) or
 /// `max_step_urad` (orientations) per value, so the NC never sees a jump.
 ///
@@ -767,6 +936,58 @@ fn percent(p: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn predictions(v: f64, s: f64) -> BTreeMap<String, (f64, f64)> {
+        TABLE_BC_ERRORS
+            .iter()
+            .map(|n| (n.to_string(), (v, s)))
+            .collect()
+    }
+
+    #[test]
+    fn predicted_sets_are_refused_when_uncertain_and_ramped_over_the_step_limit() {
+        let limits = ValidationLimits::default();
+        let policy = PredictionPolicy::default();
+        let first = predicted_set(None, &predictions(10.0, 1.0), &limits, &policy, 0, "m").unwrap();
+        assert_eq!((first.version, first.source), (1, Source::Predicted));
+        // Too uncertain: refused with the reason, for every error.
+        let e = predicted_set(
+            Some(&first),
+            &predictions(10.0, 6.0),
+            &limits,
+            &policy,
+            60,
+            "m",
+        )
+        .unwrap_err();
+        assert!(
+            e.reasons
+                .iter()
+                .any(|r| r.contains("EZ0B") && r.contains("cycle is needed")),
+            "{e}"
+        );
+        // A jump of 80 um one minute later: 50 + 4 um allowed, the rest waits.
+        let next = predicted_set(
+            Some(&first),
+            &predictions(90.0, 1.0),
+            &limits,
+            &policy,
+            60_000_000_000,
+            "m",
+        )
+        .unwrap();
+        assert!(
+            (next.errors["EZ0B"] - 64.0).abs() < 1e-9,
+            "{:?}",
+            next.errors
+        );
+        assert!(next.reason.contains("ramped"), "{}", next.reason);
+        assert_eq!(next.version, 2);
+        // Orientation errors have their own limit (100 + 10 urad): 90 urad is within it.
+        assert_eq!(next.errors["EA0C"], 90.0);
+        assert!(policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 10.6)])));
+        assert!(!policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 10.4)])));
+    }
 
     const T0: i64 = 1_700_000_000_000_000_000;
 

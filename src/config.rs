@@ -101,6 +101,8 @@ pub struct ServiceConfig {
     pub schedule: SchedulePolicy,
     #[serde(default)]
     pub validation: ValidationLimits,
+    #[serde(default)]
+    pub thermal: crate::compensation::PredictionPolicy,
     #[serde(default = "default_rules")]
     pub alerts: Vec<Rule>,
     /// Where alert events are POSTed.
@@ -181,6 +183,12 @@ impl ServiceConfig {
         }
         if let Err(e) = crate::alerts::validate_rules(&self.alerts) {
             return bad(e.to_string());
+        }
+        if let Err(e) = self.thermal.validate() {
+            return bad(e);
+        }
+        if let Err(e) = self.thermal.validate() {
+            return bad(e);
         }
         for w in &self.webhooks {
             if let Err(e) = w.validate() {

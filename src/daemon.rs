@@ -16,6 +16,7 @@ use crate::compensation::{self, CompensationSet, ValidationLimits};
 use crate::cycle::{CycleChecks, process_cycle};
 use crate::kinematics::Kinematics;
 use crate::link::{LinkEvent, MachineLink};
+use crate::live_model::LiveModel;
 use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
 use crate::plan::Plan;
 use crate::recorder::{Recorder, RecorderError};
@@ -24,6 +25,7 @@ use crate::recording::{
 };
 use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 use crate::store::{DetectionRow, Sample, Store, StoreError};
+use crate::thermal_model::Event;
 
 #[derive(Debug, Error)]
 pub enum DaemonError {
@@ -58,6 +60,15 @@ pub struct MachineView {
     #[serde(skip)]
     pub nc_body: Option<Arc<NcBody>>,
     pub open_alerts: Vec<crate::alerts::Alert>,
+    /// The thermal model: its state, the last prediction, and a copy of the running
+    /// predictor for predictions at a later time.
+    pub model: Option<crate::live_model::ModelView>,
+    pub prediction: Vec<crate::thermal_model::Prediction>,
+    pub prediction_t_ns: Option<i64>,
+    /// Why the last prediction was not served, if it was not.
+    pub prediction_note: Option<String>,
+    #[serde(skip)]
+    pub predictor: Option<Arc<crate::thermal_model::Predictor>>,
     /// Counters for `/metrics`.
     pub cycles_ok: u64,
     pub cycles_rejected: u64,
@@ -96,6 +107,7 @@ pub struct Settings {
     pub schedule: SchedulePolicy,
     pub validation: ValidationLimits,
     pub alert_rules: Vec<Rule>,
+    pub prediction: crate::compensation::PredictionPolicy,
 }
 
 impl Default for Settings {
@@ -105,6 +117,7 @@ impl Default for Settings {
             schedule: SchedulePolicy::default(),
             validation: ValidationLimits::default(),
             alert_rules: crate::alerts::default_rules(),
+            prediction: Default::default(),
         }
     }
 }
@@ -116,6 +129,7 @@ impl Settings {
             schedule: cfg.schedule.clone(),
             validation: cfg.validation.clone(),
             alert_rules: cfg.alerts.clone(),
+            prediction: cfg.thermal.clone(),
         }
     }
 }
@@ -149,6 +163,10 @@ pub struct MachineRuntime {
     /// Every alert event so far (also stored), newest last.
     pub alert_log: Vec<AlertEvent>,
     notifier: crate::webhook::Notifier,
+    thermal: LiveModel,
+    /// Machine time of the last look at the prediction, and the last refusal said.
+    last_prediction_ns: i64,
+    last_refusal: Option<String>,
 }
 
 /// Machine time the per-minute samples are held before they are written together.
@@ -250,6 +268,9 @@ impl MachineRuntime {
             inbox: Arc::new(Mutex::new(Inbox::default())),
             alert_log: Vec::new(),
             notifier: Default::default(),
+            thermal: LiveModel::new(settings.prediction.clone()),
+            last_prediction_ns: i64::MIN,
+            last_refusal: None,
         })
     }
 
@@ -294,6 +315,7 @@ impl MachineRuntime {
         for (by, _) in requests {
             self.sched.request(by, now_ns);
         }
+        self.predict_and_serve(now_ns).await?;
         let phase = self.phase.phase(now_ns);
         let decision = decide(&self.policy, &phase, &self.sched, now_ns);
         let mut next_due = None;
@@ -362,9 +384,18 @@ impl MachineRuntime {
             v.next_due_ns = next_due;
         }
         let mut wake = now_ns + 60_000_000_000;
-        for t in [self.link.next_event_ns(), next_due, phase.changes_at_ns]
-            .into_iter()
-            .flatten()
+        let refresh = self
+            .thermal
+            .is_fitted()
+            .then(|| now_ns + (self.thermal.policy().refresh_s * 1e9) as i64);
+        for t in [
+            self.link.next_event_ns(),
+            next_due,
+            phase.changes_at_ns,
+            refresh,
+        ]
+        .into_iter()
+        .flatten()
         {
             if t > now_ns {
                 wake = wake.min(t);
@@ -377,6 +408,10 @@ impl MachineRuntime {
         match ev {
             LinkEvent::Spindle(m) => {
                 let _ = self.phase.on_spindle(m.t_ns, m.msg.rpm);
+                self.thermal.input(Event::Spindle {
+                    t_ns: m.t_ns,
+                    rpm: m.msg.rpm,
+                });
                 self.record(rec::TOPIC_SPINDLE, m.t_ns, &m.msg).await?;
                 if minute(m.t_ns) != self.last_spindle_minute {
                     self.last_spindle_minute = minute(m.t_ns);
@@ -399,6 +434,11 @@ impl MachineRuntime {
                     .or_insert(i64::MIN);
                 if minute(m.t_ns) != *last {
                     *last = minute(m.t_ns);
+                    self.thermal.input(Event::Temperature {
+                        t_ns: m.t_ns,
+                        sensor: m.msg.sensor.clone(),
+                        celsius: m.msg.celsius,
+                    });
                     self.buffer_sample(Sample::Temperature {
                         t_ns: m.t_ns,
                         sensor: m.msg.sensor,
@@ -474,6 +514,117 @@ impl MachineRuntime {
                 .mcap_file_opened(&self.id, &opened.display().to_string(), t_ns)
                 .await?;
         }
+        Ok(())
+    }
+
+    /// Between cycles: look at the model's prediction every `refresh_s` of machine time, ask
+    /// for a cycle when it is too uncertain, and serve it as a new compensation set when it
+    /// moved and passes the checks. Never during a cycle.
+    async fn predict_and_serve(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        let policy = self.thermal.policy().clone();
+        let refresh_ns = (policy.refresh_s * 1e9) as i64;
+        if !policy.enabled || now_ns < self.last_prediction_ns.saturating_add(refresh_ns) {
+            return Ok(());
+        }
+        let Some(preds) = self.thermal.predict(now_ns) else {
+            return Ok(());
+        };
+        self.last_prediction_ns = now_ns;
+        self.sched.uncertain = match (
+            self.thermal.uncertain(&preds, now_ns),
+            &self.sched.uncertain,
+        ) {
+            (Some(mut u), Some(old)) => {
+                u.since_ns = old.since_ns;
+                Some(u)
+            }
+            (u, _) => u,
+        };
+        let mut note = None;
+        // Not during a cycle, and not in the moment a measured set went out.
+        if self.open.is_none()
+            && let Some(served) = self.served.as_ref().filter(|s| s.valid_from_ns < now_ns)
+        {
+            let values: BTreeMap<String, f64> =
+                preds.iter().map(|p| (p.channel.clone(), p.value)).collect();
+            let with_sigma: BTreeMap<String, (f64, f64)> = preds
+                .iter()
+                .map(|p| (p.channel.clone(), (p.value, p.sigma)))
+                .collect();
+            if policy.moved(served, &values) {
+                let about = format!(
+                    "the thermal model from the spindle log{}",
+                    served
+                        .cycle
+                        .map(|c| format!(", corrected up to cycle {c}"))
+                        .unwrap_or_default()
+                );
+                match compensation::predicted_set(
+                    Some(served),
+                    &with_sigma,
+                    &self.limits,
+                    &policy,
+                    now_ns,
+                    &about,
+                ) {
+                    Ok(mut set) => {
+                        set.cycle = served.cycle;
+                        self.publish_predicted(set, now_ns).await?;
+                        self.last_refusal = None;
+                    }
+                    Err(refused) => {
+                        let why = refused.reasons.join("; ");
+                        if self.last_refusal.as_deref() != Some(&why) {
+                            warn!(machine = %self.id, "predicted set not served: {why}");
+                        }
+                        note = Some(why.clone());
+                        self.last_refusal = Some(why);
+                    }
+                }
+            }
+        }
+        let model = self.thermal.view();
+        let snapshot = self.thermal.snapshot().map(Arc::new);
+        if let Ok(mut v) = self.view.lock() {
+            v.prediction = preds;
+            v.prediction_t_ns = Some(now_ns);
+            v.prediction_note = note;
+            v.model = Some(model);
+            v.predictor = snapshot;
+        }
+        Ok(())
+    }
+
+    async fn publish_predicted(
+        &mut self,
+        set: CompensationSet,
+        now_ns: i64,
+    ) -> Result<(), DaemonError> {
+        let payload = serde_json::to_value(&set).unwrap_or_default();
+        self.store
+            .insert_compensation(
+                &self.id,
+                &crate::store::NewCompensation {
+                    version: set.version as i64,
+                    valid_from_ns: set.valid_from_ns,
+                    source: "predicted",
+                    cycle: set.cycle,
+                    reason: &set.reason,
+                    payload: &payload,
+                },
+            )
+            .await?;
+        self.record(
+            rec::TOPIC_COMPENSATION,
+            now_ns,
+            &compensation::compensation_message(&set),
+        )
+        .await?;
+        if let Ok(mut v) = self.view.lock() {
+            v.nc_body = NcBody::of(&set);
+            v.compensation = Some(set.clone());
+        }
+        self.served = Some(set);
         Ok(())
     }
 
@@ -555,6 +706,11 @@ impl MachineRuntime {
             )
             .await?;
             info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
+            if let (Some(e), Some(sg)) = (&result.errors, &result.sigma)
+                && let Some(note) = self.thermal.observe(now_ns, e, sg)
+            {
+                info!(machine = %self.id, "thermal model: {note}");
+            }
             self.served = Some(set);
         }
 

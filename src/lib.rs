@@ -18,6 +18,7 @@ pub mod geometry;
 pub mod identify;
 pub mod kinematics;
 pub mod link;
+pub mod live_model;
 pub mod measurement;
 pub mod nc_push;
 pub mod patent_relations;

@@ -115,7 +115,7 @@ pub struct OpenCycle {
 }
 
 /// What the scheduler has done on one machine: plain data, to be stored across restarts.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SchedulerState {
     pub last_cycle_start_ns: Option<i64>,
@@ -127,6 +127,16 @@ pub struct SchedulerState {
     pub failures: u32,
     pub pending_request: Option<Request>,
     pub open: Option<OpenCycle>,
+    /// Set while the thermal model's prediction of some error is less certain than its limit:
+    /// from when, and which error.
+    pub uncertain: Option<Uncertain>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Uncertain {
+    pub since_ns: i64,
+    pub error: String,
+    pub sigma: f64,
 }
 
 impl SchedulerState {
@@ -191,6 +201,11 @@ pub enum Reason {
     Steady,
     /// The last good result is older than `max_age_min` (or there is none).
     Stale,
+    /// The thermal model's prediction of an error is less certain than its limit.
+    Uncertain {
+        error: String,
+        sigma: f64,
+    },
     Operator {
         by: String,
     },
@@ -214,6 +229,9 @@ impl fmt::Display for Reason {
             Reason::AfterStop { minutes } => write!(f, "{minutes} min after the spindle stop"),
             Reason::Steady => write!(f, "steady-state cadence"),
             Reason::Stale => write!(f, "the last good result is stale"),
+            Reason::Uncertain { error, sigma } => {
+                write!(f, "the predicted {error} is uncertain (sigma {sigma:.1})")
+            }
             Reason::Operator { by } => write!(f, "requested by {by}"),
             Reason::Retry => write!(f, "retry of a failed cycle"),
             Reason::NotIdle(state) => write!(f, "a cycle is due but the NC is {}", name(*state)),
@@ -378,6 +396,15 @@ fn due_times(
             }
         }
         _ => {}
+    }
+    if let Some(u) = &st.uncertain {
+        dues.push((
+            u.since_ns,
+            Reason::Uncertain {
+                error: u.error.clone(),
+                sigma: u.sigma,
+            },
+        ));
     }
     // A failed attempt counts like a result here: a machine whose cycles keep failing gets its
     // retries, not a cycle every min_spacing_min for as long as it stays stale.
@@ -614,6 +641,49 @@ mod tests {
 
     fn after_stop(minutes: f64) -> Reason {
         Reason::AfterStop { minutes }
+    }
+
+    #[test]
+    fn an_uncertain_prediction_asks_for_a_cycle_in_the_next_idle_window() {
+        let mut t = PhaseTracker::new(PhaseConfig::default()).unwrap();
+        t.on_state(at(0.0), Cutting).unwrap();
+        t.on_spindle(at(0.0), 0.0).unwrap();
+        let mut st = fresh_at(100.0);
+        st.uncertain = Some(Uncertain {
+            since_ns: at(110.0),
+            error: "EZ0B".into(),
+            sigma: 3.4,
+        });
+        let policy = SchedulePolicy::default();
+        // Not while cutting.
+        assert!(matches!(
+            decide(&policy, &t.phase(at(120.0)), &st, at(120.0)),
+            Decision::Wait { .. }
+        ));
+        t.on_state(at(125.0), Idle).unwrap();
+        let d = decide(&policy, &t.phase(at(125.0)), &st, at(125.0));
+        assert_eq!(
+            d,
+            Decision::Start {
+                reason: Reason::Uncertain {
+                    error: "EZ0B".into(),
+                    sigma: 3.4
+                }
+            }
+        );
+        assert!(d_reason(&d).contains("uncertain"));
+        st.uncertain = None;
+        assert!(matches!(
+            decide(&policy, &t.phase(at(125.0)), &st, at(125.0)),
+            Decision::Wait { .. }
+        ));
+    }
+
+    fn d_reason(d: &Decision) -> String {
+        match d {
+            Decision::Start { reason } | Decision::Wait { reason, .. } => reason.to_string(),
+            Decision::Abandon { .. } => String::new(),
+        }
     }
 
     /// The patent's day: spin-up with the NC idle, warm-up, a stop, the machine left idle.

@@ -493,6 +493,23 @@ impl Store {
         Ok(())
     }
 
+    /// Every compensation set of a machine, oldest first: (version, source, cycle).
+    pub async fn compensation_versions(
+        &self,
+        machine: &str,
+    ) -> Result<Vec<(i64, String, Option<i64>)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT version, source, cycle FROM compensation_sets WHERE machine_id = $1
+             ORDER BY version",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?, r.try_get(2)?)))
+            .collect()
+    }
+
     /// The newest compensation set of a machine.
     pub async fn latest_compensation(&self, machine: &str) -> Result<Option<Value>, StoreError> {
         let row = sqlx::query(

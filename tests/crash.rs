@@ -262,10 +262,9 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
     };
     let status = first.child.wait().unwrap();
     assert_eq!(status.signal(), Some(9), "{status}");
-    // One compensation version per validated cycle.
-    assert_eq!(
-        ok_before.len() as u64,
-        seen_version,
+    // At least one compensation version per validated cycle (predicted sets come between).
+    assert!(
+        seen_version >= ok_before.len() as u64,
         "ok cycles {ok_before:?} vs version {seen_version}"
     );
 
