@@ -264,7 +264,7 @@ async fn authenticate(
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
-    paths(ready, machines, machine, compensation, cycles, cycle, errors, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request),
+    paths(ready, machines, machine, compensation, cycles, cycle, errors, model, prediction, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request),
     components(schemas(EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth)
 )]
@@ -291,6 +291,8 @@ pub fn router(state: Shared) -> Router {
         .route("/machines/{id}/cycles", get(cycles).post(request_cycle))
         .route("/machines/{id}/cycles/{n}", get(cycle))
         .route("/machines/{id}/errors", get(errors))
+        .route("/machines/{id}/model", get(model))
+        .route("/machines/{id}/prediction", get(prediction))
         .route("/machines/{id}/alerts", get(alerts))
         .route(
             "/machines/{id}/alerts/{alert}/ack",
@@ -460,6 +462,106 @@ async fn cycle(
         "cycle": row,
         "detections": detections.into_iter().map(|(t, d)| json!({"t_ns": t, "detection": d})).collect::<Vec<_>>(),
         "result": result,
+    })))
+}
+
+#[utoipa::path(get, path = "/api/v1/machines/{id}/model", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the thermal model: status (waiting, fitted, disabled), parameters with their standard uncertainties, fit quality, time constants, data span"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
+async fn model(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let m = handle(&st, &id)?
+        .view
+        .lock()
+        .ok()
+        .and_then(|v| v.model.clone());
+    let Some(m) = m else {
+        return Ok(Json(
+            json!({"status": "starting", "message": "the machine loop has not looked at the model yet"}),
+        ));
+    };
+    let fitted = m.model.as_ref().map(|model| {
+        let channels: Vec<serde_json::Value> = model
+            .channels
+            .iter()
+            .map(|c| {
+                let n = c.coef.len();
+                let sd: Vec<f64> = (0..n).map(|i| c.cov[i * n + i].max(0.0).sqrt()).collect();
+                json!({
+                    "name": c.name,
+                    "parameters": model.columns.iter().zip(c.coef.iter().zip(&sd)).map(|(col, (v, s))| json!({"column": col, "value": v, "sigma": s})).collect::<Vec<_>>(),
+                    "n_obs": c.n_obs,
+                    "rms": c.rms_um,
+                    "chi2_dof": c.chi2_dof,
+                    "discrepancy": c.discrepancy_um,
+                    "ridge": c.ridge,
+                    "held_out_rmse": c.cv_rmse_um,
+                })
+            })
+            .collect();
+        json!({
+            "format": model.format,
+            "spindle_time_constants_min": model.config.taus_min,
+            "temperature_inputs": model.config.temperatures,
+            "n_ref_rpm": model.config.n_ref_rpm,
+            "gamma": model.config.gamma,
+            "offset_walk_um2_per_h": model.config.offset_walk_um2_per_h,
+            "t_ref_c": model.t_ref_c,
+            "data_from_ns": model.from_ns,
+            "data_to_ns": model.to_ns,
+            "data_span_h": (model.to_ns - model.from_ns) as f64 / 3.6e12,
+            "channels": channels,
+        })
+    });
+    Ok(Json(json!({
+        "status": m.status,
+        "message": m.message,
+        "validated_cycles": m.validated_cycles,
+        "updates_since_fit": m.updates_since_fit,
+        "model": fitted,
+    })))
+}
+
+#[derive(Deserialize)]
+struct At {
+    at: Option<i64>,
+}
+
+#[utoipa::path(get, path = "/api/v1/machines/{id}/prediction", params(("id" = String, Path, description = "machine id"), ("at" = Option<i64>, Query, description = "ns since the Unix epoch; default: the loop's last look. Not before it: the model runs forward, with the inputs held")), responses((status = 200, description = "each error's predicted value and standard uncertainty (um, urad)"), (status = 400, description = "a time before the model's last input"), (status = 404, description = "no model fitted yet")), security((), ("bearer" = [])))]
+async fn prediction(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    Query(q): Query<At>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let (snapshot, note) = match handle(&st, &id)?.view.lock() {
+        Ok(v) => (v.predictor.clone(), v.prediction_note.clone()),
+        Err(_) => (None, None),
+    };
+    let Some(p) = snapshot else {
+        return Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "no_model",
+            format!("machine '{id}' has no fitted thermal model yet (see /machines/{id}/model)"),
+        ));
+    };
+    let now = p.t_ns();
+    let at = q.at.unwrap_or(now);
+    if at < now {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "before_last_input",
+            format!(
+                "at = {at} lies before the model's last input ({now}): it predicts forward only; past values are in /machines/{id}/errors"
+            ),
+        ));
+    }
+    let mut p = (*p).clone();
+    let values = p.predict(at);
+    Ok(Json(json!({
+        "t_ns": at,
+        "inputs_held_from_ns": now,
+        "values": values,
+        "served_note": note,
     })))
 }
 

@@ -32,7 +32,7 @@ fn size_of(p: &Path) -> u64 {
 }
 
 /// One simulated machine of the shipped default (two-shift day) on a fresh store in `dir`.
-async fn pipeline(dir: &Path) -> Result<(MachineRuntime, Store, i64)> {
+async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store, i64)> {
     let _ = std::fs::remove_dir_all(dir);
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let cfg = ServiceConfig::load(None)?;
@@ -48,7 +48,8 @@ async fn pipeline(dir: &Path) -> Result<(MachineRuntime, Store, i64)> {
         software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
     };
     let recorder = Recorder::new(&dir.join("mcap"), info, cfg.max_file_mib << 20)?;
-    let settings = Settings::from_config(&cfg);
+    let mut settings = Settings::from_config(&cfg);
+    settings.prediction.enabled = prediction;
     let rt = MachineRuntime::new(
         "sim-1",
         k,
@@ -63,8 +64,8 @@ async fn pipeline(dir: &Path) -> Result<(MachineRuntime, Store, i64)> {
     Ok((rt, store, t0))
 }
 
-pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
-    let (mut rt, store, t0) = pipeline(&dir).await?;
+pub async fn year(days: f64, dir: PathBuf, prediction: bool) -> Result<ExitCode> {
+    let (mut rt, store, t0) = pipeline(&dir, prediction).await?;
     let end = t0 + (days * 86_400e9) as i64;
     let wall = Instant::now();
     let mut now = t0;
@@ -76,13 +77,20 @@ pub async fn year(days: f64, dir: PathBuf) -> Result<ExitCode> {
     rt.shutdown(end).await?;
     let secs = wall.elapsed().as_secs_f64();
     let cycles = store.cycles("sim-1", i64::MAX).await?;
+    let sets = store.compensation_versions("sim-1").await?.len();
     store.close().await;
     let ok = cycles.iter().filter(|c| c.status == "ok").count();
     let db = size_of(&dir.join("driftwatch.db")) + size_of(&dir.join("driftwatch.db-wal"));
     let mcap = size_of(&dir.join("mcap"));
     println!(
-        "{days} simulated days of one machine: {secs:.1} s wall, {steps} loop steps, {} cycles ({ok} ok), database {:.1} MB, MCAP {:.1} MB",
+        "{days} simulated days of one machine{}: {secs:.1} s wall, {steps} loop steps, {} cycles ({ok} ok), {} compensation sets, database {:.1} MB, MCAP {:.1} MB",
+        if prediction {
+            ""
+        } else {
+            " (no predicted sets)"
+        },
         cycles.len(),
+        sets,
         db as f64 / 1e6,
         mcap as f64 / 1e6
     );
@@ -156,7 +164,7 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
     use driftwatch::api::{ApiState, Auth, MachineHandle, router};
     anyhow::ensure!(connections > 0, "--connections must be at least 1");
     anyhow::ensure!(seconds > 0.0, "--seconds must be > 0");
-    let (mut rt, store, t0) = pipeline(&dir).await?;
+    let (mut rt, store, t0) = pipeline(&dir, true).await?;
     // Run the morning until the first validated set exists.
     let mut now = t0;
     while rt.served().is_none() {

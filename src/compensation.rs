@@ -676,6 +676,11 @@ pub struct PredictionPolicy {
     pub enabled: bool,
     /// Validated cycles before the first fit of the model.
     pub min_cycles: usize,
+    /// The model is fitted again on its history after this many more validated cycles
+    /// (between refits the filter corrects it with each cycle).
+    pub refit_every_cycles: usize,
+    /// History the fits use, days.
+    pub history_days: f64,
     /// Machine time between predicted sets at most, s: a new set goes out when this has passed
     /// and a value moved by more than the thresholds below.
     pub refresh_s: f64,
@@ -698,9 +703,11 @@ impl Default for PredictionPolicy {
         PredictionPolicy {
             enabled: true,
             min_cycles: 6,
+            refit_every_cycles: 6,
+            history_days: 7.0,
             refresh_s: 60.0,
-            move_threshold_um: 0.5,
-            move_threshold_urad: 3.0,
+            move_threshold_um: 1.0,
+            move_threshold_urad: 5.0,
             max_sigma_um: 5.0,
             max_sigma_urad: 30.0,
             cycle_above_sigma_um: 3.0,
@@ -712,7 +719,11 @@ impl Default for PredictionPolicy {
 
 impl PredictionPolicy {
     pub fn validate(&self) -> Result<(), String> {
+        if self.refit_every_cycles == 0 {
+            return Err("thermal.refit_every_cycles must be at least 1".into());
+        }
         for (k, v) in [
+            ("history_days", self.history_days),
             ("refresh_s", self.refresh_s),
             ("max_sigma_um", self.max_sigma_um),
             ("max_sigma_urad", self.max_sigma_urad),
@@ -792,8 +803,10 @@ pub fn predicted_set(
                 "{n}: predicted {v:.1} {u} beyond the believable {max_abs} {u}"
             ));
         }
-        errors.insert(n.to_string(), v);
-        sigma.insert(n.to_string(), s);
+        // A prediction means nothing below a nanometre; the rounding keeps the stored sets
+        // short.
+        errors.insert(n.to_string(), (v * 1e3).round() / 1e3);
+        sigma.insert(n.to_string(), (s * 1e3).round() / 1e3);
     }
     if let Some(prev) = previous
         && now_ns < prev.valid_from_ns
@@ -985,8 +998,8 @@ mod tests {
         assert_eq!(next.version, 2);
         // Orientation errors have their own limit (100 + 10 urad): 90 urad is within it.
         assert_eq!(next.errors["EA0C"], 90.0);
-        assert!(policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 10.6)])));
-        assert!(!policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 10.4)])));
+        assert!(policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 11.1)])));
+        assert!(!policy.moved(&first, &BTreeMap::from([("EZ0B".to_string(), 10.9)])));
     }
 
     const T0: i64 = 1_700_000_000_000_000_000;

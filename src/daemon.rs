@@ -527,6 +527,10 @@ impl MachineRuntime {
             return Ok(());
         }
         let Some(preds) = self.thermal.predict(now_ns) else {
+            if let Ok(mut v) = self.view.lock() {
+                v.model = Some(self.thermal.view());
+            }
+            self.last_prediction_ns = now_ns;
             return Ok(());
         };
         self.last_prediction_ns = now_ns;

@@ -28,8 +28,10 @@ pub struct ModelView {
 #[derive(Debug, Clone)]
 pub struct LiveModel {
     policy: PredictionPolicy,
+    /// Inputs and observations of the last `history_days`, for the fits.
     history: Vec<Event>,
     ok_cycles: usize,
+    cycles_since_fit: usize,
     predictor: Option<Predictor>,
     updates: usize,
     message: String,
@@ -46,6 +48,7 @@ impl LiveModel {
             policy,
             history: Vec::new(),
             ok_cycles: 0,
+            cycles_since_fit: 0,
             predictor: None,
             updates: 0,
             message,
@@ -61,12 +64,10 @@ impl LiveModel {
         if !self.policy.enabled {
             return;
         }
-        match &mut self.predictor {
-            Some(p) => {
-                p.apply(&e);
-            }
-            None => self.history.push(e),
+        if let Some(p) = &mut self.predictor {
+            p.apply(&e);
         }
+        self.history.push(e);
     }
 
     /// A validated cycle's errors and uncertainties, known at `t_ns`. Returns a note when
@@ -81,26 +82,33 @@ impl LiveModel {
             return None;
         }
         self.ok_cycles += 1;
-        let obs = errors.iter().map(|(n, v)| Event::Observation {
-            t_ns,
-            channel: n.clone(),
-            value: *v,
-            sigma: sigma.get(n).copied(),
-        });
-        match &mut self.predictor {
-            Some(p) => {
-                for e in obs {
-                    if p.apply(&e) {
-                        self.updates += 1;
-                    }
+        self.cycles_since_fit += 1;
+        let obs: Vec<Event> = errors
+            .iter()
+            .map(|(n, v)| Event::Observation {
+                t_ns,
+                channel: n.clone(),
+                value: *v,
+                sigma: sigma.get(n).copied(),
+            })
+            .collect();
+        if let Some(p) = &mut self.predictor {
+            for e in &obs {
+                if p.apply(e) {
+                    self.updates += 1;
                 }
-                None
-            }
-            None => {
-                self.history.extend(obs);
-                (self.ok_cycles >= self.policy.min_cycles).then(|| self.fit())
             }
         }
+        self.history.extend(obs);
+        let keep_from = t_ns - (self.policy.history_days * 86_400e9) as i64;
+        if self.history.first().is_some_and(|e| e.t_ns() < keep_from) {
+            self.history.retain(|e| e.t_ns() >= keep_from);
+        }
+        let due = match self.predictor {
+            None => self.ok_cycles >= self.policy.min_cycles,
+            Some(_) => self.cycles_since_fit >= self.policy.refit_every_cycles,
+        };
+        due.then(|| self.fit())
     }
 
     fn fit(&mut self) -> String {
@@ -124,6 +132,7 @@ impl LiveModel {
             .retain(|t| seen.contains(t.sensor.as_str()));
         self.history
             .sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
+        self.cycles_since_fit = 0;
         match fit(&cfg, &self.history, None) {
             Ok(model) => {
                 let t0 = self.history.first().map_or(0, Event::t_ns);
@@ -137,9 +146,15 @@ impl LiveModel {
                     .map(|c| format!("{} {:.2}", c.name, c.rms_um))
                     .collect::<Vec<_>>()
                     .join(", ");
+                let cycles = self
+                    .history
+                    .iter()
+                    .filter(
+                        |e| matches!(e, Event::Observation { channel, .. } if channel == "EZ0B"),
+                    )
+                    .count();
                 self.message = format!(
-                    "fitted on {} validated cycles over {:.1} h; residual rms {worst}{}",
-                    self.ok_cycles,
+                    "fitted on {cycles} validated cycles over {:.1} h; residual rms {worst}{}",
                     (model.to_ns - model.from_ns) as f64 / 3.6e12,
                     if missing.is_empty() {
                         String::new()
@@ -148,7 +163,7 @@ impl LiveModel {
                     }
                 );
                 self.predictor = Some(p);
-                self.history = Vec::new();
+                self.updates = 0;
                 self.message.clone()
             }
             Err(e) => {
@@ -203,7 +218,7 @@ impl LiveModel {
             },
             message: self.message.clone(),
             validated_cycles: self.ok_cycles,
-            model: self.predictor.as_ref().map(|p| Arc::new(p.model.clone())),
+            model: self.predictor.as_ref().map(|p| p.model.clone()),
             updates_since_fit: self.updates,
         }
     }
@@ -255,6 +270,21 @@ mod tests {
         assert!(note.contains("not logged, left out: ambient"), "{note}");
         let v = m.view();
         assert_eq!((v.status.as_str(), v.updates_since_fit), ("fitted", 12));
+        // Six cycles after the first fit, it is fitted again on the whole history.
+        for i in 6..10 {
+            let t = (i * 30 + 5) * MIN;
+            let errors: BTreeMap<String, f64> = TABLE_BC_ERRORS
+                .iter()
+                .map(|n| (n.to_string(), 40.0))
+                .collect();
+            let sigma = TABLE_BC_ERRORS
+                .iter()
+                .map(|n| (n.to_string(), 0.3))
+                .collect();
+            let refit = m.observe(t, &errors, &sigma);
+            assert_eq!(refit.is_some(), i == 9, "cycle {i}: {refit:?}");
+        }
+        assert_eq!(m.view().updates_since_fit, 0);
         let p = m.predict(180 * MIN).unwrap();
         let ez = p.iter().find(|p| p.channel == "EZ0B").unwrap();
         assert!((ez.value - 40.0).abs() < 1.0, "{ez:?}");

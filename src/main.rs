@@ -161,6 +161,9 @@ enum Command {
         /// Print JSON (bench compensation).
         #[arg(long)]
         json: bool,
+        /// Serve predicted sets between cycles (bench year): on or off.
+        #[arg(long, default_value = "on", value_parser = ["on", "off"])]
+        prediction: String,
     },
 }
 
@@ -314,12 +317,13 @@ fn run(cmd: Command) -> Result<ExitCode> {
             which: BenchWhich::Year,
             days,
             dir,
+            prediction,
             ..
         } => tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .context("starting the async runtime")?
-            .block_on(bench::year(days, dir)),
+            .block_on(bench::year(days, dir, prediction == "on")),
         Command::Bench {
             which: BenchWhich::Compensation,
             json,

@@ -64,6 +64,9 @@ pub struct ModelConfig {
     /// Random walk of the offset between observations, um^2 per hour: how fast the model's
     /// prediction loses credit without a measurement.
     pub offset_walk_um2_per_h: f64,
+    /// Prior standard deviation of every gain (um per unit input): what the data must
+    /// overrule. Thermal errors of tens of um make 100 um a weak but physical bound.
+    pub prior_gain_sd: f64,
 }
 
 impl Default for ModelConfig {
@@ -76,6 +79,7 @@ impl Default for ModelConfig {
             instant_speed: false,
             ridge_grid: vec![0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0],
             offset_walk_um2_per_h: 1.0,
+            prior_gain_sd: 100.0,
         }
     }
 }
@@ -106,6 +110,9 @@ impl ModelConfig {
         }
         if self.ridge_grid.is_empty() || self.ridge_grid.iter().any(|x| !crate::non_negative(*x)) {
             return bad("ridge_grid needs values >= 0".into());
+        }
+        if !crate::positive(self.prior_gain_sd) {
+            return bad("prior_gain_sd must be > 0".into());
         }
         if !crate::non_negative(self.offset_walk_um2_per_h) {
             return bad("offset_walk_um2_per_h must be >= 0".into());
@@ -236,33 +243,28 @@ impl Features {
         self.t_ns
     }
 
-    fn heat(&self) -> f64 {
-        (self.rpm.abs() / self.cfg.n_ref_rpm).powf(self.cfg.gamma)
-    }
-
-    fn deviation(&self, sensor: &str) -> f64 {
-        match (self.temps.get(sensor), self.t_ref_c.get(sensor)) {
-            (Some(t), Some(r)) => t - r,
-            _ => 0.0,
+    /// Visit every state with the input it follows and its time constant in seconds (0: no
+    /// lag), in column order, without allocating (this runs for every event).
+    fn for_each_state(&mut self, mut f: impl FnMut(&mut f64, f64, f64)) {
+        let heat = (self.rpm.abs() / self.cfg.n_ref_rpm).powf(self.cfg.gamma);
+        let mut i = 0;
+        for t in &self.cfg.taus_min {
+            f(&mut self.x[i], heat, t * 60.0);
+            i += 1;
         }
-    }
-
-    /// The inputs each state follows, with its time constant in seconds (0: no lag).
-    fn targets(&self) -> Vec<(f64, f64)> {
-        let mut v: Vec<(f64, f64)> = self
-            .cfg
-            .taus_min
-            .iter()
-            .map(|t| (self.heat(), t * 60.0))
-            .collect();
         for s in &self.cfg.temperatures {
-            let d = self.deviation(&s.sensor);
-            v.extend(s.taus_min.iter().map(|t| (d, t * 60.0)));
+            let d = match (self.temps.get(&s.sensor), self.t_ref_c.get(&s.sensor)) {
+                (Some(t), Some(r)) => t - r,
+                _ => 0.0,
+            };
+            for t in &s.taus_min {
+                f(&mut self.x[i], d, t * 60.0);
+                i += 1;
+            }
         }
         if self.cfg.instant_speed {
-            v.push(((self.rpm / self.cfg.n_ref_rpm).powi(2), 0.0));
+            f(&mut self.x[i], (self.rpm / self.cfg.n_ref_rpm).powi(2), 0.0);
         }
-        v
     }
 
     /// Advance to `t_ns` with the inputs held (exact zero-order hold). Time never runs back.
@@ -271,25 +273,23 @@ impl Features {
             return;
         }
         let dt = (t_ns - self.t_ns) as f64 / 1e9;
-        let targets = self.targets();
-        for (x, (u, tau)) in self.x.iter_mut().zip(targets) {
+        self.for_each_state(|x, u, tau| {
             if tau <= 0.0 {
                 *x = u;
             } else {
                 let a = (-dt / tau).exp();
                 *x = a * *x + (1.0 - a) * u;
             }
-        }
+        });
         self.t_ns = t_ns;
     }
 
     fn refresh_instant(&mut self) {
-        let targets = self.targets();
-        for (x, (u, tau)) in self.x.iter_mut().zip(targets) {
+        self.for_each_state(|x, u, tau| {
             if tau <= 0.0 {
                 *x = u;
             }
-        }
+        });
     }
 
     pub fn set_rpm(&mut self, t_ns: i64, rpm: f64) {
@@ -386,11 +386,8 @@ pub struct ThermalModel {
 
 pub const MODEL_FORMAT: &str = "driftwatch.thermal_model.v1";
 
-/// Weak prior: standard deviation of the offset and of every other parameter (um, or um per
-/// unit input). Wide against any thermal error, narrow enough to keep an input the data never
-/// moved from making the normal matrix singular.
+/// Weak prior of the offset, um (the gains' is configured): wide against any machine.
 const PRIOR_SD_OFFSET: f64 = 1e4;
-const PRIOR_SD_GAIN: f64 = 1e3;
 /// Blocks of the time-ordered data for cross-validation.
 const CV_BLOCKS: usize = 5;
 
@@ -515,7 +512,7 @@ fn fit_channel(
             let sd = if j == 0 {
                 PRIOR_SD_OFFSET
             } else {
-                PRIOR_SD_GAIN
+                cfg.prior_gain_sd
             };
             1.0 / (sd * sd)
         })
@@ -538,7 +535,10 @@ fn fit_channel(
             })
             .collect()
     };
-    let dof = (obs.len() as f64 - n as f64).max(1.0);
+    // Parameters the data determine (the rest stay at their prior): at most the observations.
+    let dof = obs.len() as f64 - n as f64;
+    let determined = dof >= 1.0;
+    let dof = dof.max(1.0);
     // The discrepancy that makes chi2/dof = 1 for a given ridge (0 when the stated
     // uncertainties already explain the scatter); a few passes settle the weights.
     let discrepancy = |k: f64| -> Result<f64, ModelError> {
@@ -560,7 +560,15 @@ fn fit_channel(
                     .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
                     .sum()
             };
-            if obs.iter().all(|o| o.sigma.is_none()) {
+            if !determined {
+                // Fewer observations than parameters: the residuals say nothing about the
+                // model's scatter; the posterior covariance carries the uncertainty.
+                d2 = if obs.iter().all(|o| o.sigma.is_none()) {
+                    1.0
+                } else {
+                    0.0
+                };
+            } else if obs.iter().all(|o| o.sigma.is_none()) {
                 d2 = r2.iter().map(|x| x.0).sum::<f64>() / dof;
             } else if chi(0.0) <= dof {
                 d2 = 0.0;
@@ -578,10 +586,17 @@ fn fit_channel(
     };
     let d2 = discrepancy(0.0)?;
     let w = weights(d2);
-    // Blocked cross-validation over contiguous stretches of time.
+    // Blocked cross-validation over contiguous stretches of time, when there are enough
+    // observations for each held-out block to say something (two per block); else the prior
+    // alone regularises.
     let blocks = CV_BLOCKS.min(obs.len());
     let mut best = (f64::INFINITY, 0.0);
-    for &k in &cfg.ridge_grid {
+    let grid: &[f64] = if obs.len() >= 2 * CV_BLOCKS {
+        &cfg.ridge_grid
+    } else {
+        &[0.0]
+    };
+    for &k in grid {
         let mut sse = 0.0;
         let mut count = 0usize;
         for b in 0..blocks {
@@ -655,7 +670,7 @@ struct ChannelState {
 /// The model run forward in time, corrected by every observation (Kalman filter).
 #[derive(Debug, Clone)]
 pub struct Predictor {
-    pub model: ThermalModel,
+    pub model: std::sync::Arc<ThermalModel>,
     features: Features,
     channels: BTreeMap<String, ChannelState>,
     walk_per_s: f64,
@@ -683,7 +698,7 @@ impl Predictor {
             features: Features::new(&model.config, &model.t_ref_c, t0_ns),
             channels,
             walk_per_s: model.config.offset_walk_um2_per_h / 3600.0,
-            model: model.clone(),
+            model: std::sync::Arc::new(model.clone()),
         }
     }
 

@@ -352,3 +352,68 @@ async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
     assert_eq!(s, StatusCode::BAD_REQUEST);
     assert_eq!(body["code"], "bad_window");
 }
+
+#[tokio::test]
+async fn the_model_and_its_predictions_are_served() {
+    let (mut rt, t0, store) = runtime("model").await;
+    let app = app(&rt, store.clone(), true);
+    run_to(&mut rt, t0, t0 + 20 * MIN).await;
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/model")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(body["status"], "waiting", "{body}");
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/prediction")).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::NOT_FOUND, Some("no_model"))
+    );
+    // The patent day: a cycle every 30 min, so six validated cycles by about 150 min.
+    run_to(&mut rt, t0 + 20 * MIN, t0 + 200 * MIN).await;
+    let (_, _, body) = call(&app, get("/api/v1/machines/m1/model")).await;
+    assert_eq!(body["status"], "fitted", "{body}");
+    let channels = body["model"]["channels"].as_array().unwrap();
+    assert_eq!(channels.len(), 6);
+    assert_eq!(
+        body["model"]["spindle_time_constants_min"],
+        serde_json::json!([6.0, 15.0, 40.0, 100.0, 250.0, 600.0])
+    );
+    let (s, _, now) = call(&app, get("/api/v1/machines/m1/prediction")).await;
+    assert_eq!(s, StatusCode::OK, "{now}");
+    let t = now["t_ns"].as_i64().unwrap();
+    let sigma = |b: &Value, e: &str| -> f64 {
+        b["values"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|v| v["channel"] == e)
+            .unwrap()["sigma"]
+            .as_f64()
+            .unwrap()
+    };
+    // Later, with no measurement in between, the prediction is less certain.
+    let (_, _, later) = call(
+        &app,
+        get(&format!(
+            "/api/v1/machines/m1/prediction?at={}",
+            t + 120 * MIN
+        )),
+    )
+    .await;
+    assert!(sigma(&later, "EZ0B") > sigma(&now, "EZ0B"), "{now} {later}");
+    let (s, _, body) = call(
+        &app,
+        get(&format!("/api/v1/machines/m1/prediction?at={}", t - MIN)),
+    )
+    .await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("before_last_input"))
+    );
+    // Predicted sets are served between cycles, with their source.
+    let sets = store.compensation_versions("m1").await.unwrap();
+    assert!(sets.iter().any(|s| s.1 == "predicted"), "{sets:?}");
+    let (_, _, comp) = call(&app, get("/api/v1/machines/m1/compensation")).await;
+    assert!(
+        comp["source"] == "predicted" || comp["source"] == "measured",
+        "{comp}"
+    );
+}
