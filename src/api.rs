@@ -570,9 +570,10 @@ struct Window {
     from: Option<i64>,
     to: Option<i64>,
     every: Option<String>,
+    source: Option<String>,
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch"), ("every" = Option<String>, Query, description = "bucket width: seconds or a number with s, m, h or d (15m, 1h); each bucket gives per error n, the inverse-variance weighted mean, its sigma, min, max and the last cycle")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time, or their buckets with `every`"), (status = 400, description = "from after to, or a bad `every`")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch"), ("source" = Option<String>, Query, description = "measured (validated cycles), predicted (the thermal model's served sets) or all (default); every value says its source"), ("every" = Option<String>, Query, description = "bucket width: seconds or a number with s, m, h or d (15m, 1h); each bucket gives per error n, the inverse-variance weighted mean, its sigma, min, max and the last cycle")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time, or their buckets with `every`"), (status = 400, description = "from after to, or a bad `every`")), security((), ("bearer" = [])))]
 async fn errors(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -592,7 +593,22 @@ async fn errors(
         Some(Ok(e)) => Some(e),
         Some(Err(m)) => return Err(ApiError::new(StatusCode::BAD_REQUEST, "bad_every", m)),
     };
-    let samples = st.store.error_series(&id, from, to).await?;
+    let (measured, predicted) = match w.source.as_deref().unwrap_or("all") {
+        "all" => (true, true),
+        "measured" => (true, false),
+        "predicted" => (false, true),
+        other => {
+            return Err(ApiError::new(
+                StatusCode::BAD_REQUEST,
+                "bad_source",
+                format!("source = '{other}': use measured, predicted or all"),
+            ));
+        }
+    };
+    let samples = st
+        .store
+        .error_series(&id, from, to, measured, predicted)
+        .await?;
     Ok(Json(match every {
         None => json!(samples),
         Some(e) => json!(crate::series::downsample(&samples, e)),

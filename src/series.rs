@@ -5,22 +5,27 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
-/// One value of one error at a cycle's reference time.
+/// One value of one error: measured (at a cycle's reference time) or predicted (when the
+/// service served it).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ErrorSample {
     pub t_ns: i64,
+    /// The cycle that measured it, or the last cycle before a prediction.
     pub cycle: i64,
     pub name: String,
     pub value: f64,
     pub sigma: f64,
+    /// `measured` or `predicted`.
+    pub source: String,
 }
 
-/// The samples of one error that fall in one bucket.
+/// The samples of one error and source that fall in one bucket.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ErrorBucket {
     /// Start of the bucket (a multiple of its width since the Unix epoch), ns.
     pub t_ns: i64,
     pub name: String,
+    pub source: String,
     pub n: usize,
     /// Inverse-variance weighted mean of the values in the bucket.
     pub value: f64,
@@ -74,10 +79,10 @@ pub fn downsample(samples: &[ErrorSample], every_ns: i64) -> Vec<ErrorBucket> {
         max: f64,
         last_cycle: i64,
     }
-    let mut acc: BTreeMap<(i64, &str), Acc> = BTreeMap::new();
+    let mut acc: BTreeMap<(i64, &str, &str), Acc> = BTreeMap::new();
     for s in samples {
         let start = s.t_ns.div_euclid(every_ns) * every_ns;
-        let a = acc.entry((start, &s.name)).or_insert(Acc {
+        let a = acc.entry((start, &s.name, &s.source)).or_insert(Acc {
             min: f64::INFINITY,
             max: f64::NEG_INFINITY,
             ..Default::default()
@@ -97,9 +102,10 @@ pub fn downsample(samples: &[ErrorSample], every_ns: i64) -> Vec<ErrorBucket> {
         a.last_cycle = a.last_cycle.max(s.cycle);
     }
     acc.into_iter()
-        .map(|((t_ns, name), a)| ErrorBucket {
+        .map(|((t_ns, name, source), a)| ErrorBucket {
             t_ns,
             name: name.to_string(),
+            source: source.to_string(),
             n: a.n,
             value: a.wx / a.w,
             sigma: (1.0 / a.w).sqrt(),
@@ -123,6 +129,7 @@ mod tests {
             name: name.into(),
             value,
             sigma,
+            source: "measured".into(),
         }
     }
 

@@ -449,35 +449,76 @@ impl Store {
         }
     }
 
-    /// Validated error values between two times, oldest first.
+    /// Validated error values between two times, oldest first: the measured values of `ok`
+    /// cycles and, with `predicted`, the values of every predicted set the service served.
     pub async fn error_series(
         &self,
         machine: &str,
         from_ns: i64,
         to_ns: i64,
+        measured: bool,
+        predicted: bool,
     ) -> Result<Vec<ErrorSample>, StoreError> {
-        let rows = sqlx::query(
-            "SELECT v.t_ns, v.cycle, v.name, v.value, v.sigma FROM result_values v
-             JOIN results r ON r.machine_id = v.machine_id AND r.cycle = v.cycle
-             WHERE v.machine_id = $1 AND v.t_ns >= $2 AND v.t_ns <= $3 AND r.status = 'ok'
-             ORDER BY v.t_ns, v.name",
-        )
-        .bind(machine)
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch_all(&self.pool)
-        .await?;
-        rows.iter()
-            .map(|r| {
-                Ok(ErrorSample {
+        let mut out = Vec::new();
+        if measured {
+            let rows = sqlx::query(
+                "SELECT v.t_ns, v.cycle, v.name, v.value, v.sigma FROM result_values v
+                 JOIN results r ON r.machine_id = v.machine_id AND r.cycle = v.cycle
+                 WHERE v.machine_id = $1 AND v.t_ns >= $2 AND v.t_ns <= $3 AND r.status = 'ok'
+                 ORDER BY v.t_ns, v.name",
+            )
+            .bind(machine)
+            .bind(from_ns)
+            .bind(to_ns)
+            .fetch_all(&self.pool)
+            .await?;
+            for r in &rows {
+                out.push(ErrorSample {
                     t_ns: r.try_get(0)?,
                     cycle: r.try_get(1)?,
                     name: r.try_get(2)?,
                     value: r.try_get(3)?,
                     sigma: r.try_get(4)?,
-                })
-            })
-            .collect()
+                    source: "measured".into(),
+                });
+            }
+        }
+        if predicted {
+            let rows = sqlx::query(
+                "SELECT valid_from_ns, cycle, payload FROM compensation_sets
+                 WHERE machine_id = $1 AND source = 'predicted'
+                   AND valid_from_ns >= $2 AND valid_from_ns <= $3
+                 ORDER BY valid_from_ns",
+            )
+            .bind(machine)
+            .bind(from_ns)
+            .bind(to_ns)
+            .fetch_all(&self.pool)
+            .await?;
+            for r in &rows {
+                let t_ns: i64 = r.try_get(0)?;
+                let cycle: Option<i64> = r.try_get(1)?;
+                let payload: String = r.try_get(2)?;
+                let v: Value = serde_json::from_str(&payload)?;
+                let (Some(errors), sigma) = (v["errors"].as_object(), &v["sigma"]) else {
+                    continue;
+                };
+                for (name, value) in errors {
+                    if let Some(value) = value.as_f64() {
+                        out.push(ErrorSample {
+                            t_ns,
+                            cycle: cycle.unwrap_or(0),
+                            name: name.clone(),
+                            value,
+                            sigma: sigma[name].as_f64().unwrap_or(f64::NAN),
+                            source: "predicted".into(),
+                        });
+                    }
+                }
+            }
+        }
+        out.sort_by(|a, b| a.t_ns.cmp(&b.t_ns).then_with(|| a.name.cmp(&b.name)));
+        Ok(out)
     }
 
     /// Store a new compensation set; versions must increase (the primary key refuses a
@@ -817,7 +858,7 @@ mod tests {
             .await
             .unwrap();
         // Only validated values make the series.
-        let series = store.error_series("m1", 0, i64::MAX).await.unwrap();
+        let series = store.error_series("m1", 0, i64::MAX, true, true).await.unwrap();
         assert_eq!(series.len(), 2);
         assert!(series.iter().all(|s| s.cycle == 1));
         let cycles = store.cycles("m1", 10).await.unwrap();

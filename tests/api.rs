@@ -300,15 +300,33 @@ async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
     let (mut rt, t0, store) = runtime("series").await;
     run_to(&mut rt, t0, t0 + 240 * MIN).await;
     let app = app(&rt, store, true);
-    let (s, _, all) = call(&app, get("/api/v1/machines/m1/errors")).await;
+    let (s, _, all) = call(&app, get("/api/v1/machines/m1/errors?source=measured")).await;
     assert_eq!(s, StatusCode::OK);
     let all = all.as_array().unwrap().clone();
+    assert!(all.iter().all(|v| v["source"] == "measured"));
+    // The thermal model's served values come as a second series, and `all` is both.
+    let (_, _, pred) = call(&app, get("/api/v1/machines/m1/errors?source=predicted")).await;
+    let pred = pred.as_array().unwrap().clone();
+    assert!(!pred.is_empty() && pred.iter().all(|v| v["source"] == "predicted"));
+    let (_, _, both) = call(&app, get("/api/v1/machines/m1/errors")).await;
+    assert_eq!(both.as_array().unwrap().len(), all.len() + pred.len());
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/errors?source=guessed")).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_source"))
+    );
     let ez: Vec<&Value> = all.iter().filter(|v| v["name"] == "EZ0B").collect();
     assert!(ez.len() >= 4, "{} EZ0B values", ez.len());
     assert_eq!(all.len(), 6 * ez.len(), "six errors per validated cycle");
     // A window keeps the samples inside it.
     let mid = ez[ez.len() / 2]["t_ns"].as_i64().unwrap();
-    let (_, _, later) = call(&app, get(&format!("/api/v1/machines/m1/errors?from={mid}"))).await;
+    let (_, _, later) = call(
+        &app,
+        get(&format!(
+            "/api/v1/machines/m1/errors?source=measured&from={mid}"
+        )),
+    )
+    .await;
     let later = later.as_array().unwrap();
     assert!(later.iter().all(|v| v["t_ns"].as_i64().unwrap() >= mid));
     assert_eq!(
@@ -319,7 +337,11 @@ async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
     );
     // Hourly buckets: every EZ0B sample lands in exactly one, the counts add up, and each
     // mean lies within its bucket's range.
-    let (s, _, hourly) = call(&app, get("/api/v1/machines/m1/errors?every=1h")).await;
+    let (s, _, hourly) = call(
+        &app,
+        get("/api/v1/machines/m1/errors?source=measured&every=1h"),
+    )
+    .await;
     assert_eq!(s, StatusCode::OK);
     let buckets: Vec<&Value> = hourly
         .as_array()
