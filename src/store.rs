@@ -858,7 +858,10 @@ mod tests {
             .await
             .unwrap();
         // Only validated values make the series.
-        let series = store.error_series("m1", 0, i64::MAX, true, true).await.unwrap();
+        let series = store
+            .error_series("m1", 0, i64::MAX, true, true)
+            .await
+            .unwrap();
         assert_eq!(series.len(), 2);
         assert!(series.iter().all(|s| s.cycle == 1));
         let cycles = store.cycles("m1", 10).await.unwrap();
