@@ -479,13 +479,8 @@ impl MachineRuntime {
     /// `SAMPLE_BATCH_NS` of machine time (a crash loses at most that much of the per-minute
     /// series; the raw stream is in the recording).
     async fn buffer_sample(&mut self, s: Sample) -> Result<(), DaemonError> {
-        let t = match &s {
-            Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. } => *t_ns,
-        };
-        let first = match self.samples.first() {
-            Some(Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. }) => *t_ns,
-            None => t,
-        };
+        let t = s.t_ns();
+        let first = self.samples.first().map_or(t, Sample::t_ns);
         self.samples.push(s);
         if t - first >= SAMPLE_BATCH_NS {
             self.flush_samples().await?;
@@ -521,11 +516,14 @@ impl MachineRuntime {
     /// for a cycle when it is too uncertain, and serve it as a new compensation set when it
     /// moved and passes the checks. Never during a cycle.
     async fn predict_and_serve(&mut self, now_ns: i64) -> Result<(), DaemonError> {
-        let policy = self.thermal.policy().clone();
-        let refresh_ns = (policy.refresh_s * 1e9) as i64;
-        if !policy.enabled || now_ns < self.last_prediction_ns.saturating_add(refresh_ns) {
+        // This runs at every step: the policy is only copied once a look is due.
+        let refresh_ns = (self.thermal.policy().refresh_s * 1e9) as i64;
+        if !self.thermal.policy().enabled
+            || now_ns < self.last_prediction_ns.saturating_add(refresh_ns)
+        {
             return Ok(());
         }
+        let policy = self.thermal.policy().clone();
         let Some(preds) = self.thermal.predict(now_ns) else {
             if let Ok(mut v) = self.view.lock() {
                 v.model = Some(self.thermal.view());
@@ -606,17 +604,7 @@ impl MachineRuntime {
     ) -> Result<(), DaemonError> {
         let payload = serde_json::to_value(&set).unwrap_or_default();
         self.store
-            .insert_compensation(
-                &self.id,
-                &crate::store::NewCompensation {
-                    version: set.version as i64,
-                    valid_from_ns: set.valid_from_ns,
-                    source: "predicted",
-                    cycle: set.cycle,
-                    reason: &set.reason,
-                    payload: &payload,
-                },
-            )
+            .insert_compensation(&self.id, &crate::store::NewCompensation::of(&set, &payload))
             .await?;
         self.record(
             rec::TOPIC_COMPENSATION,
@@ -689,14 +677,7 @@ impl MachineRuntime {
             .as_ref()
             .map(|s| serde_json::to_value(s).unwrap_or_default());
         let stored = match (&new_set, &payload) {
-            (Some(set), Some(p)) => Some(crate::store::NewCompensation {
-                version: set.version as i64,
-                valid_from_ns: set.valid_from_ns,
-                source: "measured",
-                cycle: set.cycle,
-                reason: &set.reason,
-                payload: p,
-            }),
+            (Some(set), Some(p)) => Some(crate::store::NewCompensation::of(set, p)),
             _ => None,
         };
         self.store

@@ -173,7 +173,7 @@ pub fn model_config(
     for s in split_columns(temperature_inputs) {
         cfg.temperatures.push(TemperatureInput {
             sensor: s,
-            taus_min: vec![0.0, 60.0, 240.0],
+            taus_min: driftwatch::thermal_model::default_temperature_taus(),
         });
     }
     cfg.validate()?;

@@ -72,6 +72,23 @@ pub struct NewCompensation<'a> {
     pub payload: &'a Value,
 }
 
+impl<'a> NewCompensation<'a> {
+    /// The row of `set`, whose JSON is `payload`.
+    pub fn of(set: &'a crate::compensation::CompensationSet, payload: &'a Value) -> Self {
+        NewCompensation {
+            version: set.version as i64,
+            valid_from_ns: set.valid_from_ns,
+            source: match set.source {
+                crate::compensation::Source::Measured => "measured",
+                crate::compensation::Source::Predicted => "predicted",
+            },
+            cycle: set.cycle,
+            reason: &set.reason,
+            payload,
+        }
+    }
+}
+
 /// A cycle as stored.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CycleRow {
@@ -106,6 +123,14 @@ pub enum Sample {
         sensor: String,
         celsius: f64,
     },
+}
+
+impl Sample {
+    pub fn t_ns(&self) -> i64 {
+        match self {
+            Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. } => *t_ns,
+        }
+    }
 }
 
 #[derive(Clone)]
@@ -324,7 +349,6 @@ impl Store {
         Ok(row.try_get::<Option<i64>, _>(0)?)
     }
 
-    /// The latest time anything of a machine was stored (cycles, results, samples), ns.
     /// When the last cycle started and when the last good (`ok`) cycle finished: what the
     /// scheduler remembers across a restart.
     pub async fn schedule_memory(
@@ -340,20 +364,6 @@ impl Store {
         .fetch_one(&self.pool)
         .await?;
         Ok((row.try_get(0)?, row.try_get(1)?))
-    }
-
-    pub async fn last_activity_ns(&self, machine: &str) -> Result<Option<i64>, StoreError> {
-        let row = sqlx::query(
-            "SELECT MAX(t) FROM (
-                 SELECT MAX(started_ns) AS t FROM cycles WHERE machine_id = $1
-                 UNION ALL SELECT MAX(finished_ns) FROM cycles WHERE machine_id = $1
-                 UNION ALL SELECT MAX(t_ns) FROM spindle_samples WHERE machine_id = $1
-                 UNION ALL SELECT MAX(valid_from_ns) FROM compensation_sets WHERE machine_id = $1)",
-        )
-        .bind(machine)
-        .fetch_one(&self.pool)
-        .await?;
-        Ok(row.try_get::<Option<i64>, _>(0)?)
     }
 
     pub async fn abandon_cycle(

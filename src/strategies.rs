@@ -32,7 +32,6 @@ pub fn scheduled_cycles(scn: &Scenario, plan: &Plan, policy: &SchedulePolicy) ->
     let mut st = SchedulerState::default();
     let cycle_min = (plan.machine_time_s / 60.0).ceil() as i64;
     let mut out = Vec::new();
-    let mut seg = 0;
     let mut open_until: Option<i64> = None;
     let mut n = 0;
     for m in 0..scn.duration_min as i64 {
@@ -44,18 +43,11 @@ pub fn scheduled_cycles(scn: &Scenario, plan: &Plan, policy: &SchedulePolicy) ->
             let _ = phase.on_cycle(t, false);
             open_until = None;
         }
-        while seg < scn.spindle.len() && scn.spindle[seg].at_min <= m as f64 {
-            let s = &scn.spindle[seg];
-            if open_until.is_none() {
-                let _ = phase.on_state(t, s.state);
-                let _ = phase.on_spindle(t, s.rpm);
-            }
-            seg += 1;
-        }
         if open_until.is_some() {
             continue;
         }
-        // The program's state at this minute (after a cycle, the program resumes).
+        // The program's state at this minute (after a cycle, the program resumes). Repeating
+        // an unchanged state or speed is a no-op for the tracker.
         if let Some(s) = scn.spindle.iter().rev().find(|s| s.at_min <= m as f64) {
             let _ = phase.on_state(t, s.state);
             let _ = phase.on_spindle(t, s.rpm);
@@ -294,7 +286,7 @@ pub fn bench_model_config() -> ModelConfig {
     ModelConfig {
         temperatures: vec![TemperatureInput {
             sensor: "ambient".into(),
-            taus_min: vec![0.0, 60.0, 240.0],
+            taus_min: crate::thermal_model::default_temperature_taus(),
         }],
         ..ModelConfig::default()
     }

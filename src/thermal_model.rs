@@ -42,7 +42,8 @@ pub struct TemperatureInput {
     pub taus_min: Vec<f64>,
 }
 
-fn default_temperature_taus() -> Vec<f64> {
+/// The default lags of a temperature input, min: the temperature itself, 1 h and 4 h.
+pub fn default_temperature_taus() -> Vec<f64> {
     vec![0.0, 60.0, 240.0]
 }
 
