@@ -108,6 +108,8 @@ pub struct Settings {
     pub validation: ValidationLimits,
     pub alert_rules: Vec<Rule>,
     pub prediction: crate::compensation::PredictionPolicy,
+    /// A thermal model fitted elsewhere to start from (the machine's `thermal_model`).
+    pub initial_model: Option<Arc<crate::thermal_model::ThermalModel>>,
 }
 
 impl Default for Settings {
@@ -118,6 +120,7 @@ impl Default for Settings {
             validation: ValidationLimits::default(),
             alert_rules: crate::alerts::default_rules(),
             prediction: Default::default(),
+            initial_model: None,
         }
     }
 }
@@ -130,6 +133,7 @@ impl Settings {
             validation: cfg.validation.clone(),
             alert_rules: cfg.alerts.clone(),
             prediction: cfg.thermal.clone(),
+            initial_model: None,
         }
     }
 }
@@ -153,9 +157,10 @@ pub struct MachineRuntime {
     store: Store,
     open: Option<OpenCycle>,
     served: Option<CompensationSet>,
-    /// Minute of the last stored spindle sample and per-sensor temperature sample.
-    last_spindle_minute: i64,
-    last_temp_minute: BTreeMap<String, i64>,
+    /// Minute and speed of the last stored spindle sample (every change is stored, and one
+    /// sample a minute besides), and what is known of each temperature sensor.
+    last_spindle: (i64, f64),
+    last_temp: BTreeMap<String, SensorLog>,
     /// Per-minute samples not yet written.
     samples: Vec<Sample>,
     pub view: Arc<Mutex<MachineView>>,
@@ -172,8 +177,60 @@ pub struct MachineRuntime {
 /// Machine time the per-minute samples are held before they are written together.
 const SAMPLE_BATCH_NS: i64 = 10 * 60_000_000_000;
 
+/// A temperature sample is stored at least this often (minutes), and whenever it changes.
+pub const TEMPERATURE_HEARTBEAT_MIN: i64 = 10;
+
+/// What the loop remembers of a temperature sensor: the minute it last took a reading into
+/// the model, and the last stored sample.
+struct SensorLog {
+    minute: i64,
+    stored_minute: i64,
+    stored_c: f64,
+}
+
 fn minute(t_ns: i64) -> i64 {
     t_ns.div_euclid(60_000_000_000)
+}
+
+/// The stored spindle and temperature samples and validated cycle results in a window, as
+/// the thermal model's timeline (inputs before observations at the same time).
+async fn stored_events(
+    store: &Store,
+    machine: &str,
+    from_ns: i64,
+    to_ns: i64,
+) -> Result<Vec<Event>, DaemonError> {
+    let mut ev: Vec<Event> = store
+        .samples(machine, from_ns, to_ns)
+        .await?
+        .into_iter()
+        .map(|s| match s {
+            Sample::Spindle { t_ns, rpm } => Event::Spindle { t_ns, rpm },
+            Sample::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            } => Event::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            },
+        })
+        .collect();
+    ev.extend(
+        store
+            .error_series(machine, from_ns, to_ns, true, false)
+            .await?
+            .into_iter()
+            .map(|v| Event::Observation {
+                t_ns: v.t_ns,
+                channel: v.name,
+                value: v.value,
+                sigma: Some(v.sigma).filter(|s| s.is_finite()),
+            }),
+    );
+    ev.sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
+    Ok(ev)
 }
 
 impl MachineRuntime {
@@ -213,7 +270,22 @@ impl MachineRuntime {
         // the clock (a simulated day started again from its morning) is not taken.
         let mut sched = SchedulerState::default();
         let (last_start, last_good) = store.schedule_memory(id).await?;
+        let mut thermal = match &settings.initial_model {
+            Some(m) => LiveModel::with_initial(settings.prediction.clone(), m.clone()),
+            None => LiveModel::new(settings.prediction.clone()),
+        };
         if last_start.is_some_and(|t| t <= now_ns) {
+            // The thermal model comes back from the stored inputs and results of its window.
+            if thermal.policy().enabled {
+                let from = now_ns - (thermal.policy().history_days * 86_400e9) as i64;
+                let events = stored_events(&store, id, from, now_ns).await?;
+                if let Some(note) = thermal.restore(&events) {
+                    info!(
+                        machine = id,
+                        "thermal model restored from the store: {note}"
+                    );
+                }
+            }
             sched.last_cycle_start_ns = last_start;
             sched.last_good_ns = last_good.filter(|t| *t <= now_ns);
         } else if last_start.is_some() {
@@ -222,10 +294,7 @@ impl MachineRuntime {
                 "the stored cycles lie ahead of the clock (a simulated day started again): the scheduler starts afresh"
             );
         }
-        let served = match store.latest_compensation(id).await? {
-            Some(v) => serde_json::from_value(v).ok(),
-            None => None,
-        };
+        let served = store.latest_compensation(id).await?;
         let mut checks = CycleChecks::new(&k);
         checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
         let phase =
@@ -261,14 +330,14 @@ impl MachineRuntime {
             store,
             open: None,
             served,
-            last_spindle_minute: i64::MIN,
-            last_temp_minute: BTreeMap::new(),
+            last_spindle: (i64::MIN, f64::NAN),
+            last_temp: BTreeMap::new(),
             samples: Vec::new(),
             view: Arc::new(Mutex::new(view)),
             inbox: Arc::new(Mutex::new(Inbox::default())),
             alert_log: Vec::new(),
             notifier: Default::default(),
-            thermal: LiveModel::new(settings.prediction.clone()),
+            thermal,
             last_prediction_ns: i64::MIN,
             last_refusal: None,
         })
@@ -413,8 +482,9 @@ impl MachineRuntime {
                     rpm: m.msg.rpm,
                 });
                 self.record(rec::TOPIC_SPINDLE, m.t_ns, &m.msg).await?;
-                if minute(m.t_ns) != self.last_spindle_minute {
-                    self.last_spindle_minute = minute(m.t_ns);
+                // Every change, so that the stored log replays the heat input exactly.
+                if (minute(m.t_ns), m.msg.rpm) != self.last_spindle {
+                    self.last_spindle = (minute(m.t_ns), m.msg.rpm);
                     self.buffer_sample(Sample::Spindle {
                         t_ns: m.t_ns,
                         rpm: m.msg.rpm,
@@ -428,17 +498,33 @@ impl MachineRuntime {
             }
             LinkEvent::Temperature(m) => {
                 self.record(rec::TOPIC_TEMPERATURE, m.t_ns, &m.msg).await?;
+                let now_min = minute(m.t_ns);
                 let last = self
-                    .last_temp_minute
+                    .last_temp
                     .entry(m.msg.sensor.clone())
-                    .or_insert(i64::MIN);
-                if minute(m.t_ns) != *last {
-                    *last = minute(m.t_ns);
-                    self.thermal.input(Event::Temperature {
-                        t_ns: m.t_ns,
-                        sensor: m.msg.sensor.clone(),
-                        celsius: m.msg.celsius,
+                    .or_insert(SensorLog {
+                        minute: i64::MIN,
+                        stored_minute: i64::MIN,
+                        stored_c: f64::NAN,
                     });
+                if now_min == last.minute {
+                    return Ok(());
+                }
+                last.minute = now_min;
+                // Stored on change, and every few minutes to show the sensor is alive: a
+                // steady hall would otherwise fill the database with one value.
+                let store = m.msg.celsius != last.stored_c
+                    || last.stored_minute.saturating_add(TEMPERATURE_HEARTBEAT_MIN) <= now_min;
+                if store {
+                    last.stored_c = m.msg.celsius;
+                    last.stored_minute = now_min;
+                }
+                self.thermal.input(Event::Temperature {
+                    t_ns: m.t_ns,
+                    sensor: m.msg.sensor.clone(),
+                    celsius: m.msg.celsius,
+                });
+                if store {
                     self.buffer_sample(Sample::Temperature {
                         t_ns: m.t_ns,
                         sensor: m.msg.sensor,
@@ -448,7 +534,7 @@ impl MachineRuntime {
                 }
             }
             LinkEvent::Truth(t) => {
-                self.record(rec::TOPIC_TRUTH, t.t_ns, &t.rounded(1e-6))
+                self.record(rec::TOPIC_TRUTH, t.t_ns, &t.rounded(1e-4))
                     .await?;
             }
             LinkEvent::Detection(d) => {
@@ -555,10 +641,10 @@ impl MachineRuntime {
                 .collect();
             if policy.moved(served, &values) {
                 let about = format!(
-                    "the thermal model from the spindle log{}",
+                    "the thermal model{}",
                     served
                         .cycle
-                        .map(|c| format!(", corrected up to cycle {c}"))
+                        .map(|c| format!(" after cycle {c}"))
                         .unwrap_or_default()
                 );
                 match compensation::predicted_set(
@@ -602,9 +688,8 @@ impl MachineRuntime {
         set: CompensationSet,
         now_ns: i64,
     ) -> Result<(), DaemonError> {
-        let payload = serde_json::to_value(&set).unwrap_or_default();
         self.store
-            .insert_compensation(&self.id, &crate::store::NewCompensation::of(&set, &payload))
+            .insert_compensation(&self.id, &crate::store::NewCompensation::of(&set))
             .await?;
         self.record(
             rec::TOPIC_COMPENSATION,
@@ -673,13 +758,7 @@ impl MachineRuntime {
             warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
         }
         // The result and the set it makes go in one transaction, before anything is served.
-        let payload = new_set
-            .as_ref()
-            .map(|s| serde_json::to_value(s).unwrap_or_default());
-        let stored = match (&new_set, &payload) {
-            (Some(set), Some(p)) => Some(crate::store::NewCompensation::of(set, p)),
-            _ => None,
-        };
+        let stored = new_set.as_ref().map(crate::store::NewCompensation::of);
         self.store
             .close_cycle_with(&self.id, &result, now_ns, stored.as_ref())
             .await?;
@@ -692,7 +771,7 @@ impl MachineRuntime {
             .await?;
             info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
             if let (Some(e), Some(sg)) = (&result.errors, &result.sigma)
-                && let Some(note) = self.thermal.observe(now_ns, e, sg)
+                && let Some(note) = self.thermal.observe(result.t_ns, e, sg)
             {
                 info!(machine = %self.id, "thermal model: {note}");
             }

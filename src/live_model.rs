@@ -3,7 +3,7 @@
 //! temperature sample and validated cycle. It answers what the errors are now, how certain
 //! that is, and whether a cycle is needed for certainty. Pure: the loop does the I/O.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 
 use serde::Serialize;
@@ -11,12 +11,17 @@ use serde::Serialize;
 use crate::compensation::PredictionPolicy;
 use crate::compensation::TABLE_BC_ERRORS;
 use crate::scheduler::Uncertain;
-use crate::thermal_model::{Event, Prediction, Predictor, ThermalModel, fit};
+use crate::thermal_model::{Event, Features, Obs, Prediction, Predictor, ThermalModel, fit_rows};
+
+/// How far the rows' lag states trail the inputs: longer than any cycle, so that a cycle's
+/// reference time is never behind them when its result arrives.
+pub const HOLD_BACK_NS: i64 = 3_600_000_000_000;
 
 /// What the API shows of the model.
 #[derive(Debug, Clone, Serialize)]
 pub struct ModelView {
-    /// `waiting` (not enough cycles yet), `fitted`, or `disabled`.
+    /// `waiting` (not enough cycles yet), `initial` (a model fitted elsewhere, until the
+    /// machine's own fit), `fitted`, or `disabled`.
     pub status: String,
     pub message: String,
     pub validated_cycles: usize,
@@ -28,8 +33,19 @@ pub struct ModelView {
 #[derive(Debug, Clone)]
 pub struct LiveModel {
     policy: PredictionPolicy,
-    /// Inputs and observations of the last `history_days`, for the fits.
-    history: Vec<Event>,
+    /// Lag states of every input since the first one (`None` before any input), now ...
+    features: Option<Features>,
+    /// ... and held back by the inputs in `pending`, so that a cycle's row is taken at its
+    /// reference time (the middle of its probing), which the loop learns only at its end.
+    lagged: Option<Features>,
+    pending: VecDeque<Event>,
+    /// References of the temperature inputs when a model fitted elsewhere gave them.
+    t_ref_c: BTreeMap<String, f64>,
+    /// Validated observations of the last `history_days` with their design rows: the fits
+    /// need nothing else, so a refit costs the rows, not a replay of the inputs.
+    rows: BTreeMap<String, VecDeque<Obs>>,
+    /// A model fitted elsewhere, served until the machine's own first fit.
+    initial: Option<Arc<ThermalModel>>,
     ok_cycles: usize,
     cycles_since_fit: usize,
     predictor: Option<Predictor>,
@@ -46,7 +62,12 @@ impl LiveModel {
         };
         LiveModel {
             policy,
-            history: Vec::new(),
+            features: None,
+            lagged: None,
+            pending: VecDeque::new(),
+            t_ref_c: BTreeMap::new(),
+            rows: BTreeMap::new(),
+            initial: None,
             ok_cycles: 0,
             cycles_since_fit: 0,
             predictor: None,
@@ -55,8 +76,47 @@ impl LiveModel {
         }
     }
 
+    /// Start from a model fitted elsewhere (`driftwatch fit` on an earlier day of the same
+    /// machine): it predicts from the first input on, and its configuration and temperature
+    /// references replace the policy's model for the machine's own fits later.
+    pub fn with_initial(mut policy: PredictionPolicy, model: Arc<ThermalModel>) -> Self {
+        policy.model = model.config.clone();
+        let mut m = LiveModel::new(policy);
+        if m.policy.enabled {
+            m.t_ref_c = model.t_ref_c.clone();
+            m.message = format!(
+                "started from a model fitted on {:.1} h of earlier data; the machine's own fit after {} validated cycles",
+                (model.to_ns - model.from_ns) as f64 / 3.6e12,
+                m.policy.min_cycles
+            );
+            m.initial = Some(model);
+        }
+        m
+    }
+
     pub fn policy(&self) -> &PredictionPolicy {
         &self.policy
+    }
+
+    fn start_at(&mut self, t_ns: i64) {
+        if self.features.is_none() {
+            let f = Features::new(&self.policy.model, &self.t_ref_c, t_ns);
+            self.lagged = Some(f.clone());
+            self.features = Some(f);
+        }
+    }
+
+    /// Apply the held-back inputs up to `t_ns` to the lagged states.
+    fn catch_up(&mut self, t_ns: i64) {
+        let Some(lagged) = &mut self.lagged else {
+            return;
+        };
+        while self.pending.front().is_some_and(|e| e.t_ns() <= t_ns) {
+            if let Some(e) = self.pending.pop_front() {
+                lagged.apply(&e);
+            }
+        }
+        lagged.advance_to(t_ns);
     }
 
     /// A spindle change or a temperature sample, in time order.
@@ -64,14 +124,26 @@ impl LiveModel {
         if !self.policy.enabled {
             return;
         }
+        let t = e.t_ns();
+        self.start_at(t);
+        if let Some(f) = &mut self.features {
+            f.apply(&e);
+        }
+        if self.predictor.is_none()
+            && let (Some(model), Some(f)) = (&self.initial, &self.features)
+        {
+            self.predictor = Some(Predictor::resume(model.clone(), f.clone(), t));
+        }
         if let Some(p) = &mut self.predictor {
             p.apply(&e);
         }
-        self.history.push(e);
+        self.pending.push_back(e);
+        self.catch_up(t - HOLD_BACK_NS);
     }
 
-    /// A validated cycle's errors and uncertainties, known at `t_ns`. Returns a note when
-    /// this observation made the first fit (or the fit failed and says why).
+    /// A validated cycle's errors and uncertainties at its reference time `t_ns` (at most
+    /// [`HOLD_BACK_NS`] ago). Returns a note when this observation made a fit (or the fit
+    /// failed and says why).
     pub fn observe(
         &mut self,
         t_ns: i64,
@@ -81,78 +153,116 @@ impl LiveModel {
         if !self.policy.enabled {
             return None;
         }
+        self.take(t_ns, errors, sigma);
+        let due = match (&self.predictor, &self.initial) {
+            (Some(_), None) => self.cycles_since_fit >= self.policy.refit_every_cycles,
+            _ => self.ok_cycles >= self.policy.min_cycles,
+        };
+        due.then(|| self.fit(t_ns))
+    }
+
+    /// Record a validated cycle: its rows, and the filter's correction.
+    fn take(&mut self, t_ns: i64, errors: &BTreeMap<String, f64>, sigma: &BTreeMap<String, f64>) {
         self.ok_cycles += 1;
         self.cycles_since_fit += 1;
-        let obs: Vec<Event> = errors
-            .iter()
-            .map(|(n, v)| Event::Observation {
+        self.start_at(t_ns);
+        self.catch_up(t_ns);
+        let Some(row) = self.lagged.as_ref().map(Features::row) else {
+            return;
+        };
+        let keep_from = t_ns - (self.policy.history_days * 86_400e9) as i64;
+        for (name, v) in errors.iter().filter(|(_, v)| v.is_finite()) {
+            let sigma = sigma.get(name).copied();
+            if let Some(p) = &mut self.predictor
+                && p.observe_row(name, t_ns, *v, sigma, &row)
+            {
+                self.updates += 1;
+            }
+            let rows = self.rows.entry(name.clone()).or_default();
+            rows.push_back(Obs {
                 t_ns,
-                channel: n.clone(),
-                value: *v,
-                sigma: sigma.get(n).copied(),
-            })
-            .collect();
-        if let Some(p) = &mut self.predictor {
-            for e in &obs {
-                if p.apply(e) {
-                    self.updates += 1;
+                row: row.clone(),
+                y: *v,
+                sigma: sigma.filter(|s| crate::positive(*s)),
+            });
+            while rows.front().is_some_and(|o| o.t_ns < keep_from) {
+                rows.pop_front();
+            }
+        }
+    }
+
+    /// Bring back the state a running service had: the stored inputs and validated cycle
+    /// results of the history window, in time order (inputs before observations at the same
+    /// time), then one fit. Returns the fit's note, if one was made.
+    pub fn restore(&mut self, events: &[Event]) -> Option<String> {
+        if !self.policy.enabled {
+            return None;
+        }
+        let mut i = 0;
+        while i < events.len() {
+            match &events[i] {
+                Event::Observation { t_ns, .. } => {
+                    // One cycle: every observation at this time.
+                    let t = *t_ns;
+                    let (mut errors, mut sigma) = (BTreeMap::new(), BTreeMap::new());
+                    while let Some(Event::Observation {
+                        t_ns,
+                        channel,
+                        value,
+                        sigma: s,
+                    }) = events.get(i)
+                        && *t_ns == t
+                    {
+                        errors.insert(channel.clone(), *value);
+                        if let Some(s) = s {
+                            sigma.insert(channel.clone(), *s);
+                        }
+                        i += 1;
+                    }
+                    self.take(t, &errors, &sigma);
+                }
+                e => {
+                    self.input(e.clone());
+                    i += 1;
                 }
             }
         }
-        self.history.extend(obs);
-        let keep_from = t_ns - (self.policy.history_days * 86_400e9) as i64;
-        if self.history.first().is_some_and(|e| e.t_ns() < keep_from) {
-            self.history.retain(|e| e.t_ns() >= keep_from);
-        }
-        let due = match self.predictor {
-            None => self.ok_cycles >= self.policy.min_cycles,
-            Some(_) => self.cycles_since_fit >= self.policy.refit_every_cycles,
-        };
-        due.then(|| self.fit())
+        let t = events.last()?.t_ns();
+        (self.ok_cycles >= self.policy.min_cycles).then(|| self.fit(t))
     }
 
-    fn fit(&mut self) -> String {
-        let mut cfg = self.policy.model.clone();
-        // A temperature input the machine does not log is left out, and said so.
-        let seen: BTreeSet<&str> = self
-            .history
-            .iter()
-            .filter_map(|e| match e {
-                Event::Temperature { sensor, .. } => Some(sensor.as_str()),
-                _ => None,
-            })
-            .collect();
-        let missing: Vec<String> = cfg
-            .temperatures
-            .iter()
-            .filter(|t| !seen.contains(t.sensor.as_str()))
-            .map(|t| t.sensor.clone())
-            .collect();
-        cfg.temperatures
-            .retain(|t| seen.contains(t.sensor.as_str()));
-        self.history
-            .sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
+    fn fit(&mut self, t_ns: i64) -> String {
         self.cycles_since_fit = 0;
-        match fit(&cfg, &self.history, None) {
+        let Some(features) = &self.features else {
+            return "no inputs yet".into();
+        };
+        let per: BTreeMap<String, Vec<Obs>> = self
+            .rows
+            .iter()
+            .map(|(k, v)| (k.clone(), v.iter().cloned().collect()))
+            .collect();
+        let span = (
+            per.values()
+                .filter_map(|v| v.first())
+                .map(|o| o.t_ns)
+                .min()
+                .unwrap_or(t_ns),
+            per.values()
+                .filter_map(|v| v.last())
+                .map(|o| o.t_ns)
+                .max()
+                .unwrap_or(t_ns),
+        );
+        match fit_rows(&self.policy.model, features.t_ref_c(), span, &per) {
             Ok(model) => {
-                let t0 = self.history.first().map_or(0, Event::t_ns);
-                let mut p = Predictor::new(&model, t0);
-                for e in &self.history {
-                    p.apply(e);
-                }
                 let worst = model
                     .channels
                     .iter()
                     .map(|c| format!("{} {:.2}", c.name, c.rms_um))
                     .collect::<Vec<_>>()
                     .join(", ");
-                let cycles = self
-                    .history
-                    .iter()
-                    .filter(
-                        |e| matches!(e, Event::Observation { channel, .. } if channel == "EZ0B"),
-                    )
-                    .count();
+                let cycles = per.get("EZ0B").map_or(0, Vec::len);
+                let missing = features.unseen_sensors();
                 self.message = format!(
                     "fitted on {cycles} validated cycles over {:.1} h; residual rms {worst}{}",
                     (model.to_ns - model.from_ns) as f64 / 3.6e12,
@@ -162,7 +272,10 @@ impl LiveModel {
                         format!("; not logged, left out: {}", missing.join(", "))
                     }
                 );
-                self.predictor = Some(p);
+                // The posterior holds every kept observation: the filter goes on from it
+                // with the lag states of now, and takes no observation twice.
+                self.predictor = Some(Predictor::resume(Arc::new(model), features.clone(), span.1));
+                self.initial = None;
                 self.updates = 0;
                 self.message.clone()
             }
@@ -211,6 +324,8 @@ impl LiveModel {
         ModelView {
             status: if !self.policy.enabled {
                 "disabled".into()
+            } else if self.predictor.is_some() && self.initial.is_some() {
+                "initial".into()
             } else if self.predictor.is_some() {
                 "fitted".into()
             } else {

@@ -51,8 +51,8 @@ pub struct TruthSample {
 }
 
 impl TruthSample {
-    /// The same sample with every value rounded to `step` (um or urad). A recording of
-    /// 1e-6 um resolution keeps what any measurement could see and compresses several
+    /// The same sample with every value rounded to `step` (um or urad). A recording at
+    /// 1e-4 um (0.1 nm) keeps far more than any measurement could see and compresses several
     /// times better than full binary64 digits.
     pub fn rounded(&self, step: f64) -> TruthSample {
         // Dividing by the reciprocal gives the shortest decimal (0.81443, not 0.8144299999).

@@ -44,7 +44,7 @@ async fn insert_set(
     .bind(c.source)
     .bind(c.cycle)
     .bind(c.reason)
-    .bind(serde_json::to_string(c.payload)?)
+    .bind(&c.values)
     .execute(&mut *conn)
     .await?;
     Ok(())
@@ -69,12 +69,14 @@ pub struct NewCompensation<'a> {
     pub source: &'a str,
     pub cycle: Option<i64>,
     pub reason: &'a str,
-    pub payload: &'a Value,
+    /// `{"errors": {...}, "sigma": {...}}`: all of the set that the columns do not hold and
+    /// that cannot be derived (the offsets are computed from the errors when read).
+    pub values: String,
 }
 
 impl<'a> NewCompensation<'a> {
-    /// The row of `set`, whose JSON is `payload`.
-    pub fn of(set: &'a crate::compensation::CompensationSet, payload: &'a Value) -> Self {
+    /// The row of `set`.
+    pub fn of(set: &'a crate::compensation::CompensationSet) -> Self {
         NewCompensation {
             version: set.version as i64,
             valid_from_ns: set.valid_from_ns,
@@ -84,7 +86,7 @@ impl<'a> NewCompensation<'a> {
             },
             cycle: set.cycle,
             reason: &set.reason,
-            payload,
+            values: serde_json::json!({"errors": set.errors, "sigma": set.sigma}).to_string(),
         }
     }
 }
@@ -562,17 +564,43 @@ impl Store {
     }
 
     /// The newest compensation set of a machine.
-    pub async fn latest_compensation(&self, machine: &str) -> Result<Option<Value>, StoreError> {
+    pub async fn latest_compensation(
+        &self,
+        machine: &str,
+    ) -> Result<Option<crate::compensation::CompensationSet>, StoreError> {
+        use crate::compensation::{CompensationSet, Source, offsets};
         let row = sqlx::query(
-            "SELECT payload FROM compensation_sets WHERE machine_id = $1 ORDER BY version DESC LIMIT 1",
+            "SELECT version, valid_from_ns, source, cycle, reason, payload FROM compensation_sets
+             WHERE machine_id = $1 ORDER BY version DESC LIMIT 1",
         )
         .bind(machine)
         .fetch_optional(&self.pool)
         .await?;
-        match row {
-            Some(r) => Ok(Some(serde_json::from_str(&r.try_get::<String, _>(0)?)?)),
-            None => Ok(None),
+        let Some(r) = row else {
+            return Ok(None);
+        };
+        #[derive(serde::Deserialize)]
+        struct Values {
+            errors: BTreeMap<String, f64>,
+            sigma: BTreeMap<String, f64>,
         }
+        let v: Values = serde_json::from_str(&r.try_get::<String, _>(5)?)?;
+        let version: i64 = r.try_get(0)?;
+        let source: String = r.try_get(2)?;
+        Ok(Some(CompensationSet {
+            version: version.max(0) as u64,
+            valid_from_ns: r.try_get(1)?,
+            source: if source == "predicted" {
+                Source::Predicted
+            } else {
+                Source::Measured
+            },
+            cycle: r.try_get(3)?,
+            offsets: offsets(&v.errors),
+            errors: v.errors,
+            sigma: v.sigma,
+            reason: r.try_get(4)?,
+        }))
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -892,7 +920,7 @@ mod tests {
             payload: "{}".into(),
         };
         assert!(store.add_detections("m1", 9, &[row]).await.is_err());
-        let v = serde_json::json!({"version": 1});
+        let v = || r#"{"errors": {"EZ0B": 1.0}, "sigma": {"EZ0B": 0.5}}"#.to_string();
         store
             .insert_compensation(
                 "m1",
@@ -902,7 +930,7 @@ mod tests {
                     source: "measured",
                     cycle: Some(1),
                     reason: "cycle 1",
-                    payload: &v,
+                    values: v(),
                 },
             )
             .await
@@ -917,7 +945,7 @@ mod tests {
                         source: "measured",
                         cycle: Some(2),
                         reason: "again",
-                        payload: &v
+                        values: v()
                     }
                 )
                 .await
@@ -932,15 +960,17 @@ mod tests {
                     source: "measured",
                     cycle: Some(2),
                     reason: "cycle 2",
-                    payload: &serde_json::json!({"version": 2}),
+                    values: v(),
                 },
             )
             .await
             .unwrap();
+        let latest = store.latest_compensation("m1").await.unwrap().unwrap();
         assert_eq!(
-            store.latest_compensation("m1").await.unwrap().unwrap()["version"],
-            2
+            (latest.version, latest.errors["EZ0B"], latest.sigma["EZ0B"]),
+            (2, 1.0, 0.5)
         );
+        assert_eq!(latest.offsets["B_pivot_z_um"], 1.0);
         assert!(
             store
                 .insert_compensation(
@@ -951,7 +981,7 @@ mod tests {
                         source: "guessed",
                         cycle: None,
                         reason: "bad source",
-                        payload: &v
+                        values: v()
                     }
                 )
                 .await

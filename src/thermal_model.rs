@@ -217,25 +217,35 @@ pub fn events_from(recordings: &[Recording]) -> Vec<Event> {
 #[derive(Debug, Clone)]
 pub struct Features {
     cfg: ModelConfig,
-    t_ref_c: BTreeMap<String, f64>,
+    /// Reference of each configured sensor (in `cfg.temperatures` order): given, or its
+    /// first reading.
+    t_ref: Vec<Option<f64>>,
     t_ns: i64,
     rpm: f64,
-    temps: BTreeMap<String, f64>,
+    /// The spindle heat input `(|n| / n_ref)^gamma`, kept with `rpm`.
+    heat: f64,
+    /// Last reading of each configured sensor.
+    temps: Vec<Option<f64>>,
     /// One per column after the offset, in column order (the speed term last, if any).
     x: Vec<f64>,
 }
 
 impl Features {
     /// States at `t0_ns` of a machine that has stood cold: spindle lags at zero, temperature
-    /// lags at their reference.
+    /// lags at their reference. A sensor without a given reference takes its first reading.
     pub fn new(cfg: &ModelConfig, t_ref_c: &BTreeMap<String, f64>, t0_ns: i64) -> Self {
         let n = cfg.columns().len() - 1;
         Features {
             cfg: cfg.clone(),
-            t_ref_c: t_ref_c.clone(),
+            t_ref: cfg
+                .temperatures
+                .iter()
+                .map(|s| t_ref_c.get(&s.sensor).copied())
+                .collect(),
             t_ns: t0_ns,
             rpm: 0.0,
-            temps: BTreeMap::new(),
+            heat: 0.0,
+            temps: vec![None; cfg.temperatures.len()],
             x: vec![0.0; n],
         }
     }
@@ -244,17 +254,37 @@ impl Features {
         self.t_ns
     }
 
+    /// The reference temperature of every configured sensor seen so far.
+    pub fn t_ref_c(&self) -> BTreeMap<String, f64> {
+        self.cfg
+            .temperatures
+            .iter()
+            .zip(&self.t_ref)
+            .filter_map(|(s, r)| r.map(|r| (s.sensor.clone(), r)))
+            .collect()
+    }
+
+    /// Configured sensors that have had no reading yet.
+    pub fn unseen_sensors(&self) -> Vec<String> {
+        self.cfg
+            .temperatures
+            .iter()
+            .zip(&self.temps)
+            .filter(|(_, t)| t.is_none())
+            .map(|(s, _)| s.sensor.clone())
+            .collect()
+    }
+
     /// Visit every state with the input it follows and its time constant in seconds (0: no
     /// lag), in column order, without allocating (this runs for every event).
     fn for_each_state(&mut self, mut f: impl FnMut(&mut f64, f64, f64)) {
-        let heat = (self.rpm.abs() / self.cfg.n_ref_rpm).powf(self.cfg.gamma);
         let mut i = 0;
         for t in &self.cfg.taus_min {
-            f(&mut self.x[i], heat, t * 60.0);
+            f(&mut self.x[i], self.heat, t * 60.0);
             i += 1;
         }
-        for s in &self.cfg.temperatures {
-            let d = match (self.temps.get(&s.sensor), self.t_ref_c.get(&s.sensor)) {
+        for (k, s) in self.cfg.temperatures.iter().enumerate() {
+            let d = match (self.temps[k], self.t_ref[k]) {
                 (Some(t), Some(r)) => t - r,
                 _ => 0.0,
             };
@@ -295,18 +325,28 @@ impl Features {
 
     pub fn set_rpm(&mut self, t_ns: i64, rpm: f64) {
         self.advance_to(t_ns);
-        if rpm.is_finite() {
+        if rpm.is_finite() && rpm != self.rpm {
             self.rpm = rpm;
+            self.heat = (rpm.abs() / self.cfg.n_ref_rpm).powf(self.cfg.gamma);
+            self.refresh_instant();
         }
-        self.refresh_instant();
     }
 
     pub fn set_temperature(&mut self, t_ns: i64, sensor: &str, celsius: f64) {
         self.advance_to(t_ns);
+        let Some(k) = self
+            .cfg
+            .temperatures
+            .iter()
+            .position(|s| s.sensor == sensor)
+        else {
+            return;
+        };
         if celsius.is_finite() {
-            self.temps.insert(sensor.to_string(), celsius);
+            self.temps[k] = Some(celsius);
+            self.t_ref[k].get_or_insert(celsius);
+            self.refresh_instant();
         }
-        self.refresh_instant();
     }
 
     /// Apply an input event (observations do not change the inputs).
@@ -392,10 +432,13 @@ const PRIOR_SD_OFFSET: f64 = 1e4;
 /// Blocks of the time-ordered data for cross-validation.
 const CV_BLOCKS: usize = 5;
 
-struct Obs {
-    row: DVector<f64>,
-    y: f64,
-    sigma: Option<f64>,
+/// One observation of a channel with its design row (the lag states at its time).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Obs {
+    pub t_ns: i64,
+    pub row: DVector<f64>,
+    pub y: f64,
+    pub sigma: Option<f64>,
 }
 
 /// Fit every observed channel on the events up to `until_ns`.
@@ -436,37 +479,59 @@ pub fn fit(
     for e in &events {
         f.apply(e);
         if let Event::Observation {
+            t_ns,
             channel,
             value,
             sigma,
-            ..
         } = e
             && value.is_finite()
         {
             per.entry(channel.clone()).or_default().push(Obs {
+                t_ns: *t_ns,
                 row: f.row(),
                 y: *value,
                 sigma: sigma.filter(|s| crate::positive(*s)),
             });
         }
     }
+    fit_rows(cfg, t_ref_c, (first.t_ns(), last.t_ns()), &per)
+}
+
+/// Fit every channel from its observation rows (time-ordered), made by [`Features`] with the
+/// reference temperatures `t_ref_c` over the data span `span_ns`.
+pub fn fit_rows(
+    cfg: &ModelConfig,
+    t_ref_c: BTreeMap<String, f64>,
+    span_ns: (i64, i64),
+    per: &BTreeMap<String, Vec<Obs>>,
+) -> Result<ThermalModel, ModelError> {
+    cfg.validate()?;
     if per.is_empty() {
         return Err(ModelError::NoData(
             " (no displacement readings or validated cycle results)".into(),
         ));
     }
     let columns = cfg.columns();
+    if let Some((name, _)) = per
+        .iter()
+        .find(|(_, o)| o.iter().any(|o| o.row.len() != columns.len()))
+    {
+        return Err(ModelError::Config(format!(
+            "channel {name}: rows do not have the configuration's {} columns",
+            columns.len()
+        )));
+    }
     let channels = per
-        .into_iter()
-        .map(|(name, obs)| fit_channel(cfg, &name, &obs, columns.len()))
+        .iter()
+        .map(|(name, obs)| fit_channel(cfg, name, obs, columns.len()))
         .collect::<Result<Vec<_>, _>>()?;
     Ok(ThermalModel {
         format: MODEL_FORMAT.into(),
         config: cfg.clone(),
         columns,
         t_ref_c,
-        from_ns: first.t_ns(),
-        to_ns: last.t_ns(),
+        from_ns: span_ns.0,
+        to_ns: span_ns.1,
         channels,
     })
 }
@@ -680,6 +745,18 @@ pub struct Predictor {
 impl Predictor {
     /// Start from the fitted posterior at `t0_ns` with the inputs of a cold machine.
     pub fn new(model: &ThermalModel, t0_ns: i64) -> Self {
+        let features = Features::new(&model.config, &model.t_ref_c, t0_ns);
+        Self::resume(std::sync::Arc::new(model.clone()), features, t0_ns)
+    }
+
+    /// Continue from the fitted posterior with lag states already run up to now (the
+    /// model's configuration and references must be the ones the states were made with);
+    /// `last_obs_ns` is when the fit last saw an observation, where the offset walk starts.
+    pub fn resume(
+        model: std::sync::Arc<ThermalModel>,
+        features: Features,
+        last_obs_ns: i64,
+    ) -> Self {
         let channels = model
             .channels
             .iter()
@@ -689,17 +766,17 @@ impl Predictor {
                     ChannelState {
                         beta: DVector::from_column_slice(&c.coef),
                         p: c.cov_matrix(),
-                        t_ns: t0_ns,
+                        t_ns: last_obs_ns,
                         discrepancy2: c.discrepancy_um.powi(2),
                     },
                 )
             })
             .collect();
         Predictor {
-            features: Features::new(&model.config, &model.t_ref_c, t0_ns),
+            features,
             channels,
             walk_per_s: model.config.offset_walk_um2_per_h / 3600.0,
-            model: std::sync::Arc::new(model.clone()),
+            model,
         }
     }
 
@@ -737,18 +814,31 @@ impl Predictor {
         else {
             return true;
         };
+        let h = self.features.row();
+        self.observe_row(channel, *t_ns, *value, *sigma, &h)
+    }
+
+    /// Correct a channel with an observation made at `t_ns` whose design row `h` is known
+    /// (the lag states at that time, when the filter has already run past it).
+    pub fn observe_row(
+        &mut self,
+        channel: &str,
+        t_ns: i64,
+        value: f64,
+        sigma: Option<f64>,
+        h: &DVector<f64>,
+    ) -> bool {
         let Some(s) = self.channels.get_mut(channel) else {
             return false;
         };
-        if !value.is_finite() {
+        if !value.is_finite() || h.len() != s.beta.len() {
             return false;
         }
-        let h = self.features.row();
-        s.p[(0, 0)] += self.walk_per_s * (*t_ns - s.t_ns).max(0) as f64 / 1e9;
-        s.t_ns = *t_ns;
+        s.p[(0, 0)] += self.walk_per_s * (t_ns - s.t_ns).max(0) as f64 / 1e9;
+        s.t_ns = s.t_ns.max(t_ns);
         let r = sigma.filter(|x| crate::positive(*x)).map_or(0.0, |x| x * x) + s.discrepancy2;
         let r = if r > 0.0 { r } else { 1e-12 };
-        let ph = &s.p * &h;
+        let ph = &s.p * h;
         let innovation_var = h.dot(&ph) + r;
         let k = &ph / innovation_var;
         let innovation = value - h.dot(&s.beta);

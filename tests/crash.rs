@@ -283,8 +283,7 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
             .latest_compensation(MACHINE)
             .await
             .unwrap()
-            .and_then(|v| v["version"].as_u64())
-            .unwrap_or(0);
+            .map_or(0, |v| v.version);
         store.close().await;
         AtKill {
             open,
@@ -418,8 +417,8 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
         assert_eq!(abandoned.status, "abandoned");
         assert!(abandoned.reason.is_some());
         let latest = store.latest_compensation(MACHINE).await.unwrap().unwrap();
-        assert_eq!(latest["version"].as_u64(), Some(served), "{latest}");
-        assert_eq!(latest["cycle"].as_i64(), Some(highest_ok), "{latest}");
+        assert_eq!(latest.version, served, "{latest:?}");
+        assert_eq!(latest.cycle, Some(highest_ok), "{latest:?}");
         let files = store.mcap_files(MACHINE).await.unwrap();
         assert!(
             files.iter().any(

@@ -216,25 +216,41 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         .collect();
     assert_eq!(sent, logged);
     assert!(seen.iter().all(|v| v["machine"] == "sim-1"));
-    // The per-minute series: every sensor once a minute, written in batches, all flushed.
+    // The stored series: each sensor whenever its minute's reading changed, and at least
+    // every TEMPERATURE_HEARTBEAT_MIN minutes; written in batches, all flushed.
     let samples = store.samples("sim-1", t0, end).await.unwrap();
-    let mut per_sensor: std::collections::BTreeMap<String, Vec<i64>> = Default::default();
+    let mut per_sensor: std::collections::BTreeMap<String, Vec<(i64, f64)>> = Default::default();
     for s in &samples {
-        if let driftwatch::store::Sample::Temperature { t_ns, sensor, .. } = s {
+        if let driftwatch::store::Sample::Temperature {
+            t_ns,
+            sensor,
+            celsius,
+        } = s
+        {
             per_sensor
                 .entry(sensor.clone())
                 .or_default()
-                .push(t_ns / MIN);
+                .push((t_ns / MIN, *celsius));
         }
     }
     assert!(!per_sensor.is_empty());
-    for (sensor, minutes) in &per_sensor {
+    let beat = driftwatch::daemon::TEMPERATURE_HEARTBEAT_MIN;
+    for (sensor, rows) in &per_sensor {
         assert!(
-            minutes.len() as i64 >= 31 * 60 - 1,
-            "{sensor}: {}",
-            minutes.len()
+            rows[0].0 <= t0 / MIN + 1,
+            "{sensor} starts late: {:?}",
+            rows[0]
         );
-        assert!(minutes.windows(2).all(|w| w[1] == w[0] + 1), "{sensor}");
+        assert!(
+            rows.last().unwrap().0 >= end / MIN - beat - 1,
+            "{sensor} ends early"
+        );
+        for w in rows.windows(2) {
+            let gap = w[1].0 - w[0].0;
+            assert!((1..=beat).contains(&gap), "{sensor}: {w:?}");
+            // A repeated value is stored only as the heartbeat.
+            assert!(w[1].1 != w[0].1 || gap == beat, "{sensor}: {w:?}");
+        }
     }
     assert!(
         samples
