@@ -82,6 +82,10 @@ pub struct MachineConfigEntry {
     /// Built-in plan name or path to a plan TOML.
     pub plan: String,
     pub link: LinkConfig,
+    /// A thermal model fitted by `driftwatch fit` (e.g. on an earlier day of this machine):
+    /// predictions start from it at once instead of after `thermal.min_cycles` cycles.
+    #[serde(default)]
+    pub thermal_model: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -271,7 +271,11 @@ impl MachineRuntime {
         let mut sched = SchedulerState::default();
         let (last_start, last_good) = store.schedule_memory(id).await?;
         let mut thermal = match &settings.initial_model {
-            Some(m) => LiveModel::with_initial(settings.prediction.clone(), m.clone()),
+            Some(m) => {
+                let live = LiveModel::with_initial(settings.prediction.clone(), m.clone());
+                info!(machine = id, "thermal model: {}", live.view().message);
+                live
+            }
             None => LiveModel::new(settings.prediction.clone()),
         };
         if last_start.is_some_and(|t| t <= now_ns) {

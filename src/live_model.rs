@@ -411,6 +411,50 @@ mod tests {
     }
 
     #[test]
+    fn a_model_fitted_elsewhere_predicts_from_the_first_input_until_the_own_fit() {
+        // The earlier day: a 12-min lag of 40 um in EZ0B, seen every 30 min.
+        let lag = |t: i64| 40.0 * (1.0 - (-(t as f64) / 60e9 / 12.0).exp());
+        let mut earlier = vec![Event::Spindle {
+            t_ns: 0,
+            rpm: 20000.0,
+        }];
+        for i in 0..8 {
+            let t = (i * 30 + 5) * MIN;
+            earlier.push(Event::Observation {
+                t_ns: t,
+                channel: "EZ0B".into(),
+                value: lag(t),
+                sigma: Some(0.3),
+            });
+        }
+        let model = crate::thermal_model::fit(&Default::default(), &earlier, None).unwrap();
+        let policy = PredictionPolicy {
+            min_cycles: 3,
+            ..Default::default()
+        };
+        let mut m = LiveModel::with_initial(policy, Arc::new(model));
+        assert!(m.predict(0).is_none(), "nothing before the first input");
+        // Today starts a day later, with the spindle on.
+        let day = 1440 * MIN;
+        m.input(Event::Spindle {
+            t_ns: day,
+            rpm: 20000.0,
+        });
+        assert_eq!(m.view().status, "initial");
+        let p = m.predict(day + 20 * MIN).unwrap();
+        assert!((p[0].value - lag(20 * MIN)).abs() < 1.0, "{p:?}");
+        let one = |v: f64| BTreeMap::from([("EZ0B".to_string(), v)]);
+        for i in 0..3 {
+            let t = (i * 30 + 25) * MIN;
+            let note = m.observe(day + t, &one(lag(t)), &one(0.3));
+            assert_eq!(note.is_some(), i == 2, "cycle {i}: {note:?}");
+        }
+        assert_eq!(m.view().status, "fitted");
+        let p = m.predict(day + 120 * MIN).unwrap();
+        assert!((p[0].value - lag(120 * MIN)).abs() < 1.0, "{p:?}");
+    }
+
+    #[test]
     fn disabled_does_nothing() {
         let mut m = LiveModel::new(PredictionPolicy {
             enabled: false,

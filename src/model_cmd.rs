@@ -257,15 +257,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     );
     let text = std::fs::read_to_string(&a.model)
         .with_context(|| format!("reading {}", a.model.display()))?;
-    let model: ThermalModel = serde_json::from_str(&text)
-        .with_context(|| format!("{} is not a driftwatch model", a.model.display()))?;
-    anyhow::ensure!(
-        model.format == driftwatch::thermal_model::MODEL_FORMAT,
-        "{}: model format '{}', expected '{}'",
-        a.model.display(),
-        model.format,
-        driftwatch::thermal_model::MODEL_FORMAT
-    );
+    let model = ThermalModel::from_json(&text).with_context(|| a.model.display().to_string())?;
     let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
     let Some(first) = events.first() else {
         anyhow::bail!("{}: no events to replay", a.recording.display());

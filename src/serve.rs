@@ -71,13 +71,20 @@ pub async fn run(o: Options) -> Result<ExitCode> {
         .iter()
         .any(|m| matches!(m.link, LinkConfig::NcPush));
     let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
-    let mut machines: Vec<(String, Kinematics, Plan, Box<dyn MachineLink>)> = Vec::new();
+    type Machine = (String, Kinematics, Plan, Box<dyn MachineLink>, Settings);
+    let mut machines: Vec<Machine> = Vec::new();
     let mut nc_handles = BTreeMap::new();
     let mut t0 = i64::MAX;
     for m in &cfg.machines {
         let k = Kinematics::load(&m.machine).with_context(|| format!("machine '{}'", m.id))?;
         let plan = Plan::build(&k, &PlanConfig::load(&m.plan)?)
             .with_context(|| format!("machine '{}'", m.id))?;
+        let mut settings = settings.clone();
+        if let Some(path) = &m.thermal_model {
+            let model = initial_model(path, &k)
+                .with_context(|| format!("machine '{}': thermal_model {}", m.id, path.display()))?;
+            settings.initial_model = Some(std::sync::Arc::new(model));
+        }
         match &m.link {
             LinkConfig::Simulated { scenario } => {
                 let mut scn =
@@ -98,18 +105,18 @@ pub async fn run(o: Options) -> Result<ExitCode> {
                 }
                 let link = Simulated::new(k.clone(), plan.clone(), scn)?;
                 t0 = t0.min(link.start_ns() + lead_ns);
-                machines.push((m.id.clone(), k, plan, Box::new(link)));
+                machines.push((m.id.clone(), k, plan, Box::new(link), settings));
             }
             LinkConfig::NcPush => {
                 let (link, handle) = nc_push(plan.clone());
                 nc_handles.insert(m.id.clone(), handle);
                 t0 = t0.min(wall_now);
-                machines.push((m.id.clone(), k, plan, Box::new(link)));
+                machines.push((m.id.clone(), k, plan, Box::new(link), settings));
             }
         }
     }
     let mut runtimes = Vec::new();
-    for (id, k, plan, link) in machines {
+    for (id, k, plan, link, settings) in machines {
         let info = MachineInfo {
             machine_id: id.clone(),
             kinematics: k.name.clone(),
@@ -252,4 +259,28 @@ async fn shutdown_signal() {
     {
         let _ = tokio::signal::ctrl_c().await;
     }
+}
+
+/// A model file to start a machine's predictions from: readable, and only of errors the
+/// machine has.
+fn initial_model(
+    path: &std::path::Path,
+    k: &Kinematics,
+) -> Result<driftwatch::thermal_model::ThermalModel> {
+    let text = std::fs::read_to_string(path).context("reading the file")?;
+    let model = driftwatch::thermal_model::ThermalModel::from_json(&text)?;
+    let names = k.identify_names();
+    let foreign: Vec<&str> = model
+        .channels
+        .iter()
+        .map(|c| c.name.as_str())
+        .filter(|n| !names.iter().any(|m| m == n))
+        .collect();
+    anyhow::ensure!(
+        foreign.is_empty(),
+        "the model has channels this machine ({}) does not: {}",
+        k.name,
+        foreign.join(", ")
+    );
+    Ok(model)
 }

@@ -427,6 +427,32 @@ pub struct ThermalModel {
 
 pub const MODEL_FORMAT: &str = "driftwatch.thermal_model.v1";
 
+impl ThermalModel {
+    /// Read a model file written by `driftwatch fit`, checking its format and configuration.
+    pub fn from_json(text: &str) -> Result<Self, ModelError> {
+        let m: ThermalModel = serde_json::from_str(text)
+            .map_err(|e| ModelError::Config(format!("not a driftwatch model: {e}")))?;
+        if m.format != MODEL_FORMAT {
+            return Err(ModelError::Config(format!(
+                "model format '{}', expected '{MODEL_FORMAT}'",
+                m.format
+            )));
+        }
+        m.config.validate()?;
+        let n = m.config.columns().len();
+        if m.columns != m.config.columns()
+            || m.channels
+                .iter()
+                .any(|c| c.coef.len() != n || c.cov.len() != n * n)
+        {
+            return Err(ModelError::Config(
+                "the model's parameters do not match its configuration's columns".into(),
+            ));
+        }
+        Ok(m)
+    }
+}
+
 /// Weak prior of the offset, um (the gains' is configured): wide against any machine.
 const PRIOR_SD_OFFSET: f64 = 1e4;
 /// Blocks of the time-ordered data for cross-validation.
@@ -1161,5 +1187,27 @@ mod tests {
         let (ev, _) = day(10, 0.5, 5);
         let e = fit(&cfg, &ev, None).unwrap_err().to_string();
         assert!(e.contains("head"), "{e}");
+    }
+
+    #[test]
+    fn a_model_file_reads_back_and_a_damaged_one_is_refused() {
+        let (ev, _) = day(10, 0.5, 5);
+        let m = fit(&ModelConfig::default(), &ev, None).unwrap();
+        let text = serde_json::to_string(&m).unwrap();
+        assert_eq!(ThermalModel::from_json(&text).unwrap(), m);
+        let e = ThermalModel::from_json("{}").unwrap_err().to_string();
+        assert!(e.contains("not a driftwatch model"), "{e}");
+        let mut other = m.clone();
+        other.format = "driftwatch.thermal_model.v0".into();
+        let e = ThermalModel::from_json(&serde_json::to_string(&other).unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("v0"), "{e}");
+        let mut short = m.clone();
+        short.channels[0].coef.pop();
+        let e = ThermalModel::from_json(&serde_json::to_string(&short).unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("do not match"), "{e}");
     }
 }

@@ -453,4 +453,51 @@ fn the_thermal_model_fits_the_six_errors_of_a_simulated_recording() {
     for e in ["EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"] {
         assert!(out.contains(e), "{out}");
     }
+    // The service starts a machine's predictions from such a file, and refuses one it
+    // cannot read, naming the machine and the file.
+    let default =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/default.toml"))
+            .unwrap();
+    let serve = |model: &Path| {
+        let cfg = tmp(&format!(
+            "serve-{}.toml",
+            model.file_stem().unwrap().to_str().unwrap()
+        ));
+        let text = default.replacen(
+            "# thermal_model = \"models/sim-1.json\"",
+            &format!("thermal_model = {:?}", model.to_str().unwrap()),
+            1,
+        );
+        assert_ne!(text, default);
+        std::fs::write(&cfg, text).unwrap();
+        let data = tmp(&format!(
+            "serve-data-{}",
+            model.file_stem().unwrap().to_str().unwrap()
+        ));
+        run(&[
+            "serve",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--until",
+            "10",
+            "--time-scale",
+            "100000",
+            "--listen",
+            "127.0.0.1:0",
+            "--data-dir",
+            data.to_str().unwrap(),
+        ])
+    };
+    let (ok, out, err) = serve(&model);
+    assert!(ok, "{out}{err}");
+    assert!(
+        format!("{out}{err}").contains("started from a model fitted on"),
+        "{out}{err}"
+    );
+    let (ok, out, err) = serve(&tmp("no-such-model.json"));
+    assert!(!ok);
+    assert!(
+        err.contains("machine 'sim-1': thermal_model") && err.contains("no-such-model.json"),
+        "{out}{err}"
+    );
 }

@@ -13,6 +13,7 @@ use driftwatch::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
 use driftwatch::scenario::Scenario;
 use driftwatch::store::Store;
+use driftwatch::thermal_model::Prediction;
 
 const MIN: i64 = 60_000_000_000;
 
@@ -345,14 +346,26 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
     )
     .await
     .unwrap();
-    let end = t0 + 10 * 60 * MIN;
+    let end = t0 + 14 * 60 * MIN;
     let mut now = t0;
     while now < end {
         now = first.step(now).await.unwrap().min(end).max(now + 1);
     }
     first.shutdown(end).await.unwrap();
     let (_, last_good) = store.schedule_memory("sim-1").await.unwrap();
-    let last_good = last_good.expect("a good cycle in the first 10 h");
+    let last_good = last_good.expect("a good cycle in the first 14 h");
+    // What the running model predicted for a minute after the end.
+    let before: Vec<Prediction> = {
+        let v = first.view.lock().unwrap();
+        assert_eq!(v.model.as_ref().unwrap().status, "fitted");
+        let mut p = v
+            .predictor
+            .as_ref()
+            .expect("a fitted model")
+            .as_ref()
+            .clone();
+        p.predict(end + MIN)
+    };
     assert!(end - last_good < settings.schedule.max_age_min as i64 * MIN);
 
     // Restarted a minute later beside an idle machine: the last result is fresh, no cycle.
@@ -370,17 +383,37 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
                     .await
                     .unwrap();
             rt.step(now).await.unwrap();
-            let schedule = rt.view.lock().unwrap().schedule.clone();
+            let (schedule, model, prediction) = {
+                let v = rt.view.lock().unwrap();
+                (v.schedule.clone(), v.model.clone(), v.prediction.clone())
+            };
             rt.shutdown(now + 2).await.unwrap();
             let n = requested.lock().unwrap().len();
-            (n, schedule)
+            (n, schedule, model, prediction)
         }
     };
-    let (n, schedule) = asked(end + MIN).await;
+    let (n, schedule, model, after) = asked(end + MIN).await;
     assert_eq!(n, 0, "{schedule}");
+    // The thermal model is back at once, rebuilt from the stored inputs and results, and
+    // predicts what the running one did.
+    let model = model.expect("a model view");
+    assert_eq!(model.status, "fitted", "{}", model.message);
+    assert!(model.message.contains("fitted on 1"), "{}", model.message);
+    assert_eq!(after.len(), before.len());
+    for (a, b) in after.iter().zip(&before) {
+        println!(
+            "{}: before the restart {:.2} +- {:.2}, after {:.2} +- {:.2}",
+            a.channel, b.value, b.sigma, a.value, a.sigma
+        );
+        assert_eq!(a.channel, b.channel);
+        assert!(
+            (a.value - b.value).abs() < 0.5 * b.sigma.max(a.sigma),
+            "{a:?} {b:?}"
+        );
+    }
     // Past the maximum age a cycle runs.
     let late = last_good + settings.schedule.max_age_min as i64 * MIN + MIN;
-    let (n, schedule) = asked(late).await;
+    let (n, schedule, ..) = asked(late).await;
     assert_eq!(n, 1, "{schedule}");
     assert!(
         schedule.contains("stale") || schedule.contains("old"),
@@ -388,6 +421,6 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
     );
     // A clock behind the stored cycles (a simulated day started again) starts afresh: no
     // result is known at that time, so it measures.
-    let (n, schedule) = asked(t0 - 60 * MIN).await;
+    let (n, schedule, ..) = asked(t0 - 60 * MIN).await;
     assert_eq!(n, 1, "{schedule}");
 }
