@@ -261,11 +261,21 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 
 /// `bench compensation`: the three strategies on four scenarios, each prediction starting from
 /// a model fitted on an earlier simulated day of the same machine.
-pub fn compensation(json: bool) -> Result<ExitCode> {
-    use driftwatch::strategies::{BENCH_SCENARIOS, Comparison, bench_scenario};
-    let mut all: Vec<(String, String, Comparison)> = Vec::new();
+pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode> {
+    use driftwatch::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
+    let mut policy = driftwatch::scheduler::SchedulePolicy::default();
+    let own_schedule = after_stop.is_none();
+    if let Some(a) = after_stop {
+        anyhow::ensure!(
+            a.iter().all(|x| x.is_finite() && *x > 0.0),
+            "--after-stop takes minutes > 0"
+        );
+        policy.after_stop_min = a;
+    }
+    let mut all: Vec<(String, String, ScheduleComparison)> = Vec::new();
     for (name, start) in BENCH_SCENARIOS {
-        let c = bench_scenario(name).with_context(|| format!("scenario {name}"))?;
+        let c = bench_scenario(name, &policy, own_schedule)
+            .with_context(|| format!("scenario {name}"))?;
         all.push((name.to_string(), start.to_string(), c));
     }
     if json {
@@ -284,7 +294,8 @@ pub fn compensation(json: bool) -> Result<ExitCode> {
         driftwatch::strategies::REFERENCE_POSE_DEG[0],
         driftwatch::strategies::REFERENCE_POSE_DEG[1]
     );
-    for (name, start, c) in &all {
+    for (name, start, sc) in &all {
+        let c = &sc.adaptive;
         println!(
             "\n{name}: {} min, {} cycles ({} ok); model from {start}",
             c.minutes, c.cycles, c.cycles_ok
@@ -319,6 +330,55 @@ pub fn compensation(json: bool) -> Result<ExitCode> {
             "  thermal error RMS removed at the tool tip: last measured {:.1} %, predicted {:.1} %",
             100.0 * (1.0 - c.last_measured.tool_tip.rms / c.none.tool_tip.rms),
             100.0 * c.tool_tip_reduction()
+        );
+        let f = &sc.fixed;
+        let ez = |r: &driftwatch::strategies::StrategyResult| {
+            r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max)
+        };
+        println!(
+            "  schedule, {} cycles each: the service's (after stops, warm-up cadence) vs a fixed cadence (idle minutes only)",
+            sc.adaptive_min.len()
+        );
+        println!(
+            "    cycles within 30 min after a stop: {} vs {}",
+            sc.adaptive_after_stops, sc.fixed_after_stops
+        );
+        println!(
+            "    max residual, predicted: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
+            c.predicted.tool_tip.max,
+            c.predicted.tool_tip.max_at_min,
+            f.predicted.tool_tip.max,
+            f.predicted.tool_tip.max_at_min,
+            ez(&c.predicted),
+            ez(&f.predicted)
+        );
+        println!(
+            "    max residual, last measured: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
+            c.last_measured.tool_tip.max,
+            c.last_measured.tool_tip.max_at_min,
+            f.last_measured.tool_tip.max,
+            f.last_measured.tool_tip.max_at_min,
+            ez(&c.last_measured),
+            ez(&f.last_measured)
+        );
+        if c.predicted.tool_tip_cutting.max_at_min.is_nan() {
+            println!("    no cutting in this program");
+        } else {
+            println!(
+                "    max tool-tip residual while cutting: predicted {:.2} (at {} min) vs {:.2} (at {} min) um, last measured {:.2} (at {} min) vs {:.2} (at {} min) um",
+                c.predicted.tool_tip_cutting.max,
+                c.predicted.tool_tip_cutting.max_at_min,
+                f.predicted.tool_tip_cutting.max,
+                f.predicted.tool_tip_cutting.max_at_min,
+                c.last_measured.tool_tip_cutting.max,
+                c.last_measured.tool_tip_cutting.max_at_min,
+                f.last_measured.tool_tip_cutting.max,
+                f.last_measured.tool_tip_cutting.max_at_min
+            );
+        }
+        println!(
+            "    cycle times (min): service {:?}; fixed {:?}",
+            sc.adaptive_min, sc.fixed_min
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -164,6 +164,10 @@ enum Command {
         /// Serve predicted sets between cycles (bench year): on or off.
         #[arg(long, default_value = "on", value_parser = ["on", "off"])]
         prediction: String,
+        /// Cycles after a spindle stop, min, for the day under test (bench compensation;
+        /// default: the shipped policy). The patent scenario then uses the scheduler too.
+        #[arg(long, value_delimiter = ',')]
+        after_stop: Option<Vec<f64>>,
     },
 }
 
@@ -327,8 +331,9 @@ fn run(cmd: Command) -> Result<ExitCode> {
         Command::Bench {
             which: BenchWhich::Compensation,
             json,
+            after_stop,
             ..
-        } => bench::compensation(json),
+        } => bench::compensation(json, after_stop),
         Command::Bench {
             which: BenchWhich::Http,
             connections,

@@ -122,13 +122,21 @@ pub fn run_day(
 pub struct Stats {
     pub rms: f64,
     pub max: f64,
+    /// Where the largest residual is, min from the scenario start (one sample a minute).
+    pub max_at_min: f64,
 }
 
 fn stats(v: &[f64]) -> Stats {
     let n = v.len().max(1) as f64;
+    let (at, max) =
+        v.iter().enumerate().fold(
+            (0, 0.0),
+            |(i, m), (j, x)| if x.abs() > m { (j, x.abs()) } else { (i, m) },
+        );
     Stats {
         rms: (v.iter().map(|x| x * x).sum::<f64>() / n).sqrt(),
-        max: v.iter().fold(0.0, |m, x| m.max(x.abs())),
+        max,
+        max_at_min: at as f64,
     }
 }
 
@@ -138,6 +146,9 @@ fn stats(v: &[f64]) -> Stats {
 pub struct StrategyResult {
     pub errors: BTreeMap<String, Stats>,
     pub tool_tip: Stats,
+    /// The tool-tip error over the minutes the NC reported cutting: what lands on parts
+    /// (`max_at_min` counts those minutes from the scenario start too).
+    pub tool_tip_cutting: Stats,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -207,8 +218,15 @@ pub fn compare(
     let mut last: BTreeMap<String, f64> = reference.clone();
     let mut res: [BTreeMap<String, Vec<f64>>; 3] = Default::default();
     let mut tips: [Vec<f64>; 3] = Default::default();
+    let mut cutting_tips: [Vec<(usize, f64)>; 3] = Default::default();
     let mut k_ev = 0;
-    for truth in &sim.truth {
+    let mut k_state = 0;
+    let mut cutting = false;
+    for (minute, truth) in sim.truth.iter().enumerate() {
+        while k_state < sim.states.len() && sim.states[k_state].t_ns <= truth.t_ns {
+            cutting = sim.states[k_state].msg.state == crate::recording::MachineStateKind::Cutting;
+            k_state += 1;
+        }
         while k_ev < events.len() && events[k_ev].t_ns() <= truth.t_ns {
             let e = &events[k_ev];
             predictor.apply(e);
@@ -235,12 +253,24 @@ pub fn compare(
                 residual.insert(n.clone(), t - s);
                 res[i].entry(n.clone()).or_default().push(t - s);
             }
-            tips[i].push(tool_tip_um(k, &residual));
+            let tip = tool_tip_um(k, &residual);
+            tips[i].push(tip);
+            if cutting {
+                cutting_tips[i].push((minute, tip));
+            }
         }
     }
-    let result = |i: usize| StrategyResult {
-        errors: res[i].iter().map(|(n, v)| (n.clone(), stats(v))).collect(),
-        tool_tip: stats(&tips[i]),
+    let result = |i: usize| {
+        let c: Vec<f64> = cutting_tips[i].iter().map(|x| x.1).collect();
+        let mut tool_tip_cutting = stats(&c);
+        tool_tip_cutting.max_at_min = cutting_tips[i]
+            .get(tool_tip_cutting.max_at_min as usize)
+            .map_or(f64::NAN, |x| x.0 as f64);
+        StrategyResult {
+            errors: res[i].iter().map(|(n, v)| (n.clone(), stats(v))).collect(),
+            tool_tip: stats(&tips[i]),
+            tool_tip_cutting,
+        }
     };
     Comparison {
         minutes: sim.truth.len(),
@@ -292,12 +322,97 @@ pub fn bench_model_config() -> ModelConfig {
     }
 }
 
-/// One benchmark scenario: fit the model on the earlier day, then compare on the day itself.
-pub fn bench_scenario(name: &str) -> Result<Comparison, BenchError> {
+/// A fixed cadence over `[from_min, to_min]` that measures only while idle: a slot every
+/// `every_min`, taken at its first idle minute before the next slot (after the previous cycle
+/// has ended), missed when there is none.
+pub fn cadence_cycles(
+    scn: &Scenario,
+    plan: &Plan,
+    every_min: f64,
+    from_min: f64,
+    to_min: f64,
+) -> Vec<f64> {
+    let cycle_min = (plan.machine_time_s / 60.0).ceil();
+    let idle = |m: f64| {
+        scn.spindle
+            .iter()
+            .rev()
+            .find(|s| s.at_min <= m)
+            .is_some_and(|s| s.state == crate::recording::MachineStateKind::Idle)
+    };
+    let mut out: Vec<f64> = Vec::new();
+    let mut slot = from_min;
+    while slot <= to_min + 1e-9 {
+        let mut m = slot.round();
+        if let Some(last) = out.last() {
+            m = m.max(last + cycle_min);
+        }
+        while m < (slot + every_min).min(scn.duration_min) && !idle(m) {
+            m += 1.0;
+        }
+        if m < (slot + every_min).min(scn.duration_min) && idle(m) {
+            out.push(m);
+        }
+        slot += every_min;
+    }
+    out
+}
+
+/// The fixed cadence over `[from_min, to_min]` with `n` cycles: the longest whole-minute
+/// interval that gives at least `n`, cut to `n`.
+pub fn fixed_cycles(scn: &Scenario, plan: &Plan, n: usize, from_min: f64, to_min: f64) -> Vec<f64> {
+    let mut every = ((to_min - from_min) / (n.max(2) - 1) as f64)
+        .floor()
+        .max(1.0);
+    loop {
+        let c = cadence_cycles(scn, plan, every, from_min, to_min);
+        if c.len() >= n || every <= 1.0 {
+            return c.into_iter().take(n).collect();
+        }
+        every -= 1.0;
+    }
+}
+
+/// Minutes of the program at which the spindle stops (turning before, not after).
+pub fn spindle_stops(scn: &Scenario) -> Vec<f64> {
+    scn.spindle
+        .windows(2)
+        .filter(|w| w[0].rpm > 0.0 && w[1].rpm <= 0.0)
+        .map(|w| w[1].at_min)
+        .collect()
+}
+
+/// The service's schedule against a fixed cadence with as many cycles.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScheduleComparison {
+    pub adaptive_min: Vec<f64>,
+    pub fixed_min: Vec<f64>,
+    /// Cycles that start within 30 min after a spindle stop, in each schedule.
+    pub adaptive_after_stops: usize,
+    pub fixed_after_stops: usize,
+    pub adaptive: Comparison,
+    pub fixed: Comparison,
+}
+
+fn after_stops(times: &[f64], stops: &[f64]) -> usize {
+    times
+        .iter()
+        .filter(|t| stops.iter().any(|s| **t >= *s && **t <= s + 30.0))
+        .count()
+}
+
+/// One benchmark scenario: fit the model on the earlier day (scheduled by the default
+/// policy), then compare on the day itself, once with the schedule of `policy` and once with
+/// a fixed cadence of as many cycles. A scenario with its own cycle times (the patent's) keeps
+/// them unless `own_schedule` is false.
+pub fn bench_scenario(
+    name: &str,
+    policy: &SchedulePolicy,
+    own_schedule: bool,
+) -> Result<ScheduleComparison, BenchError> {
     let scn = Scenario::load(name)?;
     let k = Kinematics::load(&scn.machine)?;
     let plan = Plan::build(&k, &crate::plan::PlanConfig::load(&scn.plan)?)?;
-    let policy = SchedulePolicy::default();
     let mut earlier = scn.clone();
     earlier.seed = scn.seed + 1000;
     if scn.ambient.amplitude_k > 0.0 {
@@ -305,14 +420,39 @@ pub fn bench_scenario(name: &str) -> Result<Comparison, BenchError> {
         earlier.ambient.amplitude_k = 1.0;
         earlier.ambient.peak_h = 13.0;
     }
-    let (train_sim, train_out) = run_day(&earlier, &k, &plan, &policy)?;
+    let (train_sim, train_out) = run_day(&earlier, &k, &plan, &SchedulePolicy::default())?;
     let model = crate::thermal_model::fit(
         &bench_model_config(),
         &simulation_events(&train_sim, &train_out),
         None,
     )?;
-    let (sim, outcomes) = run_day(&scn, &k, &plan, &policy)?;
-    Ok(compare(&k, &sim, &outcomes, &model))
+    let mut day = scn.clone();
+    if day.cycle_times_min().is_empty() || !own_schedule {
+        day.cycles.at_min = scheduled_cycles(&day, &plan, policy);
+        day.cycles.every_min = None;
+    }
+    let adaptive_min = day.cycle_times_min();
+    let (sim, outcomes) = run_day(&day, &k, &plan, policy)?;
+    let adaptive = compare(&k, &sim, &outcomes, &model);
+    let (from, to) = (
+        adaptive_min.first().copied().unwrap_or(0.0),
+        adaptive_min.last().copied().unwrap_or(0.0),
+    );
+    let mut fixed_day = scn.clone();
+    fixed_day.cycles.at_min = fixed_cycles(&scn, &plan, adaptive_min.len(), from, to);
+    fixed_day.cycles.every_min = None;
+    let fixed_min = fixed_day.cycle_times_min();
+    let (sim, outcomes) = run_day(&fixed_day, &k, &plan, policy)?;
+    let fixed = compare(&k, &sim, &outcomes, &model);
+    let stops = spindle_stops(&scn);
+    Ok(ScheduleComparison {
+        adaptive_after_stops: after_stops(&adaptive_min, &stops),
+        fixed_after_stops: after_stops(&fixed_min, &stops),
+        adaptive_min,
+        fixed_min,
+        adaptive,
+        fixed,
+    })
 }
 
 #[cfg(test)]
@@ -340,5 +480,17 @@ mod tests {
             times.contains(&705.0) && times.contains(&720.0),
             "{times:?}"
         );
+        assert!(spindle_stops(&scn).contains(&690.0));
+        // The fixed cadence with as many cycles: idle minutes only, one cycle at a time.
+        let (from, to) = (times[0], times[times.len() - 1]);
+        let fixed = fixed_cycles(&scn, &plan, times.len(), from, to);
+        assert_eq!(fixed.len(), times.len(), "{fixed:?}");
+        assert!(fixed.windows(2).all(|w| w[1] >= w[0] + 1.0), "{fixed:?}");
+        assert!(fixed[0] >= from && fixed[fixed.len() - 1] <= to + 1e-9 + 60.0);
+        for t in &fixed {
+            let seg = scn.spindle.iter().rev().find(|s| s.at_min <= *t).unwrap();
+            assert_eq!(seg.state, MachineStateKind::Idle, "fixed cycle at {t} min");
+        }
+        assert_ne!(fixed, times);
     }
 }

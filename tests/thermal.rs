@@ -151,7 +151,8 @@ fn the_replay_is_causal() {
 fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
     use driftwatch::strategies::{BENCH_SCENARIOS, bench_scenario};
     for (name, _) in BENCH_SCENARIOS {
-        let c = bench_scenario(name).unwrap();
+        let sc = bench_scenario(name, &Default::default(), true).unwrap();
+        let c = &sc.adaptive;
         let ez = c.predicted.errors["EZ0B"];
         println!(
             "{name}: EZ0B predicted rms {:.2} max {:.2} um (last measured max {:.2}); tool tip {:.1} % removed",
