@@ -260,7 +260,8 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 }
 
 /// `bench compensation`: the three strategies on four scenarios, each prediction starting from
-/// a model fitted on an earlier simulated day of the same machine.
+/// the service's model rebuilt from an earlier simulated day of the same machine, and the
+/// service's schedule against a fixed cadence with as many cycles.
 pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode> {
     use driftwatch::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
     let mut policy = driftwatch::scheduler::SchedulePolicy::default();

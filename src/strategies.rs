@@ -5,21 +5,25 @@
 //! - the thermal model's prediction, corrected by every validated cycle.
 //!
 //! Cycles run when the service's own scheduler would start them (warm-up cadence, after stops,
-//! only while idle), so every strategy sees the same measurements. Pure code.
+//! only while idle), so every strategy sees the same measurements. The prediction is the
+//! service's own `live_model`, rebuilt from an earlier day as the store would hold it, fed
+//! each validated cycle once its last detection is in. Pure code.
 
 use std::collections::BTreeMap;
 
 use serde::Serialize;
 
+use crate::compensation::PredictionPolicy;
 use crate::cycle::{CycleChecks, CycleOutcome, process_all};
 use crate::geometry::Vec3;
 use crate::kinematics::Kinematics;
+use crate::live_model::LiveModel;
 use crate::phase::{PhaseConfig, PhaseTracker};
 use crate::plan::Plan;
 use crate::scenario::Scenario;
 use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 use crate::simulator::{SimError, Simulation, simulate};
-use crate::thermal_model::{Event, ModelConfig, Predictor, TemperatureInput, ThermalModel};
+use crate::thermal_model::{Event, ModelConfig, TemperatureInput};
 
 const MIN: i64 = 60_000_000_000;
 
@@ -64,9 +68,19 @@ pub fn scheduled_cycles(scn: &Scenario, plan: &Plan, policy: &SchedulePolicy) ->
     out
 }
 
-/// The timeline of a simulation for the model: spindle (cycle spins included), temperatures,
-/// and each validated cycle's errors, known from the end of its cycle on.
-pub fn simulation_events(sim: &Simulation, outcomes: &[CycleOutcome]) -> Vec<Event> {
+/// A validated cycle as the service sees it: its errors at the reference time (the mean
+/// detection time), known once its last detection is in.
+#[derive(Debug, Clone)]
+pub struct SeenCycle {
+    pub known_ns: i64,
+    pub t_ref_ns: i64,
+    pub errors: BTreeMap<String, f64>,
+    pub sigma: BTreeMap<String, f64>,
+}
+
+/// The model's inputs in a simulation: spindle (cycle spins included) and temperatures, in
+/// time order.
+pub fn simulation_inputs(sim: &Simulation) -> Vec<Event> {
     let mut ev: Vec<Event> = sim
         .spindle
         .iter()
@@ -80,18 +94,47 @@ pub fn simulation_events(sim: &Simulation, outcomes: &[CycleOutcome]) -> Vec<Eve
         sensor: m.msg.sensor.clone(),
         celsius: m.msg.celsius,
     }));
-    for (o, c) in outcomes.iter().zip(&sim.cycles) {
-        let (true, Some(s)) = (o.is_ok(), &o.solution) else {
-            continue;
-        };
-        let known = c.detections.last().map_or(o.t_ref_ns, |d| d.t_ns);
-        for e in &s.errors {
-            ev.push(Event::Observation {
-                t_ns: known,
-                channel: e.name.clone(),
-                value: e.value,
-                sigma: Some(e.sigma),
-            });
+    ev.sort_by_key(Event::t_ns);
+    ev
+}
+
+/// Every validated cycle of a simulation, in time order.
+pub fn seen_cycles(sim: &Simulation, outcomes: &[CycleOutcome]) -> Vec<SeenCycle> {
+    outcomes
+        .iter()
+        .zip(&sim.cycles)
+        .filter_map(|(o, c)| {
+            let (true, Some(s)) = (o.is_ok(), &o.solution) else {
+                return None;
+            };
+            Some(SeenCycle {
+                known_ns: c.detections.last().map_or(o.t_ref_ns, |d| d.t_ns),
+                t_ref_ns: o.t_ref_ns,
+                errors: s.errors.iter().map(|e| (e.name.clone(), e.value)).collect(),
+                sigma: s.errors.iter().map(|e| (e.name.clone(), e.sigma)).collect(),
+            })
+        })
+        .collect()
+}
+
+/// The timeline of a simulation as the service stores it: inputs, and each validated cycle's
+/// errors at its reference time (for batch fits and for rebuilding a model), shifted by
+/// `shift_ns`.
+pub fn simulation_events(sim: &Simulation, outcomes: &[CycleOutcome], shift_ns: i64) -> Vec<Event> {
+    let mut ev = simulation_inputs(sim);
+    for c in seen_cycles(sim, outcomes) {
+        ev.extend(c.errors.iter().map(|(name, v)| Event::Observation {
+            t_ns: c.t_ref_ns,
+            channel: name.clone(),
+            value: *v,
+            sigma: c.sigma.get(name).copied(),
+        }));
+    }
+    for e in &mut ev {
+        match e {
+            Event::Spindle { t_ns, .. }
+            | Event::Temperature { t_ns, .. }
+            | Event::Observation { t_ns, .. } => *t_ns += shift_ns,
         }
     }
     ev.sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
@@ -191,17 +234,22 @@ fn tool_tip_um(k: &Kinematics, residual: &BTreeMap<String, f64>) -> f64 {
     d.norm() * 1000.0
 }
 
-/// Compare the three strategies over the simulated day at the truth's 1-min samples, the
-/// prediction starting from `model`.
+/// Compare the three strategies over the simulated day at the truth's 1-min samples. The
+/// prediction is the service's own model (`live_model`) with `policy`: rebuilt from `history`
+/// (earlier days, as the store holds them), then fed the day's inputs and each validated
+/// cycle once it is known, refitting as the service does.
 pub fn compare(
     k: &Kinematics,
     sim: &Simulation,
     outcomes: &[CycleOutcome],
-    model: &ThermalModel,
+    history: &[Event],
+    policy: &PredictionPolicy,
 ) -> Comparison {
     let names = k.identify_names();
-    let events = simulation_events(sim, outcomes);
-    let t0 = sim.truth.first().map_or(0, |t| t.t_ns);
+    let mut live = LiveModel::new(policy.clone());
+    live.restore(history);
+    let inputs = simulation_inputs(sim);
+    let seen = seen_cycles(sim, outcomes);
     let reference: BTreeMap<String, f64> = names
         .iter()
         .map(|n| {
@@ -214,29 +262,44 @@ pub fn compare(
             (n.clone(), v)
         })
         .collect();
-    let mut predictor = Predictor::new(model, t0);
     let mut last: BTreeMap<String, f64> = reference.clone();
     let mut res: [BTreeMap<String, Vec<f64>>; 3] = Default::default();
     let mut tips: [Vec<f64>; 3] = Default::default();
     let mut cutting_tips: [Vec<(usize, f64)>; 3] = Default::default();
-    let mut k_ev = 0;
-    let mut k_state = 0;
+    let (mut k_in, mut k_seen, mut k_state) = (0, 0, 0);
     let mut cutting = false;
     for (minute, truth) in sim.truth.iter().enumerate() {
         while k_state < sim.states.len() && sim.states[k_state].t_ns <= truth.t_ns {
             cutting = sim.states[k_state].msg.state == crate::recording::MachineStateKind::Cutting;
             k_state += 1;
         }
-        while k_ev < events.len() && events[k_ev].t_ns() <= truth.t_ns {
-            let e = &events[k_ev];
-            predictor.apply(e);
-            if let Event::Observation { channel, value, .. } = e {
-                last.insert(channel.clone(), *value);
+        // Inputs and known cycles up to now, in time order (inputs first at equal times).
+        loop {
+            let next_in = inputs
+                .get(k_in)
+                .map(Event::t_ns)
+                .filter(|t| *t <= truth.t_ns);
+            let next_seen = seen
+                .get(k_seen)
+                .map(|c| c.known_ns)
+                .filter(|t| *t <= truth.t_ns);
+            match (next_in, next_seen) {
+                (Some(a), b) if b.is_none_or(|b| a <= b) => {
+                    live.input(inputs[k_in].clone());
+                    k_in += 1;
+                }
+                (_, Some(_)) => {
+                    let c = &seen[k_seen];
+                    live.observe(c.t_ref_ns, &c.errors, &c.sigma);
+                    last.extend(c.errors.iter().map(|(n, v)| (n.clone(), *v)));
+                    k_seen += 1;
+                }
+                _ => break,
             }
-            k_ev += 1;
         }
-        let predicted: BTreeMap<String, f64> = predictor
+        let predicted: BTreeMap<String, f64> = live
             .predict(truth.t_ns)
+            .unwrap_or_default()
             .into_iter()
             .map(|p| (p.channel, p.value))
             .collect();
@@ -292,8 +355,6 @@ pub enum BenchError {
     Plan(#[from] crate::plan::PlanError),
     #[error(transparent)]
     Sim(#[from] SimError),
-    #[error("fitting the earlier day: {0}")]
-    Model(#[from] crate::thermal_model::ModelError),
 }
 
 /// The benchmark's scenarios and what each one's model starts from.
@@ -421,11 +482,20 @@ pub fn bench_scenario(
         earlier.ambient.peak_h = 13.0;
     }
     let (train_sim, train_out) = run_day(&earlier, &k, &plan, &SchedulePolicy::default())?;
-    let model = crate::thermal_model::fit(
-        &bench_model_config(),
-        &simulation_events(&train_sim, &train_out),
-        None,
-    )?;
+    // The earlier day two days back: the machine stands cold in between, as the day under
+    // test starts cold.
+    let mut history = simulation_events(&train_sim, &train_out, -2 * 1440 * MIN);
+    if let Some(end) = history.last().map(Event::t_ns) {
+        // Switched off after that day: the spindle log says so.
+        history.push(Event::Spindle {
+            t_ns: end + 1,
+            rpm: 0.0,
+        });
+    }
+    let prediction = PredictionPolicy {
+        model: bench_model_config(),
+        ..Default::default()
+    };
     let mut day = scn.clone();
     if day.cycle_times_min().is_empty() || !own_schedule {
         day.cycles.at_min = scheduled_cycles(&day, &plan, policy);
@@ -433,7 +503,7 @@ pub fn bench_scenario(
     }
     let adaptive_min = day.cycle_times_min();
     let (sim, outcomes) = run_day(&day, &k, &plan, policy)?;
-    let adaptive = compare(&k, &sim, &outcomes, &model);
+    let adaptive = compare(&k, &sim, &outcomes, &history, &prediction);
     let (from, to) = (
         adaptive_min.first().copied().unwrap_or(0.0),
         adaptive_min.last().copied().unwrap_or(0.0),
@@ -443,7 +513,7 @@ pub fn bench_scenario(
     fixed_day.cycles.every_min = None;
     let fixed_min = fixed_day.cycle_times_min();
     let (sim, outcomes) = run_day(&fixed_day, &k, &plan, policy)?;
-    let fixed = compare(&k, &sim, &outcomes, &model);
+    let fixed = compare(&k, &sim, &outcomes, &history, &prediction);
     let stops = spindle_stops(&scn);
     Ok(ScheduleComparison {
         adaptive_after_stops: after_stops(&adaptive_min, &stops),
