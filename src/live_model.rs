@@ -33,10 +33,10 @@ pub struct ModelView {
 #[derive(Debug, Clone)]
 pub struct LiveModel {
     policy: PredictionPolicy,
-    /// Lag states of every input since the first one (`None` before any input), now ...
-    features: Option<Features>,
-    /// ... and held back by the inputs in `pending`, so that a cycle's row is taken at its
-    /// reference time (the middle of its probing), which the loop learns only at its end.
+    /// Lag states of every input since the first one (`None` before any input), held back
+    /// by the inputs in `pending`, so that a cycle's row is taken at its reference time (the
+    /// middle of its probing), which the loop learns only at its end. The predictor runs
+    /// its own copy up to now.
     lagged: Option<Features>,
     pending: VecDeque<Event>,
     /// References of the temperature inputs when a model fitted elsewhere gave them.
@@ -62,7 +62,6 @@ impl LiveModel {
         };
         LiveModel {
             policy,
-            features: None,
             lagged: None,
             pending: VecDeque::new(),
             t_ref_c: BTreeMap::new(),
@@ -99,11 +98,25 @@ impl LiveModel {
     }
 
     fn start_at(&mut self, t_ns: i64) {
-        if self.features.is_none() {
-            let f = Features::new(&self.policy.model, &self.t_ref_c, t_ns);
-            self.lagged = Some(f.clone());
-            self.features = Some(f);
+        if self.lagged.is_none() {
+            self.lagged = Some(Features::new(&self.policy.model, &self.t_ref_c, t_ns));
+            if let Some(model) = &self.initial {
+                self.predictor = Some(Predictor::resume(
+                    model.clone(),
+                    Features::new(&self.policy.model, &self.t_ref_c, t_ns),
+                    t_ns,
+                ));
+            }
         }
+    }
+
+    /// The lag states of now: the held-back ones with the pending inputs applied.
+    fn features_now(&self) -> Option<Features> {
+        let mut f = self.lagged.clone()?;
+        for e in &self.pending {
+            f.apply(e);
+        }
+        Some(f)
     }
 
     /// Apply the held-back inputs up to `t_ns` to the lagged states.
@@ -126,14 +139,6 @@ impl LiveModel {
         }
         let t = e.t_ns();
         self.start_at(t);
-        if let Some(f) = &mut self.features {
-            f.apply(&e);
-        }
-        if self.predictor.is_none()
-            && let (Some(model), Some(f)) = (&self.initial, &self.features)
-        {
-            self.predictor = Some(Predictor::resume(model.clone(), f.clone(), t));
-        }
         if let Some(p) = &mut self.predictor {
             p.apply(&e);
         }
@@ -233,7 +238,7 @@ impl LiveModel {
 
     fn fit(&mut self, t_ns: i64) -> String {
         self.cycles_since_fit = 0;
-        let Some(features) = &self.features else {
+        let Some(features) = self.features_now() else {
             return "no inputs yet".into();
         };
         let per: BTreeMap<String, Vec<Obs>> = self
@@ -274,7 +279,7 @@ impl LiveModel {
                 );
                 // The posterior holds every kept observation: the filter goes on from it
                 // with the lag states of now, and takes no observation twice.
-                self.predictor = Some(Predictor::resume(Arc::new(model), features.clone(), span.1));
+                self.predictor = Some(Predictor::resume(Arc::new(model), features, span.1));
                 self.initial = None;
                 self.updates = 0;
                 self.message.clone()
