@@ -31,6 +31,7 @@ pub mod scheduler;
 pub mod series;
 pub mod simulator;
 pub mod source;
+pub mod stats;
 pub mod store;
 pub mod strategies;
 pub mod thermal;
