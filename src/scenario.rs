@@ -188,6 +188,45 @@ pub fn default_sensors() -> BTreeMap<String, Channel> {
     m
 }
 
+/// Errors of the rotary axes that depend on how and where they are positioned (one entry per
+/// rotary axis, in the machine file's order; missing entries are zero). They act on each
+/// approach through the axis' angle, not through the six location errors.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RotaryEffects {
+    /// Full backlash, urad: the angle is off by `+backlash/2` after a move in the positive
+    /// sense and by `-backlash/2` after a negative one (0 before the first move).
+    pub backlash_urad: Vec<f64>,
+    /// Indexing error as a Fourier series in the commanded angle: `[harmonic, cos_urad,
+    /// sin_urad]` terms, `sum (a cos(h theta) + b sin(h theta))`; harmonic 0 is a constant.
+    pub index_urad: Vec<Vec<[f64; 3]>>,
+}
+
+impl RotaryEffects {
+    /// The angle error of axis `i`, rad, at the commanded angle `theta_deg` after a move in
+    /// the sense `last_dir` (-1, 0 or +1).
+    pub fn angle_error_rad(&self, i: usize, theta_deg: f64, last_dir: f64) -> f64 {
+        let theta = theta_deg.to_radians();
+        let backlash = self.backlash_urad.get(i).copied().unwrap_or(0.0) * 0.5 * last_dir;
+        let index: f64 = self.index_urad.get(i).map_or(0.0, |terms| {
+            terms
+                .iter()
+                .map(|[h, a, b]| a * (h * theta).cos() + b * (h * theta).sin())
+                .sum()
+        });
+        (backlash + index) * 1e-6
+    }
+
+    pub fn is_zero(&self) -> bool {
+        self.backlash_urad.iter().all(|v| *v == 0.0)
+            && self
+                .index_urad
+                .iter()
+                .flatten()
+                .all(|[_, a, b]| *a == 0.0 && *b == 0.0)
+    }
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SkipConfig {
@@ -227,6 +266,8 @@ pub struct Scenario {
     pub noise: NoiseConfig,
     #[serde(default)]
     pub skip: SkipConfig,
+    #[serde(default)]
+    pub rotary: RotaryEffects,
     #[serde(default)]
     pub ambient: AmbientConfig,
     #[serde(default)]
@@ -292,6 +333,20 @@ impl Scenario {
             && !crate::positive(e)
         {
             return bad("cycles.every_min must be > 0");
+        }
+        if self.rotary.backlash_urad.len() > crate::kinematics::MAX_ROTARY
+            || self.rotary.index_urad.len() > crate::kinematics::MAX_ROTARY
+            || self.rotary.backlash_urad.iter().any(|v| !v.is_finite())
+            || self
+                .rotary
+                .index_urad
+                .iter()
+                .flatten()
+                .any(|t| t.iter().any(|v| !v.is_finite()) || t[0] < 0.0 || t[0].fract() != 0.0)
+        {
+            return bad(
+                "rotary: at most one entry per rotary axis, finite values, whole harmonics >= 0",
+            );
         }
         if chrono::DateTime::parse_from_rfc3339(&self.start_utc).is_err() {
             return bad("start_utc must be an RFC 3339 time, e.g. 2026-03-02T06:00:00Z");

@@ -230,6 +230,10 @@ pub struct VirtualMachine {
     start_ns: i64,
     /// Seconds since `start_ns`.
     now_s: f64,
+    rotary: crate::scenario::RotaryEffects,
+    /// Commanded angles of the last approach, and the sense each rotary axis last moved in.
+    last_angles: Option<[f64; crate::kinematics::MAX_ROTARY]>,
+    last_dir: [f64; crate::kinematics::MAX_ROTARY],
 }
 
 impl VirtualMachine {
@@ -248,6 +252,9 @@ impl VirtualMachine {
             unlogged: scn.truth.unlogged.clone(),
             start_ns,
             now_s: 0.0,
+            rotary: scn.rotary.clone(),
+            last_angles: None,
+            last_dir: [0.0; crate::kinematics::MAX_ROTARY],
         })
     }
 
@@ -291,13 +298,36 @@ impl VirtualMachine {
         let travel = step.travel();
         let dir = f64::from(step.approach.direction);
         let lat = step.approach.latency_shift(self.vm.base.latency_s);
+        // The rotary axes' own errors at this pose: backlash by the sense of their last move,
+        // indexing error by their angle. Production moves between cycles are not known here:
+        // the sense comes from the approaches alone.
+        if let Some(prev) = self.last_angles {
+            for (i, d) in self.last_dir.iter_mut().enumerate() {
+                let delta = step.angles[i] - prev[i];
+                if delta != 0.0 {
+                    *d = delta.signum();
+                }
+            }
+        }
+        self.last_angles = Some(step.angles);
+        let mut angle_error = [0.0; crate::kinematics::MAX_ROTARY];
+        if !self.rotary.is_zero() {
+            for (i, e) in angle_error.iter_mut().enumerate() {
+                *e = self
+                    .rotary
+                    .angle_error_rad(i, step.angles[i], self.last_dir[i]);
+            }
+        }
         // The trip time depends on where the beam is: two passes.
         let mut t_trip = te + (step.expected - travel.start).abs() / feed;
         let mut outcome = None;
         for _ in 0..2 {
             let mut peek = self.vm.clone();
             peek.advance(t_trip - te, rpm, amb);
-            let s = peek.state(rpm);
+            let mut s = peek.state(rpm);
+            for (e, add) in s.angle_error.iter_mut().zip(angle_error) {
+                *e += add;
+            }
             let r = latched(
                 k,
                 &s,

@@ -553,3 +553,56 @@ fn the_simulator_is_deterministic_for_a_seed() {
     // Each detection has its own time, increasing within the recording.
     assert!(a.windows(2).all(|w| w[1].0 > w[0].0));
 }
+
+#[test]
+fn rotary_backlash_and_indexing_errors_act_through_the_axis_angle() {
+    use driftwatch::thermal::Channel;
+    let k = Kinematics::load("table_bc").unwrap();
+    let b_zero = k.rotary[0].error_names[4].clone();
+    let readings = |edit: &dyn Fn(&mut Scenario)| -> Vec<f64> {
+        first_cycle(edit).iter().map(reading).collect()
+    };
+    let none = readings(&|_| {});
+    let offset = |urad: f64| {
+        readings(&|s| {
+            s.truth.channels.insert(
+                b_zero.clone(),
+                Channel {
+                    offset: urad,
+                    ..Default::default()
+                },
+            );
+        })
+    };
+    let (plus, minus) = (offset(50.0), offset(-50.0));
+    assert_ne!(plus, none, "a B zero error moves some readings");
+    // A constant indexing term is the B axis' zero error.
+    let index = readings(&|s| s.rotary.index_urad = vec![vec![[0.0, 50.0, 0.0]]]);
+    let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+    assert!(close(&index, &plus));
+    // Backlash of 100 urad: every approach reads as if the zero error were +50 or -50 urad
+    // by the sense of the last B move (0 before the first), and the plan moves B both ways.
+    let backlash = readings(&|s| s.rotary.backlash_urad = vec![100.0]);
+    let mut seen = [0usize; 3];
+    for (i, r) in backlash.iter().enumerate() {
+        let which = [none[i], plus[i], minus[i]]
+            .iter()
+            .position(|v| (v - r).abs() < 1e-9)
+            .unwrap_or_else(|| {
+                panic!(
+                    "approach {i}: {r} is none of {}, {}, {}",
+                    none[i], plus[i], minus[i]
+                )
+            });
+        if plus[i] != minus[i] {
+            seen[which] += 1;
+        }
+    }
+    assert!(seen[1] > 0 && seen[2] > 0, "{seen:?}");
+    // A bad entry is named.
+    let mut scn = Scenario::load("warmup").unwrap();
+    scn.rotary.index_urad = vec![vec![[0.5, 1.0, 0.0]]];
+    let text = toml::to_string(&scn).unwrap();
+    let e = Scenario::from_toml(&text, "test").unwrap_err().to_string();
+    assert!(e.contains("rotary"), "{e}");
+}
