@@ -13,6 +13,7 @@ pub mod config;
 pub mod csv_import;
 pub mod cycle;
 pub mod daemon;
+pub mod diagnosis;
 pub mod experiment;
 pub mod geometry;
 pub mod identify;

@@ -671,3 +671,60 @@ fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
         "{vertical} vs {edge_um}"
     );
 }
+
+#[test]
+fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
+    use driftwatch::thermal::Channel;
+    let mut scn = Scenario::load("warmup").unwrap();
+    scn.noise.sigma_um = 0.0;
+    scn.cycles.every_min = None;
+    scn.cycles.at_min = vec![1.0, 40.0];
+    let names: Vec<String> = scn.truth_channels().keys().cloned().collect();
+    for n in names {
+        scn.truth.channels.insert(n, Channel::default());
+    }
+    scn.truth.channels.insert(
+        "EX0B".into(),
+        Channel {
+            offset: 4.0,
+            ..Default::default()
+        },
+    );
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+    let dets: Vec<_> = sim
+        .cycles
+        .iter()
+        .flat_map(|c| c.detections.clone())
+        .collect();
+    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
+    assert_eq!(rows.rows.len(), dets.len());
+    let col = rows.params.iter().position(|n| n == "EX0B").unwrap();
+    for r in &rows.rows {
+        assert_eq!(r.sensitivity.len(), rows.params.len());
+        // Only EX0B is off: every deviation is its sensitivity times 4 um.
+        assert!(
+            (r.deviation_um - 4.0 * r.sensitivity[col]).abs() < 1e-3,
+            "{}: {} vs {}",
+            r.step,
+            r.deviation_um,
+            4.0 * r.sensitivity[col]
+        );
+    }
+    for cycle in [1, 2] {
+        let times: Vec<f64> = rows
+            .rows
+            .iter()
+            .filter(|r| r.cycle == cycle)
+            .map(|r| r.t_in_cycle_s)
+            .collect();
+        assert_eq!(times[0], 0.0);
+        assert!(times.windows(2).all(|w| w[1] > w[0]), "{times:?}");
+    }
+    // The B axis' last sense: none before it moves, then both ways in this plan.
+    assert_eq!(rows.rows[0].rotary_sense, [0, 0, 0]);
+    assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == 1));
+    assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == -1));
+    assert!(driftwatch::diagnosis::detection_rows(&k, &[], &SolveOptions::new(0.5)).is_err());
+}

@@ -1,0 +1,127 @@
+//! Diagnosis of where a model and a recording differ (issue 5), pure code. This first part
+//! turns detections into the rows every later step works on: each reading's deviation from
+//! its nominal value, its sensitivity to the location errors and the nuisances the plan
+//! supports (the linear design of `identify`), and the event-level fields an effect's
+//! signature depends on (pose, approach, feed, speed, time within the cycle, the sense each
+//! rotary axis last moved in).
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+use thiserror::Error;
+
+use crate::identify::{Identifier, SolveError, SolveOptions};
+use crate::kinematics::{Kinematics, MAX_ROTARY};
+use crate::measurement::Axis;
+use crate::recording::{DetectionMsg, Timed};
+
+#[derive(Debug, Error)]
+pub enum DiagnosisError {
+    #[error("no usable detections")]
+    NoDetections,
+    #[error("cycle {cycle}: {source}")]
+    Cycle { cycle: i64, source: SolveError },
+}
+
+/// One detection as the diagnosis sees it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DetectionRow {
+    pub t_ns: i64,
+    pub cycle: i64,
+    pub step: String,
+    pub b_deg: f64,
+    pub c_deg: f64,
+    pub axis: Axis,
+    pub direction: i8,
+    pub feed_mm_min: f64,
+    pub spindle_rpm: f64,
+    /// Seconds since the first detection of its cycle.
+    pub t_in_cycle_s: f64,
+    /// The sense each rotary axis last moved in before this approach (-1, 0 before any
+    /// move, +1), from the order of the detections.
+    pub rotary_sense: [i8; MAX_ROTARY],
+    /// The reading minus its nominal value, um.
+    pub deviation_um: f64,
+    /// Reading change per unit of each design parameter, um.
+    pub sensitivity: Vec<f64>,
+}
+
+/// The rows of a recording and the names of their sensitivity columns.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Rows {
+    pub params: Vec<String>,
+    pub rows: Vec<DetectionRow>,
+}
+
+/// Rows of every tripped detection, cycle by cycle in time order. The design's parameters
+/// are chosen once, on the first cycle's geometry, so that every row has the same columns.
+pub fn detection_rows(
+    k: &Kinematics,
+    detections: &[Timed<DetectionMsg>],
+    opts: &SolveOptions,
+) -> Result<Rows, DiagnosisError> {
+    let mut cycles: BTreeMap<i64, Vec<&Timed<DetectionMsg>>> = BTreeMap::new();
+    for d in detections.iter().filter(|d| d.msg.status.is_none()) {
+        cycles.entry(d.msg.cycle).or_default().push(d);
+    }
+    for v in cycles.values_mut() {
+        v.sort_by_key(|d| d.t_ns);
+    }
+    let mut ordered: Vec<(i64, Vec<&Timed<DetectionMsg>>)> = cycles.into_iter().collect();
+    ordered.sort_by_key(|(_, v)| v.first().map_or(i64::MAX, |d| d.t_ns));
+    let Some((first_cycle, first)) = ordered.first() else {
+        return Err(DiagnosisError::NoDetections);
+    };
+    let obs = |v: &[&Timed<DetectionMsg>]| -> Vec<crate::identify::Observation> {
+        v.iter()
+            .map(|d| crate::cycle::observation(k, d.t_ns, &d.msg))
+            .collect()
+    };
+    let template = obs(first);
+    let id = Identifier::new(k, &template, opts).map_err(|source| DiagnosisError::Cycle {
+        cycle: *first_cycle,
+        source,
+    })?;
+    let mut params = Vec::new();
+    let mut rows = Vec::new();
+    let mut last_angles: Option<[f64; MAX_ROTARY]> = None;
+    let mut sense = [0i8; MAX_ROTARY];
+    for (cycle, dets) in &ordered {
+        let o = obs(dets);
+        let design = id
+            .nominal_design(&o)
+            .map_err(|source| DiagnosisError::Cycle {
+                cycle: *cycle,
+                source,
+            })?;
+        params.clone_from(&design.params);
+        let t0 = dets.first().map_or(0, |d| d.t_ns);
+        for (i, (d, ob)) in dets.iter().zip(&o).enumerate() {
+            if let Some(prev) = last_angles {
+                for (j, s) in sense.iter_mut().enumerate() {
+                    let delta = ob.angles[j] - prev[j];
+                    if delta != 0.0 {
+                        *s = if delta > 0.0 { 1 } else { -1 };
+                    }
+                }
+            }
+            last_angles = Some(ob.angles);
+            rows.push(DetectionRow {
+                t_ns: d.t_ns,
+                cycle: *cycle,
+                step: d.msg.step.clone(),
+                b_deg: d.msg.b_deg,
+                c_deg: d.msg.c_deg,
+                axis: d.msg.axis,
+                direction: d.msg.direction,
+                feed_mm_min: d.msg.feed_mm_min,
+                spindle_rpm: d.msg.spindle_rpm,
+                t_in_cycle_s: (d.t_ns - t0) as f64 / 1e9,
+                rotary_sense: sense,
+                deviation_um: (ob.reading() - design.nominal_mm[i]) * 1e3,
+                sensitivity: design.sensitivity_um.row(i).iter().copied().collect(),
+            });
+        }
+    }
+    Ok(Rows { params, rows })
+}
