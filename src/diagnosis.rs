@@ -54,7 +54,8 @@ pub struct Rows {
 }
 
 /// Rows of every tripped detection, cycle by cycle in time order. The design's parameters
-/// are chosen once, on the first cycle's geometry, so that every row has the same columns.
+/// are chosen once, on the first cycle's geometry, so that every row has the same columns;
+/// no drift rates (every row has its own time).
 pub fn detection_rows(
     k: &Kinematics,
     detections: &[Timed<DetectionMsg>],
@@ -78,7 +79,13 @@ pub fn detection_rows(
             .collect()
     };
     let template = obs(first);
-    let id = Identifier::new(k, &template, opts).map_err(|source| DiagnosisError::Cycle {
+    // Each row has its own time, so drift within a cycle is the time model's to carry, not a
+    // per-cycle rate's.
+    let opts = SolveOptions {
+        drift_rates: crate::identify::DriftRates::Never,
+        ..opts.clone()
+    };
+    let id = Identifier::new(k, &template, &opts).map_err(|source| DiagnosisError::Cycle {
         cycle: *first_cycle,
         source,
     })?;
@@ -124,4 +131,90 @@ pub fn detection_rows(
         }
     }
     Ok(Rows { params, rows })
+}
+
+/// The baseline of physics.md 4.6: every design parameter (the location errors and the
+/// nuisances) as an offset plus gains on the spindle pole basis, fitted jointly to every
+/// detection at its own time. Clean data must fit it to the noise before any search.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Baseline {
+    /// `<parameter>` (offset) and `<parameter>*spindle_lag_<tau>min`, in column order.
+    pub columns: Vec<String>,
+    pub coef: Vec<f64>,
+    /// Residual of every row, um.
+    pub residual_um: Vec<f64>,
+    pub chi2: f64,
+    pub dof: usize,
+    pub chi2_dof: f64,
+}
+
+/// Fit the baseline to `rows` with the spindle log `spindle` (every speed change, the
+/// cycles' own spins included) and one-reading uncertainty `sigma_um`.
+pub fn fit_baseline(
+    rows: &Rows,
+    spindle: &[crate::thermal_model::Event],
+    cfg: &crate::thermal_model::ModelConfig,
+    sigma_um: f64,
+) -> Result<Baseline, DiagnosisError> {
+    use crate::thermal_model::{Event, Features};
+    use nalgebra::{DMatrix, DVector};
+    if rows.rows.is_empty() {
+        return Err(DiagnosisError::NoDetections);
+    }
+    let spindle_only = crate::thermal_model::ModelConfig {
+        temperatures: Vec::new(),
+        instant_speed: false,
+        ..cfg.clone()
+    };
+    let t0 = spindle
+        .first()
+        .map_or(rows.rows[0].t_ns, Event::t_ns)
+        .min(rows.rows[0].t_ns);
+    let mut f = Features::new(&spindle_only, &BTreeMap::new(), t0);
+    let mut order: Vec<usize> = (0..rows.rows.len()).collect();
+    order.sort_by_key(|i| rows.rows[*i].t_ns);
+    let basis = 1 + spindle_only.taus_min.len();
+    let p = rows.params.len() * basis;
+    let n = rows.rows.len();
+    let mut a = DMatrix::zeros(n, p);
+    let mut k_ev = 0;
+    for &i in &order {
+        let r = &rows.rows[i];
+        while k_ev < spindle.len() && spindle[k_ev].t_ns() <= r.t_ns {
+            f.apply(&spindle[k_ev]);
+            k_ev += 1;
+        }
+        f.advance_to(r.t_ns);
+        let x = f.row();
+        for (j, s) in r.sensitivity.iter().enumerate() {
+            for (b, xb) in x.iter().enumerate() {
+                a[(i, j * basis + b)] = s * xb / sigma_um;
+            }
+        }
+    }
+    let y = DVector::from_iterator(n, rows.rows.iter().map(|r| r.deviation_um / sigma_um));
+    let svd = a.clone().svd(true, true);
+    let tol = svd.singular_values.max() * 1e-10;
+    let rank = svd.singular_values.iter().filter(|s| **s > tol).count();
+    let beta = svd
+        .solve(&y, tol)
+        .map_err(|_| DiagnosisError::NoDetections)?;
+    let resid = &y - &a * &beta;
+    let chi2 = resid.dot(&resid);
+    let dof = n.saturating_sub(rank).max(1);
+    let mut columns = Vec::with_capacity(p);
+    for name in &rows.params {
+        columns.push(name.clone());
+        for t in &spindle_only.taus_min {
+            columns.push(format!("{name}*spindle_lag_{t}min"));
+        }
+    }
+    Ok(Baseline {
+        columns,
+        coef: beta.iter().copied().collect(),
+        residual_um: resid.iter().map(|r| r * sigma_um).collect(),
+        chi2,
+        dof,
+        chi2_dof: chi2 / dof as f64,
+    })
 }

@@ -728,3 +728,44 @@ fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
     assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == -1));
     assert!(driftwatch::diagnosis::detection_rows(&k, &[], &SolveOptions::new(0.5)).is_err());
 }
+
+#[test]
+fn the_baseline_fits_clean_drifting_data_to_the_noise() {
+    // The warm-up scenario's drift (tool growth, EZ0B, EX0B, ...) with 0.5-um noise, a cycle
+    // every 20 min for 4 h: each detection at its own time.
+    let mut scn = Scenario::load("warmup").unwrap();
+    scn.noise.sigma_um = 0.5;
+    scn.duration_min = 250.0;
+    scn.cycles.every_min = None;
+    scn.cycles.at_min = (0..12).map(|i| 1.0 + 20.0 * i as f64).collect();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+    let dets: Vec<_> = sim
+        .cycles
+        .iter()
+        .flat_map(|c| c.detections.clone())
+        .collect();
+    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
+    let spindle: Vec<driftwatch::thermal_model::Event> = sim
+        .spindle
+        .iter()
+        .map(|m| driftwatch::thermal_model::Event::Spindle {
+            t_ns: m.t_ns,
+            rpm: m.msg.rpm,
+        })
+        .collect();
+    let b = driftwatch::diagnosis::fit_baseline(&rows, &spindle, &Default::default(), 0.5).unwrap();
+    println!(
+        "{} readings, {} columns, chi2/dof {:.3} ({} dof)",
+        rows.rows.len(),
+        b.columns.len(),
+        b.chi2_dof,
+        b.dof
+    );
+    assert!(b.dof > 50, "{} dof", b.dof);
+    assert!(b.chi2_dof <= 1.2 && b.chi2_dof > 0.7, "{}", b.chi2_dof);
+    // Without the spindle log the drift is left in the residuals.
+    let flat = driftwatch::diagnosis::fit_baseline(&rows, &[], &Default::default(), 0.5).unwrap();
+    assert!(flat.chi2_dof > 5.0, "{}", flat.chi2_dof);
+}
