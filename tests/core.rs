@@ -607,28 +607,34 @@ fn rotary_backlash_and_indexing_errors_act_through_the_axis_angle() {
     assert!(e.contains("rotary"), "{e}");
 }
 
-#[test]
-fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
+/// The warm-up scenario without noise or thermal drift: only the given constant errors, and
+/// cycles at the given minutes.
+fn constant_errors(errors: &[(&str, f64)], cycles_at_min: Vec<f64>) -> Scenario {
     use driftwatch::thermal::Channel;
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.0;
     scn.cycles.every_min = None;
-    scn.cycles.at_min = vec![1.0];
-    // No thermal drift: only constant location errors.
+    scn.cycles.at_min = cycles_at_min;
     let names: Vec<String> = scn.truth_channels().keys().cloned().collect();
     for n in names {
         scn.truth.channels.insert(n, Channel::default());
     }
-    let truth = [("EX0B", 3.0), ("EZ0B", -5.0), ("EA0C", 12.0), ("EY0C", 2.0)];
-    for (n, v) in truth {
+    for (n, v) in errors {
         scn.truth.channels.insert(
-            n.into(),
+            n.to_string(),
             Channel {
-                offset: v,
+                offset: *v,
                 ..Default::default()
             },
         );
     }
+    scn
+}
+
+#[test]
+fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
+    let truth = [("EX0B", 3.0), ("EZ0B", -5.0), ("EA0C", 12.0), ("EY0C", 2.0)];
+    let scn = constant_errors(&truth, vec![1.0]);
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
     let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
@@ -674,22 +680,7 @@ fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
 
 #[test]
 fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
-    use driftwatch::thermal::Channel;
-    let mut scn = Scenario::load("warmup").unwrap();
-    scn.noise.sigma_um = 0.0;
-    scn.cycles.every_min = None;
-    scn.cycles.at_min = vec![1.0, 40.0];
-    let names: Vec<String> = scn.truth_channels().keys().cloned().collect();
-    for n in names {
-        scn.truth.channels.insert(n, Channel::default());
-    }
-    scn.truth.channels.insert(
-        "EX0B".into(),
-        Channel {
-            offset: 4.0,
-            ..Default::default()
-        },
-    );
+    let scn = constant_errors(&[("EX0B", 4.0)], vec![1.0, 40.0]);
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
     let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
