@@ -218,3 +218,62 @@ pub fn fit_baseline(
         chi2_dof: chi2 / dof as f64,
     })
 }
+
+/// A group of readings whose residuals do not average to zero.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Mismatch {
+    /// What the readings are grouped by (`approach`, `pose`, `B sense`, ...).
+    pub by: String,
+    pub group: String,
+    pub n: usize,
+    pub mean_um: f64,
+    /// The mean in units of its standard error, `sigma / sqrt(n)`.
+    pub t: f64,
+}
+
+/// Where the residuals are systematic: the mean residual of the readings grouped by approach
+/// (axis and direction), pose, the sense each rotary axis last moved in and the time within
+/// the cycle (15-s bins), every group with `|t| >= t_min`, largest first.
+pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Vec<Mismatch> {
+    type Key = fn(&DetectionRow) -> String;
+    let groupings: [(&str, Key); 5] = [
+        ("approach", |r| {
+            format!(
+                "{}{}",
+                r.axis.name(),
+                if r.direction > 0 { "+" } else { "-" }
+            )
+        }),
+        ("pose", |r| format!("B{} C{}", r.b_deg, r.c_deg)),
+        ("B sense", |r| format!("{:+}", r.rotary_sense[0])),
+        ("C sense", |r| format!("{:+}", r.rotary_sense[1])),
+        ("time in cycle", |r| {
+            let bin = (r.t_in_cycle_s / 15.0).floor() * 15.0;
+            format!("{bin}-{} s", bin + 15.0)
+        }),
+    ];
+    let mut out = Vec::new();
+    for (by, key) in groupings {
+        let mut groups: BTreeMap<String, (usize, f64)> = BTreeMap::new();
+        for (r, e) in rows.rows.iter().zip(residual_um) {
+            let g = groups.entry(key(r)).or_default();
+            g.0 += 1;
+            g.1 += e;
+        }
+        for (group, (n, sum)) in groups {
+            let mean = sum / n as f64;
+            let t = mean / (sigma_um / (n as f64).sqrt());
+            if t.abs() >= t_min {
+                out.push(Mismatch {
+                    by: by.to_string(),
+                    group,
+                    n,
+                    mean_um: mean,
+                    t,
+                });
+            }
+        }
+    }
+    out.sort_by(|a, b| b.t.abs().total_cmp(&a.t.abs()));
+    out
+}

@@ -720,15 +720,20 @@ fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
     assert!(driftwatch::diagnosis::detection_rows(&k, &[], &SolveOptions::new(0.5)).is_err());
 }
 
-#[test]
-fn the_baseline_fits_clean_drifting_data_to_the_noise() {
-    // The warm-up scenario's drift (tool growth, EZ0B, EX0B, ...) with 0.5-um noise, a cycle
-    // every 20 min for 4 h: each detection at its own time.
+/// The warm-up scenario's drift (tool growth, EZ0B, EX0B, ...) with 0.5-um noise and a cycle
+/// every 20 min for 4 h, with `backlash_urad` on B: its rows and its spindle log.
+fn drifting_rows(
+    backlash_urad: f64,
+) -> (
+    driftwatch::diagnosis::Rows,
+    Vec<driftwatch::thermal_model::Event>,
+) {
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.5;
     scn.duration_min = 250.0;
     scn.cycles.every_min = None;
     scn.cycles.at_min = (0..12).map(|i| 1.0 + 20.0 * i as f64).collect();
+    scn.rotary.backlash_urad = vec![backlash_urad];
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
     let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
@@ -738,7 +743,7 @@ fn the_baseline_fits_clean_drifting_data_to_the_noise() {
         .flat_map(|c| c.detections.clone())
         .collect();
     let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
-    let spindle: Vec<driftwatch::thermal_model::Event> = sim
+    let spindle = sim
         .spindle
         .iter()
         .map(|m| driftwatch::thermal_model::Event::Spindle {
@@ -746,6 +751,13 @@ fn the_baseline_fits_clean_drifting_data_to_the_noise() {
             rpm: m.msg.rpm,
         })
         .collect();
+    (rows, spindle)
+}
+
+#[test]
+fn the_baseline_fits_clean_drifting_data_to_the_noise() {
+    // Each detection at its own time.
+    let (rows, spindle) = drifting_rows(0.0);
     let b = driftwatch::diagnosis::fit_baseline(&rows, &spindle, &Default::default(), 0.5).unwrap();
     println!(
         "{} readings, {} columns, chi2/dof {:.3} ({} dof)",
@@ -759,4 +771,31 @@ fn the_baseline_fits_clean_drifting_data_to_the_noise() {
     // Without the spindle log the drift is left in the residuals.
     let flat = driftwatch::diagnosis::fit_baseline(&rows, &[], &Default::default(), 0.5).unwrap();
     assert!(flat.chi2_dof > 5.0, "{}", flat.chi2_dof);
+}
+
+#[test]
+fn a_backlash_below_the_noise_of_one_reading_is_located_at_its_poses() {
+    // 20 urad of B backlash moves the readings of some poses by about 0.4 um, under the
+    // 0.5-um noise of one reading; the baseline fits around it. Their mean residuals give it
+    // away. (This plan approaches each pose from one sense, so the pose carries the sign; the
+    // effect library is to name it.)
+    let run = |backlash: f64| {
+        let (rows, spindle) = drifting_rows(backlash);
+        let b =
+            driftwatch::diagnosis::fit_baseline(&rows, &spindle, &Default::default(), 0.5).unwrap();
+        let found = driftwatch::diagnosis::locate(&rows, &b.residual_um, 0.5, 4.0);
+        (b.chi2_dof, found)
+    };
+    let (clean_chi, clean) = run(0.0);
+    assert!(clean.is_empty(), "{clean:?}");
+    let (chi, found) = run(20.0);
+    println!("chi2/dof {clean_chi:.3} clean, {chi:.3} with backlash; {found:#?}");
+    let poses: Vec<&driftwatch::diagnosis::Mismatch> =
+        found.iter().filter(|m| m.by == "pose").collect();
+    assert!(poses.len() >= 2, "{found:?}");
+    for m in &poses {
+        assert!(m.mean_um.abs() < 0.5 && m.t.abs() >= 4.0, "{m:?}");
+    }
+    // The two poses lean opposite ways, as the sense of the last B move does.
+    assert!(poses.iter().any(|m| m.t > 0.0) && poses.iter().any(|m| m.t < 0.0));
 }
