@@ -344,24 +344,20 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
             "    cycles within 30 min after a stop: {} vs {}",
             sc.adaptive_after_stops, sc.fixed_after_stops
         );
-        println!(
-            "    max residual, predicted: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
-            c.predicted.tool_tip.max,
-            c.predicted.tool_tip.max_at_min,
-            f.predicted.tool_tip.max,
-            f.predicted.tool_tip.max_at_min,
-            ez(&c.predicted),
-            ez(&f.predicted)
-        );
-        println!(
-            "    max residual, last measured: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
-            c.last_measured.tool_tip.max,
-            c.last_measured.tool_tip.max_at_min,
-            f.last_measured.tool_tip.max,
-            f.last_measured.tool_tip.max_at_min,
-            ez(&c.last_measured),
-            ez(&f.last_measured)
-        );
+        for (label, ours, fixed) in [
+            ("predicted", &c.predicted, &f.predicted),
+            ("last measured", &c.last_measured, &f.last_measured),
+        ] {
+            println!(
+                "    max residual, {label}: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
+                ours.tool_tip.max,
+                ours.tool_tip.max_at_min,
+                fixed.tool_tip.max,
+                fixed.tool_tip.max_at_min,
+                ez(ours),
+                ez(fixed)
+            );
+        }
         if c.predicted.tool_tip_cutting.max_at_min.is_nan() {
             println!("    no cutting in this program");
         } else {

@@ -639,11 +639,11 @@ impl MachineRuntime {
         {
             let values: BTreeMap<String, f64> =
                 preds.iter().map(|p| (p.channel.clone(), p.value)).collect();
-            let with_sigma: BTreeMap<String, (f64, f64)> = preds
-                .iter()
-                .map(|p| (p.channel.clone(), (p.value, p.sigma)))
-                .collect();
             if policy.moved(served, &values) {
+                let with_sigma: BTreeMap<String, (f64, f64)> = preds
+                    .iter()
+                    .map(|p| (p.channel.clone(), (p.value, p.sigma)))
+                    .collect();
                 let about = format!(
                     "the thermal model{}",
                     served

@@ -91,8 +91,7 @@ pub fn detection_rows(
     })?;
     let mut params = Vec::new();
     let mut rows = Vec::new();
-    let mut last_angles: Option<[f64; MAX_ROTARY]> = None;
-    let mut sense = [0i8; MAX_ROTARY];
+    let mut sense = crate::kinematics::RotarySense::default();
     for (cycle, dets) in &ordered {
         let o = obs(dets);
         let design = id
@@ -104,15 +103,7 @@ pub fn detection_rows(
         params.clone_from(&design.params);
         let t0 = dets.first().map_or(0, |d| d.t_ns);
         for (i, (d, ob)) in dets.iter().zip(&o).enumerate() {
-            if let Some(prev) = last_angles {
-                for (j, s) in sense.iter_mut().enumerate() {
-                    let delta = ob.angles[j] - prev[j];
-                    if delta != 0.0 {
-                        *s = if delta > 0.0 { 1 } else { -1 };
-                    }
-                }
-            }
-            last_angles = Some(ob.angles);
+            let rotary_sense = sense.go_to(&ob.angles);
             rows.push(DetectionRow {
                 t_ns: d.t_ns,
                 cycle: *cycle,
@@ -124,7 +115,7 @@ pub fn detection_rows(
                 feed_mm_min: d.msg.feed_mm_min,
                 spindle_rpm: d.msg.spindle_rpm,
                 t_in_cycle_s: (d.t_ns - t0) as f64 / 1e9,
-                rotary_sense: sense,
+                rotary_sense,
                 deviation_um: (ob.reading() - design.nominal_mm[i]) * 1e3,
                 sensitivity: design.sensitivity_um.row(i).iter().copied().collect(),
             });

@@ -18,6 +18,29 @@ use crate::geometry::{Affine, Mat3, Vec3, deg_to_rad, rotation};
 /// Most rotary axes a chain may have (keeps states on the stack).
 pub const MAX_ROTARY: usize = 3;
 
+/// The sense each rotary axis last moved in (-1, +1; 0 before its first move), followed
+/// along a sequence of commanded poses: what backlash depends on.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RotarySense {
+    last: Option<[f64; MAX_ROTARY]>,
+    pub sense: [i8; MAX_ROTARY],
+}
+
+impl RotarySense {
+    /// Move to `angles` (deg) and return the senses after the move.
+    pub fn go_to(&mut self, angles: &[f64; MAX_ROTARY]) -> [i8; MAX_ROTARY] {
+        if let Some(prev) = self.last {
+            for (s, (a, p)) in self.sense.iter_mut().zip(angles.iter().zip(prev)) {
+                if *a != p {
+                    *s = if *a > p { 1 } else { -1 };
+                }
+            }
+        }
+        self.last = Some(*angles);
+        self.sense
+    }
+}
+
 /// Built-in machine descriptions, by name.
 pub const BUILTIN_MACHINES: &[(&str, &str)] =
     &[("table_bc", include_str!("../config/machines/table_bc.toml"))];

@@ -43,7 +43,7 @@ pub struct LiveModel {
     t_ref_c: BTreeMap<String, f64>,
     /// Validated observations of the last `history_days` with their design rows: the fits
     /// need nothing else, so a refit costs the rows, not a replay of the inputs.
-    rows: BTreeMap<String, VecDeque<Obs>>,
+    rows: BTreeMap<String, Vec<Obs>>,
     /// A model fitted elsewhere, served until the machine's own first fit.
     initial: Option<Arc<ThermalModel>>,
     ok_cycles: usize,
@@ -184,15 +184,14 @@ impl LiveModel {
                 self.updates += 1;
             }
             let rows = self.rows.entry(name.clone()).or_default();
-            rows.push_back(Obs {
+            rows.push(Obs {
                 t_ns,
                 row: row.clone(),
                 y: *v,
                 sigma: sigma.filter(|s| crate::positive(*s)),
             });
-            while rows.front().is_some_and(|o| o.t_ns < keep_from) {
-                rows.pop_front();
-            }
+            let old = rows.partition_point(|o| o.t_ns < keep_from);
+            rows.drain(..old);
         }
     }
 
@@ -241,11 +240,7 @@ impl LiveModel {
         let Some(features) = self.features_now() else {
             return "no inputs yet".into();
         };
-        let per: BTreeMap<String, Vec<Obs>> = self
-            .rows
-            .iter()
-            .map(|(k, v)| (k.clone(), v.iter().cloned().collect()))
-            .collect();
+        let per = &self.rows;
         let span = (
             per.values()
                 .filter_map(|v| v.first())
@@ -258,7 +253,7 @@ impl LiveModel {
                 .max()
                 .unwrap_or(t_ns),
         );
-        match fit_rows(&self.policy.model, features.t_ref_c(), span, &per) {
+        match fit_rows(&self.policy.model, features.t_ref_c(), span, per) {
             Ok(model) => {
                 let worst = model
                     .channels

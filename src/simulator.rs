@@ -231,9 +231,8 @@ pub struct VirtualMachine {
     /// Seconds since `start_ns`.
     now_s: f64,
     rotary: crate::scenario::RotaryEffects,
-    /// Commanded angles of the last approach, and the sense each rotary axis last moved in.
-    last_angles: Option<[f64; crate::kinematics::MAX_ROTARY]>,
-    last_dir: [f64; crate::kinematics::MAX_ROTARY],
+    /// The sense each rotary axis last moved in, along the approaches.
+    sense: crate::kinematics::RotarySense,
 }
 
 impl VirtualMachine {
@@ -253,8 +252,7 @@ impl VirtualMachine {
             start_ns,
             now_s: 0.0,
             rotary: scn.rotary.clone(),
-            last_angles: None,
-            last_dir: [0.0; crate::kinematics::MAX_ROTARY],
+            sense: Default::default(),
         })
     }
 
@@ -301,21 +299,13 @@ impl VirtualMachine {
         // The rotary axes' own errors at this pose: backlash by the sense of their last move,
         // indexing error by their angle. Production moves between cycles are not known here:
         // the sense comes from the approaches alone.
-        if let Some(prev) = self.last_angles {
-            for (i, d) in self.last_dir.iter_mut().enumerate() {
-                let delta = step.angles[i] - prev[i];
-                if delta != 0.0 {
-                    *d = delta.signum();
-                }
-            }
-        }
-        self.last_angles = Some(step.angles);
+        let sense = self.sense.go_to(&step.angles);
         let mut angle_error = [0.0; crate::kinematics::MAX_ROTARY];
         if !self.rotary.is_zero() {
             for (i, e) in angle_error.iter_mut().enumerate() {
                 *e = self
                     .rotary
-                    .angle_error_rad(i, step.angles[i], self.last_dir[i]);
+                    .angle_error_rad(i, step.angles[i], f64::from(sense[i]));
             }
         }
         // The trip time depends on where the beam is: two passes.

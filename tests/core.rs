@@ -680,17 +680,9 @@ fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
 
 #[test]
 fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
-    let scn = constant_errors(&[("EX0B", 4.0)], vec![1.0, 40.0]);
-    let k = Kinematics::load(&scn.machine).unwrap();
-    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
-    let dets: Vec<_> = sim
-        .cycles
-        .iter()
-        .flat_map(|c| c.detections.clone())
-        .collect();
-    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
-    assert_eq!(rows.rows.len(), dets.len());
+    let (sim, rows) = simulated_rows(&constant_errors(&[("EX0B", 4.0)], vec![1.0, 40.0]));
+    let n: usize = sim.cycles.iter().map(|c| c.detections.len()).sum();
+    assert_eq!(rows.rows.len(), n);
     let col = rows.params.iter().position(|n| n == "EX0B").unwrap();
     for r in &rows.rows {
         assert_eq!(r.sensitivity.len(), rows.params.len());
@@ -717,7 +709,33 @@ fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
     assert_eq!(rows.rows[0].rotary_sense, [0, 0, 0]);
     assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == 1));
     assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == -1));
-    assert!(driftwatch::diagnosis::detection_rows(&k, &[], &SolveOptions::new(0.5)).is_err());
+    assert!(
+        driftwatch::diagnosis::detection_rows(
+            &Kinematics::load("table_bc").unwrap(),
+            &[],
+            &SolveOptions::new(0.5)
+        )
+        .is_err()
+    );
+}
+
+/// Simulate a scenario and turn every detection into a diagnosis row.
+fn simulated_rows(
+    scn: &Scenario,
+) -> (
+    driftwatch::simulator::Simulation,
+    driftwatch::diagnosis::Rows,
+) {
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = driftwatch::simulator::simulate(scn, &k, &p).unwrap();
+    let dets: Vec<_> = sim
+        .cycles
+        .iter()
+        .flat_map(|c| c.detections.clone())
+        .collect();
+    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
+    (sim, rows)
 }
 
 /// The warm-up scenario's drift (tool growth, EZ0B, EX0B, ...) with 0.5-um noise and a cycle
@@ -734,15 +752,7 @@ fn drifting_rows(
     scn.cycles.every_min = None;
     scn.cycles.at_min = (0..12).map(|i| 1.0 + 20.0 * i as f64).collect();
     scn.rotary.backlash_urad = vec![backlash_urad];
-    let k = Kinematics::load(&scn.machine).unwrap();
-    let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
-    let dets: Vec<_> = sim
-        .cycles
-        .iter()
-        .flat_map(|c| c.detections.clone())
-        .collect();
-    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
+    let (sim, rows) = simulated_rows(&scn);
     let spindle = sim
         .spindle
         .iter()
