@@ -61,6 +61,35 @@ pub struct CycleSchedule {
     pub every_min: Option<f64>,
     pub from_min: f64,
     pub to_min: Option<f64>,
+    /// Spindle speed of each cycle, min^-1: cycle `c` (from 0) takes entry `c % len`. Empty:
+    /// the plan's speed.
+    pub rpm_sequence: Vec<f64>,
+    /// Probing feed of each cycle, mm/min, taken the same way. Empty: the plan's feed.
+    pub feed_sequence: Vec<f64>,
+    /// Plan edits: from `at_min` on, every cycle probes at `feed_mm_min` (over the sequence).
+    pub feed_changes: Vec<FeedChange>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FeedChange {
+    pub at_min: f64,
+    pub feed_mm_min: f64,
+}
+
+impl CycleSchedule {
+    /// Speed and feed of cycle `c` (from 0) starting at `t_min`, given the plan's.
+    pub fn settings(&self, c: usize, t_min: f64, plan_rpm: f64, plan_feed: f64) -> (f64, f64) {
+        let pick = |v: &[f64], d: f64| if v.is_empty() { d } else { v[c % v.len()] };
+        let rpm = pick(&self.rpm_sequence, plan_rpm);
+        let feed = self
+            .feed_changes
+            .iter()
+            .filter(|f| f.at_min <= t_min)
+            .max_by(|a, b| a.at_min.total_cmp(&b.at_min))
+            .map_or_else(|| pick(&self.feed_sequence, plan_feed), |f| f.feed_mm_min);
+        (rpm, feed)
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -333,6 +362,15 @@ impl Scenario {
             && !crate::positive(e)
         {
             return bad("cycles.every_min must be > 0");
+        }
+        let c = &self.cycles;
+        if c.rpm_sequence.iter().any(|v| !crate::positive(*v))
+            || c.feed_sequence.iter().any(|v| !crate::positive(*v))
+            || c.feed_changes
+                .iter()
+                .any(|f| !crate::positive(f.feed_mm_min))
+        {
+            return bad("cycle speeds and feeds must be > 0");
         }
         if self.rotary.backlash_urad.len() > crate::kinematics::MAX_ROTARY
             || self.rotary.index_urad.len() > crate::kinematics::MAX_ROTARY

@@ -90,6 +90,18 @@ pub struct Simulation {
 }
 
 impl Simulation {
+    /// The simulation as a reader would take it from its recording (without the truth).
+    pub fn recording(&self) -> crate::recording::Recording {
+        crate::recording::Recording {
+            info: Some(self.info.clone()),
+            states: self.states.clone(),
+            spindle: self.spindle.clone(),
+            temperatures: self.temperatures.clone(),
+            detections: self.detection_stream(),
+            ..Default::default()
+        }
+    }
+
     /// Every detection of every cycle, as a reader of the recording would take them.
     pub fn detection_stream(
         &self,
@@ -444,10 +456,22 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
             windows.push((s, s + cycle_len));
         }
     }
+    let settings: Vec<(f64, f64)> = windows
+        .iter()
+        .enumerate()
+        .map(|(c, (s, _))| {
+            scn.cycles.settings(
+                c,
+                s / 60.0,
+                plan.config.spindle_rpm,
+                plan.config.feed_mm_min,
+            )
+        })
+        .collect();
     let in_cycle = |t: f64| windows.iter().position(|(s, e)| t >= *s && t < *e);
     let segment_at = |t: f64| scn.spindle.iter().rposition(|s| s.at_min * 60.0 <= t);
     let rpm_at = |t: f64| match in_cycle(t) {
-        Some(_) => plan.config.spindle_rpm,
+        Some(c) => settings[c].0,
         None => segment_at(t).map(|i| scn.spindle[i].rpm).unwrap_or(0.0),
     };
 
@@ -551,12 +575,14 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
             }
             Event::Probe(c, i) => {
                 snapshots.push(vm.clone());
-                let d = vm.probe(k, &plan.steps[i], c as i64 + 1, rpm_now);
+                let mut step = plan.steps[i].clone();
+                step.approach.feed_mm_min = settings[c].1;
+                let d = vm.probe(k, &step, c as i64 + 1, rpm_now);
                 if let Some(cy) = open.as_mut() {
                     cy.detections.push(d);
                 }
             }
-            Event::CycleEnd(_) => {
+            Event::CycleEnd(c) => {
                 if let Some(mut cy) = open.take() {
                     let ok = cy
                         .detections
@@ -570,7 +596,7 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
                         .find(|v| v.now_ns() <= t_ref)
                         .or(snapshots.first());
                     if let Some(v) = snap {
-                        cy.truth = v.truth_at(k, t_ref, plan.config.spindle_rpm, Some(cy.number));
+                        cy.truth = v.truth_at(k, t_ref, settings[c].0, Some(cy.number));
                     }
                     sim.cycles.push(cy);
                 }
