@@ -380,3 +380,57 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
     }
     Ok(ExitCode::SUCCESS)
 }
+
+/// The diagnosis on `days` production days of the ambient-swing hall (logged), a cycle every
+/// 30 min, 0.5-um noise: simulation and diagnosis timed apart, on one thread.
+pub fn diagnosis(days: f64) -> Result<ExitCode> {
+    use driftwatch::diagnosis::{DiagnoseOptions, Inputs, detection_rows, diagnose};
+    let days = if days >= 365.0 {
+        3
+    } else {
+        days.max(1.0).round() as usize
+    };
+    let mut scn = Scenario::load("ambient_swing")?.repeated_days(days);
+    scn.noise.sigma_um = 0.5;
+    scn.cycles.at_min.clear();
+    scn.cycles.every_min = Some(30.0);
+    scn.cycles.from_min = 5.0;
+    scn.cycles.to_min = None;
+    let k = Kinematics::load(&scn.machine)?;
+    let plan = driftwatch::plan::Plan::build(&k, &driftwatch::plan::PlanConfig::load(&scn.plan)?)?;
+    let t = std::time::Instant::now();
+    let sim = driftwatch::simulator::simulate(&scn, &k, &plan)?;
+    let t_sim = t.elapsed();
+    let inputs = Inputs::of(&sim.recording());
+    let t = std::time::Instant::now();
+    let opts = DiagnoseOptions::new(0.5);
+    let rows = detection_rows(
+        &k,
+        &inputs.detections,
+        &driftwatch::identify::SolveOptions::new(0.5),
+    )?;
+    let t_rows = t.elapsed();
+    let d = diagnose(&rows, &inputs.spindle, &inputs.temperatures, &opts)?;
+    let t_all = t.elapsed();
+    let n_cands = driftwatch::effects::candidates(
+        &rows,
+        &driftwatch::effects::Drivers::new(
+            &rows,
+            &inputs.spindle,
+            &inputs.temperatures,
+            &opts.model,
+        ),
+        opts.model.n_ref_rpm,
+    )
+    .len();
+    println!(
+        "{days} days, {} cycles, {} readings, {n_cands} library candidates: simulation {:.2} s; rows {:.2} s; rows + diagnosis {:.2} s (goal 10 s); accepted {:?}",
+        d.cycles,
+        d.readings,
+        t_sim.as_secs_f64(),
+        t_rows.as_secs_f64(),
+        t_all.as_secs_f64(),
+        d.accepted.iter().map(|a| &a.term).collect::<Vec<_>>()
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -865,7 +865,9 @@ fn redundancy(rows: &Rows, sigma_um: f64) -> Redundancy {
         let shrink = (dof as f64 / idx.len() as f64).sqrt();
         all.extend(resid.iter().map(|v| v / shrink));
         dof_common = dof;
-        let t = idx.iter().map(|i| rows.rows[*i].t_ns).sum::<i64>() / idx.len() as i64;
+        // The mean time, summed as offsets: a sum of epoch nanoseconds overflows.
+        let t0 = rows.rows[idx[0]].t_ns;
+        let t = t0 + idx.iter().map(|i| rows.rows[*i].t_ns - t0).sum::<i64>() / idx.len() as i64;
         cycles.push((*c, t, chi2));
     }
     let limit = crate::stats::chi2_quantile(0.999, dof_common.max(1));
@@ -1064,14 +1066,32 @@ pub fn diagnose(
     }
     drivers_t.sort_by(|a, b| b.1.total_cmp(&a.1));
     drivers_t.truncate(10);
+    let two_days = drivers.span_h >= 48.0;
+    let mut not_tested = Vec::new();
+    let allowed: Vec<bool> = cands
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let slow = crate::effects::effect(c.effect).is_some_and(|e| e.slow)
+                || c.term.contains("Fourier");
+            if slow && !two_days && !structural[i] {
+                not_tested.push(format!("{}: {}", c.effect, c.term));
+            }
+            !structural[i] && (two_days || !slow)
+        })
+        .collect();
+
     let mut not_identifiable = Vec::new();
     for e in crate::effects::EFFECTS {
-        let of: Vec<usize> = (0..cands.len())
-            .filter(|i| cands[*i].effect == e.id)
+        // Only what this recording can test (slow terms need two days).
+        let mut of: Vec<usize> = (0..cands.len())
+            .filter(|i| cands[*i].effect == e.id && (allowed[*i] || structural[*i]))
             .collect();
         if of.is_empty() || of.iter().any(|i| free_of[*i] >= opts.practical_tol) {
             continue;
         }
+        // Describe it by its strongest signature.
+        of.sort_by(|a, b| xs[*b].norm().total_cmp(&xs[*a].norm()));
         let most_free = of.iter().map(|i| free_of[*i]).fold(0.0, f64::max);
         let first = &cands[of[0]];
         let sig_col = |c: &Candidate| -> Vec<f64> {
@@ -1134,21 +1154,6 @@ pub fn diagnose(
             split_by: e.split_by.into(),
         });
     }
-    let two_days = drivers.span_h >= 48.0;
-    let mut not_tested = Vec::new();
-    let allowed: Vec<bool> = cands
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let slow = crate::effects::effect(c.effect).is_some_and(|e| e.slow)
-                || c.term.contains("Fourier");
-            if slow && !two_days && !structural[i] {
-                not_tested.push(format!("{}: {}", c.effect, c.term));
-            }
-            !structural[i] && (two_days || !slow)
-        })
-        .collect();
-
     // Forward selection.
     let ln_n = (n as f64).ln();
     let mut chosen: Vec<usize> = Vec::new();

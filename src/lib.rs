@@ -14,6 +14,7 @@ pub mod csv_import;
 pub mod cycle;
 pub mod daemon;
 pub mod diagnosis;
+pub mod diagnosis_report;
 pub mod effects;
 pub mod experiment;
 pub mod geometry;

@@ -19,6 +19,7 @@ use driftwatch::scenario::Scenario;
 use driftwatch::simulator::simulate;
 
 mod bench;
+mod diagnose_cmd;
 mod model_cmd;
 mod serve;
 
@@ -111,6 +112,9 @@ enum Command {
     Fit(model_cmd::FitArgs),
     /// Replay a recording causally through a fitted model: the prediction at every step.
     Predict(model_cmd::PredictArgs),
+    /// Locate where the model and the recordings differ, name the physics left out, model it
+    /// and show the fit improve (diagnosis.json and report.html).
+    Diagnose(diagnose_cmd::DiagnoseArgs),
     /// Reproduce an experiment of the source documents end to end.
     Experiment {
         #[arg(value_enum)]
@@ -146,7 +150,7 @@ enum Command {
         /// Number of solves.
         #[arg(long, default_value_t = 20000)]
         n: usize,
-        /// Simulated days (bench year).
+        /// Simulated days (bench year; bench diagnosis takes 3 unless given).
         #[arg(long, default_value_t = 365.0)]
         days: f64,
         /// Scratch directory (bench year and http; emptied first).
@@ -208,6 +212,8 @@ enum BenchWhich {
     Http,
     /// No compensation, last measured and predicted against the truth on four scenarios.
     Compensation,
+    /// The diagnosis with the full library on a three-day recording, a cycle every 30 min.
+    Diagnosis,
 }
 
 fn main() -> ExitCode {
@@ -285,6 +291,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
         } => model_cmd::cmd_import_csv(a),
         Command::Fit(a) => model_cmd::cmd_fit(a),
         Command::Predict(a) => model_cmd::cmd_predict(a),
+        Command::Diagnose(a) => diagnose_cmd::cmd_diagnose(a),
         Command::Solve {
             machine,
             recording,
@@ -334,6 +341,11 @@ fn run(cmd: Command) -> Result<ExitCode> {
             after_stop,
             ..
         } => bench::compensation(json, after_stop),
+        Command::Bench {
+            which: BenchWhich::Diagnosis,
+            days,
+            ..
+        } => bench::diagnosis(days),
         Command::Bench {
             which: BenchWhich::Http,
             connections,

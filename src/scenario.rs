@@ -398,6 +398,28 @@ impl Scenario {
             .unwrap_or(0)
     }
 
+    /// The same scenario over `days` days: the spindle program of its first day (`at_min` under
+    /// 1440) repeated each day, and the duration made `days` days.
+    pub fn repeated_days(&self, days: usize) -> Scenario {
+        let day: Vec<ProgramSegment> = self
+            .spindle
+            .iter()
+            .filter(|s| s.at_min < 1440.0)
+            .cloned()
+            .collect();
+        let mut out = self.clone();
+        out.spindle = (0..days)
+            .flat_map(|d| {
+                day.iter().map(move |s| ProgramSegment {
+                    at_min: s.at_min + 1440.0 * d as f64,
+                    ..s.clone()
+                })
+            })
+            .collect();
+        out.duration_min = 1440.0 * days as f64;
+        out
+    }
+
     /// Cycle start times, min, sorted.
     pub fn cycle_times_min(&self) -> Vec<f64> {
         let mut t = self.cycles.at_min.clone();

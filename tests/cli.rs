@@ -501,3 +501,96 @@ fn the_thermal_model_fits_the_six_errors_of_a_simulated_recording() {
         "{out}{err}"
     );
 }
+
+#[test]
+fn diagnose_names_a_skip_latency_that_cancels_in_the_sums_and_writes_its_report() {
+    // One day: the skip lags 2.4 ms beyond the calibration and the probing feed is raised
+    // from 100 to 200 mm/min halfway. The patent's sums cancel it; the diagnosis names it.
+    let scn = tmp("latency.toml");
+    std::fs::write(
+        &scn,
+        r#"
+name = "latency"
+machine = "table_bc"
+plan = "patent"
+seed = 5
+start_utc = "2026-03-02T06:00:00Z"
+duration_min = 600.0
+spindle = [{ at_min = 0.0, rpm = 20000.0, state = "idle" }, { at_min = 300.0, rpm = 0.0, state = "idle" }]
+[cycles]
+every_min = 20.0
+feed_changes = [{ at_min = 300.0, feed_mm_min = 200.0 }]
+[noise]
+sigma_um = 0.5
+[skip]
+latency_ms = 2.4
+"#,
+    )
+    .unwrap();
+    let rec = tmp("latency.mcap");
+    let (ok, out, err) = run(&[
+        "simulate",
+        "--scenario",
+        scn.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let dir = tmp("diagnosis");
+    let (ok, out, err) = run(&[
+        "diagnose",
+        "--machine",
+        "table_bc",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("skip latency"), "{out}");
+    let j: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("diagnosis.json")).unwrap())
+            .unwrap();
+    assert_eq!(j["format"], "driftwatch-diagnosis/1");
+    assert!(
+        j["baseline"]["chi2_dof"].as_f64().unwrap() > 1.2,
+        "{}",
+        j["baseline"]
+    );
+    let acc = j["accepted"].as_array().unwrap();
+    let lat = acc
+        .iter()
+        .find(|a| a["effect"] == "skip_latency")
+        .unwrap_or_else(|| panic!("{acc:?}"));
+    let ms = lat["parameters"][0]["value"].as_f64().unwrap();
+    assert!((ms / 2.4 - 1.0).abs() < 0.2, "{ms}");
+    assert!(
+        j["final"]["chi2_dof"].as_f64().unwrap() < 1.2,
+        "{}",
+        j["final"]
+    );
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("<svg") && html.contains("skip latency"));
+
+    // The library, listed.
+    let (ok, out, err) = run(&["diagnose", "--list-effects", "--json"]);
+    assert!(ok, "{err}");
+    let list: Value = serde_json::from_str(&out).unwrap();
+    let ids: Vec<&str> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["id"].as_str().unwrap())
+        .collect();
+    let mut unique = ids.clone();
+    unique.sort();
+    unique.dedup();
+    assert_eq!(unique.len(), ids.len());
+    assert!(
+        ids.len() >= 14 && ids.contains(&"rotary_backlash"),
+        "{ids:?}"
+    );
+    // Without a machine and recording it says what is missing.
+    let (ok, _, err) = run(&["diagnose"]);
+    assert!(!ok && err.contains("--machine"), "{err}");
+}
