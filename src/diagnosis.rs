@@ -330,25 +330,14 @@ pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Ve
     ];
     let mut out = Vec::new();
     for (by, key) in groupings {
-        let mut groups: BTreeMap<String, (usize, f64)> = BTreeMap::new();
-        for (r, e) in rows.rows.iter().zip(residual_um) {
-            let g = groups.entry(key(r)).or_default();
-            g.0 += 1;
-            g.1 += e;
-        }
-        for (group, (n, sum)) in groups {
-            let mean = sum / n as f64;
-            let t = mean / (sigma_um / (n as f64).sqrt());
-            if t.abs() >= t_min {
-                out.push(Mismatch {
-                    by: by.to_string(),
-                    group,
-                    n,
-                    mean_um: mean,
-                    t,
-                });
-            }
-        }
+        group_means(
+            by,
+            rows.rows.iter().map(key),
+            residual_um,
+            sigma_um,
+            t_min,
+            &mut out,
+        );
     }
     out.sort_by(|a, b| b.t.abs().total_cmp(&a.t.abs()));
     out
