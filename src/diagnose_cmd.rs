@@ -78,7 +78,7 @@ fn list(json: bool) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Run the diagnosis on already-read inputs (the command and the API share it).
+/// Run the diagnosis on already-read inputs.
 pub fn run(
     k: &Kinematics,
     inputs: &Inputs,

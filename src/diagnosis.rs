@@ -232,56 +232,22 @@ pub fn fit_baseline(
     cfg: &crate::thermal_model::ModelConfig,
     sigma_um: f64,
 ) -> Result<Baseline, DiagnosisError> {
-    use crate::thermal_model::{Event, Features};
-    use nalgebra::{DMatrix, DVector};
     if rows.rows.is_empty() {
         return Err(DiagnosisError::NoDetections);
     }
-    let spindle_only = crate::thermal_model::ModelConfig {
-        temperatures: Vec::new(),
-        instant_speed: false,
-        ..cfg.clone()
-    };
-    let t0 = spindle
-        .first()
-        .map_or(rows.rows[0].t_ns, Event::t_ns)
-        .min(rows.rows[0].t_ns);
-    let mut f = Features::new(&spindle_only, &BTreeMap::new(), t0);
-    let mut order: Vec<usize> = (0..rows.rows.len()).collect();
-    order.sort_by_key(|i| rows.rows[*i].t_ns);
-    let basis = 1 + spindle_only.taus_min.len();
-    let p = rows.params.len() * basis;
+    let drivers = Drivers::new(rows, spindle, &[], cfg);
+    let a = baseline_matrix(rows, &drivers.spindle, sigma_um);
     let n = rows.rows.len();
-    let mut a = DMatrix::zeros(n, p);
-    let mut k_ev = 0;
-    for &i in &order {
-        let r = &rows.rows[i];
-        while k_ev < spindle.len() && spindle[k_ev].t_ns() <= r.t_ns {
-            f.apply(&spindle[k_ev]);
-            k_ev += 1;
-        }
-        f.advance_to(r.t_ns);
-        let x = f.row();
-        for (j, s) in r.sensitivity.iter().enumerate() {
-            for (b, xb) in x.iter().enumerate() {
-                a[(i, j * basis + b)] = s * xb / sigma_um;
-            }
-        }
-    }
     let y = DVector::from_iterator(n, rows.rows.iter().map(|r| r.deviation_um / sigma_um));
-    let svd = a.clone().svd(true, true);
-    let tol = svd.singular_values.max() * 1e-10;
-    let rank = svd.singular_values.iter().filter(|s| **s > tol).count();
-    let beta = svd
-        .solve(&y, tol)
-        .map_err(|_| DiagnosisError::NoDetections)?;
-    let resid = &y - &a * &beta;
-    let chi2 = resid.dot(&resid);
-    let dof = n.saturating_sub(rank).max(1);
+    let f = lsq(&a, &y);
+    let resid = &y - &a * &f.beta;
+    let dof = n.saturating_sub(f.rank).max(1);
+    let (beta, chi2) = (f.beta, f.chi2);
+    let p = a.ncols();
     let mut columns = Vec::with_capacity(p);
     for name in &rows.params {
         columns.push(name.clone());
-        for t in &spindle_only.taus_min {
+        for t in &cfg.taus_min {
             columns.push(format!("{name}*spindle_lag_{t}min"));
         }
     }
@@ -292,6 +258,17 @@ pub fn fit_baseline(
         chi2,
         dof,
         chi2_dof: chi2 / dof as f64,
+    })
+}
+
+/// The baseline's design, whitened: each design parameter's sensitivity times
+/// `[1, spindle lags...]`, column `param * (1 + lags) + shape`.
+fn baseline_matrix(rows: &Rows, spindle_lags: &[Vec<f64>], sigma_um: f64) -> DMatrix<f64> {
+    let basis_len = 1 + spindle_lags.len();
+    DMatrix::from_fn(rows.rows.len(), rows.params.len() * basis_len, |i, c| {
+        let (j, b) = (c / basis_len, c % basis_len);
+        let g = if b == 0 { 1.0 } else { spindle_lags[b - 1][i] };
+        rows.rows[i].sensitivity[j] * g / sigma_um
     })
 }
 
@@ -938,15 +915,7 @@ pub fn diagnose(
     // The baseline design, whitened.
     let basis_len = 1 + drivers.spindle.len();
     let p0 = rows.params.len() * basis_len;
-    let base = DMatrix::from_fn(n, p0, |i, c| {
-        let (j, b) = (c / basis_len, c % basis_len);
-        let g = if b == 0 {
-            1.0
-        } else {
-            drivers.spindle[b - 1][i]
-        };
-        rows.rows[i].sensitivity[j] * g / sigma
-    });
+    let base = baseline_matrix(&rows, &drivers.spindle, sigma);
     let y = DVector::from_iterator(n, rows.rows.iter().map(|r| r.deviation_um / sigma));
     let figures = |m: &DMatrix<f64>| -> (FitFigures, DVector<f64>, DVector<f64>) {
         let f = lsq(m, &y);
@@ -1151,7 +1120,7 @@ pub fn diagnose(
         let cols: Vec<&DMatrix<f64>> = chosen.iter().map(|i| &xs[*i]).collect();
         hstack(&base, &cols)
     };
-    let mut stats_of: BTreeMap<usize, (f64, f64, usize)> = BTreeMap::new();
+    let mut blocks_better: BTreeMap<usize, usize> = BTreeMap::new();
     while chosen.len() < opts.max_terms {
         let m = model_of(&chosen);
         let q = basis(&m);
@@ -1208,7 +1177,7 @@ pub fn diagnose(
             };
             match reason {
                 None => {
-                    stats_of.insert(i, (dbic, t, improved));
+                    blocks_better.insert(i, improved);
                     took = Some(i);
                     break;
                 }
@@ -1377,7 +1346,7 @@ pub fn diagnose(
                 )
             }
         );
-        let (_, _, improved) = stats_of.get(&i).copied().unwrap_or((dbic, t, 0));
+        let improved = blocks_better.get(&i).copied().unwrap_or(0);
         footprints.push((c.term.clone(), foot.iter().copied().collect::<Vec<f64>>()));
         accepted.push(Accepted {
             effect: c.effect.into(),

@@ -8,33 +8,24 @@ use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, detection_rows, 
 use driftwatch::identify::SolveOptions;
 use driftwatch::kinematics::Kinematics;
 use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::scenario::{FeedChange, ProgramSegment, Scenario};
+use driftwatch::scenario::{FeedChange, Scenario};
 use driftwatch::thermal::Channel;
 
 /// Three production days (the two-shift program of `ambient_swing` each day), a cycle every
 /// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), the default thermal truth.
 fn three_days(seed: u64) -> Scenario {
-    let mut scn = Scenario::load("ambient_swing").unwrap();
-    let day: Vec<ProgramSegment> = scn.spindle.clone();
+    let mut scn = Scenario::load("ambient_swing").unwrap().repeated_days(3);
     // Day 2 starts two hours late; day 3 (the held-out day) has the first shift only. Days
     // alike would let the spindle's daily rhythm stand in for any other daily one.
-    scn.spindle = (0..3)
-        .flat_map(|d| {
-            day.iter().filter_map(move |s| {
-                let shift = if d == 1 && s.at_min > 0.0 { 120.0 } else { 0.0 };
-                let mut s = s.clone();
-                if d == 2 && s.at_min > 840.0 && s.at_min < 1320.0 {
-                    return None;
-                }
-                if d == 2 && s.at_min == 840.0 {
-                    s.rpm = 0.0;
-                }
-                s.at_min += 1440.0 * d as f64 + shift;
-                Some(s)
-            })
-        })
-        .collect();
-    scn.duration_min = 3.0 * 1440.0;
+    scn.spindle
+        .retain(|s| !(s.at_min > 2880.0 + 840.0 && s.at_min < 2880.0 + 1320.0));
+    for s in &mut scn.spindle {
+        match (s.at_min / 1440.0).floor() as i64 {
+            1 if s.at_min > 1440.0 => s.at_min += 120.0,
+            2 if s.at_min == 2880.0 + 840.0 => s.rpm = 0.0,
+            _ => {}
+        }
+    }
     scn.seed = seed;
     scn.noise.sigma_um = 0.5;
     scn.cycles.at_min.clear();
