@@ -8,16 +8,22 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
 use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose};
+use driftwatch::displacement_diagnosis::{
+    DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
+};
 use driftwatch::effects::{EFFECTS, Effect};
 use driftwatch::identify::SolveOptions;
 use driftwatch::kinematics::Kinematics;
+use driftwatch::recording::Recording;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch::thermal_model::ThermalModel;
+use driftwatch::thermal_model::{Event, events_from};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {
-    /// Machine TOML, or a built-in name (table_bc).
-    #[arg(long, required_unless_present = "list_effects")]
+    /// Machine TOML, or a built-in name (table_bc); needed for recordings of measurement
+    /// cycles, not for displacement recordings.
+    #[arg(long)]
     machine: Option<String>,
     /// Recordings of that machine (one or more, e.g. one per day).
     #[arg(long, num_args = 1.., required_unless_present = "list_effects")]
@@ -32,6 +38,13 @@ pub struct DiagnoseArgs {
     /// One-reading standard uncertainty, um (default: the machine's).
     #[arg(long)]
     sigma_um: Option<f64>,
+    /// Displacement recordings: the channels to diagnose (default: every displacement channel).
+    #[arg(long, num_args = 1..)]
+    channels: Vec<String>,
+    /// Displacement recordings: hold out the readings from this many hours after the first
+    /// (default: the last 15 %).
+    #[arg(long)]
+    holdout_from_h: Option<f64>,
     /// List the candidate effects and exit.
     #[arg(long)]
     list_effects: bool,
@@ -92,8 +105,7 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
     if a.list_effects {
         return list(a.json);
     }
-    let machine = a.machine.context("--machine is required")?;
-    let k = Kinematics::load(&machine).with_context(|| format!("machine '{machine}'"))?;
+    let mut recs = Vec::new();
     let mut inputs: Option<Inputs> = None;
     for path in &a.recording {
         let rec = read_file(path, &ReadOptions::default())
@@ -103,13 +115,24 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
             Some(all) => all.extend(i),
             None => inputs = Some(i),
         }
+        recs.push(rec);
     }
     let Some(inputs) = inputs else {
         bail!("no --recording given");
     };
     if inputs.detections.is_empty() {
-        bail!("the recordings hold no parseable /probe/detection message");
+        if recs.iter().any(|r| !r.displacements.is_empty()) {
+            return displacement(&a, &recs);
+        }
+        bail!(
+            "the recordings hold no parseable /probe/detection message and no displacement reading"
+        );
     }
+    let machine = a
+        .machine
+        .clone()
+        .context("--machine is required for recordings of measurement cycles")?;
+    let k = Kinematics::load(&machine).with_context(|| format!("machine '{machine}'"))?;
     let mut opts = DiagnoseOptions::new(a.sigma_um.unwrap_or(k.setter.sigma_um));
     if let Some(path) = &a.model {
         let text =
@@ -162,5 +185,115 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         );
     }
     println!("wrote {} and {}", json_path.display(), html_path.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+pub const DISPLACEMENT_FORMAT: &str = "driftwatch-displacement-diagnosis/1";
+
+/// `diagnosis.json` of displacement recordings.
+#[derive(Serialize)]
+pub struct DisplacementFile<'a> {
+    pub format: &'static str,
+    pub recordings: Vec<String>,
+    pub options: &'a DisplacementOptions,
+    #[serde(flatten)]
+    pub diagnosis: &'a DisplacementDiagnosis,
+}
+
+/// The diagnosis of displacement recordings (imported thermal tests): `diagnosis.json`,
+/// `report.html` and `model.json`, the thermal model refitted with every accepted term it can
+/// carry (a model version a machine's `thermal_model` can point at).
+fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
+    let mut channels: Vec<String> = recs
+        .iter()
+        .flat_map(|r| r.displacements.iter().map(|m| m.msg.sensor.clone()))
+        .collect();
+    channels.sort();
+    channels.dedup();
+    if !a.channels.is_empty() {
+        if let Some(c) = a.channels.iter().find(|c| !channels.contains(c)) {
+            bail!("channel '{c}' is not in the recordings (they have {channels:?})");
+        }
+        channels = a.channels.clone();
+    }
+    let events: Vec<Event> = events_from(recs)
+        .into_iter()
+        .filter(|e| match e {
+            Event::Observation { channel, .. } => channels.contains(channel),
+            _ => true,
+        })
+        .collect();
+    let mut opts = DisplacementOptions::default();
+    match &a.model {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let m = ThermalModel::from_json(&text)
+                .with_context(|| format!("thermal model {}", path.display()))?;
+            opts.n_ref_rpm = m.config.n_ref_rpm;
+            opts.gamma = m.config.gamma;
+        }
+        // Without a model, the top logged speed is the reference (it only scales the gains).
+        None => {
+            let top = recs
+                .iter()
+                .flat_map(|r| r.spindle.iter().map(|m| m.msg.rpm.abs()))
+                .filter(|x| x.is_finite())
+                .fold(0.0, f64::max);
+            if top > 0.0 {
+                opts.n_ref_rpm = top;
+            }
+        }
+    }
+    if let Some(h) = a.holdout_from_h {
+        let t0 = events
+            .iter()
+            .find(|e| matches!(e, Event::Observation { .. }))
+            .map_or(0, |e| e.t_ns());
+        opts.holdout_from_ns = Some(t0 + (h * 3.6e12) as i64);
+    }
+    let d = diagnose_displacements(&events, &channels, &opts).context("displacement diagnosis")?;
+    let model = driftwatch::thermal_model::fit(&d.model, &events, None)
+        .context("fitting the new model version")?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let file = DisplacementFile {
+        format: DISPLACEMENT_FORMAT,
+        recordings: a
+            .recording
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        options: &opts,
+        diagnosis: &d,
+    };
+    let json_path = a.out.join("diagnosis.json");
+    std::fs::write(&json_path, serde_json::to_string_pretty(&file)?)
+        .with_context(|| format!("writing {}", json_path.display()))?;
+    let html_path = a.out.join("report.html");
+    std::fs::write(
+        &html_path,
+        driftwatch::diagnosis_report::displacement_html(
+            &d,
+            "driftwatch diagnosis: displacement recording",
+        ),
+    )
+    .with_context(|| format!("writing {}", html_path.display()))?;
+    let model_path = a.out.join("model.json");
+    std::fs::write(&model_path, serde_json::to_string_pretty(&model)?)
+        .with_context(|| format!("writing {}", model_path.display()))?;
+    for c in &d.channels {
+        for s in &c.statements {
+            println!("{s}");
+        }
+    }
+    for n in &d.not_carried {
+        println!("not carried into the model (a clock term): {n}");
+    }
+    println!(
+        "wrote {}, {} and {} (the thermal model with the accepted terms)",
+        json_path.display(),
+        html_path.display(),
+        model_path.display()
+    );
     Ok(ExitCode::SUCCESS)
 }

@@ -568,15 +568,15 @@ impl Series {
 }
 
 /// Least squares on whitened columns, by SVD with the columns scaled to unit norm.
-struct Lsq {
-    beta: DVector<f64>,
+pub(crate) struct Lsq {
+    pub(crate) beta: DVector<f64>,
     /// `(M^T M)^+` in the unscaled columns.
-    cov: DMatrix<f64>,
-    chi2: f64,
-    rank: usize,
+    pub(crate) cov: DMatrix<f64>,
+    pub(crate) chi2: f64,
+    pub(crate) rank: usize,
 }
 
-fn lsq(m: &DMatrix<f64>, y: &DVector<f64>) -> Lsq {
+pub(crate) fn lsq(m: &DMatrix<f64>, y: &DVector<f64>) -> Lsq {
     let norms: Vec<f64> = m
         .column_iter()
         .map(|c| {

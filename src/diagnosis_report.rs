@@ -264,3 +264,93 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
     h.push_str("</body></html>\n");
     h
 }
+
+/// The report of a displacement diagnosis: statements, figures per channel, each channel's
+/// measurement against the baseline and the final model, and the residuals before and after.
+pub fn displacement_html(
+    d: &crate::displacement_diagnosis::DisplacementDiagnosis,
+    title: &str,
+) -> String {
+    let mut h = String::new();
+    h.push_str(&format!(
+        "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{t}</title><style>body{{font-family:sans-serif;max-width:1000px;margin:auto}}table{{border-collapse:collapse}}td,th{{border:1px solid #bbb;padding:2px 6px;font-size:13px}}</style></head><body><h1>{t}</h1>",
+        t = esc(title)
+    ));
+    h.push_str(&format!(
+        "<p>{} displacement channels over {:.1} h, {} logged temperatures. Baseline: one thermal mode of the spindle heat input per channel. Everything is fitted on 0-{:.1} h; the rest is held out.</p>",
+        d.channels.len(),
+        d.span_h,
+        d.sensors.len(),
+        d.heldout_from_h
+    ));
+    h.push_str("<h2>What was found</h2>");
+    for c in &d.channels {
+        for s in &c.statements {
+            h.push_str(&format!("<p>{}</p>", esc(s)));
+        }
+    }
+    h.push_str("<h2>Fit before and after</h2><table><tr><th>channel</th><th>baseline mode</th><th>terms</th><th>RMS training (um)</th><th>RMS held-out (um)</th></tr>");
+    for c in &d.channels {
+        h.push_str(&format!(
+            "<tr><td>{}</td><td>{} min, {:.2} um</td><td>{}</td><td>{} &rarr; {}</td><td>{} &rarr; {}</td></tr>",
+            esc(&c.channel),
+            c.baseline_mode.tau_min,
+            c.baseline_mode.gain_um,
+            c.accepted.len(),
+            f(c.baseline.rms_train_um),
+            f(c.final_fit.rms_train_um),
+            f(c.baseline.rms_heldout_um),
+            f(c.final_fit.rms_heldout_um)
+        ));
+    }
+    h.push_str("</table><h2>Accepted terms</h2><table><tr><th>channel</th><th>effect</th><th>term</th><th>value</th><th>delta-BIC</th><th>t</th><th>held-out before &rarr; after (um)</th><th>ambiguous with</th></tr>");
+    for c in &d.channels {
+        for t in &c.accepted {
+            h.push_str(&format!(
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{} &plusmn; {} {}</td><td>{:.1}</td><td>{:.1}</td><td>{} &rarr; {}</td><td>{}</td></tr>",
+                esc(&c.channel),
+                t.effect,
+                esc(&t.term),
+                f(t.value),
+                f(t.sigma),
+                esc(t.unit),
+                t.delta_bic,
+                t.t,
+                f(t.heldout_before_um),
+                f(t.heldout_after_um),
+                esc(&t.ambiguous_with.join(", "))
+            ));
+        }
+    }
+    h.push_str("</table>");
+    for c in &d.channels {
+        let s = &c.series;
+        let pts = |v: &[f64]| -> Points { s.t_h.iter().copied().zip(v.iter().copied()).collect() };
+        h.push_str(&format!("<h2>{}</h2>", esc(&c.channel)));
+        h.push_str(&scatter(
+            &format!(
+                "{}: measured and models (held out from {:.1} h)",
+                c.channel, d.heldout_from_h
+            ),
+            "time (h)",
+            "um",
+            &[
+                ("measured", BLACK, pts(&s.y_um)),
+                ("one spindle mode", RED, pts(&s.baseline_um)),
+                ("with the accepted terms", BLUE, pts(&s.final_um)),
+            ],
+        ));
+        let res = |m: &[f64]| -> Vec<f64> { s.y_um.iter().zip(m).map(|(a, b)| a - b).collect() };
+        h.push_str(&scatter(
+            &format!("{}: residual", c.channel),
+            "time (h)",
+            "um",
+            &[
+                ("one spindle mode", RED, pts(&res(&s.baseline_um))),
+                ("with the accepted terms", BLUE, pts(&res(&s.final_um))),
+            ],
+        ));
+    }
+    h.push_str("</body></html>");
+    h
+}

@@ -15,6 +15,7 @@ pub mod cycle;
 pub mod daemon;
 pub mod diagnosis;
 pub mod diagnosis_report;
+pub mod displacement_diagnosis;
 pub mod effects;
 pub mod experiment;
 pub mod geometry;

@@ -1,0 +1,1178 @@
+//! Diagnosis of displacement recordings (imported thermal tests, ISO 230-3 style), pure code.
+//! The baseline is what a spindle-only model can do: one thermal mode of the spindle heat
+//! input per channel, its time constant chosen on the training part. The search then tries the
+//! thermal candidates: a second mode (free sign, so it can make an overshoot), each logged
+//! temperature and its lags (a missing input), each temperature's fast swing (a coolant or
+//! chiller cycle), a 24-h Fourier pair (ambient) and the instant speed term.
+//!
+//! Readings of a thermal test are seconds apart and their misfit is smooth, so consecutive
+//! residuals are far from independent. The selection therefore works on thinned samples
+//! (`thin_s`) and, at each step, on the AR(1)-whitened model (feasible GLS): delta-BIC is
+//! `N ln(SSE0 / SSE1) - ln N` on the whitened residuals and |t| uses the whitened covariance.
+//! Each term must also improve the fit on held-out blocks of the training span.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::Serialize;
+
+use crate::diagnosis::{DIAGNOSIS_TAUS_MIN, lsq};
+use crate::effects::TEMPERATURE_TAUS_MIN;
+use crate::thermal_model::{Event, Features, ModelConfig, TemperatureInput};
+
+#[derive(Debug, thiserror::Error)]
+pub enum DisplacementError {
+    #[error("no displacement readings")]
+    NoReadings,
+    #[error("channel {0}: too few readings to train and hold out ({1} training samples)")]
+    TooFew(String, usize),
+}
+
+/// Options; the acceptance rules are the cycle diagnosis' (physics.md 4.6).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DisplacementOptions {
+    pub n_ref_rpm: f64,
+    pub gamma: f64,
+    /// One sample per this many seconds is used by the fits.
+    pub thin_s: f64,
+    /// Readings from this time on are held out of every fit (the last 15 % of the span when
+    /// not given).
+    pub holdout_from_ns: Option<i64>,
+    pub min_delta_bic: f64,
+    pub min_t: f64,
+    /// Held-out blocks of the training span, and how many a term must improve.
+    pub blocks: usize,
+    pub min_blocks_improved: usize,
+    pub max_terms: usize,
+    /// Largest plausible footprint of one term, um.
+    pub max_um: f64,
+    /// Band searched for a periodic residual, min.
+    pub band_min: (f64, f64),
+    /// Smallest post-change excursion reported as an overshoot, um.
+    pub min_overshoot_um: f64,
+}
+
+impl Default for DisplacementOptions {
+    fn default() -> Self {
+        DisplacementOptions {
+            n_ref_rpm: 20000.0,
+            gamma: 1.5,
+            thin_s: 300.0,
+            holdout_from_ns: None,
+            min_delta_bic: 10.0,
+            min_t: 4.0,
+            blocks: 3,
+            min_blocks_improved: 2,
+            max_terms: 6,
+            max_um: 200.0,
+            band_min: (10.0, 60.0),
+            min_overshoot_um: 1.5,
+        }
+    }
+}
+
+/// What a term adds to the thermal model when it is accepted.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ModelInput {
+    SpindleLag {
+        tau_min: f64,
+    },
+    Temperature {
+        sensor: String,
+        taus_min: Vec<f64>,
+    },
+    InstantSpeed,
+    /// A clock term: the thermal model has none, so it is reported, not carried.
+    None,
+}
+
+#[derive(Debug, Clone)]
+struct Candidate {
+    effect: &'static str,
+    term: String,
+    unit: &'static str,
+    x: Vec<f64>,
+    input: ModelInput,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Mode {
+    pub tau_min: f64,
+    /// Gain at the reference speed, um per unit heat input.
+    pub gain_um: f64,
+    pub offset_um: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Fit {
+    pub parameters: usize,
+    pub rms_train_um: f64,
+    /// RMS on the held-out end of the recording, fitted on the training part alone.
+    pub rms_heldout_um: f64,
+    /// Lag-1 autocorrelation of the thinned training residuals.
+    pub ar1: f64,
+    /// Ljung-Box p-value of the thinned training residuals over 10 lags.
+    pub ljung_box_p: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PhaseResidual {
+    pub phase: &'static str,
+    pub n: usize,
+    pub mean_um: f64,
+    pub rms_um: f64,
+}
+
+/// A periodic component of the baseline residual and the logged temperature that carries it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Periodic {
+    pub period_min: f64,
+    /// Amplitude of the sinusoid at that period, um.
+    pub amplitude_um: f64,
+    /// RMS of the residual in the band, um.
+    pub band_rms_um: f64,
+    pub driver: Option<String>,
+    /// Correlation of the band-passed residual with the band-passed driver.
+    pub driver_r: f64,
+    /// The driver's own strongest period in the band, min.
+    pub driver_period_min: f64,
+    /// The driver's period is within 20 % of the residual's: it carries that cycle.
+    pub matched: bool,
+}
+
+/// The response after one speed change: a single first-order mode moves monotonically from
+/// where it was toward its new level, so an excursion beyond both ends is something it
+/// cannot make.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Transient {
+    pub at_h: f64,
+    pub from_rpm: f64,
+    pub to_rpm: f64,
+    /// Largest excursion of the measured (30-min smoothed) displacement beyond both the
+    /// level at the change and the level at the end of the window, um.
+    pub excursion_um: f64,
+    pub after_min: f64,
+    /// The same excursion of the baseline's and of the final model's prediction, um.
+    pub baseline_excursion_um: f64,
+    pub final_excursion_um: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Term {
+    pub effect: &'static str,
+    pub term: String,
+    pub unit: &'static str,
+    pub value: f64,
+    pub sigma: f64,
+    pub delta_bic: f64,
+    pub t: f64,
+    pub blocks_improved: usize,
+    /// Held-out RMS of the model before and after this term, um.
+    pub heldout_before_um: f64,
+    pub heldout_after_um: f64,
+    /// Candidates within delta-BIC 10 of this one at its step.
+    pub ambiguous_with: Vec<String>,
+    pub input: ModelInput,
+    pub statement: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RefusedTerm {
+    pub effect: &'static str,
+    pub term: String,
+    pub delta_bic: f64,
+    pub t: f64,
+    pub blocks_improved: usize,
+    pub reason: String,
+}
+
+/// Plot data of one channel (not serialised).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ChannelSeries {
+    pub t_h: Vec<f64>,
+    pub y_um: Vec<f64>,
+    pub baseline_um: Vec<f64>,
+    pub final_um: Vec<f64>,
+    pub train: Vec<bool>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ChannelDiagnosis {
+    pub channel: String,
+    pub n_train: usize,
+    pub n_heldout: usize,
+    pub baseline_mode: Mode,
+    pub baseline: Fit,
+    pub final_fit: Fit,
+    pub phases: Vec<PhaseResidual>,
+    pub periodic: Option<Periodic>,
+    pub transients: Vec<Transient>,
+    pub accepted: Vec<Term>,
+    pub refused: Vec<RefusedTerm>,
+    /// What the diagnosis found, in words.
+    pub statements: Vec<String>,
+    #[serde(skip)]
+    pub series: ChannelSeries,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DisplacementDiagnosis {
+    pub span_h: f64,
+    pub heldout_from_h: f64,
+    pub sensors: Vec<String>,
+    pub channels: Vec<ChannelDiagnosis>,
+    /// The thermal-model configuration with every accepted term that it can carry: the new
+    /// model version.
+    pub model: ModelConfig,
+    /// Accepted terms the thermal model cannot carry.
+    pub not_carried: Vec<String>,
+}
+
+/// Centred moving average over `window` (same units as `t`), for a sorted `t`.
+fn moving_average(t: &[f64], y: &[f64], window: f64) -> Vec<f64> {
+    let (mut a, mut b, mut s) = (0usize, 0usize, 0.0);
+    let mut out = Vec::with_capacity(y.len());
+    for i in 0..t.len() {
+        while b < t.len() && t[b] <= t[i] + window / 2.0 {
+            s += y[b];
+            b += 1;
+        }
+        while t[a] < t[i] - window / 2.0 {
+            s -= y[a];
+            a += 1;
+        }
+        out.push(s / (b - a) as f64);
+    }
+    out
+}
+
+/// The strongest period in `band` (min) of `y` sampled at `t` (min): (period, amplitude).
+fn strongest_period(t: &[f64], y: &[f64], band: (f64, f64)) -> (f64, f64) {
+    let mut best = (f64::NAN, 0.0);
+    let mut p = band.0;
+    while p <= band.1 {
+        let w = std::f64::consts::TAU / p;
+        let (c, s) = t.iter().zip(y).fold((0.0, 0.0), |(c, s), (ti, yi)| {
+            (c + yi * (w * ti).cos(), s + yi * (w * ti).sin())
+        });
+        let amp = 2.0 * (c * c + s * s).sqrt() / y.len().max(1) as f64;
+        if amp > best.1 {
+            best = (p, amp);
+        }
+        p += 0.25;
+    }
+    best
+}
+
+fn corr(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len()) as f64;
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        sab += (x - ma) * (y - mb);
+        saa += (x - ma).powi(2);
+        sbb += (y - mb).powi(2);
+    }
+    if saa > 0.0 && sbb > 0.0 {
+        sab / (saa * sbb).sqrt()
+    } else {
+        0.0
+    }
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 { 0.0 } else { (s / n as f64).sqrt() }
+}
+
+fn ar1(e: &[f64]) -> f64 {
+    corr(&e[1..], &e[..e.len() - 1]).clamp(0.0, 0.999)
+}
+
+/// Excursion of `y` (smoothed, window `[a, b)`) beyond both its first and last value:
+/// `(um, index)`.
+fn excursion(y: &[f64]) -> (f64, usize) {
+    let (Some(&y0), Some(&y1)) = (y.first(), y.last()) else {
+        return (0.0, 0);
+    };
+    let (hi, lo) = (y0.max(y1), y0.min(y1));
+    let mut best = (0.0, 0);
+    for (i, v) in y.iter().enumerate() {
+        let e = (v - hi).max(lo - v);
+        if e > best.0 {
+            best = (e, i);
+        }
+    }
+    best
+}
+
+/// The design of one channel's thinned samples.
+struct Design<'a> {
+    cands: &'a [Candidate],
+    y: DVector<f64>,
+    train: Vec<usize>,
+    test: Vec<usize>,
+    blocks: Vec<Vec<usize>>,
+}
+
+impl Design<'_> {
+    fn matrix(&self, cols: &[usize], base: &[Vec<f64>]) -> DMatrix<f64> {
+        let n = self.y.len();
+        let all: Vec<&Vec<f64>> = base
+            .iter()
+            .chain(cols.iter().map(|c| &self.cands[*c].x))
+            .collect();
+        DMatrix::from_fn(n, all.len(), |i, j| all[j][i])
+    }
+
+    fn ols(&self, m: &DMatrix<f64>, rows: &[usize]) -> DVector<f64> {
+        lsq(
+            &m.select_rows(rows.iter()),
+            &self.y.select_rows(rows.iter()),
+        )
+        .beta
+    }
+
+    /// Whitened training rows of `m` and `y` for AR(1) coefficient `phi`.
+    fn whiten(&self, m: &DMatrix<f64>, phi: f64) -> (DMatrix<f64>, DVector<f64>) {
+        let pairs: Vec<(usize, usize)> = self.train.windows(2).map(|w| (w[0], w[1])).collect();
+        let mw = DMatrix::from_fn(pairs.len(), m.ncols(), |r, j| {
+            m[(pairs[r].1, j)] - phi * m[(pairs[r].0, j)]
+        });
+        let yw = DVector::from_fn(pairs.len(), |r, _| {
+            self.y[pairs[r].1] - phi * self.y[pairs[r].0]
+        });
+        (mw, yw)
+    }
+
+    fn fit(&self, m: &DMatrix<f64>) -> (DVector<f64>, Fit) {
+        let beta = self.ols(m, &self.train);
+        let pred = m * &beta;
+        let e: Vec<f64> = self.train.iter().map(|&i| self.y[i] - pred[i]).collect();
+        let held = if self.test.is_empty() {
+            f64::NAN
+        } else {
+            rms(self.test.iter().map(|&i| self.y[i] - pred[i]))
+        };
+        let fit = Fit {
+            parameters: m.ncols(),
+            rms_train_um: rms(e.iter().copied()),
+            rms_heldout_um: held,
+            ar1: ar1(&e),
+            ljung_box_p: crate::stats::ljung_box(&e, 10).map_or(f64::NAN, |l| l.p_value),
+        };
+        (pred, fit)
+    }
+
+    /// Blocks of the training span in which adding column `x` to `m` lowers the error of a
+    /// fit on the other blocks.
+    fn blocks_improved(&self, m: &DMatrix<f64>, m2: &DMatrix<f64>) -> usize {
+        self.blocks
+            .iter()
+            .filter(|b| {
+                let rest: Vec<usize> = self
+                    .train
+                    .iter()
+                    .copied()
+                    .filter(|i| !b.contains(i))
+                    .collect();
+                let sse = |m: &DMatrix<f64>| {
+                    let beta = self.ols(m, &rest);
+                    b.iter()
+                        .map(|&i| (self.y[i] - m.row(i).transpose().dot(&beta)).powi(2))
+                        .sum::<f64>()
+                };
+                sse(m2) < sse(m)
+            })
+            .count()
+    }
+}
+
+/// Everything the candidates and the baseline need, at every reading of one channel.
+struct Columns {
+    t_ns: Vec<i64>,
+    y: Vec<f64>,
+    spindle: Vec<Vec<f64>>,
+    /// Per sensor, per lag of `TEMPERATURE_TAUS_MIN`.
+    temps: Vec<Vec<Vec<f64>>>,
+    speed2: Vec<f64>,
+}
+
+fn columns(events: &[Event], channel: &str, sensors: &[String], cfg: &ModelConfig) -> Columns {
+    let mut f = Features::new(
+        cfg,
+        &BTreeMap::new(),
+        events.first().map_or(0, |e| e.t_ns()),
+    );
+    let ncol = cfg.columns().len();
+    let mut x: Vec<Vec<f64>> = vec![Vec::new(); ncol];
+    let (mut t_ns, mut y) = (Vec::new(), Vec::new());
+    for e in events {
+        f.apply(e);
+        if let Event::Observation {
+            t_ns: t,
+            channel: c,
+            value,
+            ..
+        } = e
+            && c == channel
+            && value.is_finite()
+        {
+            t_ns.push(*t);
+            y.push(*value);
+            for (j, v) in f.row().iter().enumerate() {
+                x[j].push(*v);
+            }
+        }
+    }
+    let mut it = x.into_iter().skip(1);
+    let spindle: Vec<Vec<f64>> = it.by_ref().take(cfg.taus_min.len()).collect();
+    let temps = sensors
+        .iter()
+        .map(|_| it.by_ref().take(TEMPERATURE_TAUS_MIN.len()).collect())
+        .collect();
+    let speed2 = it.next().unwrap_or_default();
+    Columns {
+        t_ns,
+        y,
+        spindle,
+        temps,
+        speed2,
+    }
+}
+
+/// The spindle speed in force at each of `t_ns` (sorted), and the speed changes.
+fn speed_timeline(events: &[Event]) -> Vec<(i64, f64)> {
+    let mut ch = Vec::new();
+    let mut last = 0.0;
+    for e in events {
+        if let Event::Spindle { t_ns, rpm } = e
+            && rpm.is_finite()
+            && *rpm != last
+        {
+            ch.push((*t_ns, *rpm));
+            last = *rpm;
+        }
+    }
+    ch
+}
+
+fn phase_of(t: i64, changes: &[(i64, f64)]) -> &'static str {
+    let k = changes.partition_point(|c| c.0 <= t);
+    let (since, rpm) = match k {
+        0 => (i64::MAX, 0.0),
+        _ => (t - changes[k - 1].0, changes[k - 1].1),
+    };
+    let settling = since < 3_600_000_000_000;
+    match (rpm != 0.0, settling) {
+        (true, true) => "warm-up",
+        (true, false) => "steady",
+        (false, true) => "cool-down",
+        (false, false) => "idle",
+    }
+}
+
+/// Diagnose every displacement channel of `events` (inputs and `Observation`s of
+/// `channels`).
+pub fn diagnose_displacements(
+    events: &[Event],
+    channels: &[String],
+    opts: &DisplacementOptions,
+) -> Result<DisplacementDiagnosis, DisplacementError> {
+    let mut sensors: Vec<String> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Temperature { sensor, .. } => Some(sensor.clone()),
+            _ => None,
+        })
+        .collect();
+    sensors.sort();
+    sensors.dedup();
+    let cfg = ModelConfig {
+        taus_min: DIAGNOSIS_TAUS_MIN.to_vec(),
+        n_ref_rpm: opts.n_ref_rpm,
+        gamma: opts.gamma,
+        temperatures: sensors
+            .iter()
+            .map(|s| TemperatureInput {
+                sensor: s.clone(),
+                taus_min: TEMPERATURE_TAUS_MIN.to_vec(),
+            })
+            .collect(),
+        instant_speed: true,
+        ..ModelConfig::default()
+    };
+    let obs_times: Vec<i64> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Observation { t_ns, channel, .. } if channels.contains(channel) => Some(*t_ns),
+            _ => None,
+        })
+        .collect();
+    let (Some(&t0), Some(&t1)) = (obs_times.iter().min(), obs_times.iter().max()) else {
+        return Err(DisplacementError::NoReadings);
+    };
+    let holdout = opts
+        .holdout_from_ns
+        .unwrap_or(t0 + ((t1 - t0) as f64 * 0.85) as i64);
+    let changes = speed_timeline(events);
+    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+
+    let mut out = Vec::new();
+    let mut model = ModelConfig {
+        taus_min: Vec::new(),
+        temperatures: Vec::new(),
+        n_ref_rpm: opts.n_ref_rpm,
+        gamma: opts.gamma,
+        ..ModelConfig::default()
+    };
+    let mut not_carried = Vec::new();
+    for channel in channels {
+        let c = columns(events, channel, &sensors, &cfg);
+        let d = diagnose_channel(channel, &c, &sensors, &changes, holdout, t0, opts)?;
+        for term in &d.accepted {
+            match &term.input {
+                ModelInput::SpindleLag { tau_min } => model.taus_min.push(*tau_min),
+                ModelInput::Temperature { sensor, taus_min } => {
+                    match model.temperatures.iter_mut().find(|t| &t.sensor == sensor) {
+                        Some(t) => t.taus_min.extend(taus_min),
+                        None => model.temperatures.push(TemperatureInput {
+                            sensor: sensor.clone(),
+                            taus_min: taus_min.clone(),
+                        }),
+                    }
+                }
+                ModelInput::InstantSpeed => model.instant_speed = true,
+                ModelInput::None => not_carried.push(format!("{channel}: {}", term.term)),
+            }
+        }
+        model.taus_min.push(d.baseline_mode.tau_min);
+        out.push(d);
+    }
+    let dedup = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.dedup();
+    };
+    dedup(&mut model.taus_min);
+    for t in &mut model.temperatures {
+        dedup(&mut t.taus_min);
+    }
+    Ok(DisplacementDiagnosis {
+        span_h: h(t1),
+        heldout_from_h: h(holdout),
+        sensors,
+        channels: out,
+        model,
+        not_carried,
+    })
+}
+
+fn lag_label(sensor: &str, tau: f64) -> String {
+    if tau == 0.0 {
+        sensor.to_string()
+    } else {
+        format!("{sensor} lag {tau} min")
+    }
+}
+
+fn diagnose_channel(
+    channel: &str,
+    c: &Columns,
+    sensors: &[String],
+    changes: &[(i64, f64)],
+    holdout: i64,
+    t0: i64,
+    opts: &DisplacementOptions,
+) -> Result<ChannelDiagnosis, DisplacementError> {
+    // Thinned samples.
+    let step = (opts.thin_s * 1e9) as i64;
+    let mut keep = Vec::new();
+    for (i, &t) in c.t_ns.iter().enumerate() {
+        if keep.last().is_none_or(|&k: &usize| t - c.t_ns[k] >= step) {
+            keep.push(i);
+        }
+    }
+    let pick = |v: &[f64]| -> Vec<f64> { keep.iter().map(|&i| v[i]).collect() };
+    let times: Vec<i64> = keep.iter().map(|&i| c.t_ns[i]).collect();
+    let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
+    let train: Vec<usize> = (0..keep.len()).filter(|&i| times[i] < holdout).collect();
+    let test: Vec<usize> = (0..keep.len()).filter(|&i| times[i] >= holdout).collect();
+    if train.len() < 30 || test.is_empty() {
+        return Err(DisplacementError::TooFew(channel.into(), train.len()));
+    }
+
+    let mut cands = Vec::new();
+    for (k, tau) in DIAGNOSIS_TAUS_MIN.iter().enumerate() {
+        cands.push(Candidate {
+            effect: "second_mode",
+            term: format!("spindle lag {tau} min"),
+            unit: "um per unit heat input",
+            x: pick(&c.spindle[k]),
+            input: ModelInput::SpindleLag { tau_min: *tau },
+        });
+    }
+    for (s, sensor) in sensors.iter().enumerate() {
+        for (k, tau) in TEMPERATURE_TAUS_MIN.iter().enumerate() {
+            cands.push(Candidate {
+                effect: "missing_temperature",
+                term: lag_label(sensor, *tau),
+                unit: "um/K",
+                x: pick(&c.temps[s][k]),
+                input: ModelInput::Temperature {
+                    sensor: sensor.clone(),
+                    taus_min: vec![*tau],
+                },
+            });
+        }
+        // The fast swing: the temperature less its 60-min lag.
+        let hp: Vec<f64> = c.temps[s][0]
+            .iter()
+            .zip(&c.temps[s][1])
+            .map(|(a, b)| a - b)
+            .collect();
+        cands.push(Candidate {
+            effect: "coolant_cycle",
+            term: format!("{sensor} less its 60-min lag"),
+            unit: "um/K",
+            x: pick(&hp),
+            input: ModelInput::Temperature {
+                sensor: sensor.clone(),
+                taus_min: vec![0.0, 60.0],
+            },
+        });
+    }
+    let day = std::f64::consts::TAU / 1440.0;
+    for (name, f) in [("sin", f64::sin as fn(f64) -> f64), ("cos", f64::cos)] {
+        cands.push(Candidate {
+            effect: "ambient",
+            term: format!("24-h Fourier {name}"),
+            unit: "um",
+            x: t_min.iter().map(|t| f(day * t)).collect(),
+            input: ModelInput::None,
+        });
+    }
+    cands.push(Candidate {
+        effect: "speed_shift",
+        term: "(n/n_ref)^2".into(),
+        unit: "um",
+        x: pick(&c.speed2),
+        input: ModelInput::InstantSpeed,
+    });
+
+    let span = (times[train[train.len() - 1]] - times[train[0]]) as f64;
+    let nb = opts.blocks.max(2);
+    let blocks: Vec<Vec<usize>> = (0..nb)
+        .map(|b| {
+            train
+                .iter()
+                .copied()
+                .filter(|&i| {
+                    let f = (times[i] - times[train[0]]) as f64 / span;
+                    ((f * nb as f64) as usize).min(nb - 1) == b
+                })
+                .collect()
+        })
+        .collect();
+    let design = Design {
+        cands: &cands,
+        y: DVector::from_vec(pick(&c.y)),
+        train,
+        test,
+        blocks,
+    };
+    let ones = vec![1.0; keep.len()];
+
+    // Baseline: one spindle mode, its time constant by the training fit.
+    let mut best: Option<(f64, usize)> = None;
+    for k in 0..DIAGNOSIS_TAUS_MIN.len() {
+        let m = design.matrix(&[k], std::slice::from_ref(&ones));
+        let (_, f) = design.fit(&m);
+        if best.is_none_or(|b| f.rms_train_um < b.0) {
+            best = Some((f.rms_train_um, k));
+        }
+    }
+    let k0 = best.map_or(0, |b| b.1);
+    let base_cols = vec![ones.clone(), cands[k0].x.clone()];
+    let m0 = design.matrix(&[], &base_cols);
+    let (base_pred, baseline) = design.fit(&m0);
+    let b0 = design.ols(&m0, &design.train);
+    let baseline_mode = Mode {
+        tau_min: DIAGNOSIS_TAUS_MIN[k0],
+        gain_um: b0[1],
+        offset_um: b0[0],
+    };
+    let resid: Vec<f64> = (0..keep.len())
+        .map(|i| design.y[i] - base_pred[i])
+        .collect();
+
+    // Locate: phases, the periodic part and its driver.
+    let mut phases: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
+    for &i in &design.train {
+        phases
+            .entry(phase_of(times[i], changes))
+            .or_default()
+            .push(resid[i]);
+    }
+    let phases: Vec<PhaseResidual> = phases
+        .into_iter()
+        .map(|(phase, v)| PhaseResidual {
+            phase,
+            n: v.len(),
+            mean_um: v.iter().sum::<f64>() / v.len() as f64,
+            rms_um: rms(v.iter().copied()),
+        })
+        .collect();
+    let tt: Vec<f64> = design.train.iter().map(|&i| t_min[i]).collect();
+    let band = |v: &[f64]| -> Vec<f64> {
+        let tr: Vec<f64> = design.train.iter().map(|&i| v[i]).collect();
+        let slow = moving_average(&tt, &tr, opts.band_min.1);
+        tr.iter().zip(slow).map(|(a, b)| a - b).collect()
+    };
+    let rb = band(&resid);
+    let (period, amp) = strongest_period(&tt, &rb, opts.band_min);
+    let periodic = period.is_finite().then(|| {
+        let mut drv: (Option<String>, f64, f64) = (None, 0.0, f64::NAN);
+        for (s, sensor) in sensors.iter().enumerate() {
+            let tb = band(&pick(&c.temps[s][0]));
+            let r = corr(&rb, &tb);
+            if r.abs() > drv.1.abs() {
+                drv = (
+                    Some(sensor.clone()),
+                    r,
+                    strongest_period(&tt, &tb, opts.band_min).0,
+                );
+            }
+        }
+        Periodic {
+            period_min: period,
+            amplitude_um: amp,
+            band_rms_um: rms(rb.iter().copied()),
+            driver: drv.0,
+            driver_r: drv.1,
+            driver_period_min: drv.2,
+            matched: ((drv.2 - period) / period).abs() < 0.2,
+        }
+    });
+
+    // Forward selection on the whitened model.
+    let mut chosen: Vec<usize> = Vec::new();
+    let mut accepted = Vec::new();
+    let mut refused = Vec::new();
+    let n_w = design.train.len() - 1;
+    let ln_n = (n_w as f64).ln();
+    let mut held_now = baseline.rms_heldout_um;
+    while chosen.len() < opts.max_terms {
+        let m = design.matrix(&chosen, &base_cols);
+        let beta = design.ols(&m, &design.train);
+        let pred = &m * &beta;
+        let e: Vec<f64> = design
+            .train
+            .iter()
+            .map(|&i| design.y[i] - pred[i])
+            .collect();
+        let phi = ar1(&e);
+        let (mw, yw) = design.whiten(&m, phi);
+        let sse0 = lsq(&mw, &yw).chi2;
+        let mut scored: Vec<(f64, usize)> = (0..cands.len())
+            .filter(|j| *j != k0 && !chosen.contains(j))
+            .filter_map(|j| {
+                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), phi);
+                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
+                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
+                let f = lsq(&full, &yw);
+                (f.rank == full.ncols()).then_some((f.chi2, j))
+            })
+            .collect();
+        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let dbic = |sse: f64| n_w as f64 * (sse0 / sse).ln() - ln_n;
+        let mut took = None;
+        for &(sse, j) in scored.iter().take(10) {
+            let db = dbic(sse);
+            if db < opts.min_delta_bic {
+                break;
+            }
+            let mut cols = chosen.clone();
+            cols.push(j);
+            let m2 = design.matrix(&cols, &base_cols);
+            let (mw2, yw2) = design.whiten(&m2, phi);
+            let f = lsq(&mw2, &yw2);
+            let p = m2.ncols();
+            let s2 = f.chi2 / (yw2.len() - p) as f64;
+            let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
+            let t = f.beta[p - 1] / sd;
+            let wins = design.blocks_improved(&m, &m2);
+            let xs = &cands[j].x;
+            let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                - xs.iter().copied().fold(f64::INFINITY, f64::min);
+            let footprint = (f.beta[p - 1] * range).abs();
+            let reason = if t.abs() < opts.min_t {
+                Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
+            } else if wins < opts.min_blocks_improved {
+                Some(format!(
+                    "improves {wins} of {} held-out blocks (needs {})",
+                    design.blocks.len(),
+                    opts.min_blocks_improved
+                ))
+            } else if footprint > opts.max_um {
+                Some(format!(
+                    "footprint {footprint:.0} um > {} um plausible",
+                    opts.max_um
+                ))
+            } else {
+                None
+            };
+            match reason {
+                Some(reason) => refused.push(RefusedTerm {
+                    effect: cands[j].effect,
+                    term: cands[j].term.clone(),
+                    delta_bic: db,
+                    t,
+                    blocks_improved: wins,
+                    reason,
+                }),
+                None => {
+                    took = Some((j, db, t, f.beta[p - 1], sd, wins, sse));
+                    break;
+                }
+            }
+        }
+        let Some((j, db, t, value, sd, wins, sse)) = took else {
+            break;
+        };
+        let ambiguous_with: Vec<String> = scored
+            .iter()
+            .filter(|(s, k)| *k != j && dbic(sse) - dbic(*s) < 10.0)
+            .take(4)
+            .map(|(_, k)| cands[*k].term.clone())
+            .collect();
+        chosen.push(j);
+        let (_, after) = design.fit(&design.matrix(&chosen, &base_cols));
+        let cand = &cands[j];
+        let statement = statement(channel, cand, value, sd, &baseline_mode, periodic.as_ref());
+        accepted.push(Term {
+            effect: cand.effect,
+            term: cand.term.clone(),
+            unit: cand.unit,
+            value,
+            sigma: sd,
+            delta_bic: db,
+            t,
+            blocks_improved: wins,
+            heldout_before_um: held_now,
+            heldout_after_um: after.rms_heldout_um,
+            ambiguous_with,
+            input: cand.input.clone(),
+            statement,
+        });
+        held_now = after.rms_heldout_um;
+    }
+
+    // Backward pruning: drop a term the others have made redundant.
+    loop {
+        let m = design.matrix(&chosen, &base_cols);
+        let beta = design.ols(&m, &design.train);
+        let pred = &m * &beta;
+        let e: Vec<f64> = design
+            .train
+            .iter()
+            .map(|&i| design.y[i] - pred[i])
+            .collect();
+        let phi = ar1(&e);
+        let (mw, yw) = design.whiten(&m, phi);
+        let sse = lsq(&mw, &yw).chi2;
+        let weakest = (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.clone();
+                rest.remove(k);
+                let (mw, yw) = design.whiten(&design.matrix(&rest, &base_cols), phi);
+                (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        match weakest {
+            Some((db, k)) if db < opts.min_delta_bic => {
+                chosen.remove(k);
+                let t = accepted.remove(k);
+                refused.push(RefusedTerm {
+                    effect: t.effect,
+                    term: t.term,
+                    delta_bic: db,
+                    t: t.t,
+                    blocks_improved: t.blocks_improved,
+                    reason: "pruned: the later terms make it redundant".into(),
+                });
+            }
+            _ => break,
+        }
+    }
+    let mf = design.matrix(&chosen, &base_cols);
+    let (final_pred, final_fit) = design.fit(&mf);
+
+    // Transients after each speed change, on the full-rate readings (30-min smoothing).
+    let full_t: Vec<f64> = c.t_ns.iter().map(|t| (t - t0) as f64 / 6e10).collect();
+    let ys = moving_average(&full_t, &c.y, 30.0);
+    let interp = |p: &DVector<f64>| -> Vec<f64> {
+        let ts: Vec<f64> = t_min.clone();
+        let raw: Vec<f64> = full_t
+            .iter()
+            .map(|t| {
+                let k = ts.partition_point(|x| x <= t);
+                match k {
+                    0 => p[0],
+                    k if k >= ts.len() => p[ts.len() - 1],
+                    k => {
+                        let w = (t - ts[k - 1]) / (ts[k] - ts[k - 1]);
+                        p[k - 1] * (1.0 - w) + p[k] * w
+                    }
+                }
+            })
+            .collect();
+        moving_average(&full_t, &raw, 30.0)
+    };
+    let (base_full, final_full) = (interp(&base_pred), interp(&final_pred));
+    let mut transients = Vec::new();
+    for (k, &(t_change, rpm)) in changes.iter().enumerate() {
+        let from = if k == 0 { 0.0 } else { changes[k - 1].1 };
+        let end = changes.get(k + 1).map_or(i64::MAX, |c| c.0);
+        // From 15 min after the change (beyond the smoothing) to 15 min before the next,
+        // at most 4 h.
+        let a = t_change + 900_000_000_000;
+        let b = end
+            .saturating_sub(900_000_000_000)
+            .min(t_change + 4 * 3_600_000_000_000);
+        let idx: Vec<usize> = (0..c.t_ns.len())
+            .filter(|&i| c.t_ns[i] >= a && c.t_ns[i] <= b)
+            .collect();
+        if idx.len() < 10 {
+            continue;
+        }
+        let ex = |v: &[f64]| excursion(&idx.iter().map(|&i| v[i]).collect::<Vec<_>>());
+        let (e, at) = ex(&ys);
+        if e < opts.min_overshoot_um {
+            continue;
+        }
+        transients.push(Transient {
+            at_h: (t_change - t0) as f64 / 3.6e12,
+            from_rpm: from,
+            to_rpm: rpm,
+            excursion_um: e,
+            after_min: (c.t_ns[idx[at]] - t_change) as f64 / 6e10,
+            baseline_excursion_um: ex(&base_full).0,
+            final_excursion_um: ex(&final_full).0,
+        });
+    }
+
+    let mut statements = Vec::new();
+    if let Some(p) = &periodic {
+        statements.push(format!(
+            "{channel}: the spindle-only residual has a {:.1}-min periodic part ({:.2} um amplitude, {:.2} um RMS in the {}-{} min band){}",
+            p.period_min,
+            p.amplitude_um,
+            p.band_rms_um,
+            opts.band_min.0,
+            opts.band_min.1,
+            match &p.driver {
+                Some(d) if p.matched => format!(
+                    "; {d} swings with it (band correlation {:.2}, its own strongest period {:.1} min): the driver of the cycle",
+                    p.driver_r, p.driver_period_min
+                ),
+                Some(d) => format!(
+                    "; no logged temperature has that period (the best-correlated, {d}, r {:.2}, swings at {:.1} min)",
+                    p.driver_r, p.driver_period_min
+                ),
+                None => String::new(),
+            }
+        ));
+    }
+    let stops: Vec<&Transient> = transients.iter().filter(|t| t.to_rpm == 0.0).collect();
+    if !stops.is_empty() {
+        let n_stops = changes.iter().filter(|c| c.1 == 0.0).count();
+        statements.push(format!(
+            "{channel}: after {} of {} stops the displacement overshoots by {} um ({} min after the stop) and comes back; one thermal mode decays monotonically and cannot make this (its excursion: {:.2} um at most), the final model makes {} um",
+            stops.len(),
+            n_stops,
+            stops.iter().map(|t| format!("{:.1}", t.excursion_um)).collect::<Vec<_>>().join(", "),
+            stops.iter().map(|t| format!("{:.0}", t.after_min)).collect::<Vec<_>>().join(", "),
+            stops.iter().map(|t| t.baseline_excursion_um).fold(0.0, f64::max),
+            stops.iter().map(|t| format!("{:.1}", t.final_excursion_um)).collect::<Vec<_>>().join(", "),
+        ));
+    }
+    statements.extend(accepted.iter().map(|t| t.statement.clone()));
+    statements.push(format!(
+        "{channel}: held-out RMS {:.2} um with one spindle mode, {:.2} um with the accepted terms; training {:.2} -> {:.2} um",
+        baseline.rms_heldout_um, final_fit.rms_heldout_um, baseline.rms_train_um, final_fit.rms_train_um
+    ));
+
+    Ok(ChannelDiagnosis {
+        channel: channel.to_string(),
+        n_train: design.train.len(),
+        n_heldout: design.test.len(),
+        baseline_mode,
+        baseline,
+        final_fit,
+        phases,
+        periodic,
+        transients,
+        accepted,
+        refused,
+        statements,
+        series: ChannelSeries {
+            t_h: t_min.iter().map(|t| t / 60.0).collect(),
+            y_um: design.y.iter().copied().collect(),
+            baseline_um: base_pred.iter().copied().collect(),
+            final_um: final_pred.iter().copied().collect(),
+            train: (0..keep.len()).map(|i| times[i] < holdout).collect(),
+        },
+    })
+}
+
+fn statement(
+    channel: &str,
+    c: &Candidate,
+    value: f64,
+    sd: f64,
+    base: &Mode,
+    periodic: Option<&Periodic>,
+) -> String {
+    let v = format!("{value:.3} ± {sd:.3} {}", c.unit);
+    match c.effect {
+        "second_mode" => format!(
+            "{channel}: a second thermal mode, {} ({v}){}",
+            c.term,
+            if value.signum() != base.gain_um.signum() {
+                format!(
+                    ", of opposite sign to the baseline's {:.0}-min mode ({:.2} um): together they make the overshoot one mode cannot",
+                    base.tau_min, base.gain_um
+                )
+            } else {
+                String::new()
+            }
+        ),
+        "missing_temperature" | "coolant_cycle" => {
+            let sensor = match &c.input {
+                ModelInput::Temperature { sensor, .. } => sensor.as_str(),
+                _ => "",
+            };
+            let carries = periodic
+                .filter(|p| p.matched && p.driver.as_deref() == Some(sensor))
+                .map(|p| {
+                    format!(
+                        "; it carries the {:.1}-min cycle of the residual (a coolant or chiller cycle)",
+                        p.period_min
+                    )
+                })
+                .unwrap_or_default();
+            let what = if c.effect == "coolant_cycle" {
+                "the fast swing of a logged temperature"
+            } else {
+                "a temperature input the spindle-only model lacks"
+            };
+            format!("{channel}: {what}, {} at {v}{carries}", c.term)
+        }
+        "ambient" => format!("{channel}: a day cycle, {} ({v})", c.term),
+        _ => format!("{channel}: {} ({v})", c.term),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, Normal};
+
+    const MIN: i64 = 60_000_000_000;
+
+    /// A 40-h thermal test at one reading per minute: 4-h runs at rising speeds and 4-h
+    /// stops; one 35-min spindle mode of 20 um, plus `extra(t_min, chiller)`; a chiller
+    /// temperature swinging 0.5 K with a 25-min period and a room sensor that drifts.
+    fn recording(seed: u64, extra: impl Fn(f64, f64, f64) -> f64) -> Vec<Event> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let noise = Normal::new(0.0, 0.2).unwrap();
+        let mut ev = Vec::new();
+        let (mut x, mut slow) = (0.0, 0.0);
+        for m in 0..2400i64 {
+            let t = m as f64;
+            let block = m / 240;
+            let rpm = if block % 2 == 0 {
+                1000.0 * (block / 2 + 1) as f64
+            } else {
+                0.0
+            };
+            let u = (rpm / 5000.0f64).powf(1.5);
+            let chiller = 20.0 + 0.5 * (std::f64::consts::TAU * t / 25.0).sin();
+            let room = 22.0 + 0.3 * (t / 600.0).sin();
+            let t_ns = m * MIN;
+            ev.push(Event::Spindle { t_ns, rpm });
+            for (sensor, celsius) in [("chiller", chiller), ("room", room)] {
+                ev.push(Event::Temperature {
+                    t_ns,
+                    sensor: sensor.into(),
+                    celsius,
+                });
+            }
+            ev.push(Event::Observation {
+                t_ns,
+                channel: "z".into(),
+                value: 20.0 * x + extra(t, chiller - 20.0, slow) + noise.sample(&mut rng),
+                sigma: None,
+            });
+            // The input holds until the next minute.
+            x += (u - x) * (1.0 - (-1.0f64 / 35.0).exp());
+            slow += (u - slow) * (1.0 - (-1.0f64 / 100.0).exp());
+        }
+        ev
+    }
+
+    fn run(ev: &[Event]) -> ChannelDiagnosis {
+        let opts = DisplacementOptions {
+            n_ref_rpm: 5000.0,
+            ..Default::default()
+        };
+        let mut d = diagnose_displacements(ev, &["z".to_string()], &opts).unwrap();
+        d.channels.remove(0)
+    }
+
+    #[test]
+    fn one_mode_and_noise_select_nothing() {
+        for seed in 0..10 {
+            let c = run(&recording(seed, |_, _, _| 0.0));
+            assert_eq!(c.baseline_mode.tau_min, 35.0);
+            assert!(c.accepted.is_empty(), "seed {seed}: {:?}", c.accepted);
+            assert!(c.transients.is_empty(), "{:?}", c.transients);
+        }
+    }
+
+    #[test]
+    fn a_chiller_cycle_is_located_named_and_modelled() {
+        let c = run(&recording(7, |_, chiller, _| 1.5 * chiller));
+        let p = c.periodic.as_ref().unwrap();
+        assert!((p.period_min - 25.0).abs() < 1.0, "{p:?}");
+        assert_eq!(p.driver.as_deref(), Some("chiller"));
+        assert!(p.matched);
+        let first = &c.accepted[0];
+        assert!(
+            matches!(&first.input, ModelInput::Temperature { sensor, .. } if sensor == "chiller"),
+            "{first:?}"
+        );
+        assert!((first.value - 1.5).abs() < 0.1, "{first:?}");
+        assert!(c.final_fit.rms_heldout_um < 0.5 * c.baseline.rms_heldout_um);
+    }
+
+    #[test]
+    fn a_slow_mode_of_opposite_sign_makes_the_overshoot() {
+        let c = run(&recording(11, |_, _, slow| -15.0 * slow));
+        assert!(
+            c.transients
+                .iter()
+                .any(|t| t.to_rpm == 0.0 && t.baseline_excursion_um < 0.3),
+            "{:?}",
+            c.transients
+        );
+        let opposite = c.accepted.iter().any(|t| {
+            t.effect == "second_mode" && t.value.signum() != c.baseline_mode.gain_um.signum()
+        });
+        assert!(opposite, "{:?} {:?}", c.baseline_mode, c.accepted);
+        assert!(c.final_fit.rms_heldout_um < 0.5 * c.baseline.rms_heldout_um);
+    }
+}
