@@ -28,6 +28,8 @@ pub struct MachineHandle {
     pub inbox: Arc<Mutex<Inbox>>,
     /// Set for machines on the `nc_push` link.
     pub nc: Option<NcPushHandle>,
+    /// The machine's kinematics, for diagnoses of its stored data.
+    pub kinematics: Option<Arc<crate::kinematics::Kinematics>>,
 }
 
 pub struct Auth {
@@ -264,8 +266,8 @@ async fn authenticate(
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
-    paths(ready, machines, machine, compensation, cycles, cycle, errors, model, prediction, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request),
-    components(schemas(EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
+    paths(ready, machines, machine, compensation, cycles, cycle, errors, model, prediction, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request, request_diagnosis, diagnoses, diagnosis),
+    components(schemas(DiagnosisRequest, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth)
 )]
 pub struct ApiDoc;
@@ -298,6 +300,11 @@ pub fn router(state: Shared) -> Router {
             "/machines/{id}/alerts/{alert}/ack",
             axum::routing::post(ack_alert),
         )
+        .route(
+            "/machines/{id}/diagnoses",
+            get(diagnoses).post(request_diagnosis),
+        )
+        .route("/machines/{id}/diagnoses/{n}", get(diagnosis))
         .route("/machines/{id}/nc/events", axum::routing::post(nc_events))
         .route("/machines/{id}/nc/request", get(nc_request))
         .layer(middleware::from_fn_with_state(state.clone(), authenticate))
@@ -632,6 +639,203 @@ async fn request_cycle(
         Json(json!({"message": format!("a cycle will run on '{id}' at the next idle moment"), "by": caller.name})),
     )
         .into_response())
+}
+
+/// The stored window a diagnosis runs on (all of it by default).
+#[derive(Debug, Default, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnosisRequest {
+    /// First detection time, ns since the epoch.
+    pub from_ns: Option<i64>,
+    /// Last detection time, ns since the epoch.
+    pub to_ns: Option<i64>,
+    /// One-reading standard uncertainty, um (default: the machine's).
+    pub sigma_um: Option<f64>,
+}
+
+/// Spindle and temperature history read before the window, so the thermal lags start warm.
+const DIAGNOSIS_LEAD_NS: i64 = 24 * 3_600_000_000_000;
+
+/// Run the diagnosis on the stored detections, spindle and temperature series of a window;
+/// the result (or why it failed) is stored and returned.
+#[utoipa::path(post, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), request_body = DiagnosisRequest, responses((status = 201, description = "the diagnosis: id, summary and the result in the diagnosis.json layout"), (status = 400, description = "a bad window or body"), (status = 422, description = "the window holds no usable detections, or the diagnosis failed (stored with its reason)"), (status = 409, description = "the machine's kinematics are not known to the API")), security(("bearer" = [])))]
+async fn request_diagnosis(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+    axum::Extension(caller): axum::Extension<Caller>,
+    body: Option<Json<DiagnosisRequest>>,
+) -> Result<Response, ApiError> {
+    use crate::diagnosis::{DiagnoseOptions, Inputs, diagnose_inputs};
+    let h = handle(&st, &id)?;
+    let k = h.kinematics.clone().ok_or_else(|| {
+        ApiError::new(
+            StatusCode::CONFLICT,
+            "no_kinematics",
+            format!("machine '{id}' has no kinematics in this service"),
+        )
+    })?;
+    let req = body.map(|b| b.0).unwrap_or_default();
+    let (from, to) = (req.from_ns.unwrap_or(0), req.to_ns.unwrap_or(i64::MAX));
+    if from > to {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad_window",
+            format!("from_ns {from} is after to_ns {to}"),
+        ));
+    }
+    let sigma = req.sigma_um.unwrap_or(k.setter.sigma_um);
+    if !crate::positive(sigma) {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad_sigma",
+            format!("sigma_um must be > 0, not {sigma}"),
+        ));
+    }
+    let mut inputs = Inputs {
+        detections: Vec::new(),
+        spindle: Vec::new(),
+        temperatures: Vec::new(),
+        unparsed: 0,
+    };
+    for (t_ns, payload) in st.store.detections_between(&id, from, to).await? {
+        match serde_json::from_str(&payload) {
+            Ok(msg) => inputs
+                .detections
+                .push(crate::recording::Timed { t_ns, msg }),
+            Err(_) => inputs.unparsed += 1,
+        }
+    }
+    let (Some(first), Some(last)) = (inputs.detections.first(), inputs.detections.last()) else {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "no_detections",
+            format!("machine '{id}' has no stored detection in the window"),
+        ));
+    };
+    let (from, to) = (first.t_ns, last.t_ns);
+    for s in st
+        .store
+        .samples(&id, from.saturating_sub(DIAGNOSIS_LEAD_NS), to)
+        .await?
+    {
+        match s {
+            crate::store::Sample::Spindle { t_ns, rpm } => inputs
+                .spindle
+                .push(crate::thermal_model::Event::Spindle { t_ns, rpm }),
+            crate::store::Sample::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            } => inputs
+                .temperatures
+                .push(crate::thermal_model::Event::Temperature {
+                    t_ns,
+                    sensor,
+                    celsius,
+                }),
+        }
+    }
+    let opts = DiagnoseOptions::new(sigma);
+    let unparsed = inputs.unparsed;
+    let run =
+        tokio::task::spawn_blocking(move || diagnose_inputs(&k, &inputs, &opts).map(|d| (d, opts)))
+            .await
+            .map_err(|e| {
+                ApiError::new(
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    "diagnosis_panicked",
+                    e.to_string(),
+                )
+            })?;
+    let requested_ns = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
+    let (status, summary, result) = match &run {
+        Ok((d, opts)) => (
+            "done",
+            format!(
+                "{} readings in {} cycles over {:.1} h; baseline chi2/dof {:.3}; held-out RMS {:.3} -> {:.3} um; accepted: {}",
+                d.readings,
+                d.cycles,
+                d.span_h,
+                d.baseline.chi2_dof,
+                d.baseline.rms_heldout_um,
+                d.final_fit.rms_heldout_um,
+                if d.accepted.is_empty() {
+                    "none".to_string()
+                } else {
+                    d.accepted
+                        .iter()
+                        .map(|a| a.effect.to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                }
+            ),
+            Some(json!({
+                "format": "driftwatch-diagnosis/1",
+                "machine": id,
+                "window": {"from_ns": from, "to_ns": to},
+                "unparsed_detections": unparsed,
+                "options": opts,
+                "diagnosis": d,
+            })),
+        ),
+        Err(e) => ("failed", format!("the diagnosis failed: {e}"), None),
+    };
+    let text = result.as_ref().map(|r| r.to_string());
+    let n = st
+        .store
+        .add_diagnosis(&crate::store::NewDiagnosis {
+            machine: &id,
+            requested_ns,
+            requested_by: &caller.name,
+            from_ns: from,
+            to_ns: to,
+            status,
+            summary: &summary,
+            result: text.as_deref(),
+        })
+        .await?;
+    tracing::info!(machine = %id, by = %caller.name, diagnosis = n, "{summary}");
+    if status == "failed" {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "diagnosis_failed",
+            format!("diagnosis {n}: {summary}"),
+        ));
+    }
+    Ok((
+        StatusCode::CREATED,
+        [(
+            header::LOCATION,
+            format!("/api/v1/machines/{id}/diagnoses/{n}"),
+        )],
+        Json(json!({"id": n, "status": status, "summary": summary, "result": result})),
+    )
+        .into_response())
+}
+
+#[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the diagnosis runs, newest first: id, window, who asked, status, summary")), security((), ("bearer" = [])))]
+async fn diagnoses(
+    State(st): State<Shared>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    handle(&st, &id)?;
+    Ok(Json(json!(st.store.diagnoses(&id).await?)))
+}
+
+#[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses/{n}", params(("id" = String, Path, description = "machine id"), ("n" = i64, Path, description = "diagnosis number")), responses((status = 200, description = "the diagnosis run with its result (the diagnosis.json layout)"), (status = 404, description = "no such diagnosis")), security((), ("bearer" = [])))]
+async fn diagnosis(
+    State(st): State<Shared>,
+    Path((id, n)): Path<(String, i64)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    handle(&st, &id)?;
+    let d = st.store.diagnosis(&id, n).await?.ok_or_else(|| {
+        ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown_diagnosis",
+            format!("machine '{id}' has no diagnosis {n}"),
+        )
+    })?;
+    Ok(Json(d))
 }
 
 fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiError> {

@@ -182,6 +182,7 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
             view: rt.view.clone(),
             inbox: rt.inbox.clone(),
             nc: None,
+            kinematics: None,
         },
     );
     let state = std::sync::Arc::new(ApiState::new(

@@ -234,6 +234,10 @@ async fn stored_events(
 }
 
 impl MachineRuntime {
+    pub fn kinematics(&self) -> &Kinematics {
+        &self.k
+    }
+
     #[allow(clippy::too_many_arguments)]
     pub async fn new(
         id: &str,

@@ -7,12 +7,11 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
-use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose};
+use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, diagnose_inputs};
 use driftwatch::displacement_diagnosis::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
 use driftwatch::effects::{EFFECTS, Effect};
-use driftwatch::identify::SolveOptions;
 use driftwatch::kinematics::Kinematics;
 use driftwatch::recording::Recording;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file};
@@ -91,16 +90,6 @@ fn list(json: bool) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Run the diagnosis on already-read inputs.
-pub fn run(
-    k: &Kinematics,
-    inputs: &Inputs,
-    opts: &DiagnoseOptions,
-) -> Result<Diagnosis, driftwatch::diagnosis::DiagnosisError> {
-    let rows = detection_rows(k, &inputs.detections, &SolveOptions::new(opts.sigma_um))?;
-    diagnose(&rows, &inputs.spindle, &inputs.temperatures, opts)
-}
-
 pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
     if a.list_effects {
         return list(a.json);
@@ -142,7 +131,7 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         opts.model.n_ref_rpm = m.config.n_ref_rpm;
         opts.model.gamma = m.config.gamma;
     }
-    let d = run(&k, &inputs, &opts).context("diagnosis")?;
+    let d = diagnose_inputs(&k, &inputs, &opts).context("diagnosis")?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let file = DiagnosisFile {
         format: DIAGNOSIS_FORMAT,

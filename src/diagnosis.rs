@@ -1495,6 +1495,16 @@ pub fn diagnose(
     })
 }
 
+/// Run the diagnosis on already-read inputs.
+pub fn diagnose_inputs(
+    k: &Kinematics,
+    inputs: &Inputs,
+    opts: &DiagnoseOptions,
+) -> Result<Diagnosis, DiagnosisError> {
+    let rows = detection_rows(k, &inputs.detections, &SolveOptions::new(opts.sigma_um))?;
+    diagnose(&rows, &inputs.spindle, &inputs.temperatures, opts)
+}
+
 /// What the diagnosis takes from a recording: the parsed detections, the spindle log and the
 /// temperature log as model input events. Unparseable detections are counted, not used.
 pub struct Inputs {

@@ -148,6 +148,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
                     view: rt.view.clone(),
                     inbox: rt.inbox.clone(),
                     nc: nc_handles.get(&rt.id).cloned(),
+                    kinematics: Some(Arc::new(rt.kinematics().clone())),
                 },
             )
         })

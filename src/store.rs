@@ -113,6 +113,18 @@ pub struct DetectionRow<'a> {
     pub payload: String,
 }
 
+/// A diagnosis run to store.
+pub struct NewDiagnosis<'a> {
+    pub machine: &'a str,
+    pub requested_ns: i64,
+    pub requested_by: &'a str,
+    pub from_ns: i64,
+    pub to_ns: i64,
+    pub status: &'a str,
+    pub summary: &'a str,
+    pub result: Option<&'a str>,
+}
+
 /// One sample of a per-minute series.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Sample {
@@ -805,6 +817,104 @@ impl Store {
         .await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    /// Every stored detection of a machine in `[from_ns, to_ns]` (any cycle), in time order:
+    /// `(t_ns, payload)`.
+    pub async fn detections_between(
+        &self,
+        machine: &str,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<(i64, String)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT t_ns, payload FROM detections WHERE machine_id = $1 AND t_ns >= $2 AND t_ns <= $3
+             ORDER BY t_ns, cycle, seq",
+        )
+        .bind(machine)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+            .collect()
+    }
+
+    /// Store a diagnosis run (its result JSON when it succeeded); returns its number.
+    pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>) -> Result<i64, StoreError> {
+        let mut tx = self.pool.begin().await?;
+        let id: i64 = sqlx::query_scalar(
+            "SELECT COALESCE(MAX(id), 0) + 1 FROM diagnoses WHERE machine_id = $1",
+        )
+        .bind(d.machine)
+        .fetch_one(&mut *tx)
+        .await?;
+        sqlx::query(
+            "INSERT INTO diagnoses (machine_id, id, requested_ns, requested_by, from_ns, to_ns, status, summary, result)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+        )
+        .bind(d.machine)
+        .bind(id)
+        .bind(d.requested_ns)
+        .bind(d.requested_by)
+        .bind(d.from_ns)
+        .bind(d.to_ns)
+        .bind(d.status)
+        .bind(d.summary)
+        .bind(d.result)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(id)
+    }
+
+    /// The diagnosis runs of a machine, newest first, without their results.
+    pub async fn diagnoses(&self, machine: &str) -> Result<Vec<Value>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT id, requested_ns, requested_by, from_ns, to_ns, status, summary FROM diagnoses
+             WHERE machine_id = $1 ORDER BY id DESC",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(serde_json::json!({
+                    "id": r.try_get::<i64, _>(0)?,
+                    "requested_ns": r.try_get::<i64, _>(1)?,
+                    "requested_by": r.try_get::<String, _>(2)?,
+                    "from_ns": r.try_get::<i64, _>(3)?,
+                    "to_ns": r.try_get::<i64, _>(4)?,
+                    "status": r.try_get::<String, _>(5)?,
+                    "summary": r.try_get::<String, _>(6)?,
+                }))
+            })
+            .collect()
+    }
+
+    /// One diagnosis run with its result.
+    pub async fn diagnosis(&self, machine: &str, id: i64) -> Result<Option<Value>, StoreError> {
+        let row = sqlx::query(
+            "SELECT id, requested_ns, requested_by, from_ns, to_ns, status, summary, result FROM diagnoses
+             WHERE machine_id = $1 AND id = $2",
+        )
+        .bind(machine)
+        .bind(id)
+        .fetch_optional(&self.pool)
+        .await?;
+        let Some(r) = row else { return Ok(None) };
+        let result: Option<String> = r.try_get(7)?;
+        Ok(Some(serde_json::json!({
+            "id": r.try_get::<i64, _>(0)?,
+            "requested_ns": r.try_get::<i64, _>(1)?,
+            "requested_by": r.try_get::<String, _>(2)?,
+            "from_ns": r.try_get::<i64, _>(3)?,
+            "to_ns": r.try_get::<i64, _>(4)?,
+            "status": r.try_get::<String, _>(5)?,
+            "summary": r.try_get::<String, _>(6)?,
+            "result": result.map(|t| serde_json::from_str::<Value>(&t)).transpose()?,
+        })))
     }
 
     /// (path, status) of every MCAP file of a machine, oldest first.

@@ -71,6 +71,7 @@ fn app(rt: &MachineRuntime, store: Store, anonymous_read: bool) -> axum::Router 
             view: rt.view.clone(),
             inbox: rt.inbox.clone(),
             nc: None,
+            kinematics: Some(Arc::new(rt.kinematics().clone())),
         },
     );
     router(Arc::new(ApiState::new(
@@ -283,6 +284,8 @@ async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
         "/api/v1/machines/{id}/alerts/{alert}/ack",
         "/api/v1/machines/{id}/nc/events",
         "/api/v1/machines/{id}/nc/request",
+        "/api/v1/machines/{id}/diagnoses",
+        "/api/v1/machines/{id}/diagnoses/{n}",
         "/metrics",
     ] {
         assert!(
@@ -438,4 +441,58 @@ async fn the_model_and_its_predictions_are_served() {
         comp["source"] == "predicted" || comp["source"] == "measured",
         "{comp}"
     );
+}
+
+#[tokio::test]
+async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
+    let (mut rt, t0, store) = runtime("diagnosis").await;
+    run_to(&mut rt, t0, t0 + 300 * MIN).await;
+    let app = app(&rt, store, true);
+    let post = |token: &str, body: &str| {
+        Request::post("/api/v1/machines/m1/diagnoses")
+            .header(header::AUTHORIZATION, format!("Bearer {token}"))
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(body.to_string()))
+            .unwrap()
+    };
+    let (s, _, _) = call(&app, post("read-token", "{}")).await;
+    assert_eq!(
+        s,
+        StatusCode::FORBIDDEN,
+        "running a diagnosis needs a write token"
+    );
+    let (s, _, body) = call(&app, post("write-token", r#"{"from_ns": 5, "to_ns": 1}"#)).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_window"))
+    );
+    let (s, _, body) = call(&app, post("write-token", r#"{"from_ns": 0, "to_ns": 1}"#)).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("no_detections"))
+    );
+
+    let (s, h, body) = call(&app, post("write-token", "{}")).await;
+    assert_eq!(s, StatusCode::CREATED, "{body}");
+    assert_eq!(h[header::LOCATION], "/api/v1/machines/m1/diagnoses/1");
+    let d = &body["result"]["diagnosis"];
+    let cycles = d["cycles"].as_u64().unwrap();
+    assert!(cycles >= 5, "{cycles}");
+    assert_eq!(d["readings"].as_u64().unwrap(), 24 * cycles);
+    assert!(d["baseline"]["chi2_dof"].as_f64().unwrap().is_finite());
+    assert!(body["summary"].as_str().unwrap().contains("readings"));
+
+    let (s, _, list) = call(&app, get("/api/v1/machines/m1/diagnoses")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(list.as_array().unwrap().len(), 1);
+    assert_eq!(list[0]["status"], "done");
+    assert_eq!(list[0]["requested_by"], "operator");
+    let (s, _, one) = call(&app, get("/api/v1/machines/m1/diagnoses/1")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(
+        one["result"], body["result"],
+        "the stored result is the one returned"
+    );
+    let (s, _, _) = call(&app, get("/api/v1/machines/m1/diagnoses/2")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
 }

@@ -88,6 +88,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
             view: rt.view.clone(),
             inbox: rt.inbox.clone(),
             nc: Some(handle),
+            kinematics: None,
         },
     );
     let app = router(Arc::new(ApiState::new(
