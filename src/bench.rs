@@ -435,3 +435,90 @@ pub fn diagnosis(days: f64) -> Result<ExitCode> {
     );
     Ok(ExitCode::SUCCESS)
 }
+
+/// Two days of production (`ambient_swing`'s program), a cycle every 30 min, 0.5-um noise,
+/// no thermal truth beyond the effect under test.
+fn power_scenario(seed: u64) -> Result<Scenario> {
+    let mut scn = Scenario::load("ambient_swing")?.repeated_days(2);
+    scn.seed = seed;
+    scn.noise.sigma_um = 0.5;
+    scn.cycles.at_min.clear();
+    scn.cycles.every_min = Some(30.0);
+    scn.cycles.from_min = 5.0;
+    scn.cycles.to_min = None;
+    scn.ambient.amplitude_k = 0.0;
+    scn.truth.channels.clear();
+    Ok(scn)
+}
+
+/// The power curve: for skip latency (a feed change after day 1) and the speed-dependent
+/// tool radius (cycles alternating 20000 and 8000 min^-1), the share of `trials` recordings
+/// in which the diagnosis names the effect, at multiples of the detection threshold the
+/// diagnosis itself reports for that plan (physics.md 4.3: 50 % power at delta-BIC 10).
+pub fn power(trials: usize) -> Result<ExitCode> {
+    use driftwatch::diagnosis::{DiagnoseOptions, Inputs, diagnose_inputs};
+    use driftwatch::scenario::FeedChange;
+    type Setup = fn(&mut Scenario, f64);
+    let effects: [(&str, &str, Setup); 2] = [
+        ("skip_latency", "ms", |s, a| {
+            s.cycles.feed_changes = vec![FeedChange {
+                at_min: 1440.0,
+                feed_mm_min: 200.0,
+            }];
+            s.skip.latency_ms = a;
+        }),
+        ("radius_speed", "um", |s, a| {
+            s.cycles.rpm_sequence = vec![20000.0, 8000.0];
+            if a != 0.0 {
+                let ch: driftwatch::thermal::Channel =
+                    toml::from_str(&format!("instant = {a}")).unwrap_or_default();
+                s.truth.channels.insert("radius".into(), ch);
+            }
+        }),
+    ];
+    let run = |scn: &Scenario| -> Result<driftwatch::diagnosis::Diagnosis> {
+        let k = Kinematics::load(&scn.machine)?;
+        let plan =
+            driftwatch::plan::Plan::build(&k, &driftwatch::plan::PlanConfig::load(&scn.plan)?)?;
+        let sim = driftwatch::simulator::simulate(scn, &k, &plan)?;
+        Ok(diagnose_inputs(
+            &k,
+            &Inputs::of(&sim.recording()),
+            &DiagnoseOptions::new(scn.noise.sigma_um),
+        )?)
+    };
+    println!("effect        amplitude   x threshold   detected (of {trials})   false other terms");
+    for (effect, unit, setup) in effects {
+        // The plan's threshold, from a recording without the effect.
+        let mut scn = power_scenario(1000)?;
+        setup(&mut scn, 0.0);
+        let d = run(&scn)?;
+        let threshold = d
+            .thresholds
+            .iter()
+            .filter(|t| t.effect == effect)
+            .map(|t| t.amplitude)
+            .fold(f64::INFINITY, f64::min);
+        println!("{effect}: detection threshold {threshold:.3} {unit} (delta-BIC 10, 50 % power)");
+        for m in [0.5, 1.0, 1.5, 2.0, 3.0] {
+            let a = m * threshold;
+            let (mut hit, mut other) = (0, 0);
+            for trial in 0..trials {
+                let mut scn = power_scenario(trial as u64 + 1)?;
+                setup(&mut scn, a);
+                let d = run(&scn)?;
+                if d.accepted.iter().any(|x| {
+                    x.effect == effect || x.ambiguity_group.iter().any(|g| g.effect == effect)
+                }) {
+                    hit += 1;
+                }
+                other += d.accepted.iter().filter(|x| x.effect != effect).count();
+            }
+            println!(
+                "{effect:<13} {a:>7.3} {unit:<3} {m:>8.1}     {hit:>3} ({:>3.0} %)            {other}",
+                100.0 * hit as f64 / trials as f64
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -16,7 +16,7 @@ use driftwatch::kinematics::Kinematics;
 use driftwatch::recording::Recording;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch::thermal_model::ThermalModel;
-use driftwatch::thermal_model::{Event, events_from};
+use driftwatch::thermal_model::{Event, ModelConfig, ModelInput, events_from};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {
@@ -123,6 +123,9 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         .context("--machine is required for recordings of measurement cycles")?;
     let k = Kinematics::load(&machine).with_context(|| format!("machine '{machine}'"))?;
     let mut opts = DiagnoseOptions::new(a.sigma_um.unwrap_or(k.setter.sigma_um));
+    // The model version the accepted terms extend: the given one's configuration, else the
+    // service's default.
+    let mut base = ModelConfig::default();
     if let Some(path) = &a.model {
         let text =
             std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
@@ -130,6 +133,7 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
             .with_context(|| format!("thermal model {}", path.display()))?;
         opts.model.n_ref_rpm = m.config.n_ref_rpm;
         opts.model.gamma = m.config.gamma;
+        base = m.config;
     }
     let d = diagnose_inputs(&k, &inputs, &opts).context("diagnosis")?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
@@ -161,6 +165,37 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         d.baseline.rms_heldout_um,
         d.final_fit.rms_heldout_um
     );
+    let carried: Vec<ModelInput> = d
+        .accepted
+        .iter()
+        .map(|x| x.model_input.clone())
+        .filter(|i| *i != ModelInput::None)
+        .collect();
+    let model_path = a.out.join("model.json");
+    if carried.is_empty() {
+        println!("no accepted term the thermal model can carry: no model.json");
+    } else {
+        match driftwatch::thermal_model::fit(&base.with_inputs(&carried), &events_from(&recs), None)
+        {
+            Ok(m) => {
+                std::fs::write(&model_path, serde_json::to_string_pretty(&m)?)
+                    .with_context(|| format!("writing {}", model_path.display()))?;
+                println!(
+                    "wrote {}: the thermal model with the accepted terms it can carry, fitted on the recordings' validated cycles",
+                    model_path.display()
+                );
+            }
+            Err(e) => println!("no model.json: {e}"),
+        }
+    }
+    for x in &d.accepted {
+        if x.model_input == ModelInput::None {
+            println!(
+                "not carried into the thermal model: {} (a measurement-model or clock term; correct it at its source: {})",
+                x.term, x.split_by
+            );
+        }
+    }
     for x in &d.accepted {
         println!("found: {}", x.statement);
     }

@@ -326,7 +326,7 @@ pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Ve
 // what stays unexplained.
 
 use crate::effects::{Candidate, Drivers};
-use crate::thermal_model::{Event, ModelConfig};
+use crate::thermal_model::{Event, ModelConfig, ModelInput};
 use nalgebra::{DMatrix, DVector};
 
 /// The baseline's spindle pole basis, min.
@@ -431,6 +431,47 @@ pub struct Accepted {
     pub split_by: String,
     /// What it is and what it did, in words.
     pub statement: String,
+    /// What it adds to the thermal model (`none` when the model cannot carry it: a
+    /// measurement-model effect to correct at its source, or a clock term).
+    pub model_input: ModelInput,
+}
+
+/// What an accepted term with this signature and time shape adds to the thermal model: only
+/// terms on a location error (what the model predicts), driven by the spindle, a logged
+/// temperature or the speed.
+fn model_input(
+    signature: &str,
+    shape: &str,
+    locations: &[String],
+    sensors: &[String],
+) -> ModelInput {
+    if !locations.iter().any(|l| l == signature) {
+        return ModelInput::None;
+    }
+    if shape == "(n/n_ref)^2" {
+        return ModelInput::InstantSpeed;
+    }
+    let lag = |s: &str| s.strip_suffix(" min").and_then(|x| x.parse::<f64>().ok());
+    if let Some(tau) = shape.strip_prefix("spindle lag ").and_then(lag) {
+        return ModelInput::SpindleLag { tau_min: tau };
+    }
+    for sensor in sensors {
+        let tau = if shape == sensor {
+            Some(0.0)
+        } else {
+            shape
+                .strip_prefix(sensor.as_str())
+                .and_then(|r| r.strip_prefix(" lag "))
+                .and_then(lag)
+        };
+        if let Some(tau) = tau {
+            return ModelInput::Temperature {
+                sensor: sensor.clone(),
+                taus_min: vec![tau],
+            };
+        }
+    }
+    ModelInput::None
 }
 
 /// A candidate that looked strong but failed a rule.
@@ -528,6 +569,9 @@ pub struct Diagnosis {
     pub not_identifiable: Vec<NotIdentifiable>,
     /// Candidates not tried: slow and daily terms need two days.
     pub not_tested: Vec<String>,
+    /// The smallest amplitude of each one-parameter candidate that reaches delta-BIC 10
+    /// with 50 % power on this plan (physics.md 4.3), in its unit.
+    pub thresholds: Vec<Threshold>,
     pub unexplained: Vec<Unexplained>,
     #[serde(rename = "final")]
     pub final_fit: FitFigures,
@@ -535,6 +579,15 @@ pub struct Diagnosis {
     /// Rows' times, baseline and final residuals, um (for the report's plots).
     #[serde(skip)]
     pub series: Series,
+}
+
+/// The detection threshold of one candidate.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Threshold {
+    pub effect: &'static str,
+    pub term: String,
+    pub unit: String,
+    pub amplitude: f64,
 }
 
 /// Per-row series kept for plots and tests.
@@ -871,6 +924,15 @@ pub fn diagnose(
     if rows.rows.is_empty() {
         return Err(DiagnosisError::NoDetections);
     }
+    let mut sensors: Vec<String> = temperatures
+        .iter()
+        .filter_map(|e| match e {
+            Event::Temperature { sensor, .. } => Some(sensor.clone()),
+            _ => None,
+        })
+        .collect();
+    sensors.sort();
+    sensors.dedup();
     let sigma = opts.sigma_um;
     let mut rows = rows.clone();
     let redundancy = redundancy(&rows, sigma);
@@ -1024,6 +1086,19 @@ pub fn diagnose(
     }
     drivers_t.sort_by(|a, b| b.1.total_cmp(&a.1));
     drivers_t.truncate(10);
+    // sigma sqrt((10 + ln n) / (n ms (1 - R^2))) with the columns already in sigma units.
+    let thresholds: Vec<Threshold> = cands
+        .iter()
+        .zip(&xs)
+        .zip(&free_of)
+        .filter(|((c, x), free)| c.columns.len() == 1 && x.norm() > 0.0 && **free > 0.0)
+        .map(|((c, x), free)| Threshold {
+            effect: c.effect,
+            term: c.term.clone(),
+            unit: c.unit.clone(),
+            amplitude: ((10.0 + (n as f64).ln()) / (x.norm_squared() * free)).sqrt(),
+        })
+        .collect();
     let two_days = drivers.span_h >= 48.0;
     let mut not_tested = Vec::new();
     let allowed: Vec<bool> = cands
@@ -1364,6 +1439,12 @@ pub fn diagnose(
             ambiguity_group: group,
             split_by: split_by.join("; "),
             statement,
+            model_input: model_input(
+                &c.signature,
+                c.term.split_once(" x ").map_or("", |x| x.1),
+                &rows.locations,
+                &sensors,
+            ),
         });
     }
     refused.retain(|r| {
@@ -1476,6 +1557,7 @@ pub fn diagnose(
         refused,
         not_identifiable,
         not_tested,
+        thresholds,
         unexplained,
         final_fit: final_fig,
         channels,

@@ -18,7 +18,7 @@ use serde::Serialize;
 
 use crate::diagnosis::{DIAGNOSIS_TAUS_MIN, lsq};
 use crate::effects::TEMPERATURE_TAUS_MIN;
-use crate::thermal_model::{Event, Features, ModelConfig, TemperatureInput};
+use crate::thermal_model::{Event, Features, ModelConfig, ModelInput, TemperatureInput};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DisplacementError {
@@ -69,22 +69,6 @@ impl Default for DisplacementOptions {
             min_overshoot_um: 1.5,
         }
     }
-}
-
-/// What a term adds to the thermal model when it is accepted.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum ModelInput {
-    SpindleLag {
-        tau_min: f64,
-    },
-    Temperature {
-        sensor: String,
-        taus_min: Vec<f64>,
-    },
-    InstantSpeed,
-    /// A clock term: the thermal model has none, so it is reported, not carried.
-    None,
 }
 
 #[derive(Debug, Clone)]
@@ -520,44 +504,31 @@ pub fn diagnose_displacements(
     let h = |t: i64| (t - t0) as f64 / 3.6e12;
 
     let mut out = Vec::new();
-    let mut model = ModelConfig {
-        taus_min: Vec::new(),
-        temperatures: Vec::new(),
-        n_ref_rpm: opts.n_ref_rpm,
-        gamma: opts.gamma,
-        ..ModelConfig::default()
-    };
     let mut not_carried = Vec::new();
     for channel in channels {
         let c = columns(events, channel, &sensors, &cfg);
         let d = diagnose_channel(channel, &c, &sensors, &changes, holdout, t0, opts)?;
         for term in &d.accepted {
-            match &term.input {
-                ModelInput::SpindleLag { tau_min } => model.taus_min.push(*tau_min),
-                ModelInput::Temperature { sensor, taus_min } => {
-                    match model.temperatures.iter_mut().find(|t| &t.sensor == sensor) {
-                        Some(t) => t.taus_min.extend(taus_min),
-                        None => model.temperatures.push(TemperatureInput {
-                            sensor: sensor.clone(),
-                            taus_min: taus_min.clone(),
-                        }),
-                    }
-                }
-                ModelInput::InstantSpeed => model.instant_speed = true,
-                ModelInput::None => not_carried.push(format!("{channel}: {}", term.term)),
+            if term.input == ModelInput::None {
+                not_carried.push(format!("{channel}: {}", term.term));
             }
         }
-        model.taus_min.push(d.baseline_mode.tau_min);
         out.push(d);
     }
-    let dedup = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.dedup();
+    // The new model version: the baselines' modes and every accepted input, on the
+    // reference speed and exponent the diagnosis used.
+    let base = ModelConfig {
+        taus_min: out.iter().map(|c| c.baseline_mode.tau_min).collect(),
+        temperatures: Vec::new(),
+        n_ref_rpm: opts.n_ref_rpm,
+        gamma: opts.gamma,
+        ..ModelConfig::default()
     };
-    dedup(&mut model.taus_min);
-    for t in &mut model.temperatures {
-        dedup(&mut t.taus_min);
-    }
+    let inputs: Vec<ModelInput> = out
+        .iter()
+        .flat_map(|c| c.accepted.iter().map(|t| t.input.clone()))
+        .collect();
+    let model = base.with_inputs(&inputs);
     Ok(DisplacementDiagnosis {
         span_h: h(t1),
         heldout_from_h: h(holdout),

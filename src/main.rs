@@ -214,6 +214,9 @@ enum BenchWhich {
     Compensation,
     /// The diagnosis with the full library on a three-day recording, a cycle every 30 min.
     Diagnosis,
+    /// Detection rate against amplitude for two effects, next to the detection threshold
+    /// (--n trials per amplitude; 20 unless given below 20000).
+    Power,
 }
 
 fn main() -> ExitCode {
@@ -346,6 +349,11 @@ fn run(cmd: Command) -> Result<ExitCode> {
             days,
             ..
         } => bench::diagnosis(days),
+        Command::Bench {
+            which: BenchWhich::Power,
+            n,
+            ..
+        } => bench::power(if n >= 20000 { 20 } else { n.max(1) }),
         Command::Bench {
             which: BenchWhich::Http,
             connections,

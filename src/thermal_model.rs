@@ -42,6 +42,22 @@ pub struct TemperatureInput {
     pub taus_min: Vec<f64>,
 }
 
+/// What an accepted diagnosis term adds to the thermal model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ModelInput {
+    SpindleLag {
+        tau_min: f64,
+    },
+    Temperature {
+        sensor: String,
+        taus_min: Vec<f64>,
+    },
+    InstantSpeed,
+    /// Nothing the thermal model can carry (a clock term, or a measurement-model effect).
+    None,
+}
+
 /// The default lags of a temperature input, min: the temperature itself, 1 h and 4 h.
 pub fn default_temperature_taus() -> Vec<f64> {
     vec![0.0, 60.0, 240.0]
@@ -119,6 +135,37 @@ impl ModelConfig {
             return bad("offset_walk_um2_per_h must be >= 0".into());
         }
         Ok(())
+    }
+
+    /// This configuration with what accepted diagnosis terms add (time constants and
+    /// lags kept sorted and unique).
+    pub fn with_inputs(&self, inputs: &[ModelInput]) -> ModelConfig {
+        let mut m = self.clone();
+        for i in inputs {
+            match i {
+                ModelInput::SpindleLag { tau_min } => m.taus_min.push(*tau_min),
+                ModelInput::Temperature { sensor, taus_min } => {
+                    match m.temperatures.iter_mut().find(|t| &t.sensor == sensor) {
+                        Some(t) => t.taus_min.extend(taus_min),
+                        None => m.temperatures.push(TemperatureInput {
+                            sensor: sensor.clone(),
+                            taus_min: taus_min.clone(),
+                        }),
+                    }
+                }
+                ModelInput::InstantSpeed => m.instant_speed = true,
+                ModelInput::None => {}
+            }
+        }
+        let tidy = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.dedup();
+        };
+        tidy(&mut m.taus_min);
+        for t in &mut m.temperatures {
+            tidy(&mut t.taus_min);
+        }
+        m
     }
 
     /// Column names: `offset`, `spindle_lag_<tau>`, `<sensor>_lag_<tau>`, `speed_squared`.

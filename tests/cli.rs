@@ -564,6 +564,9 @@ latency_ms = 2.4
         .unwrap_or_else(|| panic!("{acc:?}"));
     let ms = lat["parameters"][0]["value"].as_f64().unwrap();
     assert!((ms / 2.4 - 1.0).abs() < 0.2, "{ms}");
+    // A measurement-model effect: corrected at its source, never put into the thermal model.
+    assert_eq!(lat["model_input"]["kind"], "none");
+    assert!(out.contains("not carried into the thermal model"), "{out}");
     assert!(
         j["final"]["chi2_dof"].as_f64().unwrap() < 1.2,
         "{}",
@@ -590,7 +593,85 @@ latency_ms = 2.4
         ids.len() >= 14 && ids.contains(&"rotary_backlash"),
         "{ids:?}"
     );
-    // Without a machine and recording it says what is missing.
+    // Without a recording it says what is missing; a recording of cycles needs the machine.
     let (ok, _, err) = run(&["diagnose"]);
-    assert!(!ok && err.contains("--machine"), "{err}");
+    assert!(!ok && err.contains("--recording"), "{err}");
+    let (ok, _, err) = run(&[
+        "diagnose",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("--machine is required"), "{err}");
+}
+
+#[test]
+fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model() {
+    let rec = tmp("fl.mcap");
+    let csv = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/fl-thermal/fl_thermal.csv"
+    );
+    let temps: Vec<String> = (1..=16).map(|i| format!("t{i}_C")).collect();
+    let (ok, out, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv,
+        "--out",
+        rec.to_str().unwrap(),
+        "--time-column",
+        "time_s",
+        "--spindle-column",
+        "spindle_rpm",
+        "--temperature-columns",
+        &temps.join(","),
+        "--displacement-columns",
+        "ch1_um,ch5_um",
+    ]);
+    assert!(ok, "{out}{err}");
+    let dir = tmp("fl-diagnosis");
+    let (ok, out, err) = run(&[
+        "diagnose",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--channels",
+        "ch1_um",
+        "--holdout-from-h",
+        "40",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("t4_C swings with it"), "{out}");
+    let j: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("diagnosis.json")).unwrap())
+            .unwrap();
+    assert_eq!(j["format"], "driftwatch-displacement-diagnosis/1");
+    assert_eq!(j["channels"].as_array().unwrap().len(), 1);
+    assert_eq!(j["channels"][0]["periodic"]["driver"], "t4_C");
+    // The new model version is a thermal model the service can load.
+    let m = driftwatch::thermal_model::ThermalModel::from_json(
+        &std::fs::read_to_string(dir.join("model.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(m.config.temperatures.iter().any(|t| t.sensor == "t4_C"));
+    assert!(
+        std::fs::read_to_string(dir.join("report.html"))
+            .unwrap()
+            .contains("<svg")
+    );
+    // A channel the recording does not have is refused by name.
+    let (ok, _, err) = run(&[
+        "diagnose",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--channels",
+        "ch9_um",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert!(err.contains("ch9_um"), "{err}");
 }

@@ -10,6 +10,7 @@ use driftwatch::kinematics::Kinematics;
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::scenario::{FeedChange, Scenario};
 use driftwatch::thermal::Channel;
+use driftwatch::thermal_model::ModelInput;
 
 /// Three production days (the two-shift program of `ambient_swing` each day), a cycle every
 /// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), the default thermal truth.
@@ -360,6 +361,21 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
                     &d.drivers[..3],
                     d.refused
                 ));
+            }
+            // What the thermal model can take over: terms on a location error driven by the
+            // spindle or a logged temperature; measurement-model effects never.
+            for h in &hit {
+                let carried = h.model_input != ModelInput::None;
+                let expected = match h.effect.as_str() {
+                    "slow_mode" => true,
+                    "ambient" => !h.term.contains("Fourier"),
+                    "setter_drift" | "skip_latency" | "radius_speed" | "scale_expansion"
+                    | "squareness" | "rotary_backlash" => false,
+                    _ => carried,
+                };
+                if carried != expected {
+                    return Err(format!("{}: model input {:?}", h.term, h.model_input));
+                }
             }
             // The true footprint: the noise-free readings with and without the effect.
             let mut clean = scn.clone();

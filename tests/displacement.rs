@@ -5,9 +5,9 @@
 
 use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
 use driftwatch::displacement_diagnosis::{
-    DisplacementDiagnosis, DisplacementOptions, ModelInput, diagnose_displacements,
+    DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
-use driftwatch::thermal_model::events_from;
+use driftwatch::thermal_model::{ModelInput, events_from};
 
 const H: i64 = 3_600_000_000_000;
 
