@@ -165,6 +165,11 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         d.baseline.rms_heldout_um,
         d.final_fit.rms_heldout_um
     );
+    if d.baseline.heldout_extrapolates {
+        println!(
+            "note: the held-out block holds spindle history the training part never saw (under two days of data): its RMS measures extrapolation, not the fit"
+        );
+    }
     let carried: Vec<ModelInput> = d
         .accepted
         .iter()

@@ -389,6 +389,10 @@ pub struct FitFigures {
     pub rms_train_um: f64,
     /// RMS on the last block when fitted on the others, um.
     pub rms_heldout_um: f64,
+    /// The held-out RMS is over 5 times the training RMS and over 5 sigma: the last block
+    /// holds spindle history the training part never saw (typical under two days), so the
+    /// figure measures extrapolation, not the fit.
+    pub heldout_extrapolates: bool,
 }
 
 /// One fitted parameter.
@@ -989,13 +993,15 @@ pub fn diagnose(
                 * sigma
         };
         let ho = &y - &pred;
+        let (train_um, heldout_um) = (rms(&train_last, &r), rms(&test_last, &ho));
         (
             FitFigures {
                 parameters: f.rank,
                 chi2_dof: f.chi2 / dof as f64,
                 dof,
-                rms_train_um: rms(&train_last, &r),
-                rms_heldout_um: rms(&test_last, &ho),
+                rms_train_um: train_um,
+                rms_heldout_um: heldout_um,
+                heldout_extrapolates: heldout_um > 5.0 * train_um && heldout_um > 5.0 * sigma,
             },
             r,
             pred,

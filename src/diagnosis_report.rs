@@ -129,6 +129,9 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
         ));
     }
     h.push_str("</table>");
+    if d.baseline.heldout_extrapolates {
+        h.push_str("<p><b>Note</b>: the held-out block holds spindle history the training part never saw (under two days of data); its RMS measures extrapolation, not the fit.</p>");
+    }
     if !d.accepted.is_empty() {
         h.push_str("<h2>Accepted terms</h2><table><tr><th>effect</th><th>term</th><th>parameters</th><th>delta-BIC</th><th>|t|</th><th>held-out RMS before / after (um)</th><th>blocks better</th><th>ambiguity group</th></tr>");
         for a in &d.accepted {

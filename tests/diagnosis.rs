@@ -458,6 +458,12 @@ fn null_selections(from: u64) -> Vec<String> {
             "seed {seed}: {}",
             d.baseline.chi2_dof
         );
+        // Three days: the held-out day is within what the training days showed.
+        assert!(
+            !d.baseline.heldout_extrapolates,
+            "seed {seed}: {:?}",
+            d.baseline
+        );
         println!(
             "seed {seed}: baseline chi2/dof {:.3}, held-out {:.3} um, selected {:?}",
             d.baseline.chi2_dof,
