@@ -641,13 +641,14 @@ async fn request_cycle(
         .into_response())
 }
 
-/// The stored window a diagnosis runs on (all of it by default).
+/// The stored window a diagnosis runs on (by default the three days up to the last
+/// detection).
 #[derive(Debug, Default, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnosisRequest {
-    /// First detection time, ns since the epoch.
+    /// First detection time, ns since the epoch (default: `to_ns` less three days).
     pub from_ns: Option<i64>,
-    /// Last detection time, ns since the epoch.
+    /// Last detection time, ns since the epoch (default: the last stored detection).
     pub to_ns: Option<i64>,
     /// One-reading standard uncertainty, um (default: the machine's).
     pub sigma_um: Option<f64>,
@@ -655,6 +656,9 @@ pub struct DiagnosisRequest {
 
 /// Spindle and temperature history read before the window, so the thermal lags start warm.
 const DIAGNOSIS_LEAD_NS: i64 = 24 * 3_600_000_000_000;
+/// The default window, and the longest one a request may ask for.
+const DIAGNOSIS_DEFAULT_NS: i64 = 3 * 24 * 3_600_000_000_000;
+const DIAGNOSIS_MAX_NS: i64 = 31 * 24 * 3_600_000_000_000;
 
 /// Run the diagnosis on the stored detections, spindle and temperature series of a window;
 /// the result (or why it failed) is stored and returned.
@@ -674,13 +678,27 @@ async fn request_diagnosis(
             format!("machine '{id}' has no kinematics in this service"),
         )
     })?;
+    let requested_ns = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let req = body.map(|b| b.0).unwrap_or_default();
-    let (from, to) = (req.from_ns.unwrap_or(0), req.to_ns.unwrap_or(i64::MAX));
+    let to = match req.to_ns {
+        Some(t) => t,
+        None => st.store.last_detection_ns(&id).await?.unwrap_or(0),
+    };
+    let from = req
+        .from_ns
+        .unwrap_or_else(|| to.saturating_sub(DIAGNOSIS_DEFAULT_NS));
     if from > to {
         return Err(ApiError::new(
             StatusCode::BAD_REQUEST,
             "bad_window",
             format!("from_ns {from} is after to_ns {to}"),
+        ));
+    }
+    if to.saturating_sub(from) > DIAGNOSIS_MAX_NS {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad_window",
+            "a diagnosis window may span at most 31 days",
         ));
     }
     let sigma = req.sigma_um.unwrap_or(k.setter.sigma_um);
@@ -747,7 +765,6 @@ async fn request_diagnosis(
                     e.to_string(),
                 )
             })?;
-    let requested_ns = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let (status, summary, result) = match &run {
         Ok((d, opts)) => (
             "done",

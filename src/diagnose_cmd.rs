@@ -253,6 +253,7 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         })
         .collect();
     let mut opts = DisplacementOptions::default();
+    let mut given: Option<ModelConfig> = None;
     match &a.model {
         Some(path) => {
             let text = std::fs::read_to_string(path)
@@ -261,6 +262,7 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
                 .with_context(|| format!("thermal model {}", path.display()))?;
             opts.n_ref_rpm = m.config.n_ref_rpm;
             opts.gamma = m.config.gamma;
+            given = Some(m.config);
         }
         // Without a model, the top logged speed is the reference (it only scales the gains).
         None => {
@@ -282,8 +284,6 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         opts.holdout_from_ns = Some(t0 + (h * 3.6e12) as i64);
     }
     let d = diagnose_displacements(&events, &channels, &opts).context("displacement diagnosis")?;
-    let model = driftwatch::thermal_model::fit(&d.model, &events, None)
-        .context("fitting the new model version")?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let file = DisplacementFile {
         format: DISPLACEMENT_FORMAT,
@@ -307,9 +307,36 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         ),
     )
     .with_context(|| format!("writing {}", html_path.display()))?;
+    // The new version extends the given model's configuration (its inputs and settings).
+    let config = match given {
+        Some(g) => g.with_inputs(
+            &d.channels
+                .iter()
+                .flat_map(|c| {
+                    std::iter::once(ModelInput::SpindleLag {
+                        tau_min: c.baseline_mode.tau_min,
+                    })
+                    .chain(c.accepted.iter().map(|t| t.input.clone()))
+                })
+                .collect::<Vec<_>>(),
+        ),
+        None => d.model.clone(),
+    };
     let model_path = a.out.join("model.json");
-    std::fs::write(&model_path, serde_json::to_string_pretty(&model)?)
-        .with_context(|| format!("writing {}", model_path.display()))?;
+    let model_note = match driftwatch::thermal_model::fit(&config, &events, None) {
+        Ok(model) => {
+            std::fs::write(&model_path, serde_json::to_string_pretty(&model)?)
+                .with_context(|| format!("writing {}", model_path.display()))?;
+            format!(
+                "{} (the thermal model with the accepted terms)",
+                model_path.display()
+            )
+        }
+        Err(e) => format!("no model.json ({e})"),
+    };
+    for s in &d.skipped {
+        println!("not diagnosed: {s}");
+    }
     for c in &d.channels {
         for s in &c.statements {
             println!("{s}");
@@ -319,10 +346,9 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         println!("not carried into the model (a clock term): {n}");
     }
     println!(
-        "wrote {}, {} and {} (the thermal model with the accepted terms)",
+        "wrote {}, {} and {model_note}",
         json_path.display(),
         html_path.display(),
-        model_path.display()
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -456,9 +456,7 @@ fn model_input(
         return ModelInput::InstantSpeed;
     }
     let lag = |s: &str| s.strip_suffix(" min").and_then(|x| x.parse::<f64>().ok());
-    if let Some(tau) = shape.strip_prefix("spindle lag ").and_then(lag) {
-        return ModelInput::SpindleLag { tau_min: tau };
-    }
+    // Sensors first: a sensor may be named "spindle".
     for sensor in sensors {
         let tau = if shape == sensor {
             Some(0.0)
@@ -474,6 +472,9 @@ fn model_input(
                 taus_min: vec![tau],
             };
         }
+    }
+    if let Some(tau) = shape.strip_prefix("spindle lag ").and_then(lag) {
+        return ModelInput::SpindleLag { tau_min: tau };
     }
     ModelInput::None
 }
@@ -573,8 +574,9 @@ pub struct Diagnosis {
     pub not_identifiable: Vec<NotIdentifiable>,
     /// Candidates not tried: slow and daily terms need two days.
     pub not_tested: Vec<String>,
-    /// The smallest amplitude of each one-parameter candidate that reaches delta-BIC 10
-    /// with 50 % power on this plan (physics.md 4.3), in its unit.
+    /// The smallest amplitude of each one-parameter candidate that reaches the acceptance
+    /// bar (delta-BIC `min_delta_bic`, or |t| `min_t` where that binds harder) with 50 %
+    /// power on this plan (physics.md 4.3), in its unit.
     pub thresholds: Vec<Threshold>,
     pub unexplained: Vec<Unexplained>,
     #[serde(rename = "final")]
@@ -1092,7 +1094,9 @@ pub fn diagnose(
     }
     drivers_t.sort_by(|a, b| b.1.total_cmp(&a.1));
     drivers_t.truncate(10);
-    // sigma sqrt((10 + ln n) / (n ms (1 - R^2))) with the columns already in sigma units.
+    // sigma sqrt((10 + ln n) / (n ms (1 - R^2))) with the columns already in sigma units;
+    // where |t| >= min_t binds harder (small n), its bar instead.
+    let bar = (opts.min_delta_bic + (n as f64).ln()).max(opts.min_t * opts.min_t);
     let thresholds: Vec<Threshold> = cands
         .iter()
         .zip(&xs)
@@ -1102,7 +1106,7 @@ pub fn diagnose(
             effect: c.effect,
             term: c.term.clone(),
             unit: c.unit.clone(),
-            amplitude: ((10.0 + (n as f64).ln()) / (x.norm_squared() * free)).sqrt(),
+            amplitude: (bar / (x.norm_squared() * free)).sqrt(),
         })
         .collect();
     let two_days = drivers.span_h >= 48.0;

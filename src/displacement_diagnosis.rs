@@ -24,8 +24,12 @@ use crate::thermal_model::{Event, Features, ModelConfig, ModelInput, Temperature
 pub enum DisplacementError {
     #[error("no displacement readings")]
     NoReadings,
-    #[error("channel {0}: too few readings to train and hold out ({1} training samples)")]
-    TooFew(String, usize),
+    #[error("channel {0}: {1} thinned readings before the held-out part (30 needed)")]
+    TooFewTraining(String, usize),
+    #[error("channel {0}: no reading in the held-out part")]
+    NoHeldOut(String),
+    #[error("no channel could be diagnosed: {0}")]
+    NoChannel(String),
 }
 
 /// Options; the acceptance rules are the cycle diagnosis' (physics.md 4.6).
@@ -211,6 +215,8 @@ pub struct DisplacementDiagnosis {
     pub model: ModelConfig,
     /// Accepted terms the thermal model cannot carry.
     pub not_carried: Vec<String>,
+    /// Channels not diagnosed, and why.
+    pub skipped: Vec<String>,
 }
 
 /// Centred moving average over `window` (same units as `t`), for a sorted `t`.
@@ -433,7 +439,8 @@ fn speed_timeline(events: &[Event]) -> Vec<(i64, f64)> {
     for e in events {
         if let Event::Spindle { t_ns, rpm } = e
             && rpm.is_finite()
-            && *rpm != last
+            // A measured speed jitters: a change is a move of more than 1 % (or from zero).
+            && ((*rpm - last).abs() > 0.01 * last.abs().max(rpm.abs()))
         {
             ch.push((*t_ns, *rpm));
             last = *rpm;
@@ -505,9 +512,16 @@ pub fn diagnose_displacements(
 
     let mut out = Vec::new();
     let mut not_carried = Vec::new();
+    let mut skipped = Vec::new();
     for channel in channels {
         let c = columns(events, channel, &sensors, &cfg);
-        let d = diagnose_channel(channel, &c, &sensors, &changes, holdout, t0, opts)?;
+        let d = match diagnose_channel(channel, &c, &sensors, &changes, holdout, t0, opts) {
+            Ok(d) => d,
+            Err(e) => {
+                skipped.push(e.to_string());
+                continue;
+            }
+        };
         for term in &d.accepted {
             if term.input == ModelInput::None {
                 not_carried.push(format!("{channel}: {}", term.term));
@@ -529,6 +543,9 @@ pub fn diagnose_displacements(
         .flat_map(|c| c.accepted.iter().map(|t| t.input.clone()))
         .collect();
     let model = base.with_inputs(&inputs);
+    if out.is_empty() {
+        return Err(DisplacementError::NoChannel(skipped.join("; ")));
+    }
     Ok(DisplacementDiagnosis {
         span_h: h(t1),
         heldout_from_h: h(holdout),
@@ -536,6 +553,7 @@ pub fn diagnose_displacements(
         channels: out,
         model,
         not_carried,
+        skipped,
     })
 }
 
@@ -569,8 +587,14 @@ fn diagnose_channel(
     let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
     let train: Vec<usize> = (0..keep.len()).filter(|&i| times[i] < holdout).collect();
     let test: Vec<usize> = (0..keep.len()).filter(|&i| times[i] >= holdout).collect();
-    if train.len() < 30 || test.is_empty() {
-        return Err(DisplacementError::TooFew(channel.into(), train.len()));
+    if train.len() < 30 {
+        return Err(DisplacementError::TooFewTraining(
+            channel.into(),
+            train.len(),
+        ));
+    }
+    if test.is_empty() {
+        return Err(DisplacementError::NoHeldOut(channel.into()));
     }
 
     let mut cands = Vec::new();
@@ -702,29 +726,44 @@ fn diagnose_channel(
     };
     let rb = band(&resid);
     let (period, amp) = strongest_period(&tt, &rb, opts.band_min);
+    // A line, not the noise's highest point: a logged temperature swings with it, or it
+    // stands 5 times above the band's median amplitude (white noise reaches about 4).
+    let median_amp = {
+        let mut a = Vec::new();
+        let mut p = opts.band_min.0;
+        while p <= opts.band_min.1 {
+            a.push(strongest_period(&tt, &rb, (p, p)).1);
+            p += 0.25;
+        }
+        crate::stats::median(&a).unwrap_or(0.0)
+    };
+    // The driver: among the sensors that swing at the residual's period (within 20 %), the
+    // one whose band correlates best with it; else the best-correlated of all, unmatched.
     let periodic = period.is_finite().then(|| {
-        let mut drv: (Option<String>, f64, f64) = (None, 0.0, f64::NAN);
+        let mut best: Option<(bool, f64, String, f64)> = None;
         for (s, sensor) in sensors.iter().enumerate() {
             let tb = band(&pick(&c.temps[s][0]));
             let r = corr(&rb, &tb);
-            if r.abs() > drv.1.abs() {
-                drv = (
-                    Some(sensor.clone()),
-                    r,
-                    strongest_period(&tt, &tb, opts.band_min).0,
-                );
+            let p = strongest_period(&tt, &tb, opts.band_min).0;
+            let matched = ((p - period) / period).abs() < 0.2 && r.abs() >= 0.3;
+            if best
+                .as_ref()
+                .is_none_or(|b| (matched, r.abs()) > (b.0, b.1.abs()))
+            {
+                best = Some((matched, r, sensor.clone(), p));
             }
         }
         Periodic {
             period_min: period,
             amplitude_um: amp,
             band_rms_um: rms(rb.iter().copied()),
-            driver: drv.0,
-            driver_r: drv.1,
-            driver_period_min: drv.2,
-            matched: ((drv.2 - period) / period).abs() < 0.2,
+            matched: best.as_ref().is_some_and(|b| b.0),
+            driver_r: best.as_ref().map_or(0.0, |b| b.1),
+            driver_period_min: best.as_ref().map_or(f64::NAN, |b| b.3),
+            driver: best.map(|b| b.2),
         }
     });
+    let periodic = periodic.filter(|p| p.matched || p.amplitude_um >= 5.0 * median_amp);
 
     // Forward selection on the whitened model.
     let mut chosen: Vec<usize> = Vec::new();
@@ -769,7 +808,7 @@ fn diagnose_channel(
             let (mw2, yw2) = design.whiten(&m2, phi);
             let f = lsq(&mw2, &yw2);
             let p = m2.ncols();
-            let s2 = f.chi2 / (yw2.len() - p) as f64;
+            let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
             let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
             let t = f.beta[p - 1] / sd;
             let wins = design.blocks_improved(&m, &m2);
@@ -820,7 +859,15 @@ fn diagnose_channel(
         chosen.push(j);
         let (_, after) = design.fit(&design.matrix(&chosen, &base_cols));
         let cand = &cands[j];
-        let statement = statement(channel, cand, value, sd, &baseline_mode, periodic.as_ref());
+        let statement = statement(
+            channel,
+            cand,
+            value,
+            sd,
+            &baseline_mode,
+            periodic.as_ref(),
+            false,
+        );
         accepted.push(Term {
             effect: cand.effect,
             term: cand.term.clone(),
@@ -876,6 +923,11 @@ fn diagnose_channel(
             _ => break,
         }
     }
+    // One entry per candidate: its last refusal, none for what was accepted.
+    let mut seen = std::collections::BTreeSet::new();
+    refused.reverse();
+    refused.retain(|r| !accepted.iter().any(|a| a.term == r.term) && seen.insert(r.term.clone()));
+    refused.reverse();
     let mf = design.matrix(&chosen, &base_cols);
     let (final_pred, final_fit) = design.fit(&mf);
 
@@ -933,6 +985,18 @@ fn diagnose_channel(
         });
     }
 
+    let overshoots = !transients.is_empty();
+    for (t, &j) in accepted.iter_mut().zip(&chosen) {
+        t.statement = statement(
+            channel,
+            &cands[j],
+            t.value,
+            t.sigma,
+            &baseline_mode,
+            periodic.as_ref(),
+            overshoots,
+        );
+    }
     let mut statements = Vec::new();
     if let Some(p) = &periodic {
         statements.push(format!(
@@ -944,8 +1008,14 @@ fn diagnose_channel(
             opts.band_min.1,
             match &p.driver {
                 Some(d) if p.matched => format!(
-                    "; {d} swings with it (band correlation {:.2}, its own strongest period {:.1} min): the driver of the cycle",
-                    p.driver_r, p.driver_period_min
+                    "; {d} swings with it (band correlation {:.2}, its own strongest period {:.1} min): {}",
+                    p.driver_r,
+                    p.driver_period_min,
+                    if p.driver_r.abs() >= 0.5 {
+                        "the driver of the cycle"
+                    } else {
+                        "a candidate driver, weakly correlated"
+                    }
                 ),
                 Some(d) => format!(
                     "; no logged temperature has that period (the best-correlated, {d}, r {:.2}, swings at {:.1} min)",
@@ -1004,13 +1074,14 @@ fn statement(
     sd: f64,
     base: &Mode,
     periodic: Option<&Periodic>,
+    overshoots: bool,
 ) -> String {
     let v = format!("{value:.3} ± {sd:.3} {}", c.unit);
     match c.effect {
         "second_mode" => format!(
             "{channel}: a second thermal mode, {} ({v}){}",
             c.term,
-            if value.signum() != base.gain_um.signum() {
+            if overshoots && base.gain_um != 0.0 && value.signum() != base.gain_um.signum() {
                 format!(
                     ", of opposite sign to the baseline's {:.0}-min mode ({:.2} um): together they make the overshoot one mode cannot",
                     base.tau_min, base.gain_um
@@ -1111,6 +1182,7 @@ mod tests {
             assert_eq!(c.baseline_mode.tau_min, 35.0);
             assert!(c.accepted.is_empty(), "seed {seed}: {:?}", c.accepted);
             assert!(c.transients.is_empty(), "{:?}", c.transients);
+            assert!(c.periodic.is_none(), "seed {seed}: {:?}", c.periodic);
         }
     }
 

@@ -843,19 +843,14 @@ impl Store {
 
     /// Store a diagnosis run (its result JSON when it succeeded); returns its number.
     pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>) -> Result<i64, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        // One statement: the number and the row together, whatever else writes meanwhile.
         let id: i64 = sqlx::query_scalar(
-            "SELECT COALESCE(MAX(id), 0) + 1 FROM diagnoses WHERE machine_id = $1",
-        )
-        .bind(d.machine)
-        .fetch_one(&mut *tx)
-        .await?;
-        sqlx::query(
             "INSERT INTO diagnoses (machine_id, id, requested_ns, requested_by, from_ns, to_ns, status, summary, result)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+             VALUES ($1, (SELECT COALESCE(MAX(id), 0) + 1 FROM diagnoses WHERE machine_id = $1),
+                     $2, $3, $4, $5, $6, $7, $8)
+             RETURNING id",
         )
         .bind(d.machine)
-        .bind(id)
         .bind(d.requested_ns)
         .bind(d.requested_by)
         .bind(d.from_ns)
@@ -863,10 +858,19 @@ impl Store {
         .bind(d.status)
         .bind(d.summary)
         .bind(d.result)
-        .execute(&mut *tx)
+        .fetch_one(&self.pool)
         .await?;
-        tx.commit().await?;
         Ok(id)
+    }
+
+    /// The time of the machine's last stored detection.
+    pub async fn last_detection_ns(&self, machine: &str) -> Result<Option<i64>, StoreError> {
+        Ok(
+            sqlx::query_scalar("SELECT MAX(t_ns) FROM detections WHERE machine_id = $1")
+                .bind(machine)
+                .fetch_one(&self.pool)
+                .await?,
+        )
     }
 
     /// The diagnosis runs of a machine, newest first, without their results.
