@@ -180,18 +180,14 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
     if carried.is_empty() {
         println!("no accepted term the thermal model can carry: no model.json");
     } else {
-        match driftwatch::thermal_model::fit(&base.with_inputs(&carried), &events_from(&recs), None)
-        {
-            Ok(m) => {
-                std::fs::write(&model_path, serde_json::to_string_pretty(&m)?)
-                    .with_context(|| format!("writing {}", model_path.display()))?;
-                println!(
-                    "wrote {}: the thermal model with the accepted terms it can carry, fitted on the recordings' validated cycles",
-                    model_path.display()
-                );
-            }
-            Err(e) => println!("no model.json: {e}"),
-        }
+        println!(
+            "{}",
+            write_model(
+                &base.with_inputs(&carried),
+                &events_from(&recs),
+                &model_path
+            )?
+        );
     }
     for x in &d.accepted {
         if x.model_input == ModelInput::None {
@@ -323,17 +319,7 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         None => d.model.clone(),
     };
     let model_path = a.out.join("model.json");
-    let model_note = match driftwatch::thermal_model::fit(&config, &events, None) {
-        Ok(model) => {
-            std::fs::write(&model_path, serde_json::to_string_pretty(&model)?)
-                .with_context(|| format!("writing {}", model_path.display()))?;
-            format!(
-                "{} (the thermal model with the accepted terms)",
-                model_path.display()
-            )
-        }
-        Err(e) => format!("no model.json ({e})"),
-    };
+    let model_note = write_model(&config, &events, &model_path)?;
     for s in &d.skipped {
         println!("not diagnosed: {s}");
     }
@@ -346,9 +332,25 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         println!("not carried into the model (a clock term): {n}");
     }
     println!(
-        "wrote {}, {} and {model_note}",
+        "wrote {} and {}; {model_note}",
         json_path.display(),
         html_path.display(),
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Fit `config` on `events` and write it to `path` as the new model version; a fit that
+/// fails is a note, not an error (the diagnosis is already written).
+fn write_model(config: &ModelConfig, events: &[Event], path: &std::path::Path) -> Result<String> {
+    Ok(match driftwatch::thermal_model::fit(config, events, None) {
+        Ok(model) => {
+            std::fs::write(path, serde_json::to_string_pretty(&model)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+            format!(
+                "wrote {}: the thermal model with the accepted terms it can carry",
+                path.display()
+            )
+        }
+        Err(e) => format!("no model.json: {e}"),
+    })
 }

@@ -930,15 +930,7 @@ pub fn diagnose(
     if rows.rows.is_empty() {
         return Err(DiagnosisError::NoDetections);
     }
-    let mut sensors: Vec<String> = temperatures
-        .iter()
-        .filter_map(|e| match e {
-            Event::Temperature { sensor, .. } => Some(sensor.clone()),
-            _ => None,
-        })
-        .collect();
-    sensors.sort();
-    sensors.dedup();
+    let sensors = crate::thermal_model::sensors_of(temperatures);
     let sigma = opts.sigma_um;
     let mut rows = rows.clone();
     let redundancy = redundancy(&rows, sigma);

@@ -336,6 +336,18 @@ impl Design<'_> {
         (mw, yw)
     }
 
+    /// The training rows of `m` whitened with the lag-1 autocorrelation of its own OLS
+    /// residuals: `(phi, whitened m, whitened y, whitened SSE)`.
+    fn whitened(&self, m: &DMatrix<f64>) -> (f64, DMatrix<f64>, DVector<f64>, f64) {
+        let beta = self.ols(m, &self.train);
+        let pred = m * &beta;
+        let e: Vec<f64> = self.train.iter().map(|&i| self.y[i] - pred[i]).collect();
+        let phi = ar1(&e);
+        let (mw, yw) = self.whiten(m, phi);
+        let sse = lsq(&mw, &yw).chi2;
+        (phi, mw, yw, sse)
+    }
+
     fn fit(&self, m: &DMatrix<f64>) -> (DVector<f64>, Fit) {
         let beta = self.ols(m, &self.train);
         let pred = m * &beta;
@@ -471,15 +483,7 @@ pub fn diagnose_displacements(
     channels: &[String],
     opts: &DisplacementOptions,
 ) -> Result<DisplacementDiagnosis, DisplacementError> {
-    let mut sensors: Vec<String> = events
-        .iter()
-        .filter_map(|e| match e {
-            Event::Temperature { sensor, .. } => Some(sensor.clone()),
-            _ => None,
-        })
-        .collect();
-    sensors.sort();
-    sensors.dedup();
+    let sensors = crate::thermal_model::sensors_of(events);
     let cfg = ModelConfig {
         taus_min: DIAGNOSIS_TAUS_MIN.to_vec(),
         n_ref_rpm: opts.n_ref_rpm,
@@ -774,16 +778,7 @@ fn diagnose_channel(
     let mut held_now = baseline.rms_heldout_um;
     while chosen.len() < opts.max_terms {
         let m = design.matrix(&chosen, &base_cols);
-        let beta = design.ols(&m, &design.train);
-        let pred = &m * &beta;
-        let e: Vec<f64> = design
-            .train
-            .iter()
-            .map(|&i| design.y[i] - pred[i])
-            .collect();
-        let phi = ar1(&e);
-        let (mw, yw) = design.whiten(&m, phi);
-        let sse0 = lsq(&mw, &yw).chi2;
+        let (phi, mw, yw, sse0) = design.whitened(&m);
         let mut scored: Vec<(f64, usize)> = (0..cands.len())
             .filter(|j| *j != k0 && !chosen.contains(j))
             .filter_map(|j| {
@@ -888,17 +883,7 @@ fn diagnose_channel(
 
     // Backward pruning: drop a term the others have made redundant.
     loop {
-        let m = design.matrix(&chosen, &base_cols);
-        let beta = design.ols(&m, &design.train);
-        let pred = &m * &beta;
-        let e: Vec<f64> = design
-            .train
-            .iter()
-            .map(|&i| design.y[i] - pred[i])
-            .collect();
-        let phi = ar1(&e);
-        let (mw, yw) = design.whiten(&m, phi);
-        let sse = lsq(&mw, &yw).chi2;
+        let (phi, _, _, sse) = design.whitened(&design.matrix(&chosen, &base_cols));
         let weakest = (0..chosen.len())
             .map(|k| {
                 let mut rest = chosen.clone();

@@ -331,18 +331,7 @@ impl Drivers {
         let times: Vec<i64> = rows.rows.iter().map(|r| r.t_ns).collect();
         let t0 = times.iter().copied().min().unwrap_or(0);
         let t1 = times.iter().copied().max().unwrap_or(0);
-        let sensors: Vec<String> = {
-            let mut v: Vec<String> = temperatures
-                .iter()
-                .filter_map(|e| match e {
-                    Event::Temperature { sensor, .. } => Some(sensor.clone()),
-                    _ => None,
-                })
-                .collect();
-            v.sort();
-            v.dedup();
-            v
-        };
+        let sensors = crate::thermal_model::sensors_of(temperatures);
         let full = ModelConfig {
             taus_min: cfg.taus_min.iter().copied().chain(SLOW_TAUS_MIN).collect(),
             temperatures: sensors

@@ -217,6 +217,20 @@ impl Event {
     }
 }
 
+/// The temperature sensors the events name, sorted and unique.
+pub fn sensors_of(events: &[Event]) -> Vec<String> {
+    let mut v: Vec<String> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Temperature { sensor, .. } => Some(sensor.clone()),
+            _ => None,
+        })
+        .collect();
+    v.sort();
+    v.dedup();
+    v
+}
+
 /// The timeline of recordings: spindle, temperatures, displacement readings and the errors of
 /// every validated (`ok`) cycle result at its reference time. Inputs sort before observations
 /// at the same time.
