@@ -44,6 +44,8 @@ pub struct ApiState {
     pub auth: Auth,
     pub latency: RequestLatency,
     pub webhooks: Arc<WebhookStats>,
+    /// Diagnoses that may run at once (each takes a core for seconds).
+    pub diagnosis_slots: Arc<tokio::sync::Semaphore>,
 }
 
 impl ApiState {
@@ -54,6 +56,7 @@ impl ApiState {
             auth,
             latency: RequestLatency::default(),
             webhooks: Arc::default(),
+            diagnosis_slots: Arc::new(tokio::sync::Semaphore::new(1)),
         }
     }
 }
@@ -662,7 +665,7 @@ const DIAGNOSIS_MAX_NS: i64 = 31 * 24 * 3_600_000_000_000;
 
 /// Run the diagnosis on the stored detections, spindle and temperature series of a window;
 /// the result (or why it failed) is stored and returned.
-#[utoipa::path(post, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), request_body = DiagnosisRequest, responses((status = 201, description = "the diagnosis: id, summary and the result in the diagnosis.json layout"), (status = 400, description = "a bad window or body"), (status = 422, description = "the window holds no usable detections, or the diagnosis failed (stored with its reason)"), (status = 409, description = "the machine's kinematics are not known to the API")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), request_body = DiagnosisRequest, responses((status = 201, description = "the diagnosis: id, summary and the result in the diagnosis.json layout"), (status = 400, description = "a bad window or body"), (status = 422, description = "the window holds no usable detections, or the diagnosis failed (stored with its reason)"), (status = 409, description = "the machine's kinematics are not known to the API"), (status = 429, description = "another diagnosis is running")), security(("bearer" = [])))]
 async fn request_diagnosis(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -755,6 +758,13 @@ async fn request_diagnosis(
     }
     let opts = DiagnoseOptions::new(sigma);
     let unparsed = inputs.unparsed;
+    let Ok(_slot) = st.diagnosis_slots.clone().try_acquire_owned() else {
+        return Err(ApiError::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            "diagnosis_busy",
+            "another diagnosis is running; ask again when it has answered",
+        ));
+    };
     let run =
         tokio::task::spawn_blocking(move || diagnose_inputs(&k, &inputs, &opts).map(|d| (d, opts)))
             .await

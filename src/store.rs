@@ -819,8 +819,8 @@ impl Store {
         Ok(())
     }
 
-    /// Every stored detection of a machine in `[from_ns, to_ns]` (any cycle), in time order:
-    /// `(t_ns, payload)`.
+    /// Every stored detection of the cycles with a detection in `[from_ns, to_ns]` (whole
+    /// cycles, so a window edge never leaves a partial one), in time order: `(t_ns, payload)`.
     pub async fn detections_between(
         &self,
         machine: &str,
@@ -828,7 +828,8 @@ impl Store {
         to_ns: i64,
     ) -> Result<Vec<(i64, String)>, StoreError> {
         let rows = sqlx::query(
-            "SELECT t_ns, payload FROM detections WHERE machine_id = $1 AND t_ns >= $2 AND t_ns <= $3
+            "SELECT t_ns, payload FROM detections WHERE machine_id = $1 AND cycle IN
+               (SELECT DISTINCT cycle FROM detections WHERE machine_id = $1 AND t_ns >= $2 AND t_ns <= $3)
              ORDER BY t_ns, cycle, seq",
         )
         .bind(machine)

@@ -447,6 +447,7 @@ async fn the_model_and_its_predictions_are_served() {
 async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
     let (mut rt, t0, store) = runtime("diagnosis").await;
     run_to(&mut rt, t0, t0 + 300 * MIN).await;
+    let store_for_busy = store.clone();
     let app = app(&rt, store, true);
     let post = |token: &str, body: &str| {
         Request::post("/api/v1/machines/m1/diagnoses")
@@ -506,4 +507,41 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
     );
     let (s, _, _) = call(&app, get("/api/v1/machines/m1/diagnoses/2")).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
+
+    // A window that starts inside cycle 2 takes that cycle whole.
+    let (_, _, c2) = call(&app, get("/api/v1/machines/m1/cycles/2")).await;
+    let mid = c2["detections"][5]["t_ns"].as_i64().unwrap();
+    let (s, _, body) = call(
+        &app,
+        post("write-token", &format!(r#"{{"from_ns": {mid}}}"#)),
+    )
+    .await;
+    assert_eq!(s, StatusCode::CREATED, "{body}");
+    let d2 = &body["result"]["diagnosis"];
+    assert_eq!(d2["cycles"].as_u64().unwrap(), cycles - 1);
+    assert_eq!(d2["readings"].as_u64().unwrap(), 24 * (cycles - 1));
+
+    // One diagnosis at a time: with the slot taken, a request is told to come back.
+    let state = Arc::new(ApiState::new(
+        BTreeMap::from([(
+            "m1".to_string(),
+            MachineHandle {
+                view: rt.view.clone(),
+                inbox: rt.inbox.clone(),
+                nc: None,
+                kinematics: Some(Arc::new(rt.kinematics().clone())),
+            },
+        )]),
+        store_for_busy,
+        Auth {
+            tokens: vec![("operator".into(), "write-token".into(), Role::Write)],
+            anonymous_read: true,
+        },
+    ));
+    let _held = state.diagnosis_slots.clone().try_acquire_owned().unwrap();
+    let (s, _, body) = call(&router(state.clone()), post("write-token", "{}")).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::TOO_MANY_REQUESTS, Some("diagnosis_busy"))
+    );
 }
