@@ -391,12 +391,10 @@ pub fn diagnosis(days: f64) -> Result<ExitCode> {
     } else {
         days.max(1.0).round() as usize
     };
-    let mut scn = Scenario::load("ambient_swing")?.repeated_days(days);
+    let mut scn = Scenario::load("ambient_swing")?
+        .repeated_days(days)
+        .with_cycles_every(30.0);
     scn.noise.sigma_um = 0.5;
-    scn.cycles.at_min.clear();
-    scn.cycles.every_min = Some(30.0);
-    scn.cycles.from_min = 5.0;
-    scn.cycles.to_min = None;
     let k = Kinematics::load(&scn.machine)?;
     let plan = driftwatch::plan::Plan::build(&k, &driftwatch::plan::PlanConfig::load(&scn.plan)?)?;
     let t = std::time::Instant::now();
@@ -439,13 +437,11 @@ pub fn diagnosis(days: f64) -> Result<ExitCode> {
 /// Two days of production (`ambient_swing`'s program), a cycle every 30 min, 0.5-um noise,
 /// no thermal truth beyond the effect under test.
 fn power_scenario(seed: u64) -> Result<Scenario> {
-    let mut scn = Scenario::load("ambient_swing")?.repeated_days(2);
+    let mut scn = Scenario::load("ambient_swing")?
+        .repeated_days(2)
+        .with_cycles_every(30.0);
     scn.seed = seed;
     scn.noise.sigma_um = 0.5;
-    scn.cycles.at_min.clear();
-    scn.cycles.every_min = Some(30.0);
-    scn.cycles.from_min = 5.0;
-    scn.cycles.to_min = None;
     scn.ambient.amplitude_k = 0.0;
     scn.truth.channels.clear();
     Ok(scn)

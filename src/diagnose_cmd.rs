@@ -149,13 +149,12 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         options: &opts,
         diagnosis: &d,
     };
-    let json_path = a.out.join("diagnosis.json");
-    std::fs::write(&json_path, serde_json::to_string_pretty(&file)?)
-        .with_context(|| format!("writing {}", json_path.display()))?;
-    let html_path = a.out.join("report.html");
     let title = format!("driftwatch diagnosis: {machine}");
-    std::fs::write(&html_path, driftwatch::diagnosis_report::html(&d, &title))
-        .with_context(|| format!("writing {}", html_path.display()))?;
+    let (json_path, html_path) = write_report(
+        &a.out,
+        &file,
+        &driftwatch::diagnosis_report::html(&d, &title),
+    )?;
     println!(
         "{} readings, {} cycles, {:.1} h; baseline chi2/dof {:.3}, held-out RMS {:.3} um -> {:.3} um",
         d.readings,
@@ -291,18 +290,14 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         options: &opts,
         diagnosis: &d,
     };
-    let json_path = a.out.join("diagnosis.json");
-    std::fs::write(&json_path, serde_json::to_string_pretty(&file)?)
-        .with_context(|| format!("writing {}", json_path.display()))?;
-    let html_path = a.out.join("report.html");
-    std::fs::write(
-        &html_path,
-        driftwatch::diagnosis_report::displacement_html(
+    let (json_path, html_path) = write_report(
+        &a.out,
+        &file,
+        &driftwatch::diagnosis_report::displacement_html(
             &d,
             "driftwatch diagnosis: displacement recording",
         ),
-    )
-    .with_context(|| format!("writing {}", html_path.display()))?;
+    )?;
     // The new version extends the given model's configuration (its inputs and settings).
     let config = match given {
         Some(g) => g.with_inputs(
@@ -353,4 +348,18 @@ fn write_model(config: &ModelConfig, events: &[Event], path: &std::path::Path) -
         }
         Err(e) => format!("no model.json: {e}"),
     })
+}
+
+/// Write `diagnosis.json` and `report.html` into `out`; their paths.
+fn write_report(
+    out: &std::path::Path,
+    file: &impl Serialize,
+    html: &str,
+) -> Result<(PathBuf, PathBuf)> {
+    let json_path = out.join("diagnosis.json");
+    std::fs::write(&json_path, serde_json::to_string_pretty(file)?)
+        .with_context(|| format!("writing {}", json_path.display()))?;
+    let html_path = out.join("report.html");
+    std::fs::write(&html_path, html).with_context(|| format!("writing {}", html_path.display()))?;
+    Ok((json_path, html_path))
 }

@@ -18,7 +18,7 @@ use serde::Serialize;
 
 use crate::diagnosis::{DIAGNOSIS_TAUS_MIN, lsq};
 use crate::effects::TEMPERATURE_TAUS_MIN;
-use crate::thermal_model::{Event, Features, ModelConfig, ModelInput, TemperatureInput};
+use crate::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DisplacementError {
@@ -182,7 +182,6 @@ pub struct ChannelSeries {
     pub y_um: Vec<f64>,
     pub baseline_um: Vec<f64>,
     pub final_um: Vec<f64>,
-    pub train: Vec<bool>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -488,13 +487,7 @@ pub fn diagnose_displacements(
         taus_min: DIAGNOSIS_TAUS_MIN.to_vec(),
         n_ref_rpm: opts.n_ref_rpm,
         gamma: opts.gamma,
-        temperatures: sensors
-            .iter()
-            .map(|s| TemperatureInput {
-                sensor: s.clone(),
-                taus_min: TEMPERATURE_TAUS_MIN.to_vec(),
-            })
-            .collect(),
+        temperatures: crate::effects::temperature_inputs(&sensors),
         instant_speed: true,
         ..ModelConfig::default()
     };
@@ -1047,7 +1040,6 @@ fn diagnose_channel(
             y_um: design.y.iter().copied().collect(),
             baseline_um: base_pred.iter().copied().collect(),
             final_um: final_pred.iter().copied().collect(),
-            train: (0..keep.len()).map(|i| times[i] < holdout).collect(),
         },
     })
 }

@@ -292,6 +292,17 @@ pub const SLOW_TAUS_MIN: [f64; 2] = [1200.0, 2400.0];
 /// Lags of every logged temperature tried, min (0: the temperature itself).
 pub const TEMPERATURE_TAUS_MIN: [f64; 4] = [0.0, 60.0, 120.0, 240.0];
 
+/// Every sensor as a temperature input with the lags the search tries.
+pub fn temperature_inputs(sensors: &[String]) -> Vec<TemperatureInput> {
+    sensors
+        .iter()
+        .map(|s| TemperatureInput {
+            sensor: s.clone(),
+            taus_min: TEMPERATURE_TAUS_MIN.to_vec(),
+        })
+        .collect()
+}
+
 /// Evaluate first-order lags (ZOH exact) of an input given as steps `(t_ns, u)` at sorted
 /// `times`, from zero before the first step.
 fn lags_of_steps(steps: &[(i64, f64)], times: &[i64], tau_min: f64) -> Vec<f64> {
@@ -334,13 +345,7 @@ impl Drivers {
         let sensors = crate::thermal_model::sensors_of(temperatures);
         let full = ModelConfig {
             taus_min: cfg.taus_min.iter().copied().chain(SLOW_TAUS_MIN).collect(),
-            temperatures: sensors
-                .iter()
-                .map(|s| TemperatureInput {
-                    sensor: s.clone(),
-                    taus_min: TEMPERATURE_TAUS_MIN.to_vec(),
-                })
-                .collect(),
+            temperatures: temperature_inputs(&sensors),
             instant_speed: false,
             ..cfg.clone()
         };

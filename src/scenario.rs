@@ -398,6 +398,16 @@ impl Scenario {
             .unwrap_or(0)
     }
 
+    /// A cycle every `every_min` from 5 min on, for the whole scenario (instead of its own
+    /// cycle times): the cadence the diagnosis' recordings use.
+    pub fn with_cycles_every(mut self, every_min: f64) -> Scenario {
+        self.cycles.at_min.clear();
+        self.cycles.every_min = Some(every_min);
+        self.cycles.from_min = 5.0;
+        self.cycles.to_min = None;
+        self
+    }
+
     /// The same scenario over `days` days: the spindle program of its first day (`at_min` under
     /// 1440) repeated each day, and the duration made `days` days.
     pub fn repeated_days(&self, days: usize) -> Scenario {

@@ -50,6 +50,19 @@ async fn insert_set(
     Ok(())
 }
 
+/// A diagnosis run's columns 0-6 (id .. summary) as JSON.
+fn diagnosis_row(r: &sqlx::sqlite::SqliteRow) -> Result<Value, StoreError> {
+    Ok(serde_json::json!({
+        "id": r.try_get::<i64, _>(0)?,
+        "requested_ns": r.try_get::<i64, _>(1)?,
+        "requested_by": r.try_get::<String, _>(2)?,
+        "from_ns": r.try_get::<i64, _>(3)?,
+        "to_ns": r.try_get::<i64, _>(4)?,
+        "status": r.try_get::<String, _>(5)?,
+        "summary": r.try_get::<String, _>(6)?,
+    }))
+}
+
 fn cycle_row(r: &sqlx::sqlite::SqliteRow) -> Result<CycleRow, StoreError> {
     Ok(CycleRow {
         cycle: r.try_get(0)?,
@@ -883,19 +896,7 @@ impl Store {
         .bind(machine)
         .fetch_all(&self.pool)
         .await?;
-        rows.iter()
-            .map(|r| {
-                Ok(serde_json::json!({
-                    "id": r.try_get::<i64, _>(0)?,
-                    "requested_ns": r.try_get::<i64, _>(1)?,
-                    "requested_by": r.try_get::<String, _>(2)?,
-                    "from_ns": r.try_get::<i64, _>(3)?,
-                    "to_ns": r.try_get::<i64, _>(4)?,
-                    "status": r.try_get::<String, _>(5)?,
-                    "summary": r.try_get::<String, _>(6)?,
-                }))
-            })
-            .collect()
+        rows.iter().map(diagnosis_row).collect()
     }
 
     /// One diagnosis run with its result.
@@ -910,16 +911,12 @@ impl Store {
         .await?;
         let Some(r) = row else { return Ok(None) };
         let result: Option<String> = r.try_get(7)?;
-        Ok(Some(serde_json::json!({
-            "id": r.try_get::<i64, _>(0)?,
-            "requested_ns": r.try_get::<i64, _>(1)?,
-            "requested_by": r.try_get::<String, _>(2)?,
-            "from_ns": r.try_get::<i64, _>(3)?,
-            "to_ns": r.try_get::<i64, _>(4)?,
-            "status": r.try_get::<String, _>(5)?,
-            "summary": r.try_get::<String, _>(6)?,
-            "result": result.map(|t| serde_json::from_str::<Value>(&t)).transpose()?,
-        })))
+        let mut v = diagnosis_row(&r)?;
+        v["result"] = result
+            .map(|t| serde_json::from_str::<Value>(&t))
+            .transpose()?
+            .unwrap_or(Value::Null);
+        Ok(Some(v))
     }
 
     /// (path, status) of every MCAP file of a machine, oldest first.

@@ -13,9 +13,13 @@ use driftwatch::thermal::Channel;
 use driftwatch::thermal_model::ModelInput;
 
 /// Three production days (the two-shift program of `ambient_swing` each day), a cycle every
-/// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), the default thermal truth.
+/// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), no thermal truth (each case
+/// adds its own).
 fn three_days(seed: u64) -> Scenario {
-    let mut scn = Scenario::load("ambient_swing").unwrap().repeated_days(3);
+    let mut scn = Scenario::load("ambient_swing")
+        .unwrap()
+        .repeated_days(3)
+        .with_cycles_every(30.0);
     // Day 2 starts two hours late; day 3 (the held-out day) has the first shift only. Days
     // alike would let the spindle's daily rhythm stand in for any other daily one.
     scn.spindle
@@ -29,10 +33,6 @@ fn three_days(seed: u64) -> Scenario {
     }
     scn.seed = seed;
     scn.noise.sigma_um = 0.5;
-    scn.cycles.at_min.clear();
-    scn.cycles.every_min = Some(30.0);
-    scn.cycles.from_min = 5.0;
-    scn.cycles.to_min = None;
     scn.ambient.amplitude_k = 0.0;
     scn.truth.channels.clear();
     scn
