@@ -1283,6 +1283,8 @@ mod tests {
             n_detections: Some(23),
             nuisance: None,
             redundancy_um: None,
+            chi2_point: None,
+            notes: None,
         };
         let Input::Cycle(c) = Input::from(&msg);
         assert!(!c.ok);

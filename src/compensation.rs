@@ -258,6 +258,39 @@ pub fn validate(
     }
 }
 
+/// What the service does with one solved cycle: the result as it is stored (rejected, with
+/// every reason, when it fails [`validate`] or no set can be built from it; the chi-square
+/// point it was checked against filled in) and the new set when it passes. `now_ns` is when
+/// the cycle closed. The command line's `solve` gives the same verdict offline.
+pub fn admit(
+    mut result: CycleResultMsg,
+    served: Option<&CompensationSet>,
+    limits: &ValidationLimits,
+    now_ns: i64,
+) -> (CycleResultMsg, Option<CompensationSet>) {
+    if result.status != ResultStatus::Ok {
+        return (result, None);
+    }
+    if let Some(dof) = result.dof.filter(|d| *d > 0)
+        && positive(limits.chi2_quantile)
+        && limits.chi2_quantile < 1.0
+    {
+        result.chi2_point = Some(chi2_quantile(limits.chi2_quantile, dof));
+    }
+    let v = validate(&result, served, limits);
+    let refused = if v.ok {
+        match next_set(served, &result, &v, now_ns) {
+            Ok(set) => return (result, Some(set)),
+            Err(refused) => refused.reasons,
+        }
+    } else {
+        v.reasons
+    };
+    result.status = ResultStatus::Rejected;
+    result.reason = Some(refused.join("; "));
+    (result, None)
+}
+
 /// `x` at most `max`; false when either is NaN, so that a NaN fails the check it is in.
 fn within(x: f64, max: f64) -> bool {
     x <= max
@@ -894,6 +927,8 @@ mod tests {
             n_detections: Some(24),
             nuisance: None,
             redundancy_um: None,
+            chi2_point: None,
+            notes: None,
         }
     }
 
@@ -903,6 +938,36 @@ mod tests {
 
     fn set_sigma(r: &mut CycleResultMsg, name: &str, v: f64) {
         r.sigma.as_mut().unwrap().insert(name.into(), v);
+    }
+
+    #[test]
+    fn admit_gives_the_services_verdict_with_the_chi_square_point() {
+        let limits = ValidationLimits::default();
+        let (r, set) = admit(clean(1), None, &limits, T0 + 1_800_000_000_000);
+        let point = r.chi2_point.unwrap();
+        assert!((point - chi2_quantile(0.999, 16)).abs() < 1e-12 && point > 12.0);
+        assert_eq!(r.status, ResultStatus::Ok);
+        let set = set.unwrap();
+        assert_eq!((set.version, set.cycle), (1, Some(1)));
+        // Beyond the point: refused, the numbers kept for the metrologist, no set.
+        let mut bad = clean(2);
+        bad.chi2 = Some(43.0);
+        bad.dof = Some(9);
+        let (r, none) = admit(bad, Some(&set), &limits, T0 + 2 * 1_800_000_000_000);
+        assert!(none.is_none());
+        assert_eq!(r.status, ResultStatus::Rejected);
+        let why = r.reason.unwrap();
+        assert!(
+            why.contains("chi-square 43.0 beyond its 99.9 % point 27.88"),
+            "{why}"
+        );
+        assert!(r.errors.is_some() && r.chi2_point.is_some());
+        // A result the solver rejected stays as it is.
+        let mut solver_no = clean(3);
+        solver_no.status = ResultStatus::Rejected;
+        solver_no.reason = Some("missing".into());
+        let (r, none) = admit(solver_no.clone(), Some(&set), &limits, T0);
+        assert!(none.is_none() && r == solver_no);
     }
 
     /// Validation fails with exactly one reason containing every fragment, and no set follows.

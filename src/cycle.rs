@@ -3,24 +3,105 @@
 //! against the nominal geometry), identification, and the `/cycle/result` message. A cycle
 //! that fails any check is rejected with every reason; other cycles go on.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 
 use serde::Serialize;
 
 use crate::geometry::Vec3;
 use crate::identify::{Identifier, Observation, Solution, SolveOptions, mean_time_ns};
 use crate::kinematics::Kinematics;
-use crate::measurement::{Approach, latched};
+use crate::measurement::{Approach, Axis, latched};
+use crate::plan::{Plan, Step};
 use crate::recording::{
     CycleResultMsg, DetectionIssue, DetectionMsg, DetectionStatus, ResultStatus, Timed,
 };
+
+/// What a detection measured, by its content: the pose (angles modulo 360 deg, to 0.001 deg),
+/// the moving axis and its direction, and the feed (to 0.01 mm/min). The contract calls `step`
+/// a free label, so a writer may repeat a label, retry an approach under its label or use a
+/// labelling of its own: this key, not the label, says which measurement a detection is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct MeasurementKey {
+    b_mdeg: i64,
+    c_mdeg: i64,
+    axis: Axis,
+    direction: i8,
+    feed_cmm_min: i64,
+}
+
+/// An angle in millidegrees, in (-180000, 180000].
+fn pose_mdeg(deg: f64) -> i64 {
+    let m = ((deg * 1e3).round() as i64).rem_euclid(360_000);
+    if m > 180_000 { m - 360_000 } else { m }
+}
+
+impl MeasurementKey {
+    pub fn new(b_deg: f64, c_deg: f64, approach: &Approach) -> Self {
+        MeasurementKey {
+            b_mdeg: pose_mdeg(b_deg),
+            c_mdeg: pose_mdeg(c_deg),
+            axis: approach.axis,
+            direction: approach.direction.signum(),
+            feed_cmm_min: (approach.feed_mm_min * 100.0).round() as i64,
+        }
+    }
+
+    pub fn of_detection(m: &DetectionMsg) -> Self {
+        MeasurementKey {
+            b_mdeg: pose_mdeg(m.b_deg),
+            c_mdeg: pose_mdeg(m.c_deg),
+            axis: m.axis,
+            direction: m.direction.signum(),
+            feed_cmm_min: (m.feed_mm_min * 100.0).round() as i64,
+        }
+    }
+
+    pub fn of_step(s: &Step) -> Self {
+        Self::new(s.b_deg, s.c_deg, &s.approach)
+    }
+}
+
+impl std::fmt::Display for MeasurementKey {
+    /// `B-90C90/x- F100`: the pose, the approach and the feed.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let deg = |m: i64| {
+            let s = format!("{:.3}", m as f64 / 1e3);
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        };
+        write!(
+            f,
+            "B{}C{}/{}{} F{}",
+            deg(self.b_mdeg),
+            deg(self.c_mdeg),
+            self.axis.name(),
+            if self.direction < 0 { '-' } else { '+' },
+            {
+                let s = format!("{:.2}", self.feed_cmm_min as f64 / 100.0);
+                s.trim_end_matches('0').trim_end_matches('.').to_string()
+            }
+        )
+    }
+}
+
+/// How many tripped detections of each measurement a cycle must have.
+pub type ExpectedMeasurements = BTreeMap<MeasurementKey, usize>;
+
+/// The measurements of a plan, each as often as the plan makes it.
+pub fn plan_measurements(plan: &Plan) -> ExpectedMeasurements {
+    let mut m = ExpectedMeasurements::new();
+    for s in &plan.steps {
+        *m.entry(MeasurementKey::of_step(s)).or_default() += 1;
+    }
+    m
+}
 
 #[derive(Debug, Clone)]
 pub struct CycleChecks {
     /// Largest distance of a reading from its nominal value before it is refused, mm.
     pub max_deviation_mm: f64,
-    /// Step labels every cycle must have (from the plan, or inferred from the recording).
-    pub expected_steps: Option<BTreeSet<String>>,
+    /// The measurements every cycle must have, by content (from the plan, or inferred from
+    /// the recording); labels are not compared.
+    pub expected: Option<ExpectedMeasurements>,
     pub solve: SolveOptions,
 }
 
@@ -28,7 +109,7 @@ impl CycleChecks {
     pub fn new(k: &Kinematics) -> Self {
         CycleChecks {
             max_deviation_mm: 1.0,
-            expected_steps: None,
+            expected: None,
             solve: SolveOptions::new(k.setter.sigma_um),
         }
     }
@@ -41,6 +122,9 @@ pub struct CycleOutcome {
     pub status: ResultStatus,
     pub reason: Option<String>,
     pub n_detections: usize,
+    /// What was set aside without rejecting the cycle (a failed approach its retry replaced,
+    /// a message received twice).
+    pub notes: Vec<String>,
     #[serde(skip)]
     pub solution: Option<Solution>,
 }
@@ -79,6 +163,8 @@ impl CycleOutcome {
                     .collect()
             }),
             redundancy_um: s.map(|s| s.redundancy_um.clone()),
+            chi2_point: None,
+            notes: (!self.notes.is_empty()).then(|| self.notes.clone()),
         }
     }
 }
@@ -116,22 +202,29 @@ pub fn group_by_cycle(detections: &[Entry]) -> (BTreeMap<i64, Vec<Entry>>, Unass
     (groups, un)
 }
 
-/// The step set shared by most cycles (at least two), to check the others against.
-pub fn infer_expected_steps(
-    groups: &BTreeMap<i64, Vec<Entry>>,
-) -> Option<(BTreeSet<String>, usize)> {
-    let mut counts: BTreeMap<BTreeSet<String>, usize> = BTreeMap::new();
+/// The tripped measurements of one cycle's readable detections, with how often each tripped.
+fn tripped(entries: &[Entry]) -> ExpectedMeasurements {
+    let mut m = ExpectedMeasurements::new();
+    for e in entries {
+        if let Ok(d) = &e.msg
+            && d.status() == DetectionStatus::Ok
+        {
+            *m.entry(MeasurementKey::of_detection(d)).or_default() += 1;
+        }
+    }
+    m
+}
+
+/// The measurements shared by most cycles (at least two), to check the others against.
+pub fn infer_expected(groups: &BTreeMap<i64, Vec<Entry>>) -> Option<(ExpectedMeasurements, usize)> {
+    let mut counts: BTreeMap<ExpectedMeasurements, usize> = BTreeMap::new();
     for entries in groups.values() {
-        let set: BTreeSet<String> = entries
-            .iter()
-            .filter_map(|e| e.msg.as_ref().ok().map(|m| m.step.clone()))
-            .collect();
-        *counts.entry(set).or_default() += 1;
+        *counts.entry(tripped(entries)).or_default() += 1;
     }
     counts
         .into_iter()
-        .filter(|(_, n)| *n >= 2)
-        .max_by_key(|(s, n)| (*n, s.len()))
+        .filter(|(s, n)| *n >= 2 && !s.is_empty())
+        .max_by_key(|(s, n)| (*n, s.values().sum::<usize>()))
 }
 
 pub fn observation(k: &Kinematics, t_ns: i64, m: &DetectionMsg) -> Observation {
@@ -156,7 +249,8 @@ pub fn process_cycle(
     checks: &CycleChecks,
 ) -> CycleOutcome {
     let mut reasons: Vec<String> = Vec::new();
-    let mut ok: Vec<(i64, &DetectionMsg)> = Vec::new();
+    let mut notes: Vec<String> = Vec::new();
+    let mut readable: Vec<(i64, &DetectionMsg)> = Vec::new();
     for e in entries {
         match &e.msg {
             Err(issue) => reasons.push(format!(
@@ -164,36 +258,77 @@ pub fn process_cycle(
                 issue.step.as_deref().unwrap_or("?"),
                 issue.message
             )),
-            Ok(m) => ok.push((e.t_ns, m)),
+            Ok(m) => readable.push((e.t_ns, m)),
         }
     }
-    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
-    for (_, m) in &ok {
-        *seen.entry(m.step.as_str()).or_default() += 1;
-    }
-    for (step, n) in &seen {
-        if *n > 1 {
-            reasons.push(format!("step '{step}' appears {n} times"));
+    // The same message at the same time twice is one reading delivered twice (a retried
+    // upload), not a second measurement: counted once.
+    readable.sort_by_key(|(t, _)| *t);
+    let mut unique: Vec<(i64, &DetectionMsg)> = Vec::with_capacity(readable.len());
+    for (t, m) in readable {
+        if unique.iter().any(|(t2, m2)| *t2 == t && *m2 == m) {
+            notes.push(format!(
+                "step '{}' at t = {t} ns received twice: counted once",
+                m.step
+            ));
+        } else {
+            unique.push((t, m));
         }
     }
-    if let Some(expected) = &checks.expected_steps {
-        // A step whose message could not be read is reported above, not as missing.
-        let unreadable: BTreeSet<&str> = entries
+    // A failed approach retried at once (the next approaches are the same measurement, and one
+    // of them trips) is replaced by its retry. Any other failed approach rejects the cycle: a
+    // trip of the same measurement later in the cycle is another pass of the plan, not a retry.
+    let mut ok: Vec<(i64, &DetectionMsg)> = Vec::with_capacity(unique.len());
+    for (i, (t, m)) in unique.iter().enumerate() {
+        if m.status() == DetectionStatus::Ok {
+            ok.push((*t, m));
+            continue;
+        }
+        let key = MeasurementKey::of_detection(m);
+        let s = if m.status() == DetectionStatus::NoTrip {
+            "no_trip"
+        } else {
+            "aborted"
+        };
+        let retried = unique[i + 1..]
             .iter()
-            .filter_map(|e| e.msg.as_ref().err().and_then(|i| i.step.as_deref()))
-            .collect();
-        let missing: Vec<&String> = expected
+            .take_while(|(_, next)| MeasurementKey::of_detection(next) == key)
+            .any(|(_, next)| next.status() == DetectionStatus::Ok);
+        if retried {
+            notes.push(format!(
+                "step '{}' ({key}) did not trip ({s}) and was retried: the retry replaces it",
+                m.step
+            ));
+        } else {
+            reasons.push(format!(
+                "step '{}' ({key}) did not trip ({s}): broken tool, blocked beam or wrong tool?",
+                m.step
+            ));
+        }
+    }
+    if let Some(expected) = &checks.expected {
+        // A detection that could not be read is reported above; the count says what is short.
+        let mut have = ExpectedMeasurements::new();
+        for (_, m) in &ok {
+            *have.entry(MeasurementKey::of_detection(m)).or_default() += 1;
+        }
+        let missing: Vec<String> = expected
             .iter()
-            .filter(|s| !seen.contains_key(s.as_str()) && !unreadable.contains(s.as_str()))
+            .filter_map(|(key, need)| {
+                let got = have.get(key).copied().unwrap_or(0);
+                (got < *need).then(|| {
+                    if *need == 1 {
+                        key.to_string()
+                    } else {
+                        format!("{key} ({got} of {need})")
+                    }
+                })
+            })
             .collect();
         if !missing.is_empty() {
             reasons.push(format!(
-                "missing steps: {}",
-                missing
-                    .iter()
-                    .map(|s| format!("'{s}'"))
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                "missing measurements (pose, approach, feed): {}",
+                missing.join(", ")
             ));
         }
     }
@@ -210,18 +345,6 @@ pub fn process_cycle(
         ];
         if let Some((name, _)) = values.iter().find(|(_, v)| !v.is_finite()) {
             reasons.push(format!("step '{}': {name} is not a finite number", m.step));
-            continue;
-        }
-        if m.status() != DetectionStatus::Ok {
-            let s = if m.status() == DetectionStatus::NoTrip {
-                "no_trip"
-            } else {
-                "aborted"
-            };
-            reasons.push(format!(
-                "step '{}' did not trip ({s}): broken tool, blocked beam or wrong tool?",
-                m.step
-            ));
             continue;
         }
         let o = observation(k, 0, m);
@@ -251,10 +374,7 @@ pub fn process_cycle(
             )),
         }
     }
-    let times = ok
-        .iter()
-        .filter(|(_, m)| m.status() == DetectionStatus::Ok)
-        .map(|(t, _)| *t);
+    let times = ok.iter().map(|(t, _)| *t);
     let t_ref = if times.clone().next().is_some() {
         mean_time_ns(times)
     } else {
@@ -266,6 +386,7 @@ pub fn process_cycle(
         status: ResultStatus::Rejected,
         reason: None,
         n_detections: entries.len(),
+        notes,
         solution: None,
     };
     if !reasons.is_empty() {
@@ -296,4 +417,57 @@ pub fn process_all(
         .map(|(c, entries)| process_cycle(k, *c, entries, checks))
         .collect();
     (out, un)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::PlanConfig;
+
+    fn approach(axis: Axis, direction: i8, feed_mm_min: f64) -> Approach {
+        Approach {
+            axis,
+            direction,
+            feed_mm_min,
+        }
+    }
+
+    #[test]
+    fn a_measurement_is_its_pose_modulo_a_turn_its_approach_and_its_feed() {
+        let a = approach(Axis::X, -1, 100.0);
+        let k = MeasurementKey::new(-90.0, -270.0, &a);
+        assert_eq!(k, MeasurementKey::new(-90.0, 90.0, &a));
+        assert_eq!(k, MeasurementKey::new(270.0, 450.0004, &a));
+        assert_eq!(k.to_string(), "B-90C90/x- F100");
+        assert_eq!(
+            MeasurementKey::new(0.0, 180.0, &a),
+            MeasurementKey::new(-0.0, -180.0, &a)
+        );
+        assert_ne!(
+            k,
+            MeasurementKey::new(-90.0, 90.0, &approach(Axis::X, 1, 100.0))
+        );
+        assert_ne!(
+            k,
+            MeasurementKey::new(-90.0, 90.0, &approach(Axis::X, -1, 200.0))
+        );
+        assert_ne!(k, MeasurementKey::new(-90.0, 90.5, &a));
+        assert_eq!(
+            MeasurementKey::new(12.5, 0.0, &approach(Axis::Z, -1, 87.25)).to_string(),
+            "B12.5C0/z- F87.25"
+        );
+    }
+
+    #[test]
+    fn the_time_symmetric_plan_makes_each_measurement_twice() {
+        let k = Kinematics::load("table_bc").unwrap();
+        let p = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+        let m = plan_measurements(&p);
+        assert_eq!(m.len(), 12);
+        assert!(m.values().all(|n| *n == 2), "{m:?}");
+        let seq = Plan::build(&k, &PlanConfig::load("patent_sequential").unwrap()).unwrap();
+        let s = plan_measurements(&seq);
+        assert_eq!(s.keys().collect::<Vec<_>>(), m.keys().collect::<Vec<_>>());
+        assert!(s.values().all(|n| *n == 1));
+    }
 }

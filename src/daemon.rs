@@ -20,9 +20,7 @@ use crate::live_model::LiveModel;
 use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
 use crate::plan::Plan;
 use crate::recorder::{Recorder, RecorderError};
-use crate::recording::{
-    self as rec, CycleResultMsg, DetectionIssue, DetectionMsg, ResultStatus, Timed,
-};
+use crate::recording::{self as rec, DetectionIssue, DetectionMsg, ResultStatus, Timed};
 use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 use crate::store::{DetectionRow, Sample, Store, StoreError};
 use crate::thermal_model::Event;
@@ -304,7 +302,7 @@ impl MachineRuntime {
         }
         let served = store.latest_compensation(id).await?;
         let mut checks = CycleChecks::new(&k);
-        checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+        checks.expected = Some(crate::cycle::plan_measurements(&plan));
         let phase =
             PhaseTracker::new(settings.phase.clone()).map_err(|source| DaemonError::Phase {
                 machine: id.to_string(),
@@ -745,23 +743,12 @@ impl MachineRuntime {
         let solve_started = std::time::Instant::now();
         let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
         let solve_seconds = solve_started.elapsed().as_secs_f64();
-        let mut result: CycleResultMsg = outcome.message();
-        let mut new_set = None;
-        if result.status == ResultStatus::Ok {
-            let v = compensation::validate(&result, self.served.as_ref(), &self.limits);
-            if v.ok {
-                match compensation::next_set(self.served.as_ref(), &result, &v, now_ns) {
-                    Ok(set) => new_set = Some(set),
-                    Err(refused) => {
-                        result.status = ResultStatus::Rejected;
-                        result.reason = Some(refused.reasons.join("; "));
-                    }
-                }
-            } else {
-                result.status = ResultStatus::Rejected;
-                result.reason = Some(v.reasons.join("; "));
-            }
-        }
+        let (result, new_set) = compensation::admit(
+            outcome.message(),
+            self.served.as_ref(),
+            &self.limits,
+            now_ns,
+        );
         if result.status == ResultStatus::Rejected {
             warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
         }

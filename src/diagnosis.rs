@@ -28,6 +28,7 @@ pub enum DiagnosisError {
 pub struct DetectionRow {
     pub t_ns: i64,
     pub cycle: i64,
+    /// What was measured (pose, approach, feed; see `cycle::MeasurementKey`), not the free label.
     pub step: String,
     pub b_deg: f64,
     pub c_deg: f64,
@@ -132,7 +133,10 @@ pub fn detection_rows(
     opts: &SolveOptions,
 ) -> Result<Rows, DiagnosisError> {
     let mut cycles: BTreeMap<i64, Vec<&Timed<DetectionMsg>>> = BTreeMap::new();
-    for d in detections.iter().filter(|d| d.msg.status.is_none()) {
+    for d in detections
+        .iter()
+        .filter(|d| d.msg.status() == crate::recording::DetectionStatus::Ok)
+    {
         cycles.entry(d.msg.cycle).or_default().push(d);
     }
     for v in cycles.values_mut() {
@@ -181,7 +185,8 @@ pub fn detection_rows(
             rows.push(DetectionRow {
                 t_ns: d.t_ns,
                 cycle: *cycle,
-                step: d.msg.step.clone(),
+                // Labels are free: the channel is what was measured.
+                step: crate::cycle::MeasurementKey::of_detection(&d.msg).to_string(),
                 b_deg: d.msg.b_deg,
                 c_deg: d.msg.c_deg,
                 axis: d.msg.axis,
@@ -534,6 +539,7 @@ pub struct ChannelFigures {
 pub struct Outlier {
     pub t_ns: i64,
     pub cycle: i64,
+    /// What was measured (pose, approach, feed; see `cycle::MeasurementKey`), not the free label.
     pub step: String,
     pub residual_um: f64,
 }

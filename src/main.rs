@@ -1,6 +1,5 @@
 //! The `driftwatch` command: a thin shell over the library.
 
-use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -8,7 +7,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 
-use driftwatch::cycle::{CycleChecks, group_by_cycle, infer_expected_steps, process_cycle};
+use driftwatch::cycle::{CycleChecks, group_by_cycle, infer_expected, process_cycle};
 use driftwatch::experiment;
 use driftwatch::identify::{Identifier, Observation, SolveOptions};
 use driftwatch::kinematics::Kinematics;
@@ -94,7 +93,8 @@ enum Command {
         /// Print JSON lines shaped like /cycle/result instead of a table.
         #[arg(long)]
         json: bool,
-        /// Check each cycle against this plan's steps (else against the step set most cycles share).
+        /// Check each cycle against this plan's measurements, matched by pose, approach and feed
+        /// (else against the measurements most cycles share). Step labels are free.
         #[arg(long)]
         plan: Option<String>,
         /// Read a recording cut short up to its last complete chunk.
@@ -195,6 +195,10 @@ struct SolverArgs {
     /// Largest distance of a reading from its nominal value, mm.
     #[arg(long, default_value_t = 1.0)]
     max_deviation_mm: f64,
+    /// Service configuration whose `[validation]` limits judge each result, as the service
+    /// would (default: the built-in config/default.toml).
+    #[arg(long)]
+    config: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -447,7 +451,7 @@ fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCo
     let sim = simulate(&scn, &k, &plan)?;
     let dets = sim.detection_stream();
     let mut checks = CycleChecks::new(&k);
-    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    checks.expected = Some(driftwatch::cycle::plan_measurements(&plan));
     let (outcomes, _) = driftwatch::cycle::process_all(&k, &dets, &checks);
     write_recording(out, &sim, &outcomes)?;
     let ok = outcomes.iter().filter(|o| o.is_ok()).count();
@@ -502,25 +506,21 @@ fn cmd_solve(
     }
     if let Some(plan) = plan {
         let p = Plan::build(&k, &PlanConfig::load(plan)?)?;
-        checks.expected_steps = Some(
-            p.steps
-                .iter()
-                .map(|s| s.label.clone())
-                .collect::<BTreeSet<_>>(),
-        );
-    } else if let Some((steps, n)) = infer_expected_steps(&groups) {
+        checks.expected = Some(driftwatch::cycle::plan_measurements(&p));
+    } else if let Some((expected, n)) = infer_expected(&groups) {
         if !json {
             outln!(
-                "expected steps: the {} shared by {n} of {} cycles",
-                steps.len(),
+                "expected measurements: the {} (pose, approach, feed) shared by {n} of {} cycles",
+                expected.values().sum::<usize>(),
                 groups.len()
             );
         }
-        checks.expected_steps = Some(steps);
+        checks.expected = Some(expected);
     }
     if groups.is_empty() {
         bail!("{} has no /probe/detection messages", path.display());
     }
+    let limits = driftwatch::config::ServiceConfig::load(args.config.as_deref())?.validation;
     let names = k.identify_names();
     if !json {
         out!(
@@ -532,39 +532,62 @@ fn cmd_solve(
         for n in &names {
             out!(" {:>18}", n);
         }
-        outln!(" {:>8} {:>6}", "rms/um", "chi2");
+        outln!(" {:>8} {:>6} {:>6}", "rms/um", "chi2", "point");
     }
+    // Each result is judged as the service would judge it: against the set the cycles before
+    // it would have made, at the time its cycle closed.
+    let mut served = None;
     let mut rejected = 0;
     for (c, entries) in &groups {
         let o = process_cycle(&k, *c, entries, &checks);
-        if !o.is_ok() {
+        let closed_ns = entries.iter().map(|e| e.t_ns).max().unwrap_or(o.t_ref_ns);
+        let (result, set) =
+            driftwatch::compensation::admit(o.message(), served.as_ref(), &limits, closed_ns);
+        if set.is_some() {
+            served = set;
+        } else {
             rejected += 1;
         }
         if json {
-            outln!("{}", serde_json::to_string(&o.message())?);
+            outln!("{}", serde_json::to_string(&result)?);
             continue;
         }
-        let t = chrono::DateTime::from_timestamp_nanos(o.t_ref_ns).format("%Y-%m-%d %H:%M:%S%.3f");
+        let t = chrono::DateTime::from_timestamp_nanos(result.t_ns).format("%Y-%m-%d %H:%M:%S%.3f");
+        let status = if result.status == rec::ResultStatus::Ok {
+            "ok"
+        } else {
+            "rejected"
+        };
         match &o.solution {
             Some(s) => {
-                out!("{:>5} {:>30} {:>8}", c, t, "ok");
+                out!("{:>5} {:>30} {:>8}", c, t, status);
                 for e in &s.errors {
                     out!(" {:>18}", format!("{:.2}+-{:.2}", e.value, e.sigma));
                 }
-                outln!(" {:>8.3} {:>6.2}", s.residual_rms_um(), s.chi2);
+                let point = result
+                    .chi2_point
+                    .map_or("-".to_string(), |p| format!("{p:.2}"));
+                outln!(" {:>8.3} {:>6.2} {:>6}", s.residual_rms_um(), s.chi2, point);
+                if let Some(r) = &result.reason {
+                    outln!("{:>5} refused: {r}", "");
+                }
             }
             None => outln!(
                 "{:>5} {:>30} {:>8} {}",
                 c,
                 t,
-                "rejected",
-                o.reason.clone().unwrap_or_default()
+                status,
+                result.reason.clone().unwrap_or_default()
             ),
+        }
+        for n in &o.notes {
+            outln!("{:>5} note: {n}", "");
         }
     }
     if !json {
         outln!(
-            "{} cycles, {} rejected; errors in um and urad (apparent, tool-relative)",
+            "{} cycles, {} rejected (by the checks of the detections, the solve or the service's \
+             validation); errors in um and urad (apparent, tool-relative)",
             groups.len(),
             rejected
         );
@@ -575,7 +598,7 @@ fn cmd_solve(
 fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     let (scn, k, plan) = load_scenario(scenario, None)?;
     let mut checks = CycleChecks::new(&k);
-    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    checks.expected = Some(driftwatch::cycle::plan_measurements(&plan));
     let stop = scn
         .spindle
         .iter()

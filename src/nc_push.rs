@@ -1,8 +1,10 @@
 //! The `nc_push` machine link: a real NC, or its edge gateway, posts what happens (spindle
 //! speed, NC state, temperatures, detections, in the recording contract's message shapes) and
 //! polls for a cycle order. When the NC is idle and an order is pending it runs the measurement
-//! program and posts each detection; the cycle closes when every step of the plan has arrived,
-//! or the scheduler's timeout abandons it.
+//! program and posts each detection; the cycle closes when every measurement of the plan has
+//! tripped (matched by pose, approach and feed: labels are free), when the NC leaves the
+//! `measuring` state after posting detections of the order (a failed approach it did not
+//! retry), or when the scheduler's timeout abandons it.
 //!
 //! Handshake (documented in the README):
 //! 1. `POST /api/v1/machines/{id}/nc/events` `{"events": [{"topic": "/spindle", "t_ns": ..,
@@ -13,19 +15,22 @@
 //!    order: cycle number, plan, spindle speed and every step (pose, approach, start position,
 //!    travel).
 //! 3. The NC runs the steps and posts each detection as `/probe/detection` with that cycle
-//!    number and the step's label.
+//!    number (the order's step labels are a suggestion; an approach that did not trip may be
+//!    retried at once, as the next approach, and the retry replaces it).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use thiserror::Error;
 
+use crate::cycle::{ExpectedMeasurements, MeasurementKey, plan_measurements};
 use crate::link::{LinkError, LinkEvent, MachineLink};
 use crate::plan::Plan;
 use crate::recording::{
-    self as rec, MachineStateKind, SpindleMsg, StateMsg, TemperatureMsg, Timed, parse_detection,
+    self as rec, DetectionStatus, MachineStateKind, SpindleMsg, StateMsg, TemperatureMsg, Timed,
+    parse_detection,
 };
 
 #[derive(Debug, Error, PartialEq)]
@@ -93,7 +98,8 @@ struct Shared {
     queue: Vec<LinkEvent>,
     order: Option<CycleOrder>,
     state: Option<MachineStateKind>,
-    received: BTreeMap<i64, BTreeSet<String>>,
+    /// Per cycle, how often each measurement has tripped so far.
+    received: BTreeMap<i64, ExpectedMeasurements>,
 }
 
 /// The API side: takes the NC's posts, hands out the order.
@@ -106,7 +112,7 @@ pub struct NcPushHandle {
 pub struct NcPushLink {
     shared: Arc<Mutex<Shared>>,
     plan: Plan,
-    expected: BTreeSet<String>,
+    expected: ExpectedMeasurements,
 }
 
 pub fn nc_push(plan: Plan) -> (NcPushLink, NcPushHandle) {
@@ -116,7 +122,7 @@ pub fn nc_push(plan: Plan) -> (NcPushLink, NcPushHandle) {
         state: None,
         received: BTreeMap::new(),
     }));
-    let expected = plan.steps.iter().map(|s| s.label.clone()).collect();
+    let expected = plan_measurements(&plan);
     (
         NcPushLink {
             shared: shared.clone(),
@@ -211,22 +217,31 @@ impl MachineLink for NcPushLink {
         events.sort_by_key(LinkEvent::t_ns);
         let mut out = Vec::with_capacity(events.len() + 1);
         for ev in events {
-            match &ev {
-                LinkEvent::State(m) => s.state = Some(m.msg.state),
-                LinkEvent::Detection(d) => {
-                    s.received
-                        .entry(d.msg.cycle)
-                        .or_default()
-                        .insert(d.msg.step.clone());
+            let order_cycle = s.order.as_ref().map(|o| o.cycle);
+            let done = match &ev {
+                LinkEvent::State(m) => {
+                    s.state = Some(m.msg.state);
+                    // Leaving `measuring` after posting detections of the order ends its
+                    // program, whatever did not trip.
+                    order_cycle
+                        .filter(|c| {
+                            m.msg.state != MachineStateKind::Measuring && s.received.contains_key(c)
+                        })
+                        .map(|c| (c, m.t_ns))
                 }
-                _ => {}
-            }
-            let done = match (&ev, &s.order) {
-                (LinkEvent::Detection(d), Some(o)) if d.msg.cycle == o.cycle => s
-                    .received
-                    .get(&o.cycle)
-                    .is_some_and(|got| self.expected.is_subset(got))
-                    .then_some((o.cycle, d.t_ns)),
+                // Only the ordered cycle's detections are counted; others pass on to the
+                // loop, which says they belong to no open cycle.
+                LinkEvent::Detection(d) if order_cycle == Some(d.msg.cycle) => {
+                    let got = s.received.entry(d.msg.cycle).or_default();
+                    if d.msg.status() == DetectionStatus::Ok {
+                        *got.entry(MeasurementKey::of_detection(&d.msg)).or_default() += 1;
+                    }
+                    let complete = self
+                        .expected
+                        .iter()
+                        .all(|(k, need)| got.get(k).is_some_and(|n| n >= need));
+                    complete.then_some((d.msg.cycle, d.t_ns))
+                }
                 _ => None,
             };
             out.push(ev);
@@ -285,5 +300,141 @@ impl MachineLink for NcPushLink {
 
     fn next_event_ns(&self) -> Option<i64> {
         None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::Kinematics;
+    use crate::plan::PlanConfig;
+    use crate::recording::DetectionMsg;
+
+    fn setup() -> (NcPushLink, NcPushHandle, Plan) {
+        let k = Kinematics::load("table_bc").unwrap();
+        let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+        let (link, handle) = nc_push(plan.clone());
+        (link, handle, plan)
+    }
+
+    fn state(t_ns: i64, state: MachineStateKind) -> LinkEvent {
+        LinkEvent::State(Timed {
+            t_ns,
+            msg: StateMsg {
+                state,
+                program: None,
+            },
+        })
+    }
+
+    /// The plan's detections of `cycle`, labelled by the NC's own scheme.
+    fn detections(plan: &Plan, cycle: i64, t0: i64) -> Vec<LinkEvent> {
+        plan.steps
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let mut p = s.start;
+                p[s.approach.axis.index()] = s.expected;
+                LinkEvent::Detection(Timed {
+                    t_ns: t0 + i as i64 * 1_000_000_000,
+                    msg: DetectionMsg {
+                        cycle,
+                        step: format!("P{}", i % 5),
+                        b_deg: s.b_deg,
+                        c_deg: s.c_deg,
+                        axis: s.approach.axis,
+                        direction: s.approach.direction,
+                        feed_mm_min: s.approach.feed_mm_min,
+                        spindle_rpm: 20000.0,
+                        tool_id: "EM10".into(),
+                        x_mm: p.x,
+                        y_mm: p.y,
+                        z_mm: p.z,
+                        status: Some(DetectionStatus::Ok),
+                    },
+                })
+            })
+            .collect()
+    }
+
+    fn push(h: &NcPushHandle, evs: Vec<LinkEvent>) {
+        h.shared.lock().unwrap().queue.extend(evs);
+    }
+
+    fn done(evs: &[LinkEvent]) -> Vec<i64> {
+        evs.iter()
+            .filter_map(|e| match e {
+                LinkEvent::CycleDone { cycle, .. } => Some(*cycle),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_cycle_closes_when_every_measurement_tripped_whatever_the_labels() {
+        let (mut link, h, plan) = setup();
+        push(&h, vec![state(0, MachineStateKind::Idle)]);
+        link.poll(0);
+        link.request_cycle(7, 1).unwrap();
+        let mut dets = detections(&plan, 7, 10);
+        let last = dets.pop().unwrap();
+        push(&h, dets);
+        assert!(
+            done(&link.poll(2)).is_empty(),
+            "one measurement is still to come"
+        );
+        push(&h, vec![last]);
+        assert_eq!(done(&link.poll(3)), vec![7]);
+        assert!(h.order().is_none());
+    }
+
+    #[test]
+    fn a_failed_approach_waits_for_its_retry_or_the_end_of_the_program() {
+        let (mut link, h, plan) = setup();
+        push(&h, vec![state(0, MachineStateKind::Idle)]);
+        link.poll(0);
+        link.request_cycle(3, 1).unwrap();
+        let mut dets = detections(&plan, 3, 10);
+        if let LinkEvent::Detection(d) = &mut dets[4] {
+            d.msg.status = Some(DetectionStatus::NoTrip);
+        }
+        push(&h, vec![state(5, MachineStateKind::Measuring)]);
+        push(&h, dets.clone());
+        assert!(done(&link.poll(2)).is_empty(), "a retry may still come");
+        // The retry, under the same label, completes the cycle.
+        let mut retry = dets[4].clone();
+        if let LinkEvent::Detection(d) = &mut retry {
+            d.t_ns += 100_000_000_000;
+            d.msg.status = None;
+        }
+        push(&h, vec![retry]);
+        assert_eq!(done(&link.poll(3)), vec![3]);
+
+        // Without a retry, the NC leaving `measuring` ends the cycle.
+        push(&h, vec![state(200_000_000_000, MachineStateKind::Idle)]);
+        link.poll(4);
+        link.request_cycle(4, 5).unwrap();
+        let mut dets = detections(&plan, 4, 300_000_000_000);
+        if let LinkEvent::Detection(d) = &mut dets[4] {
+            d.msg.status = Some(DetectionStatus::NoTrip);
+        }
+        push(
+            &h,
+            vec![state(299_000_000_000, MachineStateKind::Measuring)],
+        );
+        push(&h, dets);
+        assert!(done(&link.poll(6)).is_empty());
+        push(&h, vec![state(400_000_000_000, MachineStateKind::Idle)]);
+        assert_eq!(done(&link.poll(7)), vec![4]);
+    }
+
+    #[test]
+    fn detections_of_cycles_never_ordered_are_not_kept() {
+        let (mut link, h, plan) = setup();
+        push(&h, detections(&plan, 99, 10));
+        let out = link.poll(1);
+        assert_eq!(out.len(), plan.steps.len(), "passed on to the loop");
+        assert!(done(&out).is_empty());
+        assert!(h.shared.lock().unwrap().received.is_empty());
     }
 }

@@ -968,6 +968,8 @@ mod tests {
             n_detections: Some(12),
             nuisance: None,
             redundancy_um: None,
+            chi2_point: None,
+            notes: None,
         }
     }
 

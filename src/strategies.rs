@@ -156,7 +156,7 @@ pub fn run_day(
     }
     let sim = simulate(&scn, k, plan)?;
     let mut checks = CycleChecks::new(k);
-    checks.expected_steps = Some(plan.steps.iter().map(|s| s.label.clone()).collect());
+    checks.expected = Some(crate::cycle::plan_measurements(plan));
     let (outcomes, _) = process_all(k, &sim.detection_stream(), &checks);
     Ok((sim, outcomes))
 }

@@ -135,6 +135,30 @@ fn bad_detections_reject_their_cycle_with_the_reason_and_the_rest_is_solved() {
                 v["x_mm"] = x.into();
                 one(v)
             }
+            // Labels are free: the second pass under the first pass' label ...
+            (8, "B0C0/z#2") => {
+                v["step"] = "B0C0/z#1".into();
+                one(v)
+            }
+            // ... a failed approach retried under its label (the retry replaces it) ...
+            (9, "B90C-90/x#2") => {
+                let mut failed = v.clone();
+                failed["status"] = "no_trip".into();
+                failed["x_mm"] = (v["x_mm"].as_f64().unwrap() - 1.5).into();
+                v["status"] = "ok".into();
+                vec![failed.to_string(), v.to_string()]
+            }
+            // ... one label for every detection, and an explicit "ok".
+            (10, _) => {
+                v["step"] = "Q".into();
+                v["status"] = "ok".into();
+                one(v)
+            }
+            // A reading 20 um off: plausible alone, but the fit's chi-square tells.
+            (11, "B0C-90/x#1") => {
+                v["x_mm"] = (v["x_mm"].as_f64().unwrap() + 0.02).into();
+                one(v)
+            }
             _ => one(v),
         }
     });
@@ -162,11 +186,12 @@ fn bad_detections_reject_their_cycle_with_the_reason_and_the_rest_is_solved() {
         assert!(r.errors.is_none());
         r.reason.clone().unwrap()
     };
+    // A removed detection is named by what it measured (C -270 is C 90), and how many of
+    // the plan's passes tripped.
     let expect = [
         (2, vec!["B0C-90/z#1", "z_mm", "NaN"]),
         (3, vec!["B0C0/y#2", "y_mm", "finite"]),
-        (4, vec!["missing steps", "B-90C-270/x#1"]),
-        (5, vec!["B0C-180/z#2", "appears 2 times"]),
+        (4, vec!["missing measurements", "B-90C90/x- F100 (1 of 2)"]),
         (6, vec!["B90C-90/x#2", "no_trip"]),
         (7, vec!["B0C-270/x#1", "1000 times"]),
     ];
@@ -177,9 +202,20 @@ fn bad_detections_reject_their_cycle_with_the_reason_and_the_rest_is_solved() {
             assert!(r.contains(w), "cycle {c}: '{w}' not in: {r}");
         }
     }
+    // Solved, but refused as the service would refuse it: chi-square beyond its point, with
+    // the point, and the numbers kept for the metrologist.
+    let r11 = results.iter().find(|r| r.cycle == 11).unwrap();
+    let why = r11.reason.clone().unwrap_or_default();
+    println!("cycle 11: {why}");
+    assert_eq!(r11.status, ResultStatus::Rejected);
+    assert!(
+        why.contains("chi-square") && why.contains("99.9 % point"),
+        "{why}"
+    );
+    assert!(r11.errors.is_some() && r11.chi2.unwrap() > r11.chi2_point.unwrap());
     for r in results
         .iter()
-        .filter(|r| ![2, 3, 4, 5, 6, 7].contains(&r.cycle))
+        .filter(|r| ![2, 3, 4, 6, 7, 11].contains(&r.cycle))
     {
         assert_eq!(
             r.status,
@@ -189,6 +225,48 @@ fn bad_detections_reject_their_cycle_with_the_reason_and_the_rest_is_solved() {
             r.reason
         );
     }
+    // What was set aside without rejecting the cycle is said.
+    let notes = |c: i64| {
+        let r = results.iter().find(|r| r.cycle == c).unwrap();
+        r.notes.clone().unwrap_or_default().join("; ")
+    };
+    assert!(notes(5).contains("received twice"), "{}", notes(5));
+    assert!(notes(9).contains("retried"), "{}", notes(9));
+    assert!(notes(8).is_empty() && notes(10).is_empty());
+    // With the plan, the same verdicts: measurements are matched by content, not label.
+    let with_plan = solve_json(&bad, &["--plan", "patent"]);
+    for (a, b) in results.iter().zip(&with_plan) {
+        assert_eq!((a.cycle, a.status), (b.cycle, b.status), "{:?}", b.reason);
+    }
+    // The repeated, retried and relabelled cycles solve to what the clean file gives.
+    let clean = solve_json(&good, &[]);
+    for c in [5, 8, 9, 10] {
+        let (a, b) = (
+            results.iter().find(|r| r.cycle == c).unwrap(),
+            clean.iter().find(|r| r.cycle == c).unwrap(),
+        );
+        let (ea, eb) = (a.errors.as_ref().unwrap(), b.errors.as_ref().unwrap());
+        for (k, v) in ea {
+            assert!((v - eb[k]).abs() < 1e-9, "cycle {c} {k}: {v} vs {}", eb[k]);
+        }
+    }
+}
+
+fn solve_json(path: &Path, extra: &[&str]) -> Vec<CycleResultMsg> {
+    let mut args = vec![
+        "solve",
+        "--machine",
+        "table_bc",
+        "--recording",
+        path.to_str().unwrap(),
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    let (ok, out, err) = run(&args);
+    assert!(ok, "{err}");
+    out.lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
 }
 
 #[test]

@@ -324,7 +324,7 @@ fn patent_experiment_reproduces_the_published_drift() {
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
     let mut checks = CycleChecks::new(&k);
-    checks.expected_steps = Some(p.steps.iter().map(|s| s.label.clone()).collect());
+    checks.expected = Some(driftwatch::cycle::plan_measurements(&p));
     let ex = experiment::run(&scn, &k, &p, &checks, 210.0).unwrap();
     let s = &ex.summary;
     println!("{s:?}");

@@ -81,13 +81,33 @@ fn diagnose_inputs(scn: &Scenario, inputs: &Inputs) -> Diagnosis {
     .unwrap()
 }
 
-/// Each reading's deviation by (cycle, step), um.
-fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<(i64, String), f64> {
+/// A reading's place: its cycle, what it measured, and which pass of that measurement in the
+/// cycle (the time-symmetric plan makes each twice).
+type Place = (i64, String, usize);
+
+fn places(cycles: &[i64], steps: &[String]) -> Vec<Place> {
+    let mut seen: BTreeMap<(i64, &str), usize> = BTreeMap::new();
+    cycles
+        .iter()
+        .zip(steps)
+        .map(|(c, s)| {
+            let n = seen.entry((*c, s.as_str())).or_default();
+            *n += 1;
+            (*c, s.clone(), *n)
+        })
+        .collect()
+}
+
+/// Each reading's deviation by its place, um.
+fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<Place, f64> {
     let k = Kinematics::load(&scn.machine).unwrap();
     let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
-    rows.rows
-        .iter()
-        .map(|r| ((r.cycle, r.step.clone()), r.deviation_um))
+    let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
+    let steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
+    places(&cycles, &steps)
+        .into_iter()
+        .zip(&rows.rows)
+        .map(|(p, r)| (p, r.deviation_um))
         .collect()
 }
 
@@ -386,10 +406,11 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
             bare.noise.sigma_um = 0.0;
             let without = deviations(&bare, &record(&bare, false));
             let s = &d.series;
+            let place = places(&s.cycle, &s.step);
             let truth_foot: Vec<f64> = (0..s.t_ns.len())
                 .map(|i| {
-                    let key = (s.cycle[i], s.step[i].clone());
-                    with[&key] - without.get(&key).copied().unwrap_or(with[&key])
+                    let key = &place[i];
+                    with[key] - without.get(key).copied().unwrap_or(with[key])
                 })
                 .collect();
             let fitted: Vec<f64> = (0..s.t_ns.len())
@@ -405,10 +426,7 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
             // Held-out error against the noise-free readings.
             let idx: Vec<usize> = (0..s.t_ns.len()).filter(|i| s.heldout[*i]).collect();
             let err = |pred: &[f64]| -> f64 {
-                let e: Vec<f64> = idx
-                    .iter()
-                    .map(|&i| with[&(s.cycle[i], s.step[i].clone())] - pred[i])
-                    .collect();
+                let e: Vec<f64> = idx.iter().map(|&i| with[&place[i]] - pred[i]).collect();
                 rms(&e)
             };
             let (before, after) = (err(&s.heldout_baseline_um), err(&s.heldout_final_um));

@@ -879,6 +879,8 @@ mod tests {
             n_detections: Some(3),
             nuisance: None,
             redundancy_um: None,
+            chi2_point: None,
+            notes: None,
         }
     }
 

@@ -122,6 +122,13 @@ pub struct CycleResultMsg {
     pub nuisance: Option<BTreeMap<String, f64>>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub redundancy_um: Option<Vec<f64>>,
+    /// The chi-square point the validation compared `chi2` with (at its configured
+    /// probability, for `dof`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chi2_point: Option<f64>,
+    /// What was set aside without rejecting the cycle (a retried approach, a duplicate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notes: Option<Vec<String>>,
 }
 
 /// A message with its log time (ns since the Unix epoch).
