@@ -207,6 +207,9 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
             "unexplained: chi2/dof {:.3}, {:.3} um RMS beyond the noise",
             u.chi2_dof, u.discrepancy_um
         );
+        if let Some(p) = &u.periodic {
+            println!("unexplained: {}", p.statement);
+        }
     }
     println!("wrote {} and {}", json_path.display(), html_path.display());
     Ok(ExitCode::SUCCESS)

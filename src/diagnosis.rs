@@ -409,13 +409,35 @@ pub struct Parameter {
     pub sigma: f64,
 }
 
-/// Other candidates that explain an accepted term's footprint nearly as well.
+/// Another explanation of an accepted term's footprint.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct GroupMember {
     pub effect: String,
     pub term: String,
     /// |cos| between the accepted footprint and this candidate, after projecting out the rest.
     pub cos: f64,
+    /// How much worse the data fit with it in place of the accepted term (chi2; negative:
+    /// better).
+    pub delta_chi2: f64,
+    /// The part of the term's footprint it cannot carry (chi2).
+    pub footprint_left_chi2: f64,
+    /// Its parameters beyond the rest of the model (profiled ones counted).
+    pub parameters: usize,
+    /// It explains the data comparably: it carries the footprint but for a relative 1e-3,
+    /// or `min(footprint_left_chi2, delta_chi2) + 2 x (its parameters beyond the term's)`
+    /// is under `min_delta_bic`.
+    pub comparable: bool,
+    /// Why it is in the group.
+    pub reason: String,
+}
+
+/// One alternative explanation of an accepted term, as [`GroupMember`] reports it.
+struct Alternative {
+    cos: f64,
+    miss: f64,
+    data: f64,
+    parameters: usize,
+    comparable: bool,
 }
 
 /// A term the search accepted.
@@ -435,6 +457,12 @@ pub struct Accepted {
     pub heldout_rms_after_um: f64,
     pub blocks_improved: usize,
     pub blocks: usize,
+    /// Named: no other effect in its ambiguity group explains the data comparably (within
+    /// delta-chi2 `min_delta_bic`) and it does not coincide in time with another accepted
+    /// effect. Otherwise the term is reported as one of its group, not as `effect`.
+    pub named: bool,
+    /// The located time of a step term, ns.
+    pub step_ns: Option<i64>,
     /// Empty when no other candidate explains it; otherwise the group and how to split it.
     pub ambiguity_group: Vec<GroupMember>,
     pub split_by: String,
@@ -506,6 +534,28 @@ pub struct NotIdentifiable {
     pub split_by: String,
 }
 
+/// A periodic residual at a period no library shape has (a coolant or chiller cycle, a
+/// hydraulic unit): modelled as a discrepancy so that no library term is forced into it, and
+/// reported as unexplained.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PeriodicResidual {
+    pub period_min: f64,
+    /// Other periods that fit within delta-chi2 `min_delta_bic` of it (aliases of the cycle
+    /// cadence: the data cannot tell them apart).
+    pub aliases_min: Vec<f64>,
+    /// What the pair (every design parameter times cos and sin) takes from the residuals.
+    pub delta_chi2: f64,
+    /// The same less `(2 p + 1) ln N` (the period counted as a parameter).
+    pub delta_bic: f64,
+    /// RMS and peak of its footprint on the readings in the final fit, um.
+    pub amplitude_rms_um: f64,
+    pub peak_um: f64,
+    /// The design parameters that carry it: amplitude (sqrt(cos^2 + sin^2)) with its sigma,
+    /// those at 3 sigma or more, largest first.
+    pub carried_by: Vec<Parameter>,
+    pub statement: String,
+}
+
 /// Structure left after the search.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Unexplained {
@@ -519,6 +569,8 @@ pub struct Unexplained {
     pub when: Vec<(i64, f64)>,
     /// RMS of what the noise does not explain, um.
     pub discrepancy_um: f64,
+    /// A periodic residual at a period outside the library, when one was found.
+    pub periodic: Option<PeriodicResidual>,
 }
 
 /// Before and after, one channel (one step of the cycle).
@@ -726,6 +778,288 @@ fn scan(q: &DMatrix<f64>, e: &DVector<f64>, x: &DMatrix<f64>) -> (f64, f64) {
         None => 0.0,
     };
     (d.max(0.0), free)
+}
+
+/// The readings that are outliers against a robust fit of the baseline: `(row, residual um)`,
+/// in row order. The baseline is fitted by iteratively reweighted least squares (three Huber
+/// steps, k = 1.5 sigma, then Tukey's bisquare, c = 4.685 sigma, to convergence), so that the
+/// readings it screens cannot pull it; a reading is an outlier when its residual, scaled to a
+/// leave-one-out residual by its leverage (`r / sqrt(1 - h)`), is beyond `k_sigma` sigma. On
+/// clean data the scaled residuals are standard normal: the false share is `2 Phi(-k)`
+/// (5.7e-7 at 5 sigma).
+pub fn screen_outliers(
+    rows: &Rows,
+    spindle: &[Event],
+    cfg: &ModelConfig,
+    sigma_um: f64,
+    k_sigma: f64,
+) -> Vec<(usize, f64)> {
+    if rows.rows.is_empty() {
+        return Vec::new();
+    }
+    let drivers = Drivers::new(rows, spindle, &[], cfg);
+    let a = baseline_matrix(rows, &drivers.spindle, sigma_um);
+    let y = DVector::from_iterator(
+        rows.rows.len(),
+        rows.rows.iter().map(|r| r.deviation_um / sigma_um),
+    );
+    let (r, h) = robust_fit(&a, &y);
+    (0..r.len())
+        .filter_map(|i| {
+            let loo = r[i] / (1.0 - h[i]).max(1e-6).sqrt();
+            (loo.abs() > k_sigma).then_some((i, r[i] * sigma_um))
+        })
+        .collect()
+}
+
+/// Iteratively reweighted least squares on whitened columns (unit scale): the residuals and
+/// each row's leverage `w_i a_i^T (A^T W A)^+ a_i` at the final weights.
+fn robust_fit(a: &DMatrix<f64>, y: &DVector<f64>) -> (DVector<f64>, Vec<f64>) {
+    const HUBER_STEPS: usize = 3;
+    const MAX_STEPS: usize = 30;
+    let n = y.len();
+    let mut w = vec![1.0; n];
+    let mut prev: Option<DVector<f64>> = None;
+    for step in 0..MAX_STEPS {
+        let sw: Vec<f64> = w.iter().map(|v: &f64| v.sqrt()).collect();
+        let mut aw = a.clone();
+        for (i, s) in sw.iter().enumerate() {
+            aw.row_mut(i).scale_mut(*s);
+        }
+        let yw = DVector::from_fn(n, |i, _| y[i] * sw[i]);
+        let f = lsq(&aw, &yw);
+        let r = y - a * &f.beta;
+        let converged = step > HUBER_STEPS
+            && prev
+                .as_ref()
+                .is_some_and(|p: &DVector<f64>| (p - &r).amax() < 1e-3);
+        if converged || step + 1 == MAX_STEPS {
+            let h = (0..n)
+                .map(|i| {
+                    let ai = a.row(i).transpose();
+                    w[i] * ai.dot(&(&f.cov * &ai))
+                })
+                .collect();
+            return (r, h);
+        }
+        w = r
+            .iter()
+            .map(|e| {
+                if step < HUBER_STEPS {
+                    (1.5 / e.abs().max(1e-12)).min(1.0)
+                } else {
+                    let u = e / 4.685;
+                    if u.abs() >= 1.0 {
+                        0.0
+                    } else {
+                        (1.0 - u * u).powi(2)
+                    }
+                }
+            })
+            .collect();
+        prev = Some(r);
+    }
+    (y.clone(), vec![0.0; n])
+}
+
+/// Fewest cycles on either side of a located step: a change in the first or last quarter
+/// day of a record is an edge effect as much as a step.
+const STEP_MIN_CYCLES: usize = 12;
+
+/// One step candidate per signature that can jump ([`crate::effects::step_signatures`]), at
+/// the cycle start that explains most of the residual `e` beyond the baseline (orthonormal
+/// basis `q`), with at least [`STEP_MIN_CYCLES`] cycles on either side. The located time
+/// is profiled: it counts in the candidate's BIC penalty.
+fn step_candidates(rows: &Rows, q: &DMatrix<f64>, e: &DVector<f64>, sigma: f64) -> Vec<Candidate> {
+    // Cycles in time order with their rows.
+    let mut by_cycle: BTreeMap<i64, (i64, Vec<usize>)> = BTreeMap::new();
+    for (i, r) in rows.rows.iter().enumerate() {
+        let c = by_cycle.entry(r.cycle).or_insert((r.t_ns, Vec::new()));
+        c.0 = c.0.min(r.t_ns);
+        c.1.push(i);
+    }
+    let mut cycles: Vec<(i64, Vec<usize>)> = by_cycle.into_values().collect();
+    cycles.sort_by_key(|c| c.0);
+    let nc = cycles.len();
+    if nc < 2 * STEP_MIN_CYCLES {
+        return Vec::new();
+    }
+    let r = q.ncols();
+    let mut out = Vec::new();
+    for (effect, name) in crate::effects::step_signatures(rows) {
+        let Some(col) = crate::effects::signature_column(rows, &name) else {
+            continue;
+        };
+        // Suffix sums over cycles: a'e, a'a and Q'a of the step column from cycle c on.
+        let (mut se, mut saa) = (0.0, 0.0);
+        let mut sq = DVector::<f64>::zeros(r);
+        let mut best: Option<(f64, usize)> = None;
+        for c in (0..nc).rev() {
+            for &i in &cycles[c].1 {
+                let a = col[i] / sigma;
+                se += a * e[i];
+                saa += a * a;
+                sq.axpy(a, &q.row(i).transpose(), 1.0);
+            }
+            if c < STEP_MIN_CYCLES || nc - c < STEP_MIN_CYCLES {
+                continue;
+            }
+            let free = saa - sq.norm_squared();
+            if free <= 1e-9 * saa.max(1e-300) {
+                continue;
+            }
+            let d = se * se / free;
+            if best.is_none_or(|(b, _)| d > b) {
+                best = Some((d, c));
+            }
+        }
+        let Some((_, c)) = best else { continue };
+        let t0 = cycles[c].0;
+        let step: Vec<f64> = rows
+            .rows
+            .iter()
+            .map(|r| if r.t_ns >= t0 { 1.0 } else { 0.0 })
+            .collect();
+        let when = chrono::DateTime::from_timestamp_nanos(t0).format("%Y-%m-%dT%H:%M:%SZ");
+        out.push(Candidate {
+            effect,
+            term: format!("{name} x step at {when}"),
+            unit: crate::effects::signature_unit(&name).to_string(),
+            columns: vec![col.iter().zip(&step).map(|(a, b)| a * b).collect()],
+            signature: name,
+            shape_kind: crate::effects::ShapeKind::Step,
+            shape: vec![step],
+            profiled: 1,
+            step_ns: Some(t0),
+        });
+    }
+    out
+}
+
+/// Periods a periodic residual is looked for at, min: from a few cycles' worth down to a
+/// few minutes (the library's own periodic shapes are 24 h and 12 h).
+pub const PERIODIC_RANGE_MIN: [f64; 2] = [8.0, 240.0];
+
+/// The strongest periodic structure of the residuals of model `m`: every design parameter
+/// times a Fourier pair at a period scanned over [`PERIODIC_RANGE_MIN`] (a grid at half the
+/// record's frequency resolution, the best peaks refined at a quarter of it). Reported when
+/// its delta-BIC, with the period counted as a parameter, reaches the acceptance bar. Returns
+/// the finding (amplitudes filled in by the caller's final fit) and its whitened columns.
+fn periodic_scan(
+    rows: &Rows,
+    m: &DMatrix<f64>,
+    y: &DVector<f64>,
+    sigma: f64,
+    opts: &DiagnoseOptions,
+) -> Option<(PeriodicResidual, DMatrix<f64>)> {
+    let n = rows.rows.len();
+    let t0 = rows.rows.iter().map(|r| r.t_ns).min()?;
+    let tmin: Vec<f64> = rows
+        .rows
+        .iter()
+        .map(|r| (r.t_ns - t0) as f64 / 6e10)
+        .collect();
+    let span = tmin.iter().copied().fold(0.0, f64::max);
+    let [lo, hi] = PERIODIC_RANGE_MIN;
+    if span < 4.0 * hi {
+        return None;
+    }
+    let p = rows.params.len();
+    let e = residual_of(m, y);
+    let block = |period: f64| -> DMatrix<f64> {
+        let w = std::f64::consts::TAU / period;
+        DMatrix::from_fn(n, 2 * p, |i, c| {
+            let (j, k) = (c % p, c / p);
+            let ph = w * tmin[i];
+            rows.rows[i].sensitivity[j] / sigma * if k == 0 { ph.cos() } else { ph.sin() }
+        })
+    };
+    // Coarse: the pair's fit to the residual, not projected on the model (its smooth
+    // columns hardly overlap a pair of a few hours or less).
+    let approx = |period: f64| -> f64 {
+        let x = block(period);
+        let b = x.tr_mul(&e);
+        let mut a = x.tr_mul(&x);
+        let ridge = 1e-9 * a.trace() / a.nrows() as f64;
+        for i in 0..a.nrows() {
+            a[(i, i)] += ridge;
+        }
+        a.cholesky().map_or(0.0, |c| b.dot(&c.solve(&b)))
+    };
+    let df = 1.0 / (2.0 * span);
+    let mut coarse = Vec::new();
+    let mut f = 1.0 / hi;
+    while f <= 1.0 / lo {
+        coarse.push((f, approx(1.0 / f)));
+        f += df;
+    }
+    // Local maxima, strongest first.
+    let mut peaks: Vec<(f64, f64)> = (0..coarse.len())
+        .filter(|&i| {
+            (i == 0 || coarse[i].1 >= coarse[i - 1].1)
+                && (i + 1 == coarse.len() || coarse[i].1 >= coarse[i + 1].1)
+        })
+        .map(|i| coarse[i])
+        .collect();
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    peaks.truncate(4);
+    let q = basis(m);
+    let exact = |period: f64| scan(&q, &e, &block(period)).0;
+    let mut refined: Vec<(f64, f64)> = peaks
+        .iter()
+        .map(|(f, _)| {
+            (-4..=4)
+                .map(|k| {
+                    let fr = f + f64::from(k) * df / 4.0;
+                    (1.0 / fr, exact(1.0 / fr))
+                })
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((1.0 / f, 0.0))
+        })
+        .collect();
+    refined.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let (period, d) = *refined.first()?;
+    let delta_bic = d - (2 * p + 1) as f64 * (n as f64).ln();
+    if delta_bic < opts.min_delta_bic {
+        return None;
+    }
+    let aliases_min = refined
+        .iter()
+        .skip(1)
+        .filter(|(_, x)| d - x < opts.min_delta_bic)
+        .map(|(p, _)| *p)
+        .collect();
+    Some((
+        PeriodicResidual {
+            period_min: period,
+            aliases_min,
+            delta_chi2: d,
+            delta_bic,
+            amplitude_rms_um: 0.0,
+            peak_um: 0.0,
+            carried_by: Vec::new(),
+            statement: String::new(),
+        },
+        block(period),
+    ))
+}
+
+/// An orthonormal basis of what the columns of `x` add to the orthonormal basis `q`:
+/// columns with less than `tol` of their energy outside `q` (or none) are dropped, collinear
+/// ones are fine. `None` when nothing is left.
+fn beyond(q: &DMatrix<f64>, x: &DMatrix<f64>, tol: f64) -> Option<DMatrix<f64>> {
+    let xt = x - q * q.tr_mul(x);
+    let keep: Vec<usize> = (0..x.ncols())
+        .filter(|j| {
+            let e = x.column(*j).norm_squared();
+            e > 0.0 && xt.column(*j).norm_squared() >= tol * e
+        })
+        .collect();
+    if keep.is_empty() {
+        return None;
+    }
+    let b = basis(&xt.select_columns(keep.iter()));
+    (b.ncols() > 0).then_some(b)
 }
 
 fn residual_of(m: &DMatrix<f64>, y: &DVector<f64>) -> DVector<f64> {
@@ -941,22 +1275,24 @@ pub fn diagnose(
     let mut rows = rows.clone();
     let redundancy = redundancy(&rows, sigma);
 
-    // Outliers against the baseline, removed once.
+    // Outliers against a robust baseline, removed once.
     let mut outliers = Vec::new();
     {
-        let b = fit_baseline(&rows, spindle, &opts.model, sigma)?;
-        let limit = opts.outlier_sigma * sigma;
+        let flagged = screen_outliers(&rows, spindle, &opts.model, sigma, opts.outlier_sigma);
         let mut keep = Vec::with_capacity(rows.rows.len());
-        for (r, e) in rows.rows.iter().zip(&b.residual_um) {
-            if e.abs() > limit {
-                outliers.push(Outlier {
-                    t_ns: r.t_ns,
-                    cycle: r.cycle,
-                    step: r.step.clone(),
-                    residual_um: *e,
-                });
-            } else {
-                keep.push(r.clone());
+        let mut next = flagged.iter().peekable();
+        for (i, r) in rows.rows.iter().enumerate() {
+            match next.peek() {
+                Some((j, e)) if *j == i => {
+                    outliers.push(Outlier {
+                        t_ns: r.t_ns,
+                        cycle: r.cycle,
+                        step: r.step.clone(),
+                        residual_um: *e,
+                    });
+                    next.next();
+                }
+                _ => keep.push(r.clone()),
             }
         }
         rows.rows = keep;
@@ -980,7 +1316,6 @@ pub fn diagnose(
 
     // The baseline design, whitened.
     let basis_len = 1 + drivers.spindle.len();
-    let p0 = rows.params.len() * basis_len;
     let base = baseline_matrix(&rows, &drivers.spindle, sigma);
     let y = DVector::from_iterator(n, rows.rows.iter().map(|r| r.deviation_um / sigma));
     let figures = |m: &DMatrix<f64>| -> (FitFigures, DVector<f64>, DVector<f64>) {
@@ -1044,6 +1379,7 @@ pub fn diagnose(
     located.sort_by(|a, b| b.t.abs().total_cmp(&a.t.abs()));
 
     // The library, whitened, and what the baseline cannot tell apart from it.
+    let q0 = basis(&base);
     let mut cands: Vec<Candidate> =
         crate::effects::candidates(&rows, &drivers, opts.model.n_ref_rpm);
     if !drivers.missing_spins.is_empty() {
@@ -1072,13 +1408,21 @@ pub fn diagnose(
             unit: "1".into(),
             columns: vec![col],
             signature: "all".into(),
+            shape_kind: crate::effects::ShapeKind::MissingSpins,
+            shape: drivers.missing_spins.clone(),
+            profiled: 0,
+            step_ns: None,
         });
+    }
+    // Steps at a time located by likelihood (a change at an unknown time), one candidate per
+    // signature that can jump, at its best time against the baseline.
+    {
+        cands.extend(step_candidates(&rows, &q0, &base_resid, sigma));
     }
     let xs: Vec<DMatrix<f64>> = cands
         .iter()
         .map(|c| DMatrix::from_fn(n, c.columns.len(), |i, j| c.columns[j][i] / sigma))
         .collect();
-    let q0 = basis(&base);
     let mut structural = vec![false; cands.len()];
     let mut drivers_t = Vec::new();
     let mut free_of = vec![0.0; cands.len()];
@@ -1125,8 +1469,14 @@ pub fn diagnose(
     let mut not_identifiable = Vec::new();
     for e in crate::effects::EFFECTS {
         // Only what this recording can test (slow terms need two days).
+        // A step is a change, not a level: whether the level is identifiable is asked of the
+        // other shapes.
         let mut of: Vec<usize> = (0..cands.len())
-            .filter(|i| cands[*i].effect == e.id && (allowed[*i] || structural[*i]))
+            .filter(|i| {
+                cands[*i].effect == e.id
+                    && cands[*i].shape_kind != crate::effects::ShapeKind::Step
+                    && (allowed[*i] || structural[*i])
+            })
             .collect();
         if of.is_empty() || of.iter().any(|i| free_of[*i] >= opts.practical_tol) {
             continue;
@@ -1195,117 +1545,239 @@ pub fn diagnose(
             split_by: e.split_by.into(),
         });
     }
-    // Forward selection.
+    // Forward selection and backward pruning over a baseline (the baseline, or the baseline
+    // with a periodic discrepancy the library has no shape for).
     let ln_n = (n as f64).ln();
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut refused: Vec<Refused> = Vec::new();
-    let model_of = |chosen: &[usize]| -> DMatrix<f64> {
+    // A candidate's BIC penalty: its columns and its profiled (located) parameters.
+    let k_of = |i: usize| (xs[i].ncols() + cands[i].profiled) as f64 * ln_n;
+    let model_with = |base: &DMatrix<f64>, chosen: &[usize]| -> DMatrix<f64> {
         let cols: Vec<&DMatrix<f64>> = chosen.iter().map(|i| &xs[*i]).collect();
-        hstack(&base, &cols)
+        hstack(base, &cols)
     };
-    let mut blocks_better: BTreeMap<usize, usize> = BTreeMap::new();
-    while chosen.len() < opts.max_terms {
-        let m = model_of(&chosen);
-        let q = basis(&m);
-        let e = residual_of(&m, &y);
-        let mut ranked: Vec<(usize, f64)> = (0..cands.len())
-            .filter(|i| allowed[*i] && !chosen.contains(i))
-            .map(|i| {
-                let (d, _) = scan(&q, &e, &xs[i]);
-                (i, d - xs[i].ncols() as f64 * ln_n)
-            })
-            .filter(|(_, b)| *b >= opts.min_delta_bic)
-            .collect();
-        ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
-        let mut took = None;
-        for &(i, dbic) in ranked.iter().take(5) {
-            let mut with = chosen.clone();
-            with.push(i);
-            let mw = model_of(&with);
-            let f = lsq(&mw, &y);
-            let dof = n.saturating_sub(f.rank).max(1);
-            let scale = (f.chi2 / dof as f64).max(1.0);
-            let k = xs[i].ncols();
-            let off = mw.ncols() - k;
-            let b = f.beta.rows(off, k).into_owned();
-            let c = f.cov.view((off, off), (k, k)).into_owned() * scale;
-            let t = match c.clone().cholesky() {
-                Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
-                None => 0.0,
-            };
-            let foot = &xs[i] * &b * sigma;
-            let peak = foot.amax();
-            let max_um =
-                crate::effects::effect(cands[i].effect).map_or(f64::INFINITY, |e| e.max_um);
-            let mut improved = 0;
-            for blk in 0..nb {
-                let (tr, te) = split(blk);
-                if heldout_sse(&mw, &y, &tr, &te) < heldout_sse(&m, &y, &tr, &te) {
-                    improved += 1;
+    let search = |base: &DMatrix<f64>| -> (Vec<usize>, Vec<Refused>, BTreeMap<usize, usize>) {
+        let model_of = |chosen: &[usize]| model_with(base, chosen);
+        let mut chosen: Vec<usize> = Vec::new();
+        let mut refused: Vec<Refused> = Vec::new();
+        let mut blocks_better: BTreeMap<usize, usize> = BTreeMap::new();
+        while chosen.len() < opts.max_terms {
+            let m = model_of(&chosen);
+            let q = basis(&m);
+            let e = residual_of(&m, &y);
+            let mut ranked: Vec<(usize, f64)> = (0..cands.len())
+                .filter(|i| allowed[*i] && !chosen.contains(i))
+                .map(|i| {
+                    let (d, _) = scan(&q, &e, &xs[i]);
+                    (i, d - k_of(i))
+                })
+                .filter(|(_, b)| *b >= opts.min_delta_bic)
+                .collect();
+            ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
+            let mut took = None;
+            for &(i, dbic) in ranked.iter().take(5) {
+                let mut with = chosen.clone();
+                with.push(i);
+                let mw = model_of(&with);
+                let f = lsq(&mw, &y);
+                let dof = n.saturating_sub(f.rank).max(1);
+                let scale = (f.chi2 / dof as f64).max(1.0);
+                let k = xs[i].ncols();
+                let off = mw.ncols() - k;
+                let b = f.beta.rows(off, k).into_owned();
+                let c = f.cov.view((off, off), (k, k)).into_owned() * scale;
+                let t = match c.clone().cholesky() {
+                    Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
+                    None => 0.0,
+                };
+                let foot = &xs[i] * &b * sigma;
+                let peak = foot.amax();
+                let max_um =
+                    crate::effects::effect(cands[i].effect).map_or(f64::INFINITY, |e| e.max_um);
+                let mut improved = 0;
+                for blk in 0..nb {
+                    let (tr, te) = split(blk);
+                    if heldout_sse(&mw, &y, &tr, &te) < heldout_sse(&m, &y, &tr, &te) {
+                        improved += 1;
+                    }
                 }
-            }
-            let need = (opts.min_blocks_improved * nb as f64 - 1e-9).ceil() as usize;
-            let reason = if t < opts.min_t {
-                Some(format!("|t| {t:.1} < {}", opts.min_t))
-            } else if peak > max_um {
-                Some(format!(
-                    "footprint {peak:.1} um beyond the plausible {max_um} um"
-                ))
-            } else if improved < need {
-                Some(format!(
-                    "held-out fit better in {improved} of {nb} blocks (needs {need})"
-                ))
-            } else {
-                None
-            };
-            match reason {
-                None => {
-                    blocks_better.insert(i, improved);
-                    took = Some(i);
-                    break;
-                }
-                Some(reason) => {
-                    if !refused
-                        .iter()
-                        .any(|r| r.term == cands[i].term && r.effect == cands[i].effect)
-                    {
-                        refused.push(Refused {
-                            effect: cands[i].effect.into(),
-                            term: cands[i].term.clone(),
-                            delta_bic: dbic,
-                            t,
-                            reason,
-                        });
+                let need = (opts.min_blocks_improved * nb as f64 - 1e-9).ceil() as usize;
+                let reason = if t < opts.min_t {
+                    Some(format!("|t| {t:.1} < {}", opts.min_t))
+                } else if peak > max_um {
+                    Some(format!(
+                        "footprint {peak:.1} um beyond the plausible {max_um} um"
+                    ))
+                } else if improved < need {
+                    Some(format!(
+                        "held-out fit better in {improved} of {nb} blocks (needs {need})"
+                    ))
+                } else {
+                    None
+                };
+                match reason {
+                    None => {
+                        blocks_better.insert(i, improved);
+                        took = Some(i);
+                        break;
+                    }
+                    Some(reason) => {
+                        if !refused
+                            .iter()
+                            .any(|r| r.term == cands[i].term && r.effect == cands[i].effect)
+                        {
+                            refused.push(Refused {
+                                effect: cands[i].effect.into(),
+                                term: cands[i].term.clone(),
+                                delta_bic: dbic,
+                                t,
+                                reason,
+                            });
+                        }
                     }
                 }
             }
+            match took {
+                Some(i) => chosen.push(i),
+                None => break,
+            }
         }
-        match took {
-            Some(i) => chosen.push(i),
-            None => break,
+        // Backward pruning.
+        loop {
+            if chosen.is_empty() {
+                break;
+            }
+            let full = lsq(&model_of(&chosen), &y).chi2;
+            let weakest = chosen
+                .iter()
+                .enumerate()
+                .map(|(pos, i)| {
+                    let mut without = chosen.clone();
+                    without.remove(pos);
+                    let d = lsq(&model_of(&without), &y).chi2 - full;
+                    (pos, d - k_of(*i))
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            match weakest {
+                Some((pos, d)) if d < opts.min_delta_bic => {
+                    chosen.remove(pos);
+                }
+                Some(_) | None => break,
+            }
+        }
+
+        (chosen, refused, blocks_better)
+    };
+    let (mut chosen, mut refused, mut blocks_better) = search(&base);
+
+    // A periodic residual at a period the library has no shape for: modelled as a
+    // discrepancy (so that no library term is forced into its shape), then the search again.
+    let mut base_eff = base.clone();
+    let mut periodic = None;
+    {
+        let m = model_with(&base, &chosen);
+        if let Some((found, block)) = periodic_scan(&rows, &m, &y, sigma, opts) {
+            base_eff = hstack(&base, &[&block]);
+            (chosen, refused, blocks_better) = search(&base_eff);
+            periodic = Some((found, block.ncols()));
         }
     }
-    // Backward pruning.
-    loop {
-        if chosen.is_empty() {
-            break;
-        }
-        let full = lsq(&model_of(&chosen), &y).chi2;
-        let weakest = chosen
+    let model_of = |chosen: &[usize]| model_with(&base_eff, chosen);
+    let p0 = base_eff.ncols();
+
+    // A signature class (or the design parameters) times a time shape, whitened.
+    let class_times = |names: &[String], shape: &[Vec<f64>]| -> DMatrix<f64> {
+        let cols: Vec<Vec<f64>> = names
             .iter()
-            .enumerate()
-            .map(|(pos, i)| {
-                let mut without = chosen.clone();
-                without.remove(pos);
-                let d = lsq(&model_of(&without), &y).chi2 - full;
-                (pos, d - xs[*i].ncols() as f64 * ln_n)
-            })
-            .min_by(|a, b| a.1.total_cmp(&b.1));
-        match weakest {
-            Some((pos, d)) if d < opts.min_delta_bic => {
-                chosen.remove(pos);
+            .filter_map(|nm| crate::effects::signature_column(&rows, nm))
+            .collect();
+        DMatrix::from_fn(n, cols.len() * shape.len(), |i, c| {
+            let (j, g) = (c / shape.len(), c % shape.len());
+            cols[j][i] * shape[g][i] / sigma
+        })
+    };
+
+    // Terms that coincide in time with an earlier accepted effect (their footprint, beyond the
+    // baseline, lies within what the design parameters do in that effect's time shape) must
+    // be justified on held-out data (delta-chi2 summed over the blocks, each predicted from
+    // the others, of min_delta_bic or more); then they are kept but not named, else they are
+    // folded into that effect's group.
+    let mut coincident: BTreeMap<usize, GroupMember> = BTreeMap::new();
+    let mut folded: Vec<(usize, GroupMember)> = Vec::new();
+    {
+        let qb = basis(&base_eff);
+        let mut pos = 1;
+        while pos < chosen.len() {
+            let ti = chosen[pos];
+            let m = model_of(&chosen);
+            let f = lsq(&m, &y);
+            let off = p0 + chosen[..pos].iter().map(|j| xs[*j].ncols()).sum::<usize>();
+            let ft = &xs[ti] * f.beta.rows(off, xs[ti].ncols());
+            let v = &ft - &qb * qb.tr_mul(&ft);
+            let vv = v.norm_squared();
+            let mut hit = None;
+            for &ei in &chosen[..pos] {
+                if cands[ei].effect == cands[ti].effect || vv == 0.0 {
+                    continue;
+                }
+                let xe = hstack(&class_times(&rows.params, &cands[ei].shape), &[&xs[ei]]);
+                let Some(be) = beyond(&qb, &xe, opts.structural_tol) else {
+                    continue;
+                };
+                let cos = (be.tr_mul(&v).norm_squared() / vv).sqrt();
+                if cos > opts.ambiguity_cos {
+                    hit = Some((ei, cos));
+                    break;
+                }
             }
-            Some(_) | None => break,
+            let Some((ei, cos)) = hit else {
+                pos += 1;
+                continue;
+            };
+            let without: Vec<usize> = chosen.iter().copied().filter(|j| *j != ti).collect();
+            let mo = model_of(&without);
+            let ho: f64 = (0..nb)
+                .map(|blk| {
+                    let (tr, te) = split(blk);
+                    heldout_sse(&mo, &y, &tr, &te) - heldout_sse(&m, &y, &tr, &te)
+                })
+                .sum();
+            let dchi = lsq(&mo, &y).chi2 - f.chi2;
+            if ho < opts.min_delta_bic {
+                folded.push((
+                    ei,
+                    GroupMember {
+                        effect: cands[ti].effect.into(),
+                        term: cands[ti].term.clone(),
+                        cos,
+                        delta_chi2: dchi,
+                        footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
+                        parameters: xs[ti].ncols() + cands[ti].profiled,
+                        // Not a rival to its name: the data do not justify it on its own.
+                        comparable: false,
+                        reason: format!(
+                            "coincides in time with it (cos {cos:.2} with the design parameters in its time shape) and the held-out blocks gain only delta-chi2 {ho:.1} from it (under {}): not accepted on its own",
+                            opts.min_delta_bic
+                        ),
+                    },
+                ));
+                chosen.remove(pos);
+            } else {
+                coincident.insert(
+                    ti,
+                    GroupMember {
+                        effect: cands[ei].effect.into(),
+                        term: cands[ei].term.clone(),
+                        cos,
+                        delta_chi2: dchi,
+                        footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
+                        parameters: xs[ei].ncols() + cands[ei].profiled,
+                        comparable: true,
+                        reason: format!(
+                            "it coincides in time with this accepted term (cos {cos:.2} with the design parameters in its time shape); kept because the held-out blocks gain delta-chi2 {ho:.1} from it, but it may be more of that effect"
+                        ),
+                    },
+                );
+                pos += 1;
+            }
         }
     }
 
@@ -1333,7 +1805,7 @@ pub fn diagnose(
             .collect();
         let mrest = model_of(&rest);
         let full_chi2 = ffin.chi2;
-        let dbic = lsq(&mrest, &y).chi2 - full_chi2 - k as f64 * ln_n;
+        let dbic = lsq(&mrest, &y).chi2 - full_chi2 - k_of(i);
         let t = match cov.clone().cholesky() {
             Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
             None => 0.0,
@@ -1343,34 +1815,186 @@ pub fn diagnose(
             let rms = |s: f64| (s / test_last.len().max(1) as f64).sqrt() * sigma;
             (rms(sse(&mrest)), rms(sse(&mfin)))
         };
-        // Ambiguity: other candidates that carry this term's footprint beyond the rest.
+        // Ambiguity: other explanations of this term's footprint beyond the rest: each other
+        // candidate; each signature class in the same time shape (jointly); the classes of
+        // other effects together (a combination, up to 24 columns); the pose-shaped effects'
+        // candidates together. An alternative explains it comparably when it carries the
+        // footprint but for a relative 1e-3 (the plan cannot tell them apart, whatever the
+        // data), or when it fits as well: the lesser of what it leaves of the footprint and
+        // how much worse it fits the data, plus 2 per parameter it has beyond the term's,
+        // under min_delta_bic. Such an alternative of another effect and the term is not
+        // named.
         let qr = basis(&mrest);
+        let chi2_rest = lsq(&mrest, &y).chi2;
+        let e_rest = residual_of(&mrest, &y);
         let v = {
             let f = &xs[i] * &b;
             &f - &qr * qr.tr_mul(&f)
         };
         let vv = v.norm_squared();
-        let mut group = Vec::new();
+        let k_term = (k + c.profiled) as f64;
+        let alt = |x: &DMatrix<f64>, profiled: usize| -> Option<Alternative> {
+            let bs = beyond(&qr, x, opts.structural_tol)?;
+            let dv = bs.tr_mul(&v).norm_squared();
+            let miss = (vv - dv).max(0.0);
+            let data = chi2_rest - bs.tr_mul(&e_rest).norm_squared() - full_chi2;
+            // Two per parameter beyond the term's (Akaike's charge: does it predict the data
+            // as well, not would BIC pick it).
+            let extra = ((bs.ncols() + profiled) as f64 - k_term).max(0.0) * 2.0;
+            Some(Alternative {
+                cos: (dv / vv).sqrt(),
+                miss,
+                data,
+                parameters: bs.ncols() + profiled,
+                comparable: miss < 1e-3 * vv || miss.min(data) + extra < opts.min_delta_bic,
+            })
+        };
+        let mut group: Vec<GroupMember> = Vec::new();
+        let member = |effect: &str, term: String, a: &Alternative, why: &str| -> GroupMember {
+            GroupMember {
+                effect: effect.into(),
+                term,
+                cos: a.cos,
+                delta_chi2: a.data,
+                footprint_left_chi2: a.miss,
+                parameters: a.parameters,
+                comparable: a.comparable,
+                reason: format!(
+                    "{why}: cos {:.3} with its footprint, which it carries but for chi2 {:.1}; the data fit {} by chi2 {:.1} with it in place of the term ({} parameter{}){}",
+                    a.cos,
+                    a.miss,
+                    if a.data >= 0.0 { "worse" } else { "better" },
+                    a.data.abs(),
+                    a.parameters,
+                    if a.parameters == 1 { "" } else { "s" },
+                    if a.comparable {
+                        if a.miss < 1e-3 * vv {
+                            ": the plan cannot tell them apart"
+                        } else {
+                            ": it explains the data comparably"
+                        }
+                    } else {
+                        ""
+                    }
+                ),
+            }
+        };
         if vv > 0.0 {
             for (j, x) in xs.iter().enumerate() {
-                if j == i || chosen.contains(&j) || structural[j] {
+                if j == i || chosen.contains(&j) || structural[j] || !allowed[j] {
                     continue;
                 }
-                let (d, free) = scan(&qr, &v, x);
-                if free < opts.structural_tol {
+                if let Some(a) = alt(x, cands[j].profiled)
+                    && (a.cos > opts.ambiguity_cos || a.comparable)
+                {
+                    group.push(member(
+                        cands[j].effect,
+                        cands[j].term.clone(),
+                        &a,
+                        "another candidate",
+                    ));
+                }
+            }
+            let mut others: Vec<(&'static str, Vec<String>, DMatrix<f64>)> = Vec::new();
+            for (cls, names) in crate::effects::signature_classes(&rows) {
+                let Some(effect) = crate::effects::class_effect(cls, c.shape_kind) else {
+                    continue;
+                };
+                if effect == c.effect {
                     continue;
                 }
-                let cos = (d / vv).sqrt();
-                if cos > opts.ambiguity_cos {
-                    group.push(GroupMember {
-                        effect: cands[j].effect.into(),
-                        term: cands[j].term.clone(),
-                        cos,
-                    });
+                let x = class_times(&names, &c.shape);
+                if let Some(a) = alt(&x, c.profiled)
+                    && (a.cos > opts.ambiguity_cos || a.comparable)
+                {
+                    group.push(member(
+                        effect,
+                        format!("{} x the same time shape", names.join(", ")),
+                        &a,
+                        &format!("{} in the same time shape", names.join(", ")),
+                    ));
+                }
+                others.push((effect, names, x));
+            }
+            let alone = group.iter().any(|g| g.effect != c.effect && g.comparable);
+            let union_cols: usize = others.iter().map(|o| o.2.ncols()).sum();
+            if !alone && others.len() > 1 && union_cols <= 24 {
+                let refs: Vec<&DMatrix<f64>> = others.iter().map(|o| &o.2).collect();
+                let xu = hstack(&DMatrix::zeros(n, 0), &refs);
+                if let Some(a) = alt(&xu, c.profiled)
+                    && a.comparable
+                {
+                    // Which classes make up the combination: their share of the footprint.
+                    let xt = &xu - &qr * qr.tr_mul(&xu);
+                    let fit = lsq(&xt, &v);
+                    let all: Vec<String> = others.iter().flat_map(|o| o.1.clone()).collect();
+                    let mut col = 0;
+                    for (effect, names, x) in &others {
+                        let kc = x.ncols();
+                        let part = xt.columns(col, kc) * fit.beta.rows(col, kc);
+                        col += kc;
+                        let share = part.norm() / vv.sqrt();
+                        if share > 0.2 {
+                            group.push(member(
+                                effect,
+                                format!(
+                                    "{} x the same time shape, in combination",
+                                    names.join(", ")
+                                ),
+                                &a,
+                                &format!(
+                                    "a combination of {} in the same time shape, {} {:.0} % of it",
+                                    all.join(", "),
+                                    names.join(", "),
+                                    100.0 * share
+                                ),
+                            ));
+                        }
+                    }
+                }
+            }
+            for eff in ["c_indexing", "rotary_backlash"] {
+                if eff == c.effect {
+                    continue;
+                }
+                let of: Vec<usize> = (0..cands.len())
+                    .filter(|j| cands[*j].effect == eff && allowed[*j])
+                    .collect();
+                let x = hstack(
+                    &DMatrix::zeros(n, 0),
+                    &of.iter().map(|j| &xs[*j]).collect::<Vec<_>>(),
+                );
+                if of.len() < 2 || x.ncols() > 6 {
+                    continue;
+                }
+                if let Some(a) = alt(&x, 0)
+                    && (a.cos > opts.ambiguity_cos || a.comparable)
+                {
+                    group.push(member(
+                        eff,
+                        "all its shapes together".into(),
+                        &a,
+                        "its shapes together",
+                    ));
                 }
             }
         }
-        group.sort_by(|a, b| b.cos.total_cmp(&a.cos));
+        for (ei, m) in &folded {
+            if *ei == i {
+                group.push(m.clone());
+            }
+        }
+        let coincides = coincident.get(&i).cloned();
+        if let Some(m) = &coincides {
+            group.push(m.clone());
+        }
+        let named =
+            coincides.is_none() && !group.iter().any(|g| g.effect != c.effect && g.comparable);
+        group.sort_by(|a, b| {
+            b.comparable
+                .cmp(&a.comparable)
+                .then(b.cos.total_cmp(&a.cos))
+        });
         let e = crate::effects::effect(c.effect);
         let mut split_by: Vec<&str> = Vec::new();
         for g in group.iter().map(|g| g.effect.as_str()).chain([c.effect]) {
@@ -1399,14 +2023,31 @@ pub fn diagnose(
             .collect();
         let amplitude = (foot.norm_squared() / n as f64).sqrt();
         let peak = foot.amax();
-        let other_effects: Vec<&str> = group
-            .iter()
-            .map(|g| g.effect.as_str())
-            .filter(|g| *g != c.effect)
-            .collect();
+        let mut other_effects: Vec<&str> = Vec::new();
+        for g in &group {
+            if g.effect != c.effect && !other_effects.contains(&g.effect.as_str()) {
+                other_effects.push(g.effect.as_str());
+            }
+        }
+        let label_of =
+            |id: &str| crate::effects::effect(id).map_or(id.to_string(), |e| e.label.to_string());
+        let head = if named {
+            e.map_or(c.effect.to_string(), |e| e.label.to_string())
+        } else {
+            let mut alts: Vec<String> = vec![label_of(c.effect)];
+            for g in &group {
+                let l = label_of(&g.effect);
+                if (g.comparable || coincides.as_ref().is_some_and(|m| m.effect == g.effect))
+                    && !alts.contains(&l)
+                {
+                    alts.push(l);
+                }
+            }
+            format!("Not named, one of: {}", alts.join(" OR "))
+        };
         let statement = format!(
             "{}: {} = {} ({}); it moves the readings by {:.2} um RMS, {:.2} um at most, against a reading noise of {:.2} um; held-out RMS {:.3} -> {:.3} um.{}",
-            e.map_or(c.effect, |e| e.label),
+            head,
             c.term,
             parameters
                 .iter()
@@ -1421,6 +2062,12 @@ pub fn diagnose(
             ho_after,
             if other_effects.is_empty() {
                 String::new()
+            } else if named {
+                format!(
+                    " Footprints like it: {}, but none fits the data as well; to split them further: {}.",
+                    other_effects.join(", "),
+                    split_by.join("; ")
+                )
             } else {
                 format!(
                     " The plan cannot tell it from {}; to split them: {}.",
@@ -1444,6 +2091,8 @@ pub fn diagnose(
             heldout_rms_after_um: ho_after,
             blocks_improved: improved,
             blocks: nb,
+            named,
+            step_ns: c.step_ns,
             ambiguity_group: group,
             split_by: split_by.join("; "),
             statement,
@@ -1510,8 +2159,70 @@ pub fn diagnose(
             worst = (lb.p_value, s.clone());
         }
     }
+    // The periodic discrepancy, sized in the final fit.
+    let periodic = periodic.map(|(mut found, kb)| {
+        let pb = rows.params.len();
+        let at = base.ncols();
+        let bb = ffin.beta.rows(at, kb).into_owned();
+        let cv = ffin.cov.view((at, at), (kb, kb)).into_owned() * scale;
+        let block = base_eff.columns(at, kb).into_owned();
+        let foot = &block * &bb * sigma;
+        found.amplitude_rms_um = (foot.norm_squared() / n as f64).sqrt();
+        found.peak_um = foot.amax();
+        let mut carried: Vec<Parameter> = (0..pb)
+            .map(|j| {
+                let (c, s_) = (bb[j], bb[j + pb]);
+                let a = c.hypot(s_);
+                let var = if a > 0.0 {
+                    (c * c * cv[(j, j)] + 2.0 * c * s_ * cv[(j, j + pb)] + s_ * s_ * cv[(j + pb, j + pb)])
+                        / (a * a)
+                } else {
+                    cv[(j, j)]
+                };
+                Parameter {
+                    name: rows.params[j].clone(),
+                    unit: crate::effects::signature_unit(&rows.params[j]).into(),
+                    value: a,
+                    sigma: var.max(0.0).sqrt(),
+                }
+            })
+            .filter(|p| p.value >= 3.0 * p.sigma)
+            .collect();
+        carried.sort_by(|a, b| (b.value / b.sigma.max(1e-300)).total_cmp(&(a.value / a.sigma.max(1e-300))));
+        found.statement = format!(
+            "A periodic residual with a period of {:.1} min{} moves the readings by {:.2} um RMS ({:.2} um at most; delta-BIC {:.0}), carried by {}. No effect of the library has this time shape (its periodic shapes are the 24-h and 12-h pairs): it is modelled as a discrepancy so that no library term is forced into it, and left unexplained. Log what cycles at this period (coolant or chiller, hydraulics) to name it.",
+            found.period_min,
+            if found.aliases_min.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    " (or {} min: at this cycle cadence the data cannot tell them apart)",
+                    found
+                        .aliases_min
+                        .iter()
+                        .map(|p| format!("{p:.1}"))
+                        .collect::<Vec<_>>()
+                        .join(" or ")
+                )
+            },
+            found.amplitude_rms_um,
+            found.peak_um,
+            found.delta_bic,
+            if carried.is_empty() {
+                "no single design parameter".to_string()
+            } else {
+                carried
+                    .iter()
+                    .map(|p| format!("{} ({:.2} +- {:.2} {})", p.name, p.value, p.sigma, p.unit))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            }
+        );
+        found.carried_by = carried;
+        found
+    });
     let mut unexplained = Vec::new();
-    if final_fig.chi2_dof > 1.2 || worst.0 < 1e-3 {
+    if final_fig.chi2_dof > 1.2 || worst.0 < 1e-3 || periodic.is_some() {
         let mut where_ = locate(&rows, &fin_um, sigma, 4.0);
         group_means(
             "phase",
@@ -1542,7 +2253,13 @@ pub fn diagnose(
             channel: worst.1.clone(),
             located: where_,
             when,
-            discrepancy_um: (ms - sigma * sigma).max(0.0).sqrt(),
+            discrepancy_um: match &periodic {
+                Some(p) => p
+                    .amplitude_rms_um
+                    .hypot((ms - sigma * sigma).max(0.0).sqrt()),
+                None => (ms - sigma * sigma).max(0.0).sqrt(),
+            },
+            periodic: periodic.clone(),
         });
     }
 

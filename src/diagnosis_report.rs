@@ -87,9 +87,22 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
     }
     for a in &d.accepted {
         h.push_str(&format!(
-            "<p><b>{}</b>. {}</p>",
-            esc(&a.label),
-            esc(&a.statement)
+            "<p><b>{}</b>. {}{}</p>",
+            if a.named {
+                esc(&a.label)
+            } else {
+                format!("Not named ({} or its ambiguity group)", esc(&a.label))
+            },
+            esc(&a.statement),
+            a.ambiguity_group
+                .iter()
+                .map(|g| format!(
+                    "<br>&ndash; {} {}: {}",
+                    esc(&g.effect),
+                    esc(&g.term),
+                    esc(&g.reason)
+                ))
+                .collect::<String>()
         ));
     }
     for n in &d.not_identifiable {
@@ -114,6 +127,12 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
                 .collect::<Vec<_>>()
                 .join("; "))
         ));
+        if let Some(p) = &u.periodic {
+            h.push_str(&format!(
+                "<p><b>Unexplained periodic residual</b>: {}</p>",
+                esc(&p.statement)
+            ));
+        }
     }
     h.push_str("<h2>Fit before and after</h2><table><tr><th></th><th>parameters</th><th>chi2/dof</th><th>RMS training (um)</th><th>RMS held-out (um)</th></tr>");
     for (name, x) in [
@@ -133,10 +152,10 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
         h.push_str("<p><b>Note</b>: the held-out block holds spindle history the training part never saw (under two days of data); its RMS measures extrapolation, not the fit.</p>");
     }
     if !d.accepted.is_empty() {
-        h.push_str("<h2>Accepted terms</h2><table><tr><th>effect</th><th>term</th><th>parameters</th><th>delta-BIC</th><th>|t|</th><th>held-out RMS before / after (um)</th><th>blocks better</th><th>ambiguity group</th></tr>");
+        h.push_str("<h2>Accepted terms</h2><table><tr><th>effect</th><th>term</th><th>parameters</th><th>delta-BIC</th><th>|t|</th><th>held-out RMS before / after (um)</th><th>blocks better</th><th>named</th><th>ambiguity group</th></tr>");
         for a in &d.accepted {
             h.push_str(&format!(
-                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{} / {}</td><td>{} of {}</td><td>{}</td></tr>",
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{} / {}</td><td>{} of {}</td><td>{}</td><td>{}</td></tr>",
                 esc(&a.effect),
                 esc(&a.term),
                 a.parameters
@@ -150,10 +169,11 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
                 f(a.heldout_rms_after_um),
                 a.blocks_improved,
                 a.blocks,
+                if a.named { "yes" } else { "no" },
                 esc(&a
                     .ambiguity_group
                     .iter()
-                    .map(|g| format!("{} {} (cos {:.2})", g.effect, g.term, g.cos))
+                    .map(|g| format!("{} {} (cos {:.2}, delta-chi2 {:.1})", g.effect, g.term, g.cos, g.delta_chi2))
                     .collect::<Vec<_>>()
                     .join("; "))
             ));

@@ -41,8 +41,8 @@ pub const EFFECTS: &[Effect] = &[
         label: "skip latency x feed",
         physics: "setter filter, NC skip sampling and servo lag: the axis is latched F*t_d further along the approach than where the beam was cut",
         signature: "every reading shifts by F*t_d along its approach; cancels in the patent's sums (y1+y3, x2+x4); constant feed makes it a constant absorbed by the setter and radius calibration",
-        shapes: "the feed of each approach (a feed change or two feeds)",
-        parameters: "t_d, ms (latency beyond the calibrated one)",
+        shapes: "the feed of each approach (a feed change or two feeds); a step at a time located by likelihood (an NC parameter or firmware change)",
+        parameters: "t_d, ms (latency beyond the calibrated one, or its change at the step)",
         split_by: "probe at two feeds",
         max_um: 50.0,
         slow: false,
@@ -55,6 +55,17 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "(n/n_ref)^2 at the reading's spindle speed",
         parameters: "radius change at n_ref, um",
         split_by: "probe at two spindle speeds",
+        max_um: 20.0,
+        slow: false,
+    },
+    Effect {
+        id: "radius_change",
+        label: "effective tool radius change",
+        physics: "a tool change, a chipped or worn edge, a runout change: the effective radius jumps",
+        signature: "lateral readings only, opposite on the two sides of the beam: cancels in the sums",
+        shapes: "a step at a time located by likelihood",
+        parameters: "radius change at the step, um",
+        split_by: "probe at two feeds (a latency change moves the readings with the feed, a radius change does not) or from both sides of the beam",
         max_um: 20.0,
         slow: false,
     },
@@ -96,8 +107,8 @@ pub const EFFECTS: &[Effect] = &[
         label: "tool-setter mount drift",
         physics: "table and riser expansion move the beam (about 1 um/K)",
         signature: "the beam's place in the table frame: x, y (lateral readings) or z (z readings)",
-        shapes: "each logged temperature and its 60/120/240-min lags; 24-h Fourier pair when no temperature explains it",
-        parameters: "um per K (or um per Fourier term)",
+        shapes: "each logged temperature and its 60/120/240-min lags; 24-h Fourier pair when no temperature explains it; a step at a time located by likelihood (the setter knocked or moved)",
+        parameters: "um per K (or um per Fourier term, or um at the step)",
         split_by: "probe at B = +90 and B = -90, or a second setter height",
         max_um: 30.0,
         slow: false,
@@ -180,6 +191,17 @@ pub const EFFECTS: &[Effect] = &[
         slow: false,
     },
     Effect {
+        id: "location_step",
+        label: "a location error changes at one time",
+        physics: "a collision, re-clamping, a table or fixture moved: an axis line jumps and stays",
+        signature: "a location error (any of them) from one time on",
+        shapes: "a step at a time located by likelihood",
+        parameters: "um (urad) at the step",
+        split_by: "a bed-fixed reference artefact, or a second setter: a location error moves both, the setter only one",
+        max_um: 100.0,
+        slow: false,
+    },
+    Effect {
         id: "measurement_heating",
         label: "measurement-induced heating",
         physics: "each cycle spins the spindle for minutes: a thermal input the production log does not show",
@@ -238,7 +260,7 @@ pub const EFFECTS: &[Effect] = &[
         id: "outliers",
         label: "outliers",
         physics: "coolant mist, chips on the tool, a skipped trigger",
-        signature: "single readings far from the fit (|residual| > 5 sigma); removed before the search and listed",
+        signature: "single readings far from a robust fit of the baseline (leave-one-out residual beyond 5 sigma); removed before the search and listed",
         shapes: "none",
         parameters: "count",
         split_by: "double touches",
@@ -263,6 +285,94 @@ pub struct Candidate {
     pub columns: Vec<Vec<f64>>,
     /// The signature's name (a design parameter or a [`Rows::signatures`] entry).
     pub signature: String,
+    /// What kind of time shape multiplies the signature ...
+    pub shape_kind: ShapeKind,
+    /// ... and the shape itself per row, one vector per column (`columns[j] = signature x
+    /// shape[j]`); what another signature would need to explain the term in the same time.
+    pub shape: Vec<Vec<f64>>,
+    /// Nonlinear parameters profiled to build it (the located time of a step): counted in
+    /// its BIC penalty.
+    pub profiled: usize,
+    /// The located time of a step shape, ns.
+    pub step_ns: Option<i64>,
+}
+
+/// The kinds of time shape of the library (physics.md 4.2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeKind {
+    Constant,
+    /// The feed of the approach (in the signature itself: the shape is 1).
+    Feed,
+    Speed2,
+    SpindleLag,
+    Temperature,
+    Fourier,
+    Tilt,
+    Sense,
+    Harmonic,
+    Step,
+    MissingSpins,
+}
+
+/// The signature classes an ambiguity check swaps in, each with the effect it stands for
+/// given the time shape. Tool-tip shifts (sx, sy, sz) are not a class: the cycle measures
+/// the location errors relative to the tool tip, so they are the location errors.
+pub fn signature_classes(rows: &Rows) -> Vec<(&'static str, Vec<String>)> {
+    let names = |v: &[&str]| -> Vec<String> {
+        v.iter()
+            .filter(|n| rows.signature(n).is_some() || rows.param(n).is_some())
+            .map(|n| n.to_string())
+            .collect()
+    };
+    let mut out = vec![
+        ("latency", names(&["latency"])),
+        ("radius", names(&["radius"])),
+        ("setter", names(&["setter_x", "setter_y", "setter_z"])),
+        ("scale", names(&["kx", "ky", "kz"])),
+        ("squareness", names(&["sxy", "sxz", "syz"])),
+        ("location", rows.locations.clone()),
+    ];
+    for s in &rows.signatures {
+        if let Some(axis) = s.strip_prefix("angle_") {
+            out.push((
+                if axis == "C" {
+                    "angle_C"
+                } else {
+                    "angle_other"
+                },
+                vec![s.clone()],
+            ));
+        }
+    }
+    out.retain(|(_, v)| !v.is_empty());
+    out
+}
+
+/// The effect a signature class stands for under a time shape (`None`: that product is the
+/// baseline itself or no effect of the library).
+pub fn class_effect(class: &str, kind: ShapeKind) -> Option<&'static str> {
+    use ShapeKind::*;
+    Some(match (class, kind) {
+        ("latency", _) => "skip_latency",
+        ("radius", Speed2) => "radius_speed",
+        ("radius", _) => "radius_change",
+        ("setter", _) => "setter_drift",
+        ("scale", _) => "scale_expansion",
+        ("squareness", _) => "squareness",
+        ("angle_C", Sense) | ("angle_other", Sense) => "rotary_backlash",
+        ("angle_C", _) => "c_indexing",
+        ("angle_other", _) => "b_tilt_heating",
+        ("location", Step) => "location_step",
+        ("location", Temperature | Fourier) => "ambient",
+        ("location", SpindleLag) => "slow_mode",
+        ("location", Tilt) => "b_tilt_heating",
+        ("location", Speed2) => "speed_shift",
+        ("location", Sense) => "rotary_backlash",
+        ("location", Harmonic) => "c_indexing",
+        ("location", MissingSpins) => "measurement_heating",
+        _ => return None,
+    })
 }
 
 /// What drives the time shapes, row by row.
@@ -509,16 +619,26 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
         ]
     };
     let mut out = Vec::new();
-    let mut push =
-        |effect: &'static str, signature: &str, shape: &str, unit: &str, cols: Vec<Vec<f64>>| {
-            out.push(Candidate {
-                effect,
-                term: format!("{signature} x {shape}"),
-                unit: unit.to_string(),
-                columns: cols,
-                signature: signature.to_string(),
-            });
-        };
+    let ones = vec![1.0; rows.rows.len()];
+    let mut push = |effect: &'static str,
+                    signature: &str,
+                    shape: &str,
+                    unit: &str,
+                    kind: ShapeKind,
+                    s: &[f64],
+                    g: Vec<&[f64]>| {
+        out.push(Candidate {
+            effect,
+            term: format!("{signature} x {shape}"),
+            unit: unit.to_string(),
+            columns: g.iter().map(|g| times(s, g)).collect(),
+            signature: signature.to_string(),
+            shape_kind: kind,
+            shape: g.iter().map(|g| g.to_vec()).collect(),
+            profiled: 0,
+            step_ns: None,
+        });
+    };
     let location = &rows.locations;
     let unit_of = |name: &str| {
         crate::diagnosis::SIGNATURES
@@ -534,9 +654,18 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             )
     };
     let lag_label = |tau: f64| format!("spindle lag {tau} min");
+    use ShapeKind::*;
 
     if let Some(s) = sig("latency") {
-        push("skip_latency", "latency", "feed", "ms", vec![s]);
+        push(
+            "skip_latency",
+            "latency",
+            "feed",
+            "ms",
+            Feed,
+            &s,
+            vec![&ones],
+        );
     }
     if let Some(s) = sig("radius") {
         push(
@@ -544,7 +673,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             "radius",
             "(n/n_ref)^2",
             "um",
-            vec![times(&s, &speed2)],
+            Speed2,
+            &s,
+            vec![&speed2],
         );
     }
     for (sname, effect) in [
@@ -554,7 +685,15 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
     ] {
         if let Some(s) = sig(sname) {
             for (tau, g) in d.spindle_taus_min.iter().zip(&d.spindle) {
-                push(effect, sname, &lag_label(*tau), "um", vec![times(&s, g)]);
+                push(
+                    effect,
+                    sname,
+                    &lag_label(*tau),
+                    "um",
+                    SpindleLag,
+                    &s,
+                    vec![g],
+                );
             }
         }
     }
@@ -564,7 +703,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             "sz",
             "(n/n_ref)^2",
             "um",
-            vec![times(&s, &speed2)],
+            Speed2,
+            &s,
+            vec![&speed2],
         );
     }
     let f24 = fourier(24.0);
@@ -583,13 +724,23 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                     name,
                     label,
                     &format!("{unit}/K"),
-                    vec![times(&s, g)],
+                    Temperature,
+                    &s,
+                    vec![g],
                 );
             }
             if effect == "squareness" {
-                push(effect, name, "constant", unit, vec![s.clone()]);
+                push(effect, name, "constant", unit, Constant, &s, vec![&ones]);
                 for (tau, g) in d.spindle_taus_min.iter().zip(&d.spindle) {
-                    push(effect, name, &lag_label(*tau), unit, vec![times(&s, g)]);
+                    push(
+                        effect,
+                        name,
+                        &lag_label(*tau),
+                        unit,
+                        SpindleLag,
+                        &s,
+                        vec![g],
+                    );
                 }
             } else {
                 push(
@@ -597,7 +748,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                     name,
                     "24-h Fourier pair",
                     unit,
-                    vec![times(&s, &f24[0]), times(&s, &f24[1])],
+                    Fourier,
+                    &s,
+                    vec![&f24[0], &f24[1]],
                 );
             }
         }
@@ -610,7 +763,15 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             "um"
         };
         for (tau, g) in d.slow_taus_min.iter().zip(&d.slow) {
-            push("slow_mode", p, &lag_label(*tau), unit, vec![times(&s, g)]);
+            push(
+                "slow_mode",
+                p,
+                &lag_label(*tau),
+                unit,
+                SpindleLag,
+                &s,
+                vec![g],
+            );
         }
         for (label, g) in &d.temperatures {
             push(
@@ -618,7 +779,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                 p,
                 label,
                 &format!("{unit}/K"),
-                vec![times(&s, g)],
+                Temperature,
+                &s,
+                vec![g],
             );
         }
         push(
@@ -626,14 +789,18 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             p,
             "24-h Fourier pair",
             unit,
-            vec![times(&s, &f24[0]), times(&s, &f24[1])],
+            Fourier,
+            &s,
+            vec![&f24[0], &f24[1]],
         );
         push(
             "ambient",
             p,
             "12-h Fourier pair",
             unit,
-            vec![times(&s, &f12[0]), times(&s, &f12[1])],
+            Fourier,
+            &s,
+            vec![&f12[0], &f12[1]],
         );
         for (tau, g) in &d.tilt {
             push(
@@ -641,7 +808,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                 p,
                 &format!("tilt duty lag {tau} min"),
                 unit,
-                vec![times(&s, g)],
+                Tilt,
+                &s,
+                vec![g],
             );
         }
     }
@@ -660,7 +829,9 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
             name,
             &format!("{axis} approach sense"),
             "urad",
-            vec![times(&s, &sense)],
+            Sense,
+            &s,
+            vec![&sense],
         );
         if axis == "C" {
             for h in [1.0, 2.0] {
@@ -679,10 +850,61 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                     name,
                     &format!("harmonic {h} of C"),
                     "urad",
-                    vec![times(&s, &c), times(&s, &sn)],
+                    Harmonic,
+                    &s,
+                    vec![&c, &sn],
                 );
             }
         }
     }
     out
+}
+
+/// The signatures that can change at one time, with their effect and unit: skip latency,
+/// radius, the setter's place and every location error.
+pub fn step_signatures(rows: &Rows) -> Vec<(&'static str, String)> {
+    let mut out: Vec<(&'static str, String)> = Vec::new();
+    for (effect, name) in [
+        ("skip_latency", "latency"),
+        ("radius_change", "radius"),
+        ("setter_drift", "setter_x"),
+        ("setter_drift", "setter_y"),
+        ("setter_drift", "setter_z"),
+    ] {
+        if rows.signature(name).is_some() {
+            out.push((effect, name.to_string()));
+        }
+    }
+    for p in &rows.locations {
+        out.push(("location_step", p.clone()));
+    }
+    out
+}
+
+/// The column of one signature (a design parameter or a signature column), um per unit.
+pub fn signature_column(rows: &Rows, name: &str) -> Option<Vec<f64>> {
+    if let Some(j) = rows.param(name) {
+        return Some(rows.rows.iter().map(|r| r.sensitivity[j]).collect());
+    }
+    let j = rows.signature(name)?;
+    Some(rows.rows.iter().map(|r| r.signature[j]).collect())
+}
+
+/// The unit of one signature.
+pub fn signature_unit(name: &str) -> &'static str {
+    crate::diagnosis::SIGNATURES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map_or(
+            if name.starts_with("angle_")
+                || name.starts_with("EA")
+                || name.starts_with("EB")
+                || name.starts_with("EC")
+            {
+                "urad"
+            } else {
+                "um"
+            },
+            |(_, u)| *u,
+        )
 }

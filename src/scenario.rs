@@ -99,10 +99,22 @@ pub struct NoiseConfig {
     pub sigma_um: f64,
     /// Probability that a reading is an outlier (chips, coolant mist).
     pub outlier_rate: f64,
-    /// Outlier size range, um (sign random).
+    /// Outlier size range, um.
     pub outlier_um: [f64; 2],
+    /// Which way an outlier moves the reading: `random` (either sign) or `early` (the skip
+    /// trips before the beam is cut: the reading falls short along the approach, as a chip
+    /// or a coolant drop on the tool does).
+    pub outlier_sense: OutlierSense,
     /// Probability that an approach ends without a trip.
     pub no_trip_rate: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutlierSense {
+    #[default]
+    Random,
+    Early,
 }
 
 impl Default for NoiseConfig {
@@ -111,6 +123,7 @@ impl Default for NoiseConfig {
             sigma_um: 0.5,
             outlier_rate: 0.0,
             outlier_um: [5.0, 30.0],
+            outlier_sense: OutlierSense::Random,
             no_trip_rate: 0.0,
         }
     }
@@ -158,6 +171,8 @@ pub struct TruthConfig {
     /// Temperature sensors (deg C), written to `/temperature` unless listed in `unlogged`.
     pub sensors: BTreeMap<String, Channel>,
     pub unlogged: Vec<String>,
+    /// Periodic disturbances added to channels (the same channel names).
+    pub periodic: Vec<PeriodicTerm>,
 }
 
 impl Default for TruthConfig {
@@ -170,6 +185,7 @@ impl Default for TruthConfig {
             channels: BTreeMap::new(),
             sensors: BTreeMap::new(),
             unlogged: Vec::new(),
+            periodic: Vec::new(),
         }
     }
 }
@@ -261,12 +277,52 @@ impl RotaryEffects {
 pub struct SkipConfig {
     /// True skip latency of the virtual machine, ms (the machine file holds the calibrated one).
     pub latency_ms: f64,
+    /// Changes of the true latency: from `at_min` on it is `latency_ms` (an NC parameter or
+    /// firmware change, a new setter filter), whatever the feed.
+    pub changes: Vec<LatencyChange>,
 }
 
 impl Default for SkipConfig {
     fn default() -> Self {
-        SkipConfig { latency_ms: 0.0 }
+        SkipConfig {
+            latency_ms: 0.0,
+            changes: Vec::new(),
+        }
     }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LatencyChange {
+    pub at_min: f64,
+    pub latency_ms: f64,
+}
+
+impl SkipConfig {
+    /// The true latency at `t_min` after the scenario start, s.
+    pub fn latency_s_at(&self, t_min: f64) -> f64 {
+        self.changes
+            .iter()
+            .filter(|c| c.at_min <= t_min)
+            .max_by(|a, b| a.at_min.total_cmp(&b.at_min))
+            .map_or(self.latency_ms, |c| c.latency_ms)
+            * 1e-3
+    }
+}
+
+/// A periodic disturbance of one truth channel, outside any thermal lag (a coolant or chiller
+/// cycle, a hydraulic unit switching): `amplitude * sin(2 pi t / period + phase)`, t from the
+/// scenario start.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PeriodicTerm {
+    /// A truth channel name (see `TruthConfig::channels`).
+    pub channel: String,
+    /// In the channel's unit (um, ppm, urad).
+    pub amplitude: f64,
+    pub period_min: f64,
+    #[serde(default)]
+    pub phase_deg: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -354,6 +410,19 @@ impl Scenario {
             || !(0.0..=1.0).contains(&self.noise.no_trip_rate)
         {
             return bad("noise: sigma_um >= 0, rates within [0, 1]");
+        }
+        if self
+            .skip
+            .changes
+            .iter()
+            .any(|c| !c.at_min.is_finite() || !c.latency_ms.is_finite())
+        {
+            return bad("skip.changes: finite times and latencies");
+        }
+        if self.truth.periodic.iter().any(|p| {
+            !p.amplitude.is_finite() || !crate::positive(p.period_min) || !p.phase_deg.is_finite()
+        }) {
+            return bad("truth.periodic: finite amplitude and phase, period_min > 0");
         }
         if !crate::positive(self.sample_s) {
             return bad("sample_s must be > 0");

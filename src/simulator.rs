@@ -136,14 +136,18 @@ struct Virtual {
     targets: Vec<Target>,
     sensors: LagModel,
     base: MachineState,
+    /// Seconds since the scenario start (for the periodic terms and latency changes).
+    t_s: f64,
+    /// Periodic disturbances: target, amplitude, angular frequency (rad/s), phase (rad).
+    periodic: Vec<(Target, f64, f64, f64)>,
+    skip: crate::scenario::SkipConfig,
 }
 
 impl Virtual {
     fn new(k: &Kinematics, scn: &Scenario) -> Result<Self, SimError> {
         let channels: Vec<_> = scn.truth_channels().into_iter().collect();
-        let mut targets = Vec::new();
-        for (name, _) in &channels {
-            let t = match name.as_str() {
+        let target = |name: &str| -> Result<Target, SimError> {
+            Ok(match name {
                 "sx" => Target::Tool(0),
                 "sy" => Target::Tool(1),
                 "sz" => Target::Tool(2),
@@ -161,8 +165,20 @@ impl Virtual {
                     Some(id) => Target::Location(id.axis, id.slot, id.scale()),
                     None => return Err(SimError::UnknownChannel(other.to_string())),
                 },
-            };
-            targets.push(t);
+            })
+        };
+        let mut targets = Vec::new();
+        for (name, _) in &channels {
+            targets.push(target(name)?);
+        }
+        let mut periodic = Vec::new();
+        for p in &scn.truth.periodic {
+            periodic.push((
+                target(&p.channel)?,
+                p.amplitude,
+                std::f64::consts::TAU / (p.period_min * 60.0),
+                p.phase_deg.to_radians(),
+            ));
         }
         let inputs = scn.truth.inputs();
         let mut base = k.nominal_state();
@@ -174,24 +190,42 @@ impl Virtual {
             targets,
             sensors: LagModel::new(inputs, scn.sensors().into_iter().collect()),
             base,
+            t_s: 0.0,
+            periodic,
+            skip: scn.skip.clone(),
         })
     }
 
     fn advance(&mut self, dt_s: f64, rpm: f64, ambient_c: f64) {
         self.model.advance(dt_s, rpm, ambient_c);
         self.sensors.advance(dt_s, rpm, ambient_c);
+        self.t_s += dt_s;
+    }
+
+    /// The true skip latency now, s.
+    fn latency_s(&self) -> f64 {
+        self.skip.latency_s_at(self.t_s / 60.0)
     }
 
     fn state(&self, rpm: f64) -> MachineState {
         let mut s = self.base;
-        for (i, t) in self.targets.iter().enumerate() {
-            let v = self.model.value(i, rpm);
+        s.latency_s = self.latency_s();
+        let thermal = self
+            .targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| (*t, self.model.value(i, rpm)));
+        let periodic = self
+            .periodic
+            .iter()
+            .map(|(t, a, w, ph)| (*t, a * (w * self.t_s + ph).sin()));
+        for (t, v) in thermal.chain(periodic) {
             match t {
-                Target::Location(a, slot, scale) => s.loc[*a][*slot] += v * scale,
-                Target::Tool(j) => s.tool_tip[*j] += v * 1e-3,
-                Target::Setter(j) => s.beam_point[*j] += v * 1e-3,
+                Target::Location(a, slot, scale) => s.loc[a][slot] += v * scale,
+                Target::Tool(j) => s.tool_tip[j] += v * 1e-3,
+                Target::Setter(j) => s.beam_point[j] += v * 1e-3,
                 Target::Radius => s.radius += v * 1e-3,
-                Target::Scale(j) => s.linear.k[*j] += v * 1e-6,
+                Target::Scale(j) => s.linear.k[j] += v * 1e-6,
                 Target::Sxy => s.linear.sxy += v * 1e-6,
                 Target::Sxz => s.linear.sxz += v * 1e-6,
                 Target::Syz => s.linear.syz += v * 1e-6,
@@ -307,7 +341,7 @@ impl VirtualMachine {
         let feed = step.approach.feed_mm_min / 60.0;
         let travel = step.travel();
         let dir = f64::from(step.approach.direction);
-        let lat = step.approach.latency_shift(self.vm.base.latency_s);
+        let lat = step.approach.latency_shift(self.vm.latency_s());
         // The rotary axes' own errors at this pose: backlash by the sense of their last move,
         // indexing error by their angle. Production moves between cycles are not known here:
         // the sense comes from the approaches alone.
@@ -353,14 +387,16 @@ impl VirtualMachine {
                 if self.rng.random::<f64>() < self.noise.outlier_rate {
                     let [lo, hi] = self.noise.outlier_um;
                     let size = lo + (hi - lo) * self.rng.random::<f64>();
-                    e_um += if self.rng.random::<bool>() {
-                        size
-                    } else {
-                        -size
+                    let positive = self.rng.random::<bool>();
+                    e_um += match self.noise.outlier_sense {
+                        // Tripped before the beam is cut: short of it along the approach.
+                        crate::scenario::OutlierSense::Early => -dir * size,
+                        crate::scenario::OutlierSense::Random if positive => size,
+                        crate::scenario::OutlierSense::Random => -size,
                     };
                 }
                 pos[axis] = v + e_um * 1e-3;
-                (None, t_trip + self.vm.base.latency_s)
+                (None, t_trip + self.vm.latency_s())
             }
             _ => {
                 pos[axis] = travel.start + dir * travel.max_mm;

@@ -4,7 +4,9 @@
 
 use std::collections::BTreeMap;
 
-use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose};
+use driftwatch::diagnosis::{
+    DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose, screen_outliers,
+};
 use driftwatch::identify::SolveOptions;
 use driftwatch::kinematics::Kinematics;
 use driftwatch::plan::{Plan, PlanConfig};
@@ -482,10 +484,18 @@ fn null_selections(from: u64) -> Vec<String> {
             "seed {seed}: {:?}",
             d.baseline
         );
+        let periodic: Vec<f64> = d
+            .unexplained
+            .iter()
+            .filter_map(|u| u.periodic.as_ref().map(|p| p.period_min))
+            .collect();
+        assert!(periodic.is_empty(), "seed {seed}: periodic {periodic:?}");
         println!(
-            "seed {seed}: baseline chi2/dof {:.3}, held-out {:.3} um, selected {:?}",
+            "seed {seed}: baseline chi2/dof {:.3}, held-out {:.3} um, {} outliers listed of {} readings, selected {:?}",
             d.baseline.chi2_dof,
             d.baseline.rms_heldout_um,
+            d.outliers.len(),
+            d.readings + d.outliers.len(),
             d.accepted.iter().map(|a| &a.term).collect::<Vec<_>>()
         );
         out.extend(
@@ -534,4 +544,338 @@ fn injected_concealed_effects_are_named_sized_and_improve_the_held_out_fit() {
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
+}
+
+// ---------------------------------------------------------------------------------------
+// Robust screening: the false-outlier share on clean recordings, and early trips found.
+
+/// The readings that are outliers by construction: where the recording differs from the same
+/// scenario without outliers and without noise by more than 3 um (6 sigma; an outlier is 5 um
+/// or more).
+fn injected_outliers(scn: &Scenario, inputs: &Inputs) -> Vec<Place> {
+    let mut clean = scn.clone();
+    clean.noise.sigma_um = 0.0;
+    clean.noise.outlier_rate = 0.0;
+    let truth = deviations(&clean, &record(&clean, false));
+    deviations(scn, inputs)
+        .into_iter()
+        .filter(|(k, v)| (v - truth[k]).abs() > 3.0)
+        .map(|(k, _)| k)
+        .collect()
+}
+
+/// Listed outliers on clean recordings (seeds `from..from + 10`) and with 2 % of readings
+/// tripping 5-30 um early: `(readings, listed)` clean, `(injected, found, falsely listed)`.
+fn screening(from: u64) -> ((usize, usize), (usize, usize, usize)) {
+    let (mut readings, mut listed) = (0, 0);
+    let (mut injected, mut found, mut false_listed) = (0, 0, 0);
+    let mut at = [0usize; 2];
+    for seed in from..from + 10 {
+        let scn = three_days(seed);
+        let inputs = record(&scn, false);
+        let d = diagnose_inputs(&scn, &inputs);
+        readings += d.readings + d.outliers.len();
+        listed += d.outliers.len();
+        // The calibration below the threshold: the shares beyond 3 and 4 sigma.
+        let k = Kinematics::load(&scn.machine).unwrap();
+        let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+        let model = DiagnoseOptions::new(0.5).model;
+        for (a, ks) in at.iter_mut().zip([3.0, 4.0]) {
+            *a += screen_outliers(&rows, &inputs.spindle, &model, 0.5, ks).len();
+        }
+        let mut scn = three_days(seed);
+        scn.noise.outlier_rate = 0.02;
+        scn.noise.outlier_um = [5.0, 30.0];
+        scn.noise.outlier_sense = driftwatch::scenario::OutlierSense::Early;
+        let inputs = record(&scn, false);
+        let truth = injected_outliers(&scn, &inputs);
+        let d = diagnose_inputs(&scn, &inputs);
+        // A listed outlier's place, found by its time among the recording's readings.
+        let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+        let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
+        let steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
+        let place_at: BTreeMap<i64, Place> = rows
+            .rows
+            .iter()
+            .map(|r| r.t_ns)
+            .zip(places(&cycles, &steps))
+            .collect();
+        let listed_keys: Vec<Place> = d.outliers.iter().map(|o| place_at[&o.t_ns].clone()).collect();
+        let hit = truth.iter().filter(|k| listed_keys.contains(k)).count();
+        let wrong = listed_keys.iter().filter(|k| !truth.contains(k)).count();
+        println!(
+            "seed {seed}: clean {} listed; early trips: {} injected, {hit} found, {wrong} falsely listed; selected {:?}",
+            listed,
+            truth.len(),
+            d.accepted.iter().map(|a| &a.term).collect::<Vec<_>>()
+        );
+        assert!(
+            d.accepted.is_empty(),
+            "seed {seed}: the outliers made a selection"
+        );
+        injected += truth.len();
+        found += hit;
+        false_listed += wrong;
+    }
+    let expect = |k: f64| 2.0 * normal_tail(k) * readings as f64;
+    println!(
+        "clean, beyond 3 sigma: {} (Gaussian {:.1}); beyond 4 sigma: {} (Gaussian {:.2})",
+        at[0],
+        expect(3.0),
+        at[1],
+        expect(4.0)
+    );
+    // Calibrated: the share beyond 3 sigma within 4 binomial sigma of the Gaussian's.
+    let e3 = expect(3.0);
+    assert!(
+        (at[0] as f64 - e3).abs() < 4.0 * e3.sqrt(),
+        "{} beyond 3 sigma against {e3:.1}",
+        at[0]
+    );
+    ((readings, listed), (injected, found, false_listed))
+}
+
+/// `P(Z > k)` of a standard normal (Abramowitz-Stegun 26.2.17, error under 1e-7).
+fn normal_tail(k: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.2316419 * k);
+    let poly = t
+        * (0.319381530
+            + t * (-0.356563782 + t * (1.781477937 + t * (-1.821255978 + t * 1.330274429))));
+    (-k * k / 2.0).exp() / (2.0 * std::f64::consts::PI).sqrt() * poly
+}
+
+#[test]
+fn robust_screening_lists_the_early_trips_and_no_good_reading() {
+    let ((readings, listed), (injected, found, false_listed)) = screening(3000);
+    // At 5 sigma of a leave-one-out residual the expected false share is 2 Phi(-5) = 5.7e-7:
+    // under 0.03 over these readings.
+    println!(
+        "clean: {listed} listed of {readings} readings (share {:.1e}, expected 5.7e-7); 2 % early trips of 5-30 um: {found} of {injected} found, {false_listed} good readings listed",
+        listed as f64 / readings as f64
+    );
+    assert!(listed <= 1, "{listed} of {readings}");
+    assert_eq!(found, injected);
+    assert!(false_listed <= 1, "{false_listed}");
+}
+
+// ---------------------------------------------------------------------------------------
+// Confounded physics: each case named, in the right ambiguity group or unexplained, never a
+// confident wrong label.
+
+enum Honest {
+    /// An accepted term of one of these effects, named or not (then with its group), or one
+    /// of them explaining an accepted term comparably (in its group); or listed as not
+    /// identifiable with nothing accepted.
+    Effect(&'static [&'static str]),
+    /// A periodic residual reported as unexplained, at this period or an alias of it.
+    UnexplainedPeriodic(f64),
+}
+
+struct Confounded {
+    name: &'static str,
+    setup: fn(&mut Scenario),
+    strip_spins: bool,
+    expect: Honest,
+}
+
+fn confounded_cases() -> Vec<Confounded> {
+    vec![
+        Confounded {
+            name: "skip latency step at one feed (+2.4 ms from day 2, 10:00)",
+            setup: |s| {
+                s.skip.changes = vec![driftwatch::scenario::LatencyChange {
+                    at_min: 1440.0 + 240.0,
+                    latency_ms: 2.4,
+                }];
+            },
+            strip_spins: false,
+            expect: Honest::Effect(&["skip_latency"]),
+        },
+        Confounded {
+            name: "near-isotropic scale expansion (kx 6, ky 5.5 ppm/K, +-1.5 K)",
+            setup: |s| {
+                swing(s);
+                s.truth.channels.insert(
+                    "kx".into(),
+                    channel("ambient = [{ gain = 6.0, tau_min = 120.0 }]"),
+                );
+                s.truth.channels.insert(
+                    "ky".into(),
+                    channel("ambient = [{ gain = 5.5, tau_min = 120.0 }]"),
+                );
+            },
+            strip_spins: false,
+            expect: Honest::Effect(&["scale_expansion"]),
+        },
+        Confounded {
+            name: "C indexing error (200 urad first harmonic, 100 urad second)",
+            setup: |s| {
+                s.rotary.index_urad = vec![vec![], vec![[1.0, 200.0, 0.0], [2.0, 0.0, 100.0]]];
+            },
+            strip_spins: false,
+            expect: Honest::Effect(&["c_indexing"]),
+        },
+        Confounded {
+            name: "20-min periodic tool-tip disturbance (sz, 1 um), outside the library",
+            setup: |s| {
+                s.truth.periodic = vec![driftwatch::scenario::PeriodicTerm {
+                    channel: "sz".into(),
+                    amplitude: 1.0,
+                    period_min: 20.0,
+                    phase_deg: 0.0,
+                }];
+            },
+            strip_spins: false,
+            expect: Honest::UnexplainedPeriodic(20.0),
+        },
+        Confounded {
+            name: "measurement spins missing from the spindle log",
+            setup: nothing,
+            strip_spins: true,
+            expect: Honest::Effect(&["measurement_heating"]),
+        },
+    ]
+}
+
+/// The outcome of one case: `Ok(summary)` when honest, `Err(summary)` when not.
+fn honest(case: &Confounded, seed: u64) -> Result<String, String> {
+    let mut scn = three_days(seed);
+    (case.setup)(&mut scn);
+    let d = diagnose_inputs(&scn, &record(&scn, case.strip_spins));
+    let terms: Vec<String> = d
+        .accepted
+        .iter()
+        .map(|a| {
+            let mut g: Vec<&str> = a
+                .ambiguity_group
+                .iter()
+                .filter(|m| m.comparable)
+                .map(|m| m.effect.as_str())
+                .collect();
+            g.dedup();
+            format!(
+                "{} {} [{}]{}",
+                a.effect,
+                a.term,
+                if a.named { "named" } else { "not named" },
+                if g.is_empty() {
+                    String::new()
+                } else {
+                    format!(" group {g:?}")
+                }
+            )
+        })
+        .collect();
+    let periodic: Vec<String> = d
+        .unexplained
+        .iter()
+        .filter_map(|u| u.periodic.as_ref())
+        .map(|p| {
+            format!(
+                "unexplained periodic {:.1} min (aliases {:?}), {:.2} um RMS",
+                p.period_min, p.aliases_min, p.amplitude_rms_um
+            )
+        })
+        .collect();
+    let ni: Vec<&str> = d
+        .not_identifiable
+        .iter()
+        .map(|n| n.effect.as_str())
+        .collect();
+    let summary = format!("accepted {terms:?}; {periodic:?}; not identifiable {ni:?}");
+    let (wrong, right) = match case.expect {
+        Honest::Effect(ok) => {
+            let wrong = d
+                .accepted
+                .iter()
+                .any(|a| a.named && !ok.contains(&a.effect.as_str()));
+            // The effect accepted, or an alternative that explains the data comparably.
+            let right = d.accepted.iter().any(|a| {
+                ok.contains(&a.effect.as_str())
+                    || a.ambiguity_group
+                        .iter()
+                        .any(|m| m.comparable && ok.contains(&m.effect.as_str()))
+            }) || (d.accepted.is_empty() && ok.iter().any(|e| ni.contains(e)));
+            (wrong, right)
+        }
+        Honest::UnexplainedPeriodic(period) => {
+            let wrong = d.accepted.iter().any(|a| a.named);
+            let right = d
+                .unexplained
+                .iter()
+                .filter_map(|u| u.periodic.as_ref())
+                .any(|p| {
+                    // The cadence aliases a period: any of the reported ones near the truth's
+                    // or one of its aliases at a 30-min cadence.
+                    let f0 = 1.0 / period;
+                    let fs = 1.0 / 30.0;
+                    std::iter::once(p.period_min)
+                        .chain(p.aliases_min.iter().copied())
+                        .any(|q| {
+                            let f = 1.0 / q;
+                            (-3..=3).any(|k| {
+                                let a = (f0 + f64::from(k) * fs).abs();
+                                (f - a).abs() < 0.02 * a
+                            })
+                        })
+                });
+            (wrong, right)
+        }
+    };
+    if wrong || !right {
+        Err(summary)
+    } else {
+        Ok(summary)
+    }
+}
+
+#[test]
+fn confounded_physics_is_named_grouped_or_unexplained_never_wrongly_named() {
+    let mut failures = Vec::new();
+    for (i, case) in confounded_cases().iter().enumerate() {
+        for seed in [200 + 2 * i as u64, 201 + 2 * i as u64] {
+            match honest(case, seed) {
+                Ok(s) => println!("PASS {} (seed {seed}): {s}", case.name),
+                Err(s) => {
+                    println!("FAIL {} (seed {seed}): {s}", case.name);
+                    failures.push(format!("{} seed {seed}", case.name));
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
+}
+
+#[test]
+#[ignore]
+fn debug_confounded() {
+    let i: usize = std::env::var("CASE").unwrap().parse().unwrap();
+    let seed: u64 = std::env::var("SEED").unwrap().parse().unwrap();
+    let case = &confounded_cases()[i];
+    let mut scn = three_days(seed);
+    (case.setup)(&mut scn);
+    let inputs = record(&scn, case.strip_spins);
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+    println!("params {:?} locations {:?}", rows.params, rows.locations);
+    let d = diagnose_inputs(&scn, &inputs);
+    for a in &d.accepted {
+        println!(
+            "{} {} named {} dbic {:.0} t {:.1}",
+            a.effect, a.term, a.named, a.delta_bic, a.t
+        );
+        for g in &a.ambiguity_group {
+            println!(
+                "   {} {} comparable {}: {}",
+                g.effect, g.term, g.comparable, g.reason
+            );
+        }
+    }
+    for r in &d.refused {
+        println!(
+            "refused {} {} dbic {:.1} t {:.1}: {}",
+            r.effect, r.term, r.delta_bic, r.t, r.reason
+        );
+    }
+    println!("drivers {:?}", d.drivers);
 }
