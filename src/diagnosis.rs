@@ -780,13 +780,16 @@ fn scan(q: &DMatrix<f64>, e: &DVector<f64>, x: &DMatrix<f64>) -> (f64, f64) {
     (d.max(0.0), free)
 }
 
+/// Leverage above which a reading is not screened.
+const MAX_SCREEN_LEVERAGE: f64 = 0.9;
+
 /// The readings that are outliers against a robust fit of the baseline: `(row, residual um)`,
 /// in row order. The baseline is fitted by iteratively reweighted least squares (three Huber
 /// steps, k = 1.5 sigma, then Tukey's bisquare, c = 4.685 sigma, to convergence), so that the
 /// readings it screens cannot pull it; a reading is an outlier when its residual, scaled to a
 /// leave-one-out residual by its leverage (`r / sqrt(1 - h)`), is beyond `k_sigma` sigma. On
 /// clean data the scaled residuals are standard normal: the false share is `2 Phi(-k)`
-/// (5.7e-7 at 5 sigma).
+/// (5.7e-7 at 5 sigma). A reading of leverage above [`MAX_SCREEN_LEVERAGE`] is not judged.
 pub fn screen_outliers(
     rows: &Rows,
     spindle: &[Event],
@@ -805,8 +808,11 @@ pub fn screen_outliers(
     );
     let (r, h) = robust_fit(&a, &y);
     (0..r.len())
+        // A reading the fit passes through (leverage near 1: a short recording, nearly as
+        // many parameters as readings) cannot be judged: its scaled residual is rounding.
+        .filter(|&i| h[i] < MAX_SCREEN_LEVERAGE)
         .filter_map(|i| {
-            let loo = r[i] / (1.0 - h[i]).max(1e-6).sqrt();
+            let loo = r[i] / (1.0 - h[i]).sqrt();
             (loo.abs() > k_sigma).then_some((i, r[i] * sigma_um))
         })
         .collect()
