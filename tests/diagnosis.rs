@@ -100,6 +100,20 @@ fn places(cycles: &[i64], steps: &[String]) -> Vec<Place> {
         .collect()
 }
 
+/// Each reading's place by its time: a diagnosis that screened some readings out keeps the
+/// places of the rest.
+fn places_by_time(scn: &Scenario, inputs: &Inputs) -> BTreeMap<i64, Place> {
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+    let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
+    let steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
+    rows.rows
+        .iter()
+        .map(|r| r.t_ns)
+        .zip(places(&cycles, &steps))
+        .collect()
+}
+
 /// Each reading's deviation by its place, um.
 fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<Place, f64> {
     let k = Kinematics::load(&scn.machine).unwrap();
@@ -408,7 +422,8 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
             bare.noise.sigma_um = 0.0;
             let without = deviations(&bare, &record(&bare, false));
             let s = &d.series;
-            let place = places(&s.cycle, &s.step);
+            let place_at = places_by_time(&scn, &inputs);
+            let place: Vec<Place> = s.t_ns.iter().map(|t| place_at[t].clone()).collect();
             let truth_foot: Vec<f64> = (0..s.t_ns.len())
                 .map(|i| {
                     let key = &place[i];
@@ -591,16 +606,12 @@ fn screening(from: u64) -> ((usize, usize), (usize, usize, usize)) {
         let truth = injected_outliers(&scn, &inputs);
         let d = diagnose_inputs(&scn, &inputs);
         // A listed outlier's place, found by its time among the recording's readings.
-        let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
-        let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
-        let steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
-        let place_at: BTreeMap<i64, Place> = rows
-            .rows
+        let place_at = places_by_time(&scn, &inputs);
+        let listed_keys: Vec<Place> = d
+            .outliers
             .iter()
-            .map(|r| r.t_ns)
-            .zip(places(&cycles, &steps))
+            .map(|o| place_at[&o.t_ns].clone())
             .collect();
-        let listed_keys: Vec<Place> = d.outliers.iter().map(|o| place_at[&o.t_ns].clone()).collect();
         let hit = truth.iter().filter(|k| listed_keys.contains(k)).count();
         let wrong = listed_keys.iter().filter(|k| !truth.contains(k)).count();
         println!(
@@ -878,4 +889,47 @@ fn debug_confounded() {
         );
     }
     println!("drivers {:?}", d.drivers);
+}
+
+/// One injected case over a few seeds (`CASE=measurement_heating SEEDS=119,120 cargo test
+/// --test diagnosis debug_injected -- --ignored --nocapture`), with every accepted term's
+/// group.
+#[test]
+#[ignore]
+fn debug_injected() {
+    let name = std::env::var("CASE").unwrap_or_else(|_| "measurement_heating".into());
+    let seeds: Vec<u64> = std::env::var("SEEDS")
+        .unwrap_or_else(|_| "119".into())
+        .split(',')
+        .filter_map(|s| s.trim().parse().ok())
+        .collect();
+    for case in cases().iter().filter(|c| c.effect == name) {
+        for &seed in &seeds {
+            println!("seed {seed}: {:?}", check(case, seed));
+            let mut scn = three_days(seed);
+            (case.setup)(&mut scn);
+            (case.inject)(&mut scn);
+            let d = diagnose_inputs(&scn, &record(&scn, case.strip_spins));
+            println!("  {} outliers listed", d.outliers.len());
+            for a in &d.accepted {
+                println!(
+                    "  {} {} named {} dbic {:.0} held-out {:.3} -> {:.3} ({} of {} blocks)",
+                    a.effect,
+                    a.term,
+                    a.named,
+                    a.delta_bic,
+                    a.heldout_rms_before_um,
+                    a.heldout_rms_after_um,
+                    a.blocks_improved,
+                    a.blocks
+                );
+                for g in &a.ambiguity_group {
+                    println!(
+                        "     {} {} comparable {}: {}",
+                        g.effect, g.term, g.comparable, g.reason
+                    );
+                }
+            }
+        }
+    }
 }
