@@ -475,7 +475,7 @@ async fn cycle(
     })))
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/model", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the thermal model: status (waiting, fitted, disabled), parameters with their standard uncertainties, fit quality, time constants, data span"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/model", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the thermal model: status (waiting, fitted, disabled), parameters with their standard uncertainties, fit quality, time constants, data span; per error what is served (model, last_measured or no_change) and why, its held-out scores, band factor and offset walk"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn model(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -506,6 +506,8 @@ async fn model(
                     "discrepancy": c.discrepancy_um,
                     "ridge": c.ridge,
                     "held_out_rmse": c.cv_rmse_um,
+                    "offset_walk_per_h": c.offset_walk_per_h.unwrap_or(model.config.offset_walk_per_h),
+                    "served": m.served.iter().find(|g| g.channel == c.name),
                 })
             })
             .collect();
@@ -515,7 +517,7 @@ async fn model(
             "temperature_inputs": model.config.temperatures,
             "n_ref_rpm": model.config.n_ref_rpm,
             "gamma": model.config.gamma,
-            "offset_walk_um2_per_h": model.config.offset_walk_um2_per_h,
+            "offset_walk_per_h": model.config.offset_walk_per_h,
             "t_ref_c": model.t_ref_c,
             "data_from_ns": model.from_ns,
             "data_to_ns": model.to_ns,
@@ -528,6 +530,7 @@ async fn model(
         "message": m.message,
         "validated_cycles": m.validated_cycles,
         "updates_since_fit": m.updates_since_fit,
+        "served": m.served,
         "model": fitted,
     })))
 }
@@ -537,7 +540,7 @@ struct At {
     at: Option<i64>,
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/prediction", params(("id" = String, Path, description = "machine id"), ("at" = Option<i64>, Query, description = "ns since the Unix epoch; default: the loop's last look. Not before it: the model runs forward, with the inputs held")), responses((status = 200, description = "each error's predicted value and standard uncertainty (um, urad)"), (status = 400, description = "a time before the model's last input"), (status = 404, description = "no model fitted yet")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/prediction", params(("id" = String, Path, description = "machine id"), ("at" = Option<i64>, Query, description = "ns since the Unix epoch; default: the loop's last look. Not before it: the model runs forward, with the inputs held")), responses((status = 200, description = "each error's served value and standard uncertainty (um, urad), its source (model, last_measured or no_change, with the reason for a fallback) and the model's own value"), (status = 400, description = "a time before the model's last input"), (status = 404, description = "no model fitted yet")), security((), ("bearer" = [])))]
 async fn prediction(
     State(st): State<Shared>,
     Path(id): Path<String>,

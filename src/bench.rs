@@ -303,8 +303,14 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
             c.minutes, c.cycles, c.cycles_ok
         );
         println!(
-            "  {:<9} {:>19} {:>19} {:>19}",
-            "", "none rms / max", "last meas. rms/max", "predicted rms/max"
+            "  {:<9} {:>19} {:>19} {:>19} {:>9} {:>14} {:>22}",
+            "",
+            "none rms / max",
+            "last meas. rms/max",
+            "predicted rms/max",
+            "removed",
+            "served (end)",
+            "band vs truth: z rms, <1s, <2s"
         );
         let names: Vec<&String> = c.none.errors.keys().collect();
         for n in names {
@@ -312,12 +318,59 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
                 let s = r.errors[n];
                 format!("{:>8.2} / {:>8.2}", s.rms, s.max)
             };
+            let served = c
+                .served
+                .iter()
+                .find(|g| &g.channel == n)
+                .map_or("-", |g| g.source.as_str());
+            let band = c.band.get(n.as_str()).map_or("-".to_string(), |b| {
+                format!(
+                    "{:.2}, {:.0} %, {:.0} %",
+                    b.z_rms,
+                    100.0 * b.within_1_sigma,
+                    100.0 * b.within_2_sigma
+                )
+            });
+            let removed = c.removed(n);
             println!(
-                "  {:<9} {:>19} {:>19} {:>19}",
+                "  {:<9} {:>19} {:>19} {:>19} {:>8.1}% {:>14} {:>22}{}",
                 n,
                 f(&c.none),
                 f(&c.last_measured),
-                f(&c.predicted)
+                f(&c.predicted),
+                100.0 * removed,
+                served,
+                band,
+                if removed < 0.0 {
+                    "  WORSE THAN NONE"
+                } else {
+                    ""
+                }
+            );
+        }
+        println!(
+            "  held-out cycles (each scored before it corrected the model), at the end of the day:"
+        );
+        for g in &c.served {
+            println!(
+                "    {:<6} {:>3} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} {}, band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {}^2/h{}",
+                g.channel,
+                g.scored,
+                g.rmse_model,
+                g.rmse_last_measured,
+                g.rmse_no_change,
+                g.unit,
+                g.sigma_scale,
+                g.z_rms,
+                100.0 * g.within_1_sigma,
+                100.0 * g.within_2_sigma,
+                g.offset_walk_per_h,
+                g.unit,
+                if g.offset_walk_learned {
+                    " (learned)"
+                } else {
+                    ""
+                }
             );
         }
         let t = |s: driftwatch::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);

@@ -647,11 +647,12 @@ impl MachineRuntime {
                     .map(|p| (p.channel.clone(), (p.value, p.sigma)))
                     .collect();
                 let about = format!(
-                    "the thermal model{}",
+                    "the thermal model{}{}",
                     served
                         .cycle
                         .map(|c| format!(" after cycle {c}"))
-                        .unwrap_or_default()
+                        .unwrap_or_default(),
+                    LiveModel::fallback_note(&preds)
                 );
                 match compensation::predicted_set(
                     Some(served),

@@ -11,7 +11,9 @@ use serde::Serialize;
 use crate::compensation::PredictionPolicy;
 use crate::compensation::TABLE_BC_ERRORS;
 use crate::scheduler::Uncertain;
-use crate::thermal_model::{Event, Features, Obs, Prediction, Predictor, ThermalModel, fit_rows};
+use crate::thermal_model::{
+    Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
+};
 
 /// How far the rows' lag states trail the inputs: longer than any cycle, so that a cycle's
 /// reference time is never behind them when its result arrives.
@@ -28,6 +30,9 @@ pub struct ModelView {
     pub model: Option<Arc<ThermalModel>>,
     /// Observations the online filter has taken since the fit.
     pub updates_since_fit: usize,
+    /// What each error serves (the model, or its fallback: the last measured value or no
+    /// change) and why: its held-out scores, the band's factor and the offset walk.
+    pub served: Vec<GuardSummary>,
 }
 
 #[derive(Debug, Clone)]
@@ -311,6 +316,24 @@ impl LiveModel {
             })
     }
 
+    /// The errors served from a fallback instead of the model, for a served set's reason
+    /// (empty when every error is the model's).
+    pub fn fallback_note(predictions: &[Prediction]) -> String {
+        let held: Vec<String> = predictions
+            .iter()
+            .filter(|p| p.source != Served::Model)
+            .map(|p| format!("{} {}", p.channel, p.source.as_str().replace('_', " ")))
+            .collect();
+        if held.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; served instead of the model (it did worse on held-out cycles): {}",
+                held.join(", ")
+            )
+        }
+    }
+
     pub fn is_fitted(&self) -> bool {
         self.predictor.is_some()
     }
@@ -335,6 +358,11 @@ impl LiveModel {
             validated_cycles: self.ok_cycles,
             model: self.predictor.as_ref().map(|p| p.model.clone()),
             updates_since_fit: self.updates,
+            served: self
+                .predictor
+                .as_ref()
+                .map(Predictor::guards)
+                .unwrap_or_default(),
         }
     }
 }

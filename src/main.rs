@@ -82,6 +82,9 @@ enum Command {
         /// Use this plan instead of the scenario's (built-in name or TOML path).
         #[arg(long)]
         plan: Option<String>,
+        /// Repeat the scenario's first day (its spindle program) this many days.
+        #[arg(long)]
+        days: Option<usize>,
     },
     /// Identify every cycle of a contract recording.
     Solve {
@@ -292,7 +295,8 @@ fn run(cmd: Command) -> Result<ExitCode> {
             scenario,
             out,
             plan,
-        } => cmd_simulate(&scenario, &out, plan.as_deref()),
+            days,
+        } => cmd_simulate(&scenario, &out, plan.as_deref(), days),
         Command::Import {
             what: ImportWhat::Csv(a),
         } => model_cmd::cmd_import_csv(a),
@@ -446,8 +450,26 @@ fn write_recording(
     Ok(())
 }
 
-fn cmd_simulate(scenario: &str, out: &Path, plan: Option<&str>) -> Result<ExitCode> {
-    let (scn, k, plan) = load_scenario(scenario, plan)?;
+fn cmd_simulate(
+    scenario: &str,
+    out: &Path,
+    plan: Option<&str>,
+    days: Option<usize>,
+) -> Result<ExitCode> {
+    let (mut scn, k, plan) = load_scenario(scenario, plan)?;
+    if let Some(d) = days {
+        anyhow::ensure!(d >= 1, "--days takes 1 or more");
+        scn = scn.repeated_days(d);
+    }
+    // A scenario that lists no cycles gets the service's schedule: warm-up and after
+    // spindle stops, never while cutting.
+    if scn.cycle_times_min().is_empty() {
+        scn.cycles.at_min = driftwatch::strategies::scheduled_cycles(
+            &scn,
+            &plan,
+            &driftwatch::scheduler::SchedulePolicy::default(),
+        );
+    }
     let sim = simulate(&scn, &k, &plan)?;
     let dets = sim.detection_stream();
     let mut checks = CycleChecks::new(&k);

@@ -224,6 +224,32 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             c.name, c.n_obs, c.rms_um, c.chi2_dof, c.discrepancy_um, c.ridge, c.cv_rmse_um
         );
     }
+    // What each channel will serve, from the held-out tail of the fit data.
+    let p = driftwatch::thermal_model::Predictor::new(&model, model.to_ns);
+    println!(
+        "held-out tail ({:.0} % of each channel's observations): RMSE model / last measured / no change, offset walk, band factor, served",
+        100.0 * model.config.holdout_share
+    );
+    for g in p.guards() {
+        println!(
+            "{:<12} {:>3} scored {:>8.3} {:>8.3} {:>8.3} {} walk {} {}^2/h{}  band x{:.2}  {}",
+            g.channel,
+            g.scored,
+            g.rmse_model,
+            g.rmse_last_measured,
+            g.rmse_no_change,
+            g.unit,
+            g.offset_walk_per_h,
+            g.unit,
+            if g.offset_walk_learned {
+                " (learned)"
+            } else {
+                " (default)"
+            },
+            g.sigma_scale,
+            g.source.as_str()
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 
@@ -245,9 +271,45 @@ pub struct PredictArgs {
     /// after the first event, or RFC 3339); later ones are compared, not used. Default: all.
     #[arg(long)]
     update_until: Option<String>,
-    /// Print steps from this time on (same forms).
+    /// Print steps from this time on (same forms); observations from then on are scored
+    /// before they are used (default: those after --update-until).
     #[arg(long)]
     from: Option<String>,
+}
+
+/// The truth of a simulated recording (`/sim/truth`, the minute samples, not the cycles'):
+/// time and apparent errors.
+fn truth_of(path: &std::path::Path) -> Result<Vec<(i64, std::collections::BTreeMap<String, f64>)>> {
+    let r = read_file(
+        path,
+        &ReadOptions {
+            keep_raw: true,
+            ..Default::default()
+        },
+    )
+    .with_context(|| format!("reading {}", path.display()))?;
+    let mut out = Vec::new();
+    for m in r
+        .raw
+        .iter()
+        .filter(|m| m.topic == driftwatch::recording::TOPIC_TRUTH)
+    {
+        let Ok(v) = serde_json::from_slice::<serde_json::Value>(&m.data) else {
+            continue;
+        };
+        if v.get("cycle").is_some_and(|c| !c.is_null()) {
+            continue;
+        }
+        if let Some(a) = v.get("apparent").and_then(|a| a.as_object()) {
+            let values = a
+                .iter()
+                .filter_map(|(k, x)| x.as_f64().map(|x| (k.clone(), x)))
+                .collect();
+            out.push((m.t_ns, values));
+        }
+    }
+    out.sort_by_key(|x| x.0);
+    Ok(out)
 }
 
 pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
@@ -275,8 +337,13 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         .map(|u| parse_time(u, t0))
         .transpose()?
         .unwrap_or(t0);
+    let score_from = if a.from.is_some() {
+        from
+    } else {
+        update_until.saturating_add(1)
+    };
     let step_ns = (a.step_s * 1e9).round() as i64;
-    let (steps, scores) = replay(&model, &events, step_ns, update_until);
+    let (steps, scores, served) = replay(&model, &events, step_ns, update_until, score_from);
     let mut out = std::io::stdout().lock();
     if !a.json {
         writeln!(
@@ -304,6 +371,9 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
                             "value": x.value,
                             "sigma": x.sigma,
                             "source": source(&x.channel),
+                            "served_from": x.source.as_str(),
+                            "model_value": x.model_value,
+                            "fallback_reason": x.reason,
                             "measured": s.measured.get(&x.channel),
                         }),
                     )
@@ -330,11 +400,56 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         }
     }
     drop(out);
+    let what = if a.from.is_some() {
+        "readings from --from on, each scored before it is used"
+    } else {
+        "readings after the last update"
+    };
     for s in &scores {
         eprintln!(
-            "{}: {} readings after the last update: RMSE {:.3} um (persistence {:.3} um)",
-            s.channel, s.n, s.rmse_um, s.persistence_rmse_um
+            "{}: {} {what}: RMSE {:.3} {u} (persistence {:.3}, no change {:.3}, served {:.3}); band: z rms {:.2}, within 1 sigma {:.0} %, within 2 sigma {:.0} %",
+            s.channel,
+            s.n,
+            s.rmse_um,
+            s.persistence_rmse_um,
+            s.no_change_rmse_um,
+            s.served_rmse_um,
+            s.z_rms,
+            100.0 * s.within_1_sigma,
+            100.0 * s.within_2_sigma,
+            u = driftwatch::compensation::unit(&s.channel)
         );
+    }
+    for g in &served {
+        eprintln!(
+            "{} at the end: {} (offset walk {} {}^2/h, band x{:.2})",
+            g.channel, g.reason, g.offset_walk_per_h, g.unit, g.sigma_scale
+        );
+    }
+    let truth = truth_of(&a.recording)?;
+    if let Some((_, reference)) = truth.first() {
+        let t = driftwatch::thermal_model::truth_scores(&steps, &events, &truth, reference, from);
+        eprintln!(
+            "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
+        );
+        for s in &t {
+            let unit = driftwatch::compensation::unit(&s.channel);
+            eprintln!(
+                "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
+                s.channel,
+                s.samples,
+                s.none_rms,
+                s.last_measured_rms,
+                s.served_rms,
+                100.0 * s.removed(),
+                s.model_rms,
+                if s.served_rms > s.none_rms {
+                    "  WORSE THAN NONE"
+                } else {
+                    ""
+                }
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -194,6 +194,16 @@ pub struct StrategyResult {
     pub tool_tip_cutting: Stats,
 }
 
+/// The served band against the truth, every minute with a prediction: `z = (truth -
+/// served) / sigma`.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Band {
+    pub minutes: usize,
+    pub z_rms: f64,
+    pub within_1_sigma: f64,
+    pub within_2_sigma: f64,
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct Comparison {
     pub minutes: usize,
@@ -202,12 +212,29 @@ pub struct Comparison {
     pub none: StrategyResult,
     pub last_measured: StrategyResult,
     pub predicted: StrategyResult,
+    /// Per error, the predicted strategy's band against the truth.
+    pub band: BTreeMap<String, Band>,
+    /// Per error, what the model served at the end of the day and why, with the held-out
+    /// scores (each cycle scored before it corrected the model) and the band on them.
+    pub served: Vec<crate::thermal_model::GuardSummary>,
 }
 
 impl Comparison {
     /// The share of the thermal error RMS the prediction removes, for the tool tip.
     pub fn tool_tip_reduction(&self) -> f64 {
         1.0 - self.predicted.tool_tip.rms / self.none.tool_tip.rms
+    }
+
+    /// The share of an error's thermal error RMS (what no compensation leaves) the
+    /// prediction removes; negative when it is worse than none.
+    pub fn removed(&self, error: &str) -> f64 {
+        match (
+            self.none.errors.get(error),
+            self.predicted.errors.get(error),
+        ) {
+            (Some(n), Some(p)) => 1.0 - p.rms / n.rms,
+            _ => f64::NAN,
+        }
     }
 }
 
@@ -266,6 +293,7 @@ pub fn compare(
     let mut res: [BTreeMap<String, Vec<f64>>; 3] = Default::default();
     let mut tips: [Vec<f64>; 3] = Default::default();
     let mut cutting_tips: [Vec<(usize, f64)>; 3] = Default::default();
+    let mut band: BTreeMap<String, (usize, f64, usize, usize)> = BTreeMap::new();
     let (mut k_in, mut k_seen, mut k_state) = (0, 0, 0);
     let mut cutting = false;
     for (minute, truth) in sim.truth.iter().enumerate() {
@@ -297,12 +325,21 @@ pub fn compare(
                 _ => break,
             }
         }
-        let predicted: BTreeMap<String, f64> = live
-            .predict(truth.t_ns)
-            .unwrap_or_default()
-            .into_iter()
-            .map(|p| (p.channel, p.value))
-            .collect();
+        let preds = live.predict(truth.t_ns).unwrap_or_default();
+        for p in &preds {
+            if let Some(t) = truth.apparent.get(&p.channel)
+                && p.sigma > 0.0
+            {
+                let z2 = ((t - p.value) / p.sigma).powi(2);
+                let b = band.entry(p.channel.clone()).or_default();
+                b.0 += 1;
+                b.1 += z2;
+                b.2 += usize::from(z2 <= 1.0);
+                b.3 += usize::from(z2 <= 4.0);
+            }
+        }
+        let predicted: BTreeMap<String, f64> =
+            preds.into_iter().map(|p| (p.channel, p.value)).collect();
         for (i, served) in [&reference, &last, &predicted].into_iter().enumerate() {
             let mut residual = BTreeMap::new();
             for n in &names {
@@ -342,6 +379,22 @@ pub fn compare(
         none: result(0),
         last_measured: result(1),
         predicted: result(2),
+        band: band
+            .into_iter()
+            .map(|(n, (k, z2, w1, w2))| {
+                let m = k.max(1) as f64;
+                (
+                    n,
+                    Band {
+                        minutes: k,
+                        z_rms: (z2 / m).sqrt(),
+                        within_1_sigma: w1 as f64 / m,
+                        within_2_sigma: w2 as f64 / m,
+                    },
+                )
+            })
+            .collect(),
+        served: live.view().served,
     }
 }
 

@@ -43,7 +43,7 @@ fn spindle_only() -> ModelConfig {
 fn holdout(cfg: &ModelConfig, ev: &[Event]) -> (Vec<HoldoutScore>, f64) {
     let m = fit(cfg, ev, Some(40 * H)).unwrap();
     let train: f64 = m.channels.iter().map(|c| c.rms_um).sum();
-    let (_, scores) = replay(&m, ev, 600_000_000_000, 40 * H);
+    let (_, scores, _) = replay(&m, ev, 600_000_000_000, 40 * H, 40 * H + 1);
     (scores, train)
 }
 
@@ -120,7 +120,7 @@ fn fl_thermal_fit_on_40_h_predicts_the_last_6_h() {
 fn the_replay_is_causal() {
     let ev = events();
     let m = fit(&spindle_only(), &ev, Some(40 * H)).unwrap();
-    let (a, _) = replay(&m, &ev, 600_000_000_000, i64::MAX);
+    let (a, _, _) = replay(&m, &ev, 600_000_000_000, i64::MAX, i64::MAX);
     // Change everything after 30 h: nothing before 30 h may move.
     let mut changed = ev.clone();
     for e in &mut changed {
@@ -130,7 +130,7 @@ fn the_replay_is_causal() {
             _ => {}
         }
     }
-    let (b, _) = replay(&m, &changed, 600_000_000_000, i64::MAX);
+    let (b, _, _) = replay(&m, &changed, 600_000_000_000, i64::MAX, i64::MAX);
     let before = |s: &[driftwatch::thermal_model::ReplayStep]| -> Vec<f64> {
         s.iter()
             .filter(|x| x.t_ns <= 30 * H)
