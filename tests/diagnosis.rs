@@ -363,8 +363,12 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
                 .map(|p| format!("{:.3}+-{:.3} {}", p.value, p.sigma, p.unit))
                 .collect();
             format!(
-                "{} {} = {p:?} (dBIC {:.0}) group {:?}",
-                a.effect, a.term, a.delta_bic, g
+                "{} {} [{}] = {p:?} (dBIC {:.0}) group {:?}",
+                a.effect,
+                a.term,
+                if a.named { "named" } else { "not named" },
+                a.delta_bic,
+                g
             )
         })
         .collect();
@@ -857,6 +861,8 @@ fn confounded_physics_is_named_grouped_or_unexplained_never_wrongly_named() {
     assert!(failures.is_empty(), "{failures:?}");
 }
 
+/// One confounded case in detail (`CASE=i SEED=s cargo test --release --test diagnosis
+/// debug_confounded -- --ignored --nocapture`): every group member with its reason.
 #[test]
 #[ignore]
 fn debug_confounded() {
