@@ -508,6 +508,8 @@ async fn model(
                     "held_out_rmse": c.cv_rmse_um,
                     "offset_walk_per_h": c.offset_walk_per_h.unwrap_or(model.config.offset_walk_per_h),
                     "served": m.served.iter().find(|g| g.channel == c.name),
+                    // Temperature gains not jointly significant: held to the fit data's range.
+                    "temperatures_held_to_fit_range": !c.held_to_range.is_empty(),
                 })
             })
             .collect();

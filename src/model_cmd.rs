@@ -217,11 +217,27 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         (model.to_ns - model.from_ns) as f64 / 3.6e12,
         a.out.display()
     );
-    println!("channel          n   rms um  chi2/dof  discrepancy um  ridge  held-out rmse um");
+    println!(
+        "channel          n   rms um  chi2/dof  discrepancy um  ridge  held-out rmse um  temperatures"
+    );
     for c in &model.channels {
         println!(
-            "{:<12} {:>5} {:>8.3} {:>9.2} {:>15.3} {:>6} {:>17.3}",
-            c.name, c.n_obs, c.rms_um, c.chi2_dof, c.discrepancy_um, c.ridge, c.cv_rmse_um
+            "{:<12} {:>5} {:>8.3} {:>9.2} {:>15.3} {:>6} {:>17.3}  {}",
+            c.name,
+            c.n_obs,
+            c.rms_um,
+            c.chi2_dof,
+            c.discrepancy_um,
+            c.ridge,
+            c.cv_rmse_um,
+            match (
+                model.config.temperatures.is_empty(),
+                c.held_to_range.is_empty()
+            ) {
+                (true, _) => "-",
+                (false, true) => "extrapolated (gains significant)",
+                (false, false) => "held to the fit's range (gains not significant)",
+            }
         );
     }
     // What each channel will serve, from the held-out tail of the fit data.

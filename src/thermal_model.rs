@@ -493,6 +493,10 @@ pub struct ChannelFit {
     /// change on the latest observations, and what the served value starts from.
     #[serde(default)]
     pub guard: Guard,
+    /// Columns (index, lowest, highest) the prediction holds to the range of the fit data:
+    /// the temperature inputs when their gains are not jointly significant.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub held_to_range: Vec<(usize, f64, f64)>,
 }
 
 impl ChannelFit {
@@ -1192,6 +1196,7 @@ fn fit_posterior(
     let cov = a
         .try_inverse()
         .ok_or_else(|| err("singular posterior".into()))?;
+    let held_to_range = held_temperature_columns(cfg, obs, &beta, &cov);
     let resid: Vec<f64> = obs.iter().map(|o| o.y - o.row.dot(&beta)).collect();
     let rms = (resid.iter().map(|r| r * r).sum::<f64>() / resid.len() as f64).sqrt();
     let chi2: f64 = resid.iter().zip(&w).map(|(r, wi)| r * r * wi).sum();
@@ -1214,7 +1219,45 @@ fn fit_posterior(
         cv_rmse_um: best.0,
         offset_walk_per_h: None,
         guard: Guard::default(),
+        held_to_range,
     })
+}
+
+/// The temperature columns a channel's prediction holds to the range of its fit data: all of
+/// them when their gains are not jointly significant (`beta_T' Sigma_TT^-1 beta_T` under the
+/// chi-square's 95 % point), none otherwise. Gains fitted to noise would extrapolate that
+/// noise to a hall colder or warmer than any the fit saw (a Monday morning); a response the
+/// data show is extrapolated as fitted.
+fn held_temperature_columns(
+    cfg: &ModelConfig,
+    obs: &[Obs],
+    beta: &DVector<f64>,
+    cov: &DMatrix<f64>,
+) -> Vec<(usize, f64, f64)> {
+    let first = 1 + cfg.taus_min.len();
+    let n_temp: usize = cfg.temperatures.iter().map(|t| t.taus_min.len()).sum();
+    if n_temp == 0 || obs.is_empty() || first + n_temp > beta.len() {
+        return Vec::new();
+    }
+    let b = beta.rows(first, n_temp).into_owned();
+    let c = cov.view((first, first), (n_temp, n_temp)).into_owned();
+    let significant = match c.try_inverse() {
+        Some(ci) => (b.transpose() * ci * &b)[(0, 0)] > crate::stats::chi2_quantile(0.95, n_temp),
+        None => false,
+    };
+    if significant {
+        return Vec::new();
+    }
+    (first..first + n_temp)
+        .map(|j| {
+            let (lo, hi) = obs
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), o| {
+                    (lo.min(o.row[j]), hi.max(o.row[j]))
+                });
+            (j, lo, hi)
+        })
+        .collect()
 }
 
 /// A prediction of one channel: what is served, and the model's own value.
@@ -1249,6 +1292,8 @@ struct ChannelState {
     /// Random walk of the offset, the channel's unit squared per second.
     walk_per_s: f64,
     guard: Guard,
+    /// Columns held to the fit data's range (see [`ChannelFit::held_to_range`]).
+    held: Vec<(usize, f64, f64)>,
 }
 
 impl ChannelState {
@@ -1261,6 +1306,7 @@ impl ChannelState {
             discrepancy2: c.discrepancy_um.powi(2),
             walk_per_s,
             guard: c.guard.clone(),
+            held: c.held_to_range.clone(),
         }
     }
 
@@ -1276,6 +1322,7 @@ impl ChannelState {
             discrepancy2,
             walk_per_s,
             guard: Guard::default(),
+            held: Vec::new(),
         }
     }
 
@@ -1288,7 +1335,22 @@ impl ChannelState {
     /// The model's value for the design row `h` and its variance (of the true value:
     /// parameters, walk so far, discrepancy).
     fn model_at(&self, h: &DVector<f64>) -> (f64, f64) {
-        (h.dot(&self.beta), h.dot(&(&self.p * h)) + self.discrepancy2)
+        let h = self.hold(h);
+        (
+            h.dot(&self.beta),
+            h.dot(&(&self.p * &h)) + self.discrepancy2,
+        )
+    }
+
+    /// The design row with the held columns inside the fit data's range.
+    fn hold(&self, h: &DVector<f64>) -> DVector<f64> {
+        let mut h = h.clone();
+        for &(j, lo, hi) in &self.held {
+            if j < h.len() && lo <= hi {
+                h[j] = h[j].clamp(lo, hi);
+            }
+        }
+        h
     }
 
     /// The cold value (the offset: every thermal term at zero) and its variance, with
@@ -1299,6 +1361,7 @@ impl ChannelState {
 
     /// The Kalman correction by an observation `y` with stated variance `obs_var`.
     fn correct(&mut self, h: &DVector<f64>, y: f64, obs_var: f64) {
+        let h = &self.hold(h);
         let r = obs_var + self.discrepancy2;
         let r = if r > 0.0 { r } else { 1e-12 };
         let ph = &self.p * h;
@@ -1917,6 +1980,70 @@ mod tests {
             "{ez:?} before {ez_before:?}"
         );
         assert_eq!(of(&served, "EZ0B", |s| &s.channel).source, Served::Model);
+    }
+
+    #[test]
+    fn temperature_gains_fitted_to_noise_are_not_extrapolated() {
+        // Two days in a hall at 20 +- 1 K: EZ0B follows it at 4 um/K, EA0C does not follow it
+        // at all (2.5 urad of noise per cycle). Then the hall at 17 C, outside the fit data.
+        let cfg = ModelConfig {
+            taus_min: vec![60.0],
+            temperatures: vec![TemperatureInput {
+                sensor: "ambient".into(),
+                taus_min: vec![0.0],
+            }],
+            ..Default::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let hall = |m: i64| 20.0 + (std::f64::consts::TAU * m as f64 / 1440.0).sin();
+        let mut ev = vec![Event::Spindle { t_ns: 0, rpm: 0.0 }];
+        for m in (0..2 * 1440).step_by(20) {
+            ev.push(Event::Temperature {
+                t_ns: m * MIN,
+                sensor: "ambient".into(),
+                celsius: hall(m),
+            });
+            for (ch, v, sd) in [("EZ0B", 4.0 * (hall(m) - 20.0), 0.3), ("EA0C", 0.0, 2.5)] {
+                let noise: f64 = rng.random_range(-1.0..1.0) * sd * 3f64.sqrt();
+                ev.push(Event::Observation {
+                    t_ns: m * MIN + 1,
+                    channel: ch.into(),
+                    value: v + noise,
+                    sigma: Some(sd),
+                });
+            }
+        }
+        let m = fit(&cfg, &ev, None).unwrap();
+        let held = |n: &str| {
+            m.channels
+                .iter()
+                .find(|c| c.name == n)
+                .unwrap()
+                .held_to_range
+                .len()
+        };
+        assert_eq!((held("EZ0B"), held("EA0C")), (0, 1));
+        let at = |celsius: f64| {
+            let mut p = Predictor::new(&m, m.to_ns);
+            p.apply(&Event::Temperature {
+                t_ns: m.to_ns + MIN,
+                sensor: "ambient".into(),
+                celsius,
+            });
+            let v = p.predict(m.to_ns + 2 * MIN);
+            let get = |n: &str| v.iter().find(|x| x.channel == n).unwrap().model_value;
+            (get("EZ0B"), get("EA0C"))
+        };
+        let (ez17, ea17) = at(17.0);
+        let (_, ea_edge) = at(19.0);
+        // The response the data show is extrapolated as fitted; the noise's is held at the
+        // edge of the range the fit saw.
+        assert!((ez17 + 12.0).abs() < 0.5, "{ez17}");
+        assert!((ea17 - ea_edge).abs() < 0.05, "{ea17} vs {ea_edge}");
+        // (Not trivially: the noise's gain would have moved it by more than that.)
+        let ea = m.channels.iter().find(|c| c.name == "EA0C").unwrap();
+        let gain = ea.coef[2];
+        assert!(2.0 * gain.abs() > 0.1, "EA0C gain {gain}");
     }
 
     #[test]
