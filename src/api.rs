@@ -658,7 +658,7 @@ pub struct DiagnosisRequest {
     pub from_ns: Option<i64>,
     /// Last detection time, ns since the epoch (default: the last stored detection).
     pub to_ns: Option<i64>,
-    /// One-reading standard uncertainty, um (default: the machine's).
+    /// One-reading standard uncertainty, um, 0.001-100 (default: the machine's).
     pub sigma_um: Option<f64>,
 }
 
@@ -670,7 +670,7 @@ const DIAGNOSIS_MAX_NS: i64 = 31 * 24 * 3_600_000_000_000;
 
 /// Run the diagnosis on the stored detections, spindle and temperature series of a window;
 /// the result (or why it failed) is stored and returned.
-#[utoipa::path(post, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), request_body = DiagnosisRequest, responses((status = 201, description = "the diagnosis: id, summary and the result in the diagnosis.json layout"), (status = 400, description = "a bad window or body"), (status = 422, description = "the window holds no usable detections, or the diagnosis failed (stored with its reason)"), (status = 409, description = "the machine's kinematics are not known to the API"), (status = 429, description = "another diagnosis is running")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), request_body = DiagnosisRequest, responses((status = 201, description = "the diagnosis: id, summary and the result in the diagnosis.json layout"), (status = 400, description = "a bad window or body (bad_window), or a sigma_um outside 0.001-100 um (bad_sigma)"), (status = 422, description = "the window holds no usable detections, or the diagnosis failed (stored with its reason)"), (status = 409, description = "the machine's kinematics are not known to the API"), (status = 429, description = "another diagnosis is running")), security(("bearer" = [])))]
 async fn request_diagnosis(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -710,11 +710,12 @@ async fn request_diagnosis(
         ));
     }
     let sigma = req.sigma_um.unwrap_or(k.setter.sigma_um);
-    if !crate::positive(sigma) {
+    let (lo, hi) = crate::diagnosis::SIGMA_UM_RANGE;
+    if !(lo..=hi).contains(&sigma) {
         return Err(ApiError::new(
             StatusCode::BAD_REQUEST,
             "bad_sigma",
-            format!("sigma_um must be > 0, not {sigma}"),
+            crate::diagnosis::DiagnosisError::BadSigma { sigma }.to_string(),
         ));
     }
     let mut inputs = Inputs {

@@ -21,7 +21,18 @@ pub enum DiagnosisError {
     NoDetections,
     #[error("cycle {cycle}: {source}")]
     Cycle { cycle: i64, source: SolveError },
+    #[error(
+        "sigma_um must be between {lo} and {hi} um (one reading's noise), not {sigma:e}",
+        lo = SIGMA_UM_RANGE.0,
+        hi = SIGMA_UM_RANGE.1
+    )]
+    BadSigma { sigma: f64 },
 }
+
+/// The reading noise a diagnosis accepts, um: below a nanometre no setter reads, and the
+/// whitened design would be numerically empty (an SVD of nothing); above 100 um a reading
+/// says nothing about micrometre errors.
+pub const SIGMA_UM_RANGE: (f64, f64) = (1e-3, 100.0);
 
 /// One detection as the diagnosis sees it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -1273,6 +1284,11 @@ pub fn diagnose(
     temperatures: &[Event],
     opts: &DiagnoseOptions,
 ) -> Result<Diagnosis, DiagnosisError> {
+    if !(SIGMA_UM_RANGE.0..=SIGMA_UM_RANGE.1).contains(&opts.sigma_um) {
+        return Err(DiagnosisError::BadSigma {
+            sigma: opts.sigma_um,
+        });
+    }
     if rows.rows.is_empty() {
         return Err(DiagnosisError::NoDetections);
     }

@@ -472,6 +472,23 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
         (s, body["code"].as_str()),
         (StatusCode::UNPROCESSABLE_ENTITY, Some("no_detections"))
     );
+    // A reading noise no setter has (these panicked in an SVD of an empty design): 400.
+    for sigma in ["1e-5", "1e-93", "0", "-1", "1e6"] {
+        let (s, _, body) = call(
+            &app,
+            post("write-token", &format!(r#"{{"sigma_um": {sigma}}}"#)),
+        )
+        .await;
+        assert_eq!(
+            (s, body["code"].as_str()),
+            (StatusCode::BAD_REQUEST, Some("bad_sigma")),
+            "{sigma}: {body}"
+        );
+        assert!(
+            body["message"].as_str().unwrap().contains("between"),
+            "{body}"
+        );
+    }
 
     let (s, h, body) = call(&app, post("write-token", "{}")).await;
     assert_eq!(s, StatusCode::CREATED, "{body}");
