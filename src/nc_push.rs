@@ -160,11 +160,15 @@ impl NcPushHandle {
             let ev = match e.topic.as_str() {
                 rec::TOPIC_SPINDLE => {
                     let m: SpindleMsg = typed(index, &e.topic, &e.msg)?;
-                    if !m.rpm.is_finite() {
+                    if !crate::thermal_model::plausible_rpm(m.rpm) {
                         return Err(NcPushError::Message {
                             index,
                             topic: e.topic.clone(),
-                            message: "rpm is not a finite number".into(),
+                            message: format!(
+                                "rpm {} is not a spindle speed (finite, at most {} min^-1 either way)",
+                                m.rpm,
+                                crate::thermal_model::MAX_PLAUSIBLE_RPM
+                            ),
                         });
                     }
                     LinkEvent::Spindle(Timed { t_ns, msg: m })
@@ -173,10 +177,21 @@ impl NcPushHandle {
                     t_ns,
                     msg: typed::<StateMsg>(index, &e.topic, &e.msg)?,
                 }),
-                rec::TOPIC_TEMPERATURE => LinkEvent::Temperature(Timed {
-                    t_ns,
-                    msg: typed::<TemperatureMsg>(index, &e.topic, &e.msg)?,
-                }),
+                rec::TOPIC_TEMPERATURE => {
+                    let m: TemperatureMsg = typed(index, &e.topic, &e.msg)?;
+                    if !crate::thermal_model::plausible_celsius(m.celsius) {
+                        let (lo, hi) = crate::thermal_model::PLAUSIBLE_CELSIUS;
+                        return Err(NcPushError::Message {
+                            index,
+                            topic: e.topic.clone(),
+                            message: format!(
+                                "{} deg C from sensor '{}' is not a machine temperature ({lo} to {hi})",
+                                m.celsius, m.sensor
+                            ),
+                        });
+                    }
+                    LinkEvent::Temperature(Timed { t_ns, msg: m })
+                }
                 rec::TOPIC_DETECTION => {
                     let text = e.msg.to_string();
                     let m = parse_detection(text.as_bytes()).map_err(|i| NcPushError::Message {
@@ -368,6 +383,53 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    #[test]
+    fn an_implausible_speed_or_temperature_refuses_the_batch_and_says_why() {
+        let (_, h, _) = setup();
+        let batch = |topic: &str, msg: serde_json::Value| EventBatch {
+            events: vec![
+                PostedEvent {
+                    topic: "/spindle".into(),
+                    t_ns: 1,
+                    msg: serde_json::json!({"rpm": 12000.0}),
+                },
+                PostedEvent {
+                    topic: topic.into(),
+                    t_ns: 2,
+                    msg,
+                },
+            ],
+        };
+        for (topic, msg, says) in [
+            (
+                "/spindle",
+                serde_json::json!({"rpm": 1e300}),
+                "not a spindle speed",
+            ),
+            (
+                "/spindle",
+                serde_json::json!({"rpm": -250000.0}),
+                "not a spindle speed",
+            ),
+            (
+                "/temperature",
+                serde_json::json!({"sensor": "ambient", "celsius": 1e6}),
+                "not a machine temperature",
+            ),
+        ] {
+            let e = h.post(&batch(topic, msg)).unwrap_err();
+            assert!(
+                matches!(e, NcPushError::Message { index: 1, .. }) && e.to_string().contains(says),
+                "{e}"
+            );
+        }
+        // Nothing of a refused batch is kept; a plausible one is taken whole (reverse
+        // rotation included).
+        assert!(h.shared.lock().unwrap().queue.is_empty());
+        let ok = batch("/spindle", serde_json::json!({"rpm": -8000.0}));
+        assert_eq!(h.post(&ok).unwrap(), 2);
     }
 
     #[test]

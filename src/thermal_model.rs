@@ -218,6 +218,23 @@ impl ModelConfig {
     }
 }
 
+/// The fastest spindle speed any machine tool turns, min^-1 (either sense): the model takes
+/// no speed beyond it (a value of 1e300 made every state infinite and every prediction NaN).
+pub const MAX_PLAUSIBLE_RPM: f64 = 200_000.0;
+
+/// The temperatures a machine tool's sensors can read, deg C.
+pub const PLAUSIBLE_CELSIUS: (f64, f64) = (-60.0, 200.0);
+
+/// A spindle speed the model takes: finite and within [`MAX_PLAUSIBLE_RPM`].
+pub fn plausible_rpm(rpm: f64) -> bool {
+    rpm.is_finite() && rpm.abs() <= MAX_PLAUSIBLE_RPM
+}
+
+/// A temperature the model takes: within [`PLAUSIBLE_CELSIUS`].
+pub fn plausible_celsius(celsius: f64) -> bool {
+    (PLAUSIBLE_CELSIUS.0..=PLAUSIBLE_CELSIUS.1).contains(&celsius)
+}
+
 /// What happens on the machine's timeline, in time order.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Event {
@@ -418,7 +435,7 @@ impl Features {
 
     pub fn set_rpm(&mut self, t_ns: i64, rpm: f64) {
         self.advance_to(t_ns);
-        if rpm.is_finite() && rpm != self.rpm {
+        if plausible_rpm(rpm) && rpm != self.rpm {
             self.rpm = rpm;
             self.heat = (rpm.abs() / self.cfg.n_ref_rpm).powf(self.cfg.gamma);
             self.refresh_instant();
@@ -435,7 +452,7 @@ impl Features {
         else {
             return;
         };
-        if celsius.is_finite() {
+        if plausible_celsius(celsius) {
             self.temps[k] = Some(celsius);
             self.t_ref[k].get_or_insert(celsius);
             self.refresh_instant();
@@ -1980,6 +1997,28 @@ mod tests {
             "{ez:?} before {ez_before:?}"
         );
         assert_eq!(of(&served, "EZ0B", |s| &s.channel).source, Served::Model);
+    }
+
+    #[test]
+    fn an_implausible_input_never_makes_a_prediction_non_finite() {
+        let (ev, _) = day(10, 0.5, 4);
+        let m = fit(&ModelConfig::default(), &ev, None).unwrap();
+        let mut p = Predictor::new(&m, m.to_ns);
+        let mut q = p.clone();
+        p.apply(&Event::Spindle {
+            t_ns: m.to_ns + MIN,
+            rpm: 1e300,
+        });
+        p.apply(&Event::Spindle {
+            t_ns: m.to_ns + 2 * MIN,
+            rpm: f64::NAN,
+        });
+        let (a, b) = (p.predict(m.to_ns + 60 * MIN), q.predict(m.to_ns + 60 * MIN));
+        assert!(
+            a.iter().all(|x| x.value.is_finite() && x.sigma.is_finite()),
+            "{a:?}"
+        );
+        assert_eq!(a, b, "the implausible speeds are not taken");
     }
 
     #[test]
