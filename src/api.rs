@@ -882,7 +882,7 @@ fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiErro
 }
 
 /// The NC posts what happened (contract message shapes), a batch taken whole or refused whole.
-#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole"), (status = 400, description = "the batch was refused whole; the message names the bad event"), (status = 409, description = "the machine is not on the nc_push link")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole"), (status = 400, description = "the batch was refused whole; the message names the bad event (bad_event), or an event's time lies beyond the link's tolerance from the service clock (clock_skew)"), (status = 409, description = "the machine is not on the nc_push link")), security(("bearer" = [])))]
 async fn nc_events(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -891,9 +891,13 @@ async fn nc_events(
     let nc = nc_handle(&st, &id)?;
     let Json(batch) =
         body.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_body", e.body_text()))?;
-    let n = nc
-        .post(&batch)
-        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_event", e.to_string()))?;
+    let n = nc.post(&batch).map_err(|e| {
+        let code = match e {
+            crate::nc_push::NcPushError::ClockSkew { .. } => "clock_skew",
+            _ => "bad_event",
+        };
+        ApiError::new(StatusCode::BAD_REQUEST, code, e.to_string())
+    })?;
     Ok((StatusCode::ACCEPTED, Json(json!({"accepted": n}))).into_response())
 }
 
@@ -998,6 +1002,18 @@ async fn metrics(State(st): State<Shared>) -> Response {
         "gauge",
         "Alerts open now.",
         per(&|v| v.open_alerts.len() as f64),
+    );
+    metric(
+        "driftwatch_nc_events_refused_clock_skew_total",
+        "counter",
+        "NC events refused because their time lay beyond the tolerance from the service clock.",
+        st.machines
+            .iter()
+            .filter_map(|(id, h)| {
+                let n = h.nc.as_ref()?.refused_clock_skew();
+                Some((format!("machine=\"{id}\""), n as f64))
+            })
+            .collect(),
     );
     use std::sync::atomic::Ordering::Relaxed;
     let w = &st.webhooks;

@@ -70,7 +70,38 @@ pub enum LinkConfig {
     /// The truth simulator's virtual machine running a scenario's day program.
     Simulated { scenario: String },
     /// A real NC (or its gateway) posting events and polling for cycle orders over HTTP.
-    NcPush,
+    NcPush {
+        /// How far ahead of the service clock an event may be stamped, s.
+        #[serde(default = "default_max_ahead_s")]
+        max_ahead_s: f64,
+        /// How far behind it (a gateway's buffer after an outage), s.
+        #[serde(default = "default_max_behind_s")]
+        max_behind_s: f64,
+    },
+}
+
+fn default_max_ahead_s() -> f64 {
+    60.0
+}
+
+fn default_max_behind_s() -> f64 {
+    86_400.0
+}
+
+impl LinkConfig {
+    /// The clock tolerance of an `nc_push` link (none for the simulator, which is the clock).
+    pub fn clock_tolerance(&self) -> Option<crate::nc_push::ClockTolerance> {
+        match self {
+            LinkConfig::NcPush {
+                max_ahead_s,
+                max_behind_s,
+            } => Some(crate::nc_push::ClockTolerance {
+                ahead_ns: (max_ahead_s * 1e9) as i64,
+                behind_ns: (max_behind_s * 1e9) as i64,
+            }),
+            LinkConfig::Simulated { .. } => None,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -168,10 +199,26 @@ impl ServiceConfig {
                 m.id
             ));
         }
+        for m in &self.machines {
+            if let LinkConfig::NcPush {
+                max_ahead_s,
+                max_behind_s,
+            } = m.link
+                && !(crate::positive(max_ahead_s)
+                    && crate::positive(max_behind_s)
+                    && max_ahead_s <= 86_400.0
+                    && max_behind_s <= 30.0 * 86_400.0)
+            {
+                return bad(format!(
+                    "machine '{}': max_ahead_s ({max_ahead_s}) must be in (0, 86400] and max_behind_s ({max_behind_s}) in (0, 2592000]",
+                    m.id
+                ));
+            }
+        }
         if self
             .machines
             .iter()
-            .any(|m| matches!(m.link, LinkConfig::NcPush))
+            .any(|m| matches!(m.link, LinkConfig::NcPush { .. }))
             && self.time_scale != 1.0
         {
             return bad(format!(
@@ -285,7 +332,7 @@ mod tests {
     fn the_deployment_example_parses() {
         let text = include_str!("../deploy/nc_push.example.toml");
         let c = ServiceConfig::from_toml(text, "deploy/nc_push.example.toml").unwrap();
-        assert!(matches!(c.machines[0].link, LinkConfig::NcPush));
+        assert!(matches!(c.machines[0].link, LinkConfig::NcPush { .. }));
         assert!(!c.http.anonymous_read);
         assert_eq!(c.webhooks.len(), 1);
         // A real NC with a sped-up clock is refused.

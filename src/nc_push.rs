@@ -47,6 +47,37 @@ pub enum NcPushError {
     },
     #[error("event {index}: t_ns {t_ns} is negative")]
     Time { index: usize, t_ns: i64 },
+    #[error(
+        "event {index} ({topic}): t_ns {t_ns} is {} s {} the service clock ({now_ns}), beyond the {} s allowed: is the NC's clock set to local time, or not synchronised?",
+        (t_ns - now_ns).abs() as f64 / 1e9,
+        if t_ns > now_ns { "ahead of" } else { "behind" },
+        *limit_ns as f64 / 1e9
+    )]
+    ClockSkew {
+        index: usize,
+        topic: String,
+        t_ns: i64,
+        now_ns: i64,
+        limit_ns: i64,
+    },
+}
+
+/// How far an event's time may lie from the service clock. A state stamped an hour ahead
+/// would otherwise hide every correct state after it, and a cycle stamped a day ahead would
+/// make every later cycle's set lie "before" the served one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ClockTolerance {
+    pub ahead_ns: i64,
+    pub behind_ns: i64,
+}
+
+impl Default for ClockTolerance {
+    fn default() -> Self {
+        ClockTolerance {
+            ahead_ns: 60_000_000_000,
+            behind_ns: 24 * 3_600_000_000_000,
+        }
+    }
 }
 
 /// One event as the NC posts it: a contract topic, its time, its message.
@@ -98,6 +129,13 @@ struct Shared {
     queue: Vec<LinkEvent>,
     order: Option<CycleOrder>,
     state: Option<MachineStateKind>,
+    /// The time of the state above: an older state posted later does not overwrite it.
+    state_t_ns: i64,
+    /// The service clock at the loop's last look (none before it).
+    clock_ns: Option<i64>,
+    tolerance: ClockTolerance,
+    /// Events refused for their time (whole batches: each bad event counted once).
+    refused_clock_skew: u64,
     /// Per cycle, how often each measurement has tripped so far.
     received: BTreeMap<i64, ExpectedMeasurements>,
 }
@@ -115,11 +153,15 @@ pub struct NcPushLink {
     expected: ExpectedMeasurements,
 }
 
-pub fn nc_push(plan: Plan) -> (NcPushLink, NcPushHandle) {
+pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHandle) {
     let shared = Arc::new(Mutex::new(Shared {
         queue: Vec::new(),
         order: None,
         state: None,
+        state_t_ns: i64::MIN,
+        clock_ns: None,
+        tolerance,
+        refused_clock_skew: 0,
         received: BTreeMap::new(),
     }));
     let expected = plan_measurements(&plan);
@@ -149,12 +191,35 @@ impl NcPushHandle {
     /// Take a batch of events whole, or refuse it whole with the first bad event named.
     pub fn post(&self, batch: &EventBatch) -> Result<usize, NcPushError> {
         let mut parsed = Vec::with_capacity(batch.events.len());
+        let (clock, tol) = match self.shared.lock() {
+            Ok(s) => (s.clock_ns, s.tolerance),
+            Err(_) => (None, ClockTolerance::default()),
+        };
         for (index, e) in batch.events.iter().enumerate() {
             if e.t_ns < 0 {
                 return Err(NcPushError::Time {
                     index,
                     t_ns: e.t_ns,
                 });
+            }
+            if let Some(now_ns) = clock {
+                let limit_ns = if e.t_ns > now_ns {
+                    tol.ahead_ns
+                } else {
+                    tol.behind_ns
+                };
+                if e.t_ns.abs_diff(now_ns) > limit_ns.unsigned_abs() {
+                    if let Ok(mut s) = self.shared.lock() {
+                        s.refused_clock_skew += 1;
+                    }
+                    return Err(NcPushError::ClockSkew {
+                        index,
+                        topic: e.topic.clone(),
+                        t_ns: e.t_ns,
+                        now_ns,
+                        limit_ns,
+                    });
+                }
             }
             let t_ns = e.t_ns;
             let ev = match e.topic.as_str() {
@@ -221,13 +286,19 @@ impl NcPushHandle {
     pub fn order(&self) -> Option<CycleOrder> {
         self.shared.lock().ok().and_then(|s| s.order.clone())
     }
+
+    /// Events refused because their time lay too far from the service clock.
+    pub fn refused_clock_skew(&self) -> u64 {
+        self.shared.lock().map_or(0, |s| s.refused_clock_skew)
+    }
 }
 
 impl MachineLink for NcPushLink {
-    fn poll(&mut self, _now_ns: i64) -> Vec<LinkEvent> {
+    fn poll(&mut self, now_ns: i64) -> Vec<LinkEvent> {
         let Ok(mut s) = self.shared.lock() else {
             return Vec::new();
         };
+        s.clock_ns = Some(now_ns);
         let mut events = std::mem::take(&mut s.queue);
         events.sort_by_key(LinkEvent::t_ns);
         let mut out = Vec::with_capacity(events.len() + 1);
@@ -235,7 +306,11 @@ impl MachineLink for NcPushLink {
             let order_cycle = s.order.as_ref().map(|o| o.cycle);
             let done = match &ev {
                 LinkEvent::State(m) => {
-                    s.state = Some(m.msg.state);
+                    // A state older than the one in force (a late batch) does not replace it.
+                    if m.t_ns >= s.state_t_ns {
+                        s.state = Some(m.msg.state);
+                        s.state_t_ns = m.t_ns;
+                    }
                     // Leaving `measuring` after posting detections of the order ends its
                     // program, whatever did not trip.
                     order_cycle
@@ -328,7 +403,7 @@ mod tests {
     fn setup() -> (NcPushLink, NcPushHandle, Plan) {
         let k = Kinematics::load("table_bc").unwrap();
         let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-        let (link, handle) = nc_push(plan.clone());
+        let (link, handle) = nc_push(plan.clone(), ClockTolerance::default());
         (link, handle, plan)
     }
 
@@ -383,6 +458,45 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    #[test]
+    fn an_event_stamped_beyond_the_clock_tolerance_is_refused_and_a_late_state_does_not_win() {
+        let (mut link, h, _) = setup();
+        let hour = 3_600_000_000_000;
+        let now = 1_800_000_000 * 1_000_000_000;
+        let post = |t_ns: i64, state: &str| {
+            h.post(&EventBatch {
+                events: vec![PostedEvent {
+                    topic: "/machine/state".into(),
+                    t_ns,
+                    msg: serde_json::json!({"state": state}),
+                }],
+            })
+        };
+        // The loop's look sets the clock the events are judged by.
+        link.poll(now);
+        // An hour ahead (local time sent as UTC): refused, naming the skew, counted.
+        let e = post(now + hour, "cutting").unwrap_err();
+        assert!(matches!(e, NcPushError::ClockSkew { .. }), "{e}");
+        assert!(e.to_string().contains("3600 s ahead"), "{e}");
+        assert_eq!(h.refused_clock_skew(), 1);
+        // Within the tolerance either way: taken.
+        assert_eq!(post(now + 30_000_000_000, "idle"), Ok(1));
+        link.poll(now);
+        assert_eq!(
+            link.shared.lock().unwrap().state,
+            Some(MachineStateKind::Idle)
+        );
+        // A day and more behind: refused; an older state within it does not replace the newer.
+        assert!(post(now - 25 * hour, "cutting").is_err());
+        assert_eq!(post(now - hour, "cutting"), Ok(1));
+        link.poll(now + 1);
+        assert_eq!(
+            link.shared.lock().unwrap().state,
+            Some(MachineStateKind::Idle)
+        );
+        assert_eq!(h.refused_clock_skew(), 2);
     }
 
     #[test]

@@ -69,7 +69,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     let real = cfg
         .machines
         .iter()
-        .any(|m| matches!(m.link, LinkConfig::NcPush));
+        .any(|m| matches!(m.link, LinkConfig::NcPush { .. }));
     let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     type Machine = (String, Kinematics, Plan, Box<dyn MachineLink>, Settings);
     let mut machines: Vec<Machine> = Vec::new();
@@ -107,8 +107,9 @@ pub async fn run(o: Options) -> Result<ExitCode> {
                 t0 = t0.min(link.start_ns() + lead_ns);
                 machines.push((m.id.clone(), k, plan, Box::new(link), settings));
             }
-            LinkConfig::NcPush => {
-                let (link, handle) = nc_push(plan.clone());
+            LinkConfig::NcPush { .. } => {
+                let tolerance = m.link.clock_tolerance().unwrap_or_default();
+                let (link, handle) = nc_push(plan.clone(), tolerance);
                 nc_handles.insert(m.id.clone(), handle);
                 t0 = t0.min(wall_now);
                 machines.push((m.id.clone(), k, plan, Box::new(link), settings));

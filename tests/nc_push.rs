@@ -16,7 +16,7 @@ use driftwatch::api::{ApiState, Auth, MachineHandle, router};
 use driftwatch::config::Role;
 use driftwatch::daemon::{MachineRuntime, Settings};
 use driftwatch::kinematics::Kinematics;
-use driftwatch::nc_push::{CycleOrder, nc_push};
+use driftwatch::nc_push::{ClockTolerance, CycleOrder, nc_push};
 use driftwatch::plan::{Plan, PlanConfig};
 use driftwatch::recorder::Recorder;
 use driftwatch::recording::{DetectionStatus, MachineInfo};
@@ -58,7 +58,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
     let scn = Scenario::load("patent").unwrap();
     let k = Kinematics::load(&scn.machine).unwrap();
     let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-    let (link, handle) = nc_push(plan.clone());
+    let (link, handle) = nc_push(plan.clone(), ClockTolerance::default());
     let mut vm = VirtualMachine::new(&k, &scn).unwrap();
     let t0 = vm.start_ns();
     let store = Store::open(&d.join("db.sqlite")).await.unwrap();
@@ -232,4 +232,41 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
     assert_eq!(v(1), Some(1));
     assert_eq!(v(2), Some(1));
     assert_eq!(v(3), Some(2));
+
+    // A gateway that sends local time as UTC: its events an hour ahead of the service clock
+    // are refused with the skew named, counted, and the correct ones after them still count.
+    let ahead = json!({"events": [
+        {"topic": "/machine/state", "t_ns": now + 60 * MIN, "msg": {"state": "cutting", "program": "O1"}}
+    ]});
+    let (s, body) = send(&app, "POST", events, Some("nc-token"), Some(ahead)).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("clock_skew"))
+    );
+    assert!(
+        body["message"]
+            .as_str()
+            .unwrap()
+            .contains("ahead of the service clock"),
+        "{body}"
+    );
+    let metrics = app
+        .clone()
+        .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    let text = String::from_utf8(
+        metrics
+            .into_body()
+            .collect()
+            .await
+            .unwrap()
+            .to_bytes()
+            .to_vec(),
+    )
+    .unwrap();
+    assert!(
+        text.contains("driftwatch_nc_events_refused_clock_skew_total{machine=\"nc1\"} 1"),
+        "{text}"
+    );
 }
