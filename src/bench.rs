@@ -352,26 +352,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
             "  held-out cycles (each scored before it corrected the model), at the end of the day:"
         );
         for g in &c.served {
-            println!(
-                "    {:<6} {:>3} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} {}, band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {}^2/h{}",
-                g.channel,
-                g.scored,
-                g.rmse_model,
-                g.rmse_last_measured,
-                g.rmse_no_change,
-                g.unit,
-                g.sigma_scale,
-                g.z_rms,
-                100.0 * g.within_1_sigma,
-                100.0 * g.within_2_sigma,
-                g.offset_walk_per_h,
-                g.unit,
-                if g.offset_walk_learned {
-                    " (learned)"
-                } else {
-                    ""
-                }
-            );
+            println!("    {g}");
         }
         let t = |s: driftwatch::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
         println!(

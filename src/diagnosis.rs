@@ -1724,6 +1724,18 @@ pub fn diagnose(
     // folded into that effect's group.
     let mut coincident: BTreeMap<usize, GroupMember> = BTreeMap::new();
     let mut folded: Vec<(usize, GroupMember)> = Vec::new();
+    // Candidate `c` as a member of the other's group.
+    let member =
+        |c: usize, cos: f64, dchi: f64, vv: f64, comparable: bool, reason: String| GroupMember {
+            effect: cands[c].effect.into(),
+            term: cands[c].term.clone(),
+            cos,
+            delta_chi2: dchi,
+            footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
+            parameters: xs[c].ncols() + cands[c].profiled,
+            comparable,
+            reason,
+        };
     {
         let qb = basis(&base_eff);
         let mut pos = 1;
@@ -1764,39 +1776,35 @@ pub fn diagnose(
                 .sum();
             let dchi = lsq(&mo, &y).chi2 - f.chi2;
             if ho < opts.min_delta_bic {
+                // Not a rival to its name: the data do not justify it on its own.
                 folded.push((
                     ei,
-                    GroupMember {
-                        effect: cands[ti].effect.into(),
-                        term: cands[ti].term.clone(),
+                    member(
+                        ti,
                         cos,
-                        delta_chi2: dchi,
-                        footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
-                        parameters: xs[ti].ncols() + cands[ti].profiled,
-                        // Not a rival to its name: the data do not justify it on its own.
-                        comparable: false,
-                        reason: format!(
+                        dchi,
+                        vv,
+                        false,
+                        format!(
                             "coincides in time with it (cos {cos:.2} with the design parameters in its time shape) and the held-out blocks gain only delta-chi2 {ho:.1} from it (under {}): not accepted on its own",
                             opts.min_delta_bic
                         ),
-                    },
+                    ),
                 ));
                 chosen.remove(pos);
             } else {
                 coincident.insert(
                     ti,
-                    GroupMember {
-                        effect: cands[ei].effect.into(),
-                        term: cands[ei].term.clone(),
+                    member(
+                        ei,
                         cos,
-                        delta_chi2: dchi,
-                        footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
-                        parameters: xs[ei].ncols() + cands[ei].profiled,
-                        comparable: true,
-                        reason: format!(
+                        dchi,
+                        vv,
+                        true,
+                        format!(
                             "it coincides in time with this accepted term (cos {cos:.2} with the design parameters in its time shape); kept because the held-out blocks gain delta-chi2 {ho:.1} from it, but it may be more of that effect"
                         ),
-                    },
+                    ),
                 );
                 pos += 1;
             }

@@ -243,28 +243,11 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     // What each channel will serve, from the held-out tail of the fit data.
     let p = driftwatch::thermal_model::Predictor::new(&model, model.to_ns);
     println!(
-        "held-out tail ({:.0} % of each channel's observations): RMSE model / last measured / no change, offset walk, band factor, served",
+        "what each channel serves, from the held-out tail ({:.0} % of its observations):",
         100.0 * model.config.holdout_share
     );
     for g in p.guards() {
-        println!(
-            "{:<12} {:>3} scored {:>8.3} {:>8.3} {:>8.3} {} walk {} {}^2/h{}  band x{:.2}  {}",
-            g.channel,
-            g.scored,
-            g.rmse_model,
-            g.rmse_last_measured,
-            g.rmse_no_change,
-            g.unit,
-            g.offset_walk_per_h,
-            g.unit,
-            if g.offset_walk_learned {
-                " (learned)"
-            } else {
-                " (default)"
-            },
-            g.sigma_scale,
-            g.source.as_str()
-        );
+        println!("{g}");
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -437,10 +420,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         );
     }
     for g in &served {
-        eprintln!(
-            "{} at the end: {} (offset walk {} {}^2/h, band x{:.2})",
-            g.channel, g.reason, g.offset_walk_per_h, g.unit, g.sigma_scale
-        );
+        eprintln!("at the end: {g}\n  {}", g.reason);
     }
     let truth = truth_of(&a.recording)?;
     if let Some((_, reference)) = truth.first() {

@@ -558,13 +558,6 @@ impl Served {
     }
 }
 
-/// Why a fallback is served instead of the model.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Fallback {
-    /// The model did worse on the scored observations.
-    HeldOut,
-}
-
 /// Smallest and largest factor on the model's band.
 const SCALE_RANGE: (f64, f64) = (0.1, 10.0);
 
@@ -599,7 +592,15 @@ pub struct Guard {
     pub d2_last: f64,
     pub d_cold: f64,
     pub d2_cold: f64,
+    /// The last observation's time, and the sum of the gaps before the scored ones, s: the
+    /// last measured value was judged at those gaps, and is not held much longer.
+    pub last_t_ns: Option<i64>,
+    pub sum_gap_s: f64,
 }
+
+/// How many mean scored gaps the last measured value may be held (beyond, it was never
+/// judged: a value 15 s old predicts well, six hours old it does not).
+const STALE_GAPS: f64 = 2.0;
 
 /// How many standard errors a fallback must beat the model by (one-sided, 95 %).
 const FALLBACK_T: f64 = 1.645;
@@ -629,6 +630,34 @@ pub struct GuardSummary {
     pub within_2_sigma: f64,
 }
 
+impl std::fmt::Display for GuardSummary {
+    /// One line: what is served, its scores, band and walk (the fit, predict and the bench
+    /// print it).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let u = &self.unit;
+        write!(
+            f,
+            "{:<6} serves {}: {} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} {u}; band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {u}^2/h ({})",
+            self.channel,
+            self.source.as_str(),
+            self.scored,
+            self.rmse_model,
+            self.rmse_last_measured,
+            self.rmse_no_change,
+            self.sigma_scale,
+            self.z_rms,
+            100.0 * self.within_1_sigma,
+            100.0 * self.within_2_sigma,
+            self.offset_walk_per_h,
+            if self.offset_walk_learned {
+                "learned"
+            } else {
+                "default"
+            }
+        )
+    }
+}
+
 impl Guard {
     fn rms(&self, sse: f64) -> f64 {
         if self.n == 0 {
@@ -638,10 +667,14 @@ impl Guard {
         }
     }
 
-    /// Take an observation (after it was scored) as the last value.
-    fn take(&mut self, y: f64, obs_var: f64) {
-        self.last = Some(y);
-        self.last_var = obs_var;
+    /// Whether the last measured value at `t_ns` is older than it was ever judged at.
+    fn last_is_stale(&self, t_ns: i64) -> bool {
+        match self.last_t_ns {
+            Some(t) if self.n > 0 => {
+                (t_ns - t) as f64 / 1e9 > STALE_GAPS * self.sum_gap_s / self.n as f64
+            }
+            _ => false,
+        }
     }
 
     /// The factor on the model's sigma that makes the scored observations' z^2 average 1:
@@ -696,45 +729,62 @@ impl Guard {
     /// sigma scaled by [`Guard::sigma_scale`], unless a fallback beat it ([`Guard::source`]).
     /// (Not on the width of the bands: a fallback's scored error holds for the gaps between
     /// the scored cycles, not for any time since the last one.) A fallback's sigma is its
-    /// scored error less the observations' own noise, at least its own uncertainty. The last
-    /// element says why a fallback is served.
+    /// scored error less the observations' own noise, at least its own uncertainty
+    /// ([`Guard::reason`] says why).
     pub fn serve(
         &self,
         model: (f64, f64),
         cold: (f64, f64),
         min_scored: usize,
-    ) -> (f64, f64, Served, Option<Fallback>) {
+        t_ns: i64,
+    ) -> (f64, f64, Served) {
         let scale = self.sigma_scale(min_scored);
         let model_sd = scale * model.1.max(0.0).sqrt();
         let n = self.n.max(1) as f64;
         let obs_var = self.sum_obs_var / n;
-        match (self.source(min_scored), self.last) {
+        let mut source = self.source(min_scored);
+        if source == Served::LastMeasured && self.last_is_stale(t_ns) {
+            source = if self.beaten_by(self.d_cold, self.d2_cold).is_some() {
+                Served::NoChange
+            } else {
+                Served::Model
+            };
+        }
+        match (source, self.last) {
             (Served::NoChange, _) => {
                 let var = (self.sse_cold / n - obs_var).max(cold.1);
-                (
-                    cold.0,
-                    var.sqrt(),
-                    Served::NoChange,
-                    Some(Fallback::HeldOut),
-                )
+                (cold.0, var.sqrt(), Served::NoChange)
             }
             (Served::LastMeasured, Some(last)) => {
                 let var = (self.sse_last / n - obs_var).max(self.last_var);
-                (
-                    last,
-                    var.sqrt(),
-                    Served::LastMeasured,
-                    Some(Fallback::HeldOut),
-                )
+                (last, var.sqrt(), Served::LastMeasured)
             }
-            _ => (model.0, model_sd, Served::Model, None),
+            _ => (model.0, model_sd, Served::Model),
         }
     }
 
-    /// Score the observation `y` (stated variance `obs_var`) before it corrects the model,
-    /// whose prediction of it is `model` (value, variance of the true value) and whose cold
-    /// value is `cold`. The first observation of a channel has no last value and is not
-    /// scored.
+    /// Score the observation `y` at `t_ns` (stated variance `obs_var`) before it corrects
+    /// the model, whose prediction of it is `model` (value, variance of the true value) and
+    /// whose cold value is `cold`, then take it as the last value. The first observation of a
+    /// channel has no last value and is only taken.
+    fn observe(
+        &mut self,
+        y: f64,
+        obs_var: f64,
+        model: (f64, f64),
+        cold: (f64, f64),
+        min_scored: usize,
+        t_ns: i64,
+    ) {
+        if let Some(last) = self.last {
+            self.score(y, obs_var, model, cold, min_scored, t_ns, last);
+        }
+        self.last = Some(y);
+        self.last_var = obs_var;
+        self.last_t_ns = Some(t_ns);
+    }
+
+    #[allow(clippy::too_many_arguments)]
     fn score(
         &mut self,
         y: f64,
@@ -742,11 +792,13 @@ impl Guard {
         model: (f64, f64),
         cold: (f64, f64),
         min_scored: usize,
+        t_ns: i64,
+        last: f64,
     ) {
-        let Some(last) = self.last else {
-            return;
-        };
-        let (v, s, _, _) = self.serve(model, cold, min_scored);
+        let (v, s, _) = self.serve(model, cold, min_scored, t_ns);
+        if let Some(t) = self.last_t_ns {
+            self.sum_gap_s += (t_ns - t).max(0) as f64 / 1e9;
+        }
         let z2 = (y - v).powi(2) / (s * s + obs_var).max(1e-24);
         self.sum_z2 += z2;
         self.within_1 += usize::from(z2 <= 1.0);
@@ -768,8 +820,8 @@ impl Guard {
         self.sum_obs_var += obs_var;
     }
 
-    /// Why the channel serves what it serves.
-    pub fn reason(&self, channel: &str, min_scored: usize) -> String {
+    /// Why the channel serves `served` (its [`Guard::source`], or what [`Guard::serve`] gave).
+    pub fn reason(&self, channel: &str, min_scored: usize, served: Served) -> String {
         let u = crate::compensation::unit(channel);
         let (m, l, c) = (
             self.rms(self.sse_model),
@@ -777,7 +829,7 @@ impl Guard {
             self.rms(self.sse_cold),
         );
         let n = self.n;
-        match self.source(min_scored) {
+        match served {
             Served::Model if n < min_scored => format!(
                 "model: {n} held-out observation(s) scored, {min_scored} needed to judge it"
             ),
@@ -803,7 +855,7 @@ impl Guard {
             channel: channel.to_string(),
             unit: crate::compensation::unit(channel).to_string(),
             source: self.source(min_scored),
-            reason: self.reason(channel, min_scored),
+            reason: self.reason(channel, min_scored, self.source(min_scored)),
             offset_walk_per_h: walk.0,
             offset_walk_learned: walk.1,
             scored: self.n,
@@ -1049,24 +1101,33 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
         .flatten();
     let Some(head) = head else {
         if let Some(o) = obs.last() {
-            g.take(o.y, obs_var(o));
+            g.observe(
+                o.y,
+                obs_var(o),
+                (o.y, 0.0),
+                (o.y, 0.0),
+                cfg.min_scored,
+                o.t_ns,
+            );
         }
         return g;
     };
     let walk = learn_walk(cfg, &obs[..n_head], &head).unwrap_or(cfg.offset_walk_per_h);
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
-    g.take(obs[n_head - 1].y, obs_var(&obs[n_head - 1]));
-    for o in &obs[n_head..] {
+    // The head's last observation is only taken (the head's posterior holds it).
+    for (i, o) in obs[n_head - 1..].iter().enumerate() {
         st.walk_to(o.t_ns);
-        g.score(
+        g.observe(
             o.y,
             obs_var(o),
             st.model_at(&o.row),
             st.cold(0.0),
             cfg.min_scored,
+            o.t_ns,
         );
-        st.correct(&o.row, o.y, obs_var(o));
-        g.take(o.y, obs_var(o));
+        if i > 0 {
+            st.correct(&o.row, o.y, obs_var(o));
+        }
     }
     g
 }
@@ -1491,9 +1552,9 @@ impl Predictor {
         let obs_var = sigma.filter(|x| crate::positive(*x)).map_or(0.0, |x| x * x);
         s.walk_to(t_ns);
         let (model, cold) = (s.model_at(h), s.cold(0.0));
-        s.guard.score(value, obs_var, model, cold, min_scored);
+        s.guard
+            .observe(value, obs_var, model, cold, min_scored, t_ns);
         s.correct(h, value, obs_var);
-        s.guard.take(value, obs_var);
         true
     }
 
@@ -1508,9 +1569,10 @@ impl Predictor {
             .map(|(name, s)| {
                 let walk = s.walk_per_s * (t_ns - s.t_ns).max(0) as f64 / 1e9;
                 let (m, v) = s.model_at(&h);
-                let (value, sigma, source, why) =
-                    s.guard.serve((m, v + walk), s.cold(walk), min_scored);
-                let reason = why.map(|Fallback::HeldOut| s.guard.reason(name, min_scored));
+                let (value, sigma, source) =
+                    s.guard.serve((m, v + walk), s.cold(walk), min_scored, t_ns);
+                let reason =
+                    (source != Served::Model).then(|| s.guard.reason(name, min_scored, source));
                 Prediction {
                     channel: name.clone(),
                     value,
@@ -2087,55 +2149,53 @@ mod tests {
 
     #[test]
     fn the_served_value_falls_back_when_the_model_does_worse_and_says_why() {
+        // Observations every 40 min; `obs` scores one before it becomes the last value.
+        let at = |k: i64| k * 40 * MIN;
         let mut g = Guard::default();
         // Before min_scored: the model, and it says so.
-        g.take(1.0, 0.25);
         let cold = (1.0, 0.1);
-        for y in [1.2, 0.8, 1.1] {
+        g.observe(1.0, 0.25, (1.0, 0.5), cold, 4, at(0));
+        for (k, y) in [1.2, 0.8, 1.1].into_iter().enumerate() {
             // The model is 3 off each time; the cold value is close.
-            g.score(y, 0.25, (y + 3.0, 0.5), cold, 4);
-            g.take(y, 0.25);
+            g.observe(y, 0.25, (y + 3.0, 0.5), cold, 4, at(k as i64 + 1));
         }
         assert_eq!(g.source(4), Served::Model);
-        assert!(
-            g.reason("EA0C", 4).contains("3 held-out"),
-            "{}",
-            g.reason("EA0C", 4)
-        );
-        g.score(0.9, 0.25, (3.9, 0.5), cold, 4);
-        g.take(0.9, 0.25);
+        let r = g.reason("EA0C", 4, g.source(4));
+        assert!(r.contains("3 held-out"), "{r}");
+        g.observe(0.9, 0.25, (3.9, 0.5), cold, 4, at(4));
         assert_eq!(g.source(4), Served::NoChange);
-        let (v, s, src, why) = g.serve((100.0, 0.5), cold, 4);
-        assert_eq!(
-            (v, src, why),
-            (1.0, Served::NoChange, Some(Fallback::HeldOut))
-        );
+        let (v, s, src) = g.serve((100.0, 0.5), cold, 4, at(5));
+        assert_eq!((v, src), (1.0, Served::NoChange));
         assert!(s.is_finite() && s >= 0.1f64.sqrt(), "{s}");
-        let r = g.reason("EA0C", 4);
+        let r = g.reason("EA0C", 4, src);
         assert!(
             r.contains("urad") && r.contains("worse than no change"),
             "{r}"
         );
-        // A channel that wanders: the last measured value does best.
+        // A channel that wanders: the last measured value does best, for as long as it was
+        // judged (two gaps); held for hours it was never judged, and the model is served.
         let mut g = Guard::default();
-        g.take(0.0, 0.01);
-        for i in 1..=6 {
-            let y = 5.0 * i as f64;
-            g.score(y, 0.01, (y - 6.0, 0.5), (0.0, 0.1), 4);
-            g.take(y, 0.01);
+        for k in 0..=6 {
+            let y = 5.0 * k as f64;
+            g.observe(y, 0.01, (y - 6.0, 0.5), (0.0, 0.1), 4, at(k));
         }
         assert_eq!(g.source(4), Served::LastMeasured);
-        assert_eq!(g.serve((0.0, 1.0), (0.0, 0.1), 4).0, 30.0);
+        assert_eq!(g.serve((0.0, 1.0), (0.0, 0.1), 4, at(7)).0, 30.0);
+        assert_eq!(
+            g.serve((0.0, 1.0), (0.0, 0.1), 4, at(6) + 6 * 60 * MIN).2,
+            Served::Model
+        );
         // A model that did best on the scores is served, however wide its band now.
         let mut g = Guard::default();
-        g.take(0.0, 0.01);
-        for i in 1..=6 {
-            let y = 0.1 * i as f64;
-            g.score(y, 0.01, (y, 0.01), (0.0, 0.01), 4);
-            g.take(y, 0.01);
+        for k in 0..=6 {
+            let y = 0.1 * k as f64;
+            g.observe(y, 0.01, (y, 0.01), (0.0, 0.01), 4, at(k));
         }
         assert_eq!(g.source(4), Served::Model);
-        assert_eq!(g.serve((0.3, 100.0), (0.0, 0.01), 4).2, Served::Model);
+        assert_eq!(
+            g.serve((0.3, 100.0), (0.0, 0.01), 4, at(7)).2,
+            Served::Model
+        );
     }
 
     #[test]

@@ -100,22 +100,8 @@ fn places(cycles: &[i64], steps: &[String]) -> Vec<Place> {
         .collect()
 }
 
-/// Each reading's place by its time: a diagnosis that screened some readings out keeps the
-/// places of the rest.
-fn places_by_time(scn: &Scenario, inputs: &Inputs) -> BTreeMap<i64, Place> {
-    let k = Kinematics::load(&scn.machine).unwrap();
-    let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
-    let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
-    let steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
-    rows.rows
-        .iter()
-        .map(|r| r.t_ns)
-        .zip(places(&cycles, &steps))
-        .collect()
-}
-
-/// Each reading's deviation by its place, um.
-fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<Place, f64> {
+/// Each reading of a recording with its place, its time and its deviation (um).
+fn placed(scn: &Scenario, inputs: &Inputs) -> Vec<(Place, i64, f64)> {
     let k = Kinematics::load(&scn.machine).unwrap();
     let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
     let cycles: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
@@ -123,7 +109,24 @@ fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<Place, f64> {
     places(&cycles, &steps)
         .into_iter()
         .zip(&rows.rows)
-        .map(|(p, r)| (p, r.deviation_um))
+        .map(|(p, r)| (p, r.t_ns, r.deviation_um))
+        .collect()
+}
+
+/// Each reading's place by its time: a diagnosis that screened some readings out keeps the
+/// places of the rest.
+fn places_by_time(scn: &Scenario, inputs: &Inputs) -> BTreeMap<i64, Place> {
+    placed(scn, inputs)
+        .into_iter()
+        .map(|(p, t, _)| (t, p))
+        .collect()
+}
+
+/// Each reading's deviation by its place, um.
+fn deviations(scn: &Scenario, inputs: &Inputs) -> BTreeMap<Place, f64> {
+    placed(scn, inputs)
+        .into_iter()
+        .map(|(p, _, d)| (p, d))
         .collect()
 }
 
