@@ -29,6 +29,10 @@
 //! [[rules]]
 //! kind = "chi2"        # chi2/dof of a validated cycle
 //! factor = 4.0
+//!
+//! [[rules]]
+//! kind = "clock_skew"  # the NC's events refused for their time stamps
+//! clear_after_min = 10.0
 //! ```
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -93,6 +97,11 @@ pub enum Rule {
     /// more than their noise explains (an outlier the solver absorbed, a wrong sigma, a model
     /// gap). The next validated cycle at or under `factor` resolves. Always a warning.
     Chi2 { factor: f64 },
+    /// The machine link refused events stamped too far from the service clock (an NC clock
+    /// set to local time, or not synchronised): raised at the first refusal, resolved after
+    /// `clear_after_min` minutes without one. Its value is the largest skew seen, in s
+    /// (positive: ahead of the service clock). Always a warning.
+    ClockSkew { clear_after_min: f64 },
 }
 
 impl Rule {
@@ -104,6 +113,7 @@ impl Rule {
             Rule::Rate { error, .. } => format!("rate:{error}"),
             Rule::RejectedInARow { .. } => "rejected_in_a_row".into(),
             Rule::Chi2 { .. } => "chi2".into(),
+            Rule::ClockSkew { .. } => "clock_skew".into(),
         }
     }
 
@@ -111,7 +121,7 @@ impl Rule {
     pub fn error(&self) -> Option<&str> {
         match self {
             Rule::Threshold { error, .. } | Rule::Rate { error, .. } => Some(error),
-            Rule::RejectedInARow { .. } | Rule::Chi2 { .. } => None,
+            Rule::RejectedInARow { .. } | Rule::Chi2 { .. } | Rule::ClockSkew { .. } => None,
         }
     }
 
@@ -171,13 +181,21 @@ impl Rule {
                     return invalid(format!("factor must be > 0, got {factor}"));
                 }
             }
+            Rule::ClockSkew { clear_after_min } => {
+                if !crate::positive(*clear_after_min) {
+                    return invalid(format!(
+                        "clear_after_min must be > 0, got {clear_after_min}"
+                    ));
+                }
+            }
         }
         Ok(())
     }
 }
 
 /// The shipped rule set: EZ0B and EX0B 30 um from their reference (clear at 25 um), EZ0B
-/// drifting 3 um/min (clear at 2 um/min), 3 cycles rejected in a row, chi2/dof over 4.
+/// drifting 3 um/min (clear at 2 um/min), 3 cycles rejected in a row, chi2/dof over 4, events
+/// refused for their time stamps (clear after 10 min without one).
 pub fn default_rules() -> Vec<Rule> {
     vec![
         Rule::Threshold {
@@ -199,6 +217,9 @@ pub fn default_rules() -> Vec<Rule> {
         },
         Rule::RejectedInARow { count: 3 },
         Rule::Chi2 { factor: 4.0 },
+        Rule::ClockSkew {
+            clear_after_min: 10.0,
+        },
     ]
 }
 
@@ -248,6 +269,18 @@ impl AlertConfig {
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Input {
     Cycle(CycleInput),
+    Clock(ClockInput),
+}
+
+/// What the machine link refused for its time stamps since the last look (`refused` may be
+/// 0: the look itself lets an open alert resolve).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClockInput {
+    /// The service clock, ns since the Unix epoch.
+    pub t_ns: i64,
+    pub refused: u64,
+    /// The largest skew among them, s (positive: ahead of the service clock).
+    pub worst_skew_s: f64,
 }
 
 /// The outcome of one measurement cycle.
@@ -371,6 +404,8 @@ pub struct AlertState {
     /// Last validated value of each error.
     last_values: BTreeMap<String, Sample>,
     rejected_in_a_row: u32,
+    /// Service time of the last event refused for its time stamp.
+    last_clock_refusal_ns: Option<i64>,
     /// Open alerts by rule name.
     open: BTreeMap<String, Alert>,
 }
@@ -499,7 +534,63 @@ impl AlertEngine {
     pub fn evaluate(&mut self, input: &Input, now: i64) -> Vec<AlertEvent> {
         match input {
             Input::Cycle(c) => self.evaluate_cycle(c, now),
+            Input::Clock(c) => self.evaluate_clock(c, now),
         }
+    }
+
+    fn evaluate_clock(&mut self, c: &ClockInput, now: i64) -> Vec<AlertEvent> {
+        let mut events = Vec::new();
+        if c.refused > 0 {
+            self.state.last_clock_refusal_ns = Some(c.t_ns);
+        }
+        for i in 0..self.rules.len() {
+            let Rule::ClockSkew { clear_after_min } = self.rules[i] else {
+                continue;
+            };
+            let name = self.rules[i].name();
+            let obs = if c.refused > 0 {
+                let worst = match self.state.open.get(&name) {
+                    Some(a) if a.value.abs() > c.worst_skew_s.abs() => a.value,
+                    _ => c.worst_skew_s,
+                };
+                Observation {
+                    value: worst,
+                    // Only a change of severity (never) would update: one alert per episode.
+                    limit: f64::INFINITY,
+                    raise: true,
+                    resolve: false,
+                    severity: Severity::Warning,
+                    message: format!(
+                        "{} event(s) refused for their time stamps, up to {:.0} s {} the service \
+                         clock: is the NC's clock set to local time, or not synchronised?",
+                        c.refused,
+                        worst.abs(),
+                        if worst > 0.0 { "ahead of" } else { "behind" }
+                    ),
+                }
+            } else {
+                let quiet = self
+                    .state
+                    .last_clock_refusal_ns
+                    .is_none_or(|t| (c.t_ns - t) as f64 >= clear_after_min * NS_PER_MIN);
+                if !quiet {
+                    continue;
+                }
+                Observation {
+                    value: 0.0,
+                    limit: f64::INFINITY,
+                    raise: false,
+                    resolve: true,
+                    severity: Severity::Warning,
+                    message: format!(
+                        "no event refused for its time stamp in {clear_after_min} min"
+                    ),
+                }
+            };
+            // Not from a cycle: cycle 0.
+            self.apply(name, obs, 0, now, &mut events);
+        }
+        events
     }
 
     fn evaluate_cycle(&mut self, c: &CycleInput, now: i64) -> Vec<AlertEvent> {
@@ -555,6 +646,7 @@ impl AlertEngine {
                     *count,
                 )),
                 Rule::Chi2 { factor } => chi2(c, *factor),
+                Rule::ClockSkew { .. } => None,
             };
             if let Some(obs) = obs {
                 let name = rule.name();
@@ -788,7 +880,9 @@ mod tests {
     }
 
     fn with_chi2(cycle: i64, chi2: f64, dof: usize) -> Input {
-        let Input::Cycle(mut c) = ok(cycle, &[]);
+        let Input::Cycle(mut c) = ok(cycle, &[]) else {
+            unreachable!()
+        };
         c.chi2 = Some(chi2);
         c.dof = Some(dof);
         Input::Cycle(c)
@@ -1212,6 +1306,10 @@ mod tests {
         [[rules]]
         kind = "chi2"
         factor = 4.0
+
+        [[rules]]
+        kind = "clock_skew"
+        clear_after_min = 10
     "#;
 
     #[test]
@@ -1286,7 +1384,9 @@ mod tests {
             chi2_point: None,
             notes: None,
         };
-        let Input::Cycle(c) = Input::from(&msg);
+        let Input::Cycle(c) = Input::from(&msg) else {
+            unreachable!()
+        };
         assert!(!c.ok);
         assert!(c.errors.is_empty());
         assert_eq!(c.reason.as_deref(), Some("step b90: missing"));
@@ -1302,5 +1402,34 @@ mod tests {
             engine(default_rules()).watched_errors(),
             BTreeSet::from(["EX0B", "EZ0B"])
         );
+    }
+
+    #[test]
+    fn clock_skew_raises_once_per_episode_and_resolves_when_quiet() {
+        let mut e = engine(vec![Rule::ClockSkew {
+            clear_after_min: 10.0,
+        }]);
+        let look = |t: i64, refused: u64, skew: f64| {
+            Input::Clock(ClockInput {
+                t_ns: t,
+                refused,
+                worst_skew_s: skew,
+            })
+        };
+        let ev = e.evaluate(&look(T0, 2, 3600.0), T0);
+        assert_eq!(
+            (ev.len(), ev[0].kind, ev[0].value),
+            (1, EventKind::Raised, 3600.0)
+        );
+        // More refusals in the episode: no new event; the largest skew is kept.
+        assert!(e.evaluate(&look(T0 + 60e9 as i64, 1, -90.0), T0).is_empty());
+        assert_eq!(e.open_alerts()[0].value, 3600.0);
+        // Quiet, but not yet 10 min since the last refusal.
+        assert!(e.evaluate(&look(T0 + 600e9 as i64, 0, 0.0), T0).is_empty());
+        let ev = e.evaluate(&look(T0 + 660e9 as i64, 0, 0.0), T0);
+        assert_eq!(ev[0].kind, EventKind::Resolved);
+        assert!(e.open_alerts().is_empty());
+        // Cycle inputs leave it alone, and it leaves the cycle rules alone.
+        assert!(e.evaluate(&ok(1, &[("EZ0B", 1.0)]), T0).is_empty());
     }
 }

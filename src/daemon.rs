@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 use tracing::{info, warn};
 
-use crate::alerts::{AlertEngine, AlertEvent, Input, Rule};
+use crate::alerts::{AlertEngine, AlertEvent, ClockInput, Input, Rule};
 use crate::compensation::{self, CompensationSet, ValidationLimits};
 use crate::cycle::{CycleChecks, process_cycle};
 use crate::kinematics::Kinematics;
@@ -170,6 +170,8 @@ pub struct MachineRuntime {
     /// Machine time of the last look at the prediction, and the last refusal said.
     last_prediction_ns: i64,
     last_refusal: Option<String>,
+    /// The service clock at the current step: recording files and refusals follow it.
+    clock_ns: i64,
 }
 
 /// Machine time the per-minute samples are held before they are written together.
@@ -346,6 +348,7 @@ impl MachineRuntime {
             thermal,
             last_prediction_ns: i64::MIN,
             last_refusal: None,
+            clock_ns: now_ns,
         })
     }
 
@@ -356,9 +359,28 @@ impl MachineRuntime {
 
     /// Handle everything up to `now_ns`; returns when to call again at the latest.
     pub async fn step(&mut self, now_ns: i64) -> Result<i64, DaemonError> {
+        self.clock_ns = now_ns;
+        let mut skew = ClockInput {
+            t_ns: now_ns,
+            refused: 0,
+            worst_skew_s: 0.0,
+        };
         for ev in self.link.poll(now_ns) {
+            if let LinkEvent::ClockSkew {
+                refused,
+                worst_skew_ns,
+                ..
+            } = ev
+            {
+                skew.refused += refused;
+                skew.worst_skew_s = worst_skew_ns as f64 / 1e9;
+                continue;
+            }
             self.on_event(ev).await?;
         }
+        // Every step, so that a quiet clock lets the alert resolve.
+        let events = self.alerts.evaluate(&Input::Clock(skew), now_ns);
+        self.raise(events).await?;
         let (requests, acks) = match self.inbox.lock() {
             Ok(mut inbox) => (
                 std::mem::take(&mut inbox.requests),
@@ -563,6 +585,8 @@ impl MachineRuntime {
                     self.close_cycle(t_ns).await?;
                 }
             }
+            // Taken by `step`, which feeds the alert engine.
+            LinkEvent::ClockSkew { .. } => {}
         }
         Ok(())
     }
@@ -592,13 +616,13 @@ impl MachineRuntime {
         t_ns: i64,
         msg: &T,
     ) -> Result<(), DaemonError> {
-        let rotation = self.recorder.write(topic, t_ns, msg)?;
+        let rotation = self.recorder.write(topic, t_ns, self.clock_ns, msg)?;
         if let Some(closed) = rotation.closed {
-            self.file_closed(&closed, t_ns).await?;
+            self.file_closed(&closed, self.clock_ns).await?;
         }
         if let Some(opened) = rotation.opened {
             self.store
-                .mcap_file_opened(&self.id, &opened.display().to_string(), t_ns)
+                .mcap_file_opened(&self.id, &opened.display().to_string(), self.clock_ns)
                 .await?;
         }
         Ok(())
@@ -779,23 +803,8 @@ impl MachineRuntime {
         self.flush_samples().await?;
         self.sched
             .finished(result.status == ResultStatus::Ok, now_ns);
-        for ev in self.alerts.evaluate(&Input::from(&result), now_ns) {
-            warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
-            self.store
-                .add_alert_event(
-                    &self.id,
-                    ev.id as i64,
-                    ev.t_ns,
-                    &format!("{:?}", ev.kind).to_lowercase(),
-                    &ev.rule,
-                    &format!("{:?}", ev.severity).to_lowercase(),
-                    &ev.message,
-                    Some(ev.value),
-                )
-                .await?;
-            self.notifier.notify(&self.id, &ev);
-            self.alert_log.push(ev);
-        }
+        let events = self.alerts.evaluate(&Input::from(&result), now_ns);
+        self.raise(events).await?;
         if let Ok(mut v) = self.view.lock() {
             v.last_cycle = Some(open.number);
             if v.compensation.as_ref().map(|c| c.version) != self.served.as_ref().map(|c| c.version)
@@ -814,8 +823,31 @@ impl MachineRuntime {
         Ok(())
     }
 
+    /// Store, log and notify alert events.
+    async fn raise(&mut self, events: Vec<AlertEvent>) -> Result<(), DaemonError> {
+        for ev in events {
+            warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
+            self.store
+                .add_alert_event(
+                    &self.id,
+                    ev.id as i64,
+                    ev.t_ns,
+                    &format!("{:?}", ev.kind).to_lowercase(),
+                    &ev.rule,
+                    &format!("{:?}", ev.severity).to_lowercase(),
+                    &ev.message,
+                    Some(ev.value),
+                )
+                .await?;
+            self.notifier.notify(&self.id, &ev);
+            self.alert_log.push(ev);
+        }
+        Ok(())
+    }
+
     /// Close the recording cleanly (shutdown).
     pub async fn shutdown(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        self.clock_ns = now_ns;
         self.flush_samples().await?;
         if let Some(open) = self.open.take() {
             self.link.abort_cycle(open.number, now_ns);

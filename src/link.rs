@@ -26,6 +26,14 @@ pub enum LinkEvent {
     },
     /// A simulated machine's ground truth (never used to compute what is served).
     Truth(TruthSample),
+    /// Since the last poll the link refused `refused` events stamped too far from the service
+    /// clock (`t_ns`, the poll's time); `worst_skew_ns` is the largest skew, signed (positive:
+    /// ahead of the clock).
+    ClockSkew {
+        t_ns: i64,
+        refused: u64,
+        worst_skew_ns: i64,
+    },
 }
 
 impl LinkEvent {
@@ -37,6 +45,7 @@ impl LinkEvent {
             LinkEvent::Detection(m) => m.t_ns,
             LinkEvent::CycleDone { t_ns, .. } => *t_ns,
             LinkEvent::Truth(t) => t.t_ns,
+            LinkEvent::ClockSkew { t_ns, .. } => *t_ns,
         }
     }
 }

@@ -136,6 +136,8 @@ struct Shared {
     tolerance: ClockTolerance,
     /// Events refused for their time (whole batches: each bad event counted once).
     refused_clock_skew: u64,
+    /// Refusals since the loop's last poll, and the largest skew among them (signed).
+    skew_since_poll: Option<(u64, i64)>,
     /// Per cycle, how often each measurement has tripped so far.
     received: BTreeMap<i64, ExpectedMeasurements>,
 }
@@ -162,6 +164,7 @@ pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHand
         clock_ns: None,
         tolerance,
         refused_clock_skew: 0,
+        skew_since_poll: None,
         received: BTreeMap::new(),
     }));
     let expected = plan_measurements(&plan);
@@ -211,6 +214,14 @@ impl NcPushHandle {
                 if e.t_ns.abs_diff(now_ns) > limit_ns.unsigned_abs() {
                     if let Ok(mut s) = self.shared.lock() {
                         s.refused_clock_skew += 1;
+                        let skew = e.t_ns.saturating_sub(now_ns);
+                        let (n, worst) = s.skew_since_poll.unwrap_or((0, 0));
+                        let worst = if skew.unsigned_abs() > worst.unsigned_abs() {
+                            skew
+                        } else {
+                            worst
+                        };
+                        s.skew_since_poll = Some((n + 1, worst));
                     }
                     return Err(NcPushError::ClockSkew {
                         index,
@@ -301,7 +312,7 @@ impl MachineLink for NcPushLink {
         s.clock_ns = Some(now_ns);
         let mut events = std::mem::take(&mut s.queue);
         events.sort_by_key(LinkEvent::t_ns);
-        let mut out = Vec::with_capacity(events.len() + 1);
+        let mut out = Vec::with_capacity(events.len() + 2);
         for ev in events {
             let order_cycle = s.order.as_ref().map(|o| o.cycle);
             let done = match &ev {
@@ -340,6 +351,14 @@ impl MachineLink for NcPushLink {
                 s.received.remove(&cycle);
                 out.push(LinkEvent::CycleDone { cycle, t_ns });
             }
+        }
+        // Last, stamped with the poll's time.
+        if let Some((refused, worst_skew_ns)) = s.skew_since_poll.take() {
+            out.push(LinkEvent::ClockSkew {
+                t_ns: now_ns,
+                refused,
+                worst_skew_ns,
+            });
         }
         out
     }

@@ -168,14 +168,17 @@ impl Recorder {
             .unwrap_or_else(|| want.to_path_buf())
     }
 
-    /// Append one message; opens a new file when the UTC day changes or the size limit is hit.
+    /// Append one message stamped `t_ns`; opens a new file when the UTC day of `clock_ns` (the
+    /// service's clock, not the message's stamp: a few badly stamped events from a gateway
+    /// must not open files named 1970-01-01 or 2262-04-11) changes, or at the size limit.
     pub fn write<T: Serialize>(
         &mut self,
         topic: &str,
         t_ns: i64,
+        clock_ns: i64,
         msg: &T,
     ) -> Result<Rotation, RecorderError> {
-        let day_number = t_ns.div_euclid(86_400_000_000_000);
+        let day_number = clock_ns.div_euclid(86_400_000_000_000);
         let mut rotation = Rotation::default();
         let rotate = match &self.open {
             Some(f) => f.day_number != day_number || f.bytes_hint >= self.max_bytes,
@@ -183,7 +186,7 @@ impl Recorder {
         };
         if rotate {
             rotation.closed = self.close()?;
-            self.open_file(&day_of(t_ns), t_ns)?;
+            self.open_file(&day_of(clock_ns), clock_ns)?;
             rotation.opened = self.current().map(Path::to_path_buf);
         }
         let Some(f) = self.open.as_mut() else {
@@ -313,7 +316,7 @@ mod tests {
         let d = dir("days");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + 3_600_000_000_000;
-        r.write(rec::TOPIC_SPINDLE, t0, &SpindleMsg { rpm: 1000.0 })
+        r.write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 1000.0 })
             .unwrap();
         assert!(
             r.current()
@@ -322,7 +325,12 @@ mod tests {
                 .ends_with(".mcap.partial")
         );
         let closed = r
-            .write(rec::TOPIC_SPINDLE, t0 + DAY, &SpindleMsg { rpm: 0.0 })
+            .write(
+                rec::TOPIC_SPINDLE,
+                t0 + DAY,
+                t0 + DAY,
+                &SpindleMsg { rpm: 0.0 },
+            )
             .unwrap()
             .closed
             .unwrap();
@@ -336,6 +344,31 @@ mod tests {
     }
 
     #[test]
+    fn files_follow_the_service_clock_not_the_stamps() {
+        let d = dir("clock");
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        let now = 20_000 * DAY + 3_600_000_000_000;
+        // A gateway's bad stamps: the epoch and the end of i64 nanoseconds.
+        for t in [now, 0, i64::MAX - 1, now + 1] {
+            let rot = r
+                .write(rec::TOPIC_SPINDLE, t, now, &SpindleMsg { rpm: 1.0 })
+                .unwrap();
+            assert!(rot.closed.is_none(), "stamp {t} rotated the file");
+        }
+        let f = r.close().unwrap().unwrap();
+        assert_eq!(
+            f.path.file_name().unwrap().to_string_lossy(),
+            format!("{}.mcap", day_of(now))
+        );
+        assert_eq!(f.messages, 5);
+        let names: Vec<_> = fs::read_dir(d.join("m1"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names.len(), 1, "{names:?}");
+    }
+
+    #[test]
     fn a_partial_file_left_by_a_crash_is_recovered_up_to_its_last_flush() {
         let d = dir("crash");
         let partial;
@@ -343,19 +376,30 @@ mod tests {
             let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
             let t0 = 20_000 * DAY;
             for i in 0..50 {
-                r.write(rec::TOPIC_SPINDLE, t0 + i, &SpindleMsg { rpm: i as f64 })
-                    .unwrap();
+                r.write(
+                    rec::TOPIC_SPINDLE,
+                    t0 + i,
+                    t0,
+                    &SpindleMsg { rpm: i as f64 },
+                )
+                .unwrap();
             }
             r.write(
                 rec::TOPIC_COMPENSATION,
                 t0 + 50,
+                t0,
                 &serde_json::json!({"version": 1}),
             )
             .unwrap();
             r.flush().unwrap();
             for i in 50..60 {
-                r.write(rec::TOPIC_SPINDLE, t0 + i, &SpindleMsg { rpm: i as f64 })
-                    .unwrap();
+                r.write(
+                    rec::TOPIC_SPINDLE,
+                    t0 + i,
+                    t0,
+                    &SpindleMsg { rpm: i as f64 },
+                )
+                .unwrap();
             }
             partial = r.current().unwrap().to_path_buf();
             // A crash: the writer is leaked, never finished.

@@ -269,4 +269,40 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         text.contains("driftwatch_nc_events_refused_clock_skew_total{machine=\"nc1\"} 1"),
         "{text}"
     );
+    // ... and a clock_skew alert is raised for the machine at the loop's next step, naming the
+    // skew; it resolves after 10 min of machine time without a refusal.
+    rt.step(now).await.unwrap();
+    let alerts = "/api/v1/machines/nc1/alerts";
+    let (_, a) = send(&app, "GET", alerts, Some("read-token"), None).await;
+    let open = a["open"].as_array().unwrap();
+    let skew = open
+        .iter()
+        .find(|x| x["rule"] == "clock_skew")
+        .unwrap_or_else(|| panic!("{a}"));
+    // The service clock stood at the loop's last step, a minute before `now`.
+    assert_eq!(skew["value"].as_f64(), Some(3660.0), "{skew}");
+    assert!(
+        skew["message"].as_str().unwrap().contains("3660 s ahead"),
+        "{skew}"
+    );
+    for m in 1..=10 {
+        rt.step(now + m * MIN).await.unwrap();
+    }
+    let (_, a) = send(&app, "GET", alerts, Some("read-token"), None).await;
+    assert!(
+        !a["open"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|x| x["rule"] == "clock_skew"),
+        "{a}"
+    );
+    assert!(
+        a["events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|x| x["rule"] == "clock_skew" && x["kind"] == "resolved"),
+        "{a}"
+    );
 }
