@@ -258,16 +258,30 @@ pub fn validate(
     }
 }
 
+/// A validated cycle's two sets: what the NC gets (`nc`) and what the cycle measured
+/// (`measured`). They differ only when the measurement lies beyond the step limit from the
+/// served set (a predicted one, or one ramped before): the NC then gets the served values
+/// moved by the limit towards the measurement, and the predictions that follow carry on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Admitted {
+    pub nc: CompensationSet,
+    pub measured: CompensationSet,
+}
+
 /// What the service does with one solved cycle: the result as it is stored (rejected, with
 /// every reason, when it fails [`validate`] or no set can be built from it; the chi-square
-/// point it was checked against filled in) and the new set when it passes. `now_ns` is when
-/// the cycle closed. The command line's `solve` gives the same verdict offline.
+/// point it was checked against filled in) and, when it passes, its sets. `served` is the set
+/// the NC has (it fixes the version and the time order), `measured` the last measured one: the
+/// step check measures from it, so a measurement is never rejected because of a step from a
+/// prediction. `now_ns` is when the cycle closed. The command line's `solve` gives the same
+/// verdict offline.
 pub fn admit(
     mut result: CycleResultMsg,
     served: Option<&CompensationSet>,
+    measured: Option<&CompensationSet>,
     limits: &ValidationLimits,
     now_ns: i64,
-) -> (CycleResultMsg, Option<CompensationSet>) {
+) -> (CycleResultMsg, Option<Admitted>) {
     if result.status != ResultStatus::Ok {
         return (result, None);
     }
@@ -277,10 +291,16 @@ pub fn admit(
     {
         result.chi2_point = Some(chi2_quantile(limits.chi2_quantile, dof));
     }
-    let v = validate(&result, served, limits);
+    let v = validate(&result, measured, limits);
     let refused = if v.ok {
         match next_set(served, &result, &v, now_ns) {
-            Ok(set) => return (result, Some(set)),
+            Ok(set) => {
+                let nc = match served {
+                    Some(from) => ramped(from, &set, limits),
+                    None => set.clone(),
+                };
+                return (result, Some(Admitted { nc, measured: set }));
+            }
             Err(refused) => refused.reasons,
         }
     } else {
@@ -289,6 +309,37 @@ pub fn admit(
     result.status = ResultStatus::Rejected;
     result.reason = Some(refused.join("; "));
     (result, None)
+}
+
+/// `to` with its values moved from `from`'s by at most the step limit (grown by the rate
+/// limits over the time between them); the reason names each value held back.
+fn ramped(
+    from: &CompensationSet,
+    to: &CompensationSet,
+    limits: &ValidationLimits,
+) -> CompensationSet {
+    let minutes = ((to.valid_from_ns - from.valid_from_ns) as f64 / 60e9).max(0.0);
+    let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
+    let step_urad = limits.max_step_urad + limits.max_rate_urad_per_min * minutes;
+    let errors = ramp(from, &to.errors, step_um, step_urad);
+    let held: Vec<String> = to
+        .errors
+        .iter()
+        .filter(|(n, v)| errors.get(*n).is_some_and(|r| (r - *v).abs() > 1e-9))
+        .map(|(n, v)| format!("{n} {:.1} of {v:.1}", errors[n]))
+        .collect();
+    let mut set = to.clone();
+    if !held.is_empty() {
+        set.reason.push_str(&format!(
+            "; ramped to the step limit from set {} ({:?}): {}",
+            from.version,
+            from.source,
+            held.join(", ")
+        ));
+        set.offsets = offsets(&errors);
+        set.errors = errors;
+    }
+    set
 }
 
 /// `x` at most `max`; false when either is NaN, so that a NaN fails the check it is in.
@@ -581,6 +632,11 @@ pub struct PredictionPolicy {
     /// this.
     pub cycle_above_sigma_um: f64,
     pub cycle_above_sigma_urad: f64,
+    /// A predicted value must lie within this many combined standard uncertainties of the
+    /// latest measurement (widened by the drift the validation's rate limits allow since it);
+    /// otherwise no predicted set is served and the model is suspect until it predicts a
+    /// cycle within as many of its own.
+    pub consistency_sigmas: f64,
     /// The model (pole basis, inputs, offset walk).
     pub model: crate::thermal_model::ModelConfig,
 }
@@ -599,6 +655,7 @@ impl Default for PredictionPolicy {
             max_sigma_urad: 30.0,
             cycle_above_sigma_um: 3.0,
             cycle_above_sigma_urad: 20.0,
+            consistency_sigmas: 5.0,
             model: crate::thermal_model::ModelConfig::default(),
         }
     }
@@ -616,6 +673,7 @@ impl PredictionPolicy {
             ("max_sigma_urad", self.max_sigma_urad),
             ("cycle_above_sigma_um", self.cycle_above_sigma_um),
             ("cycle_above_sigma_urad", self.cycle_above_sigma_urad),
+            ("consistency_sigmas", self.consistency_sigmas),
         ] {
             if !positive(v) {
                 return Err(format!("thermal.{k} must be > 0, not {v}"));
@@ -709,23 +767,7 @@ pub fn predicted_set(
             reasons: vec!["no version number after u64::MAX".into()],
         });
     };
-    let mut reason = format!("predicted by {note}");
-    if let Some(prev) = previous {
-        let minutes = (now_ns - prev.valid_from_ns) as f64 / 60e9;
-        let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
-        let step_urad = limits.max_step_urad + limits.max_rate_urad_per_min * minutes;
-        let ramped = ramp(prev, &errors, step_um, step_urad);
-        let held: Vec<String> = errors
-            .iter()
-            .filter(|(n, v)| ramped.get(*n).is_some_and(|r| (r - *v).abs() > 1e-9))
-            .map(|(n, v)| format!("{n} {:.1} of {v:.1}", ramped[n]))
-            .collect();
-        if !held.is_empty() {
-            reason.push_str(&format!("; ramped to the step limit: {}", held.join(", ")));
-        }
-        errors = ramped;
-    }
-    Ok(CompensationSet {
+    let set = CompensationSet {
         version,
         valid_from_ns: now_ns,
         source: Source::Predicted,
@@ -733,8 +775,54 @@ pub fn predicted_set(
         offsets: offsets(&errors),
         errors,
         sigma,
-        reason,
+        reason: format!("predicted by {note}"),
+    };
+    Ok(match previous {
+        Some(prev) => ramped(prev, &set, limits),
+        None => set,
     })
+}
+
+/// Where predicted values (`value`, `sigma` per error, at `t_ns`) disagree with a measured
+/// set (its cycle's reference time `measured_t_ns`): beyond `k` combined standard
+/// uncertainties plus the drift the rate limits allow over the time between. One reason per
+/// error that disagrees; empty when all agree.
+pub fn inconsistent(
+    predicted: &BTreeMap<String, (f64, f64)>,
+    measured: &CompensationSet,
+    measured_t_ns: i64,
+    t_ns: i64,
+    k: f64,
+    limits: &ValidationLimits,
+) -> Vec<String> {
+    let minutes = ((t_ns - measured_t_ns) as f64 / 60e9).abs();
+    let mut reasons = Vec::new();
+    for (n, &(v, s)) in predicted {
+        let (Some(&m), Some(&sm)) = (measured.errors.get(n), measured.sigma.get(n)) else {
+            continue;
+        };
+        let (u, rate) = if is_angular(n) {
+            ("urad", limits.max_rate_urad_per_min)
+        } else {
+            ("um", limits.max_rate_um_per_min)
+        };
+        let combined = s.hypot(sm);
+        let allowed = k * combined + rate * minutes;
+        // `within` is false for a NaN anywhere: it disagrees.
+        if !within((v - m).abs(), allowed) {
+            reasons.push(format!(
+                "{n} predicted {v:.2} +- {s:.2} {u} lies {:.0} combined sigmas from the \
+                 {m:.2} +- {sm:.2} {u} measured{}, {minutes:.1} min before (allowed: {k} sigmas \
+                 + {rate} {u}/min, {allowed:.2} {u})",
+                (v - m).abs() / combined,
+                measured
+                    .cycle
+                    .map(|c| format!(" in cycle {c}"))
+                    .unwrap_or_default(),
+            ));
+        }
+    }
+    reasons
 }
 
 /// The served errors moved towards `to` by at most `max_step_um` (positions) or
@@ -943,17 +1031,25 @@ mod tests {
     #[test]
     fn admit_gives_the_services_verdict_with_the_chi_square_point() {
         let limits = ValidationLimits::default();
-        let (r, set) = admit(clean(1), None, &limits, T0 + 1_800_000_000_000);
+        let (r, set) = admit(clean(1), None, None, &limits, T0 + 1_800_000_000_000);
         let point = r.chi2_point.unwrap();
         assert!((point - chi2_quantile(0.999, 16)).abs() < 1e-12 && point > 12.0);
         assert_eq!(r.status, ResultStatus::Ok);
         let set = set.unwrap();
+        assert_eq!(set.nc, set.measured);
+        let set = set.nc;
         assert_eq!((set.version, set.cycle), (1, Some(1)));
         // Beyond the point: refused, the numbers kept for the metrologist, no set.
         let mut bad = clean(2);
         bad.chi2 = Some(43.0);
         bad.dof = Some(9);
-        let (r, none) = admit(bad, Some(&set), &limits, T0 + 2 * 1_800_000_000_000);
+        let (r, none) = admit(
+            bad,
+            Some(&set),
+            Some(&set),
+            &limits,
+            T0 + 2 * 1_800_000_000_000,
+        );
         assert!(none.is_none());
         assert_eq!(r.status, ResultStatus::Rejected);
         let why = r.reason.unwrap();
@@ -966,8 +1062,73 @@ mod tests {
         let mut solver_no = clean(3);
         solver_no.status = ResultStatus::Rejected;
         solver_no.reason = Some("missing".into());
-        let (r, none) = admit(solver_no.clone(), Some(&set), &limits, T0);
+        let (r, none) = admit(solver_no.clone(), Some(&set), Some(&set), &limits, T0);
         assert!(none.is_none() && r == solver_no);
+    }
+
+    /// Issue 13, case 3: a prediction 150 combined sigmas from a measurement 11 s old is
+    /// caught, while one that drifted as far as the rate limits allow is not; and the next
+    /// true measurement is not rejected for its step from a far predicted set: it is
+    /// admitted, and the NC gets it ramped from the served set.
+    #[test]
+    fn a_far_prediction_is_refused_and_never_blocks_a_measurement() {
+        let limits = ValidationLimits::default();
+        let (_, a) = admit(clean(1), None, None, &limits, T0 + 1_800_000_000_000);
+        let measured = a.unwrap().measured;
+        let t_m = clean(1).t_ns;
+        let mut pred: BTreeMap<String, (f64, f64)> = clean_errors()
+            .into_iter()
+            .map(|(n, v)| (n, (v, 0.3)))
+            .collect();
+        let now = t_m + 11_000_000_000;
+        assert!(inconsistent(&pred, &measured, t_m, now, 5.0, &limits).is_empty());
+        pred.insert("EZ0B".into(), (40.0 + 41.8, 0.27));
+        let why = inconsistent(&pred, &measured, t_m, now, 5.0, &limits);
+        assert_eq!(why.len(), 1, "{why:?}");
+        assert!(
+            why[0].contains("EZ0B predicted 81.80 +- 0.27 um lies 64 combined sigmas"),
+            "{why:?}"
+        );
+        // Twelve minutes later the same value is within the 4 um/min the limits allow.
+        let later = t_m + 12 * 60_000_000_000;
+        assert!(inconsistent(&pred, &measured, t_m, later, 5.0, &limits).is_empty());
+        // NaN disagrees.
+        pred.insert("EA0C".into(), (f64::NAN, 1.0));
+        let why = inconsistent(&pred, &measured, t_m, later, 5.0, &limits);
+        assert!(
+            why.len() == 1 && why[0].starts_with("EA0C predicted NaN"),
+            "{why:?}"
+        );
+
+        // A predicted set 60 um off was served; the next measurement (the truth, 40 um) is
+        // 60 um from it but 0 from the last measurement: admitted, and ramped for the NC.
+        let mut far = measured.clone();
+        far.version = 2;
+        far.source = Source::Predicted;
+        far.valid_from_ns = T0 + 1_800_000_000_000 + 11_000_000_000;
+        far.errors.insert("EZ0B".into(), 100.0);
+        let closed = far.valid_from_ns + 60_000_000_000;
+        let mut next = clean(2);
+        next.t_ns = closed - 30_000_000_000;
+        let (r, a) = admit(next.clone(), Some(&far), Some(&measured), &limits, closed);
+        assert_eq!(r.status, ResultStatus::Ok, "{:?}", r.reason);
+        let a = a.unwrap();
+        assert_eq!((a.nc.version, a.measured.errors["EZ0B"]), (3, 40.0));
+        // 50 um + 4 um/min over the minute since the predicted set: 54 um of the 60.
+        assert!(
+            (a.nc.errors["EZ0B"] - 46.0).abs() < 1e-9,
+            "{:?}",
+            a.nc.errors
+        );
+        assert!((a.nc.offsets["B_pivot_z_um"] - 46.0).abs() < 1e-9);
+        assert!(
+            a.nc.reason.contains("ramped to the step limit from set 2"),
+            "{}",
+            a.nc.reason
+        );
+        // Against the far set as the reference (the old behaviour) it would have been refused.
+        let (r, none) = admit(next, Some(&far), Some(&far), &limits, closed);
+        assert!(none.is_none() && r.reason.unwrap().contains("EZ0B step"));
     }
 
     /// Validation fails with exactly one reason containing every fragment, and no set follows.

@@ -169,7 +169,9 @@ impl ServiceConfig {
         }
     }
 
-    fn validate(&self, origin: &str) -> Result<(), ConfigError> {
+    /// Every check of a loaded configuration; run again after command-line overrides, so that
+    /// no option bypasses one.
+    pub fn validate(&self, origin: &str) -> Result<(), ConfigError> {
         let bad = |m: String| {
             Err(ConfigError::Invalid {
                 origin: origin.to_string(),

@@ -155,6 +155,9 @@ pub struct MachineRuntime {
     store: Store,
     open: Option<OpenCycle>,
     served: Option<CompensationSet>,
+    /// The last measured set with its cycle's reference time: the next cycle's step and the
+    /// predictions are checked against it (the served set may be predicted, or ramped).
+    measured: Option<(i64, CompensationSet)>,
     /// Minute and speed of the last stored spindle sample (every change is stored, and one
     /// sample a minute besides), and what is known of each temperature sensor.
     last_spindle: (i64, f64),
@@ -303,6 +306,16 @@ impl MachineRuntime {
             );
         }
         let served = store.latest_compensation(id).await?;
+        let measured = match store.latest_measurement(id).await? {
+            Some(m) => {
+                let t = match m.cycle {
+                    Some(c) => store.result(id, c).await?.map(|r| r.t_ns),
+                    None => None,
+                };
+                Some((t.unwrap_or(m.valid_from_ns), m))
+            }
+            None => None,
+        };
         let mut checks = CycleChecks::new(&k);
         checks.expected = Some(crate::cycle::plan_measurements(&plan));
         let phase =
@@ -338,6 +351,7 @@ impl MachineRuntime {
             store,
             open: None,
             served,
+            measured,
             last_spindle: (i64::MIN, f64::NAN),
             last_temp: BTreeMap::new(),
             samples: Vec::new(),
@@ -665,11 +679,27 @@ impl MachineRuntime {
         {
             let values: BTreeMap<String, f64> =
                 preds.iter().map(|p| (p.channel.clone(), p.value)).collect();
-            if policy.moved(served, &values) {
-                let with_sigma: BTreeMap<String, (f64, f64)> = preds
-                    .iter()
-                    .map(|p| (p.channel.clone(), (p.value, p.sigma)))
-                    .collect();
+            let with_sigma: BTreeMap<String, (f64, f64)> = preds
+                .iter()
+                .map(|p| (p.channel.clone(), (p.value, p.sigma)))
+                .collect();
+            let trusted = match (&self.measured, self.thermal.suspect()) {
+                (_, Some(why)) => Err(format!(
+                    "the model is suspect until it predicts a cycle within its band ({why})"
+                )),
+                (Some((t_m, m)), None) => self
+                    .thermal
+                    .check_consistency(&with_sigma, m, *t_m, now_ns, &self.limits)
+                    .map_err(|why| format!("inconsistent with the latest measurement: {why}")),
+                (None, None) => Ok(()),
+            };
+            if let Err(why) = trusted {
+                if self.last_refusal.as_deref() != Some(&why) {
+                    warn!(machine = %self.id, "predicted set not served: {why}");
+                }
+                note = Some(why.clone());
+                self.last_refusal = Some(why);
+            } else if policy.moved(served, &values) {
                 let about = format!(
                     "the thermal model{}{}",
                     served
@@ -768,9 +798,10 @@ impl MachineRuntime {
         let solve_started = std::time::Instant::now();
         let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
         let solve_seconds = solve_started.elapsed().as_secs_f64();
-        let (result, new_set) = compensation::admit(
+        let (result, admitted) = compensation::admit(
             outcome.message(),
             self.served.as_ref(),
+            self.measured.as_ref().map(|(_, m)| m),
             &self.limits,
             now_ns,
         );
@@ -778,24 +809,34 @@ impl MachineRuntime {
             warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
         }
         // The result and the set it makes go in one transaction, before anything is served.
-        let stored = new_set.as_ref().map(crate::store::NewCompensation::of);
+        let stored = admitted
+            .as_ref()
+            .map(|a| crate::store::NewCompensation::of(&a.nc));
         self.store
             .close_cycle_with(&self.id, &result, now_ns, stored.as_ref())
             .await?;
-        if let Some(set) = new_set {
+        if let Some(a) = admitted {
             self.record(
                 rec::TOPIC_COMPENSATION,
                 now_ns,
-                &compensation::compensation_message(&set),
+                &compensation::compensation_message(&a.nc),
             )
             .await?;
-            info!(machine = %self.id, cycle = open.number, version = set.version, "compensation updated");
+            info!(machine = %self.id, cycle = open.number, version = a.nc.version, "compensation updated");
+            // Judged on the cycle before it learns from it.
+            if let Some(note) = self
+                .thermal
+                .judge(&a.measured, result.t_ns, now_ns, &self.limits)
+            {
+                warn!(machine = %self.id, "thermal model: {note}");
+            }
             if let (Some(e), Some(sg)) = (&result.errors, &result.sigma)
                 && let Some(note) = self.thermal.observe(result.t_ns, e, sg)
             {
                 info!(machine = %self.id, "thermal model: {note}");
             }
-            self.served = Some(set);
+            self.served = Some(a.nc);
+            self.measured = Some((result.t_ns, a.measured));
         }
 
         self.record(rec::TOPIC_RESULT, now_ns, &result).await?;

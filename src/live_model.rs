@@ -33,6 +33,9 @@ pub struct ModelView {
     /// What each error serves (the model, or its fallback: the last measured value or no
     /// change) and why: its held-out scores, the band's factor and the offset walk.
     pub served: Vec<GuardSummary>,
+    /// Why the model's predictions are not served until it predicts a cycle within its
+    /// band again (none: it is trusted).
+    pub suspect: Option<String>,
 }
 
 #[derive(Debug, Clone)]
@@ -56,6 +59,8 @@ pub struct LiveModel {
     predictor: Option<Predictor>,
     updates: usize,
     message: String,
+    /// Why the model may not serve until it predicts a cycle within its band.
+    suspect: Option<String>,
 }
 
 impl LiveModel {
@@ -77,6 +82,7 @@ impl LiveModel {
             predictor: None,
             updates: 0,
             message,
+            suspect: None,
         }
     }
 
@@ -163,12 +169,89 @@ impl LiveModel {
         if !self.policy.enabled {
             return None;
         }
+        // The state before, to come back to if the update leaves the model unable to predict.
+        let before = self.clone();
         self.take(t_ns, errors, sigma);
         let due = match (&self.predictor, &self.initial) {
             (Some(_), None) => self.cycles_since_fit >= self.policy.refit_every_cycles,
             _ => self.ok_cycles >= self.policy.min_cycles,
         };
-        due.then(|| self.fit(t_ns))
+        let note = due.then(|| self.fit(t_ns));
+        if let Some(bad) = self.unhealthy(t_ns) {
+            *self = before;
+            self.message = format!(
+                "the update with the cycle at {t_ns} ns was rolled back: it left {bad}; the model \
+                 goes on from its state before"
+            );
+            return Some(self.message.clone());
+        }
+        note
+    }
+
+    /// What is wrong with the model's predictions at `t_ns`, if anything: a value or band
+    /// that is not a finite number (a sigma of 0 included: nothing is that certain).
+    fn unhealthy(&self, t_ns: i64) -> Option<String> {
+        let mut p = self.predictor.clone()?;
+        p.predict(t_ns)
+            .into_iter()
+            .find(|x| !(x.value.is_finite() && crate::positive(x.sigma)))
+            .map(|x| format!("{} predicted as {} +- {}", x.channel, x.value, x.sigma))
+    }
+
+    /// Whether predictions may be served: a reason when the model is suspect.
+    pub fn suspect(&self) -> Option<&str> {
+        self.suspect.as_deref()
+    }
+
+    /// Check predictions against the latest measurement before they are served (see
+    /// [`crate::compensation::inconsistent`]); on disagreement the model becomes suspect
+    /// and the reasons are returned.
+    pub fn check_consistency(
+        &mut self,
+        predicted: &BTreeMap<String, (f64, f64)>,
+        measured: &crate::compensation::CompensationSet,
+        measured_t_ns: i64,
+        t_ns: i64,
+        limits: &crate::compensation::ValidationLimits,
+    ) -> Result<(), String> {
+        let k = self.policy.consistency_sigmas;
+        let reasons =
+            crate::compensation::inconsistent(predicted, measured, measured_t_ns, t_ns, k, limits);
+        if reasons.is_empty() {
+            return Ok(());
+        }
+        let why = reasons.join("; ");
+        self.suspect = Some(why.clone());
+        Err(why)
+    }
+
+    /// Judge the model on a validated cycle before it learns from it: its prediction for
+    /// now must lie within `consistency_sigmas` of the measurement (plus the drift the rate
+    /// limits allow since the cycle's reference time). A suspect model that passes is trusted
+    /// again; one that fails becomes suspect. Returns a note when the verdict changed.
+    pub fn judge(
+        &mut self,
+        measured: &crate::compensation::CompensationSet,
+        measured_t_ns: i64,
+        now_ns: i64,
+        limits: &crate::compensation::ValidationLimits,
+    ) -> Option<String> {
+        let preds = self.predict(now_ns)?;
+        let values: BTreeMap<String, (f64, f64)> = preds
+            .iter()
+            .filter(|p| measured.errors.contains_key(&p.channel))
+            .map(|p| (p.channel.clone(), (p.value, p.sigma)))
+            .collect();
+        let was = self.suspect.take();
+        match self.check_consistency(&values, measured, measured_t_ns, now_ns, limits) {
+            Ok(()) => was.map(|_| {
+                "it predicted the cycle within its band again: its predictions are served again"
+                    .to_string()
+            }),
+            Err(why) => {
+                (was.is_none()).then(|| format!("suspect, its predictions not served: {why}"))
+            }
+        }
     }
 
     /// Record a validated cycle: its rows, and the filter's correction.
@@ -363,6 +446,7 @@ impl LiveModel {
                 .as_ref()
                 .map(Predictor::guards)
                 .unwrap_or_default(),
+            suspect: self.suspect.clone(),
         }
     }
 }
@@ -492,5 +576,79 @@ mod tests {
         assert!(m.observe(0, &BTreeMap::new(), &BTreeMap::new()).is_none());
         assert!(m.predict(0).is_none());
         assert_eq!(m.view().status, "disabled");
+    }
+
+    /// A model fitted on a 40 um plateau, for judging and health checks.
+    fn plateau() -> LiveModel {
+        let mut m = LiveModel::new(PredictionPolicy {
+            min_cycles: 4,
+            ..Default::default()
+        });
+        m.input(Event::Spindle {
+            t_ns: 0,
+            rpm: 20000.0,
+        });
+        for i in 0..6 {
+            let t = (i * 30 + 5) * MIN;
+            m.observe(t, &all(40.0), &all(0.3));
+        }
+        assert_eq!(m.view().status, "fitted");
+        m
+    }
+
+    fn all(v: f64) -> BTreeMap<String, f64> {
+        TABLE_BC_ERRORS.iter().map(|n| (n.to_string(), v)).collect()
+    }
+
+    fn set(v: f64, t: i64) -> crate::compensation::CompensationSet {
+        crate::compensation::CompensationSet {
+            version: 1,
+            valid_from_ns: t,
+            source: crate::compensation::Source::Measured,
+            cycle: Some(7),
+            offsets: BTreeMap::new(),
+            errors: all(v),
+            sigma: all(0.3),
+            reason: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_model_that_misses_a_cycle_is_suspect_until_it_predicts_one_within_its_band() {
+        let limits = crate::compensation::ValidationLimits::default();
+        let mut m = plateau();
+        let t = 200 * MIN;
+        assert_eq!(m.judge(&set(40.0, t), t, t, &limits), None);
+        assert!(m.suspect().is_none());
+        // The cycle measured 140 um: the model said 40; suspect, and says why.
+        let note = m.judge(&set(140.0, t), t, t, &limits).unwrap();
+        assert!(
+            note.contains("suspect") && note.contains("EZ0B predicted 40"),
+            "{note}"
+        );
+        assert!(m.view().suspect.is_some());
+        // Still missing: no new note, still suspect.
+        assert_eq!(m.judge(&set(140.0, t), t, t, &limits), None);
+        assert!(m.suspect().is_some());
+        // It predicts the next cycle within its band: trusted again.
+        let note = m.judge(&set(40.2, t), t, t, &limits).unwrap();
+        assert!(note.contains("served again"), "{note}");
+        assert!(m.suspect().is_none());
+    }
+
+    #[test]
+    fn an_update_that_leaves_the_model_unable_to_predict_is_rolled_back() {
+        let mut m = plateau();
+        let t = 200 * MIN;
+        let before = m.predict(t).unwrap();
+        // Finite, but beyond anything the filter's arithmetic survives.
+        let note = m.observe(t, &all(f64::MAX), &all(1e-300)).unwrap();
+        assert!(note.contains("rolled back"), "{note}");
+        let after = m.predict(t).unwrap();
+        assert_eq!(after, before);
+        assert_eq!(m.view().validated_cycles, 6);
+        // The next good cycle is taken as usual.
+        assert!(m.observe(t + 30 * MIN, &all(40.0), &all(0.3)).is_none());
+        assert_eq!(m.view().validated_cycles, 7);
     }
 }

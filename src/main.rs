@@ -563,10 +563,16 @@ fn cmd_solve(
     for (c, entries) in &groups {
         let o = process_cycle(&k, *c, entries, &checks);
         let closed_ns = entries.iter().map(|e| e.t_ns).max().unwrap_or(o.t_ref_ns);
-        let (result, set) =
-            driftwatch::compensation::admit(o.message(), served.as_ref(), &limits, closed_ns);
-        if set.is_some() {
-            served = set;
+        // Offline there are no predicted sets: the served set is the last measured one.
+        let (result, set) = driftwatch::compensation::admit(
+            o.message(),
+            served.as_ref(),
+            served.as_ref(),
+            &limits,
+            closed_ns,
+        );
+        if let Some(a) = set {
+            served = Some(a.measured);
         } else {
             rejected += 1;
         }

@@ -59,6 +59,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     if let Some(d) = o.data_dir {
         cfg.data_dir = d;
     }
+    cfg.validate("the configuration with the command line's options")?;
     std::fs::create_dir_all(&cfg.data_dir)
         .with_context(|| format!("creating data directory {}", cfg.data_dir.display()))?;
     let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;

@@ -593,12 +593,43 @@ impl Store {
         &self,
         machine: &str,
     ) -> Result<Option<crate::compensation::CompensationSet>, StoreError> {
+        self.latest_set(machine, None).await
+    }
+
+    /// The newest measured compensation set of a machine, with the values its cycle measured
+    /// (the set itself may have been ramped towards them from a predicted one): what the next
+    /// cycle's step is checked against.
+    pub async fn latest_measurement(
+        &self,
+        machine: &str,
+    ) -> Result<Option<crate::compensation::CompensationSet>, StoreError> {
+        let Some(mut set) = self.latest_set(machine, Some("measured")).await? else {
+            return Ok(None);
+        };
+        if let Some(c) = set.cycle
+            && let Some(r) = self.result(machine, c).await?
+            && let (Some(e), Some(s)) = (r.errors, r.sigma)
+        {
+            set.offsets = crate::compensation::offsets(&e);
+            set.errors = e;
+            set.sigma = s;
+        }
+        Ok(Some(set))
+    }
+
+    async fn latest_set(
+        &self,
+        machine: &str,
+        source: Option<&str>,
+    ) -> Result<Option<crate::compensation::CompensationSet>, StoreError> {
         use crate::compensation::{CompensationSet, Source, offsets};
         let row = sqlx::query(
             "SELECT version, valid_from_ns, source, cycle, reason, payload FROM compensation_sets
-             WHERE machine_id = $1 ORDER BY version DESC LIMIT 1",
+             WHERE machine_id = $1 AND ($2 IS NULL OR source = $2)
+             ORDER BY version DESC LIMIT 1",
         )
         .bind(machine)
+        .bind(source)
         .fetch_optional(&self.pool)
         .await?;
         let Some(r) = row else {

@@ -753,3 +753,28 @@ fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model
     assert!(!ok);
     assert!(err.contains("ch9_um"), "{err}");
 }
+
+/// Issue 13, case 7: `--time-scale` may not bypass the configuration's refusal to run a real
+/// NC (`nc_push`) on anything but the wall clock; the service stops before it listens.
+#[test]
+fn the_command_line_cannot_bypass_a_configuration_check() {
+    let cfg = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/nc_push.example.toml");
+    let data = tmp("bypass-data");
+    let (ok, out, err) = run(&[
+        "serve",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--time-scale",
+        "60",
+        "--listen",
+        "127.0.0.1:1",
+        "--data-dir",
+        data.to_str().unwrap(),
+    ]);
+    assert!(!ok, "{out}{err}");
+    assert!(
+        err.contains("a real NC (nc_push) runs on the wall clock"),
+        "{err}"
+    );
+    assert!(!data.join("driftwatch.db").exists());
+}
