@@ -56,6 +56,10 @@ pub enum LinkError {
     NotIdle(MachineStateKind),
     #[error("cycle {0} is already running")]
     Busy(i64),
+    #[error(
+        "the NC has not reported its state yet: a cycle runs only once it reports idle (the state shown is inferred)"
+    )]
+    NoState,
 }
 
 pub trait MachineLink: Send {

@@ -178,6 +178,38 @@ pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHand
     )
 }
 
+/// How far a detection's spindle speed and feed may lie from the order's, as a share: a
+/// spindle override of a few percent is normal, a different program is not.
+pub const ORDER_TOLERANCE: f64 = 0.05;
+
+/// Why a detection of the ordered cycle was not made as ordered, if it was not: its spindle
+/// speed away from the order's (the thermal state and the tool's growth depend on it), or a
+/// feed that no step of the order has (the trip's latency depends on it).
+fn against_order(m: &rec::DetectionMsg, o: &CycleOrder) -> Option<String> {
+    let near = |got: f64, want: f64| (got - want).abs() <= ORDER_TOLERANCE * want.abs().max(1.0);
+    if !near(m.spindle_rpm, o.spindle_rpm) {
+        return Some(format!(
+            "spindle_rpm {} is not the {} min^-1 cycle {} was ordered at (within {} %)",
+            m.spindle_rpm,
+            o.spindle_rpm,
+            o.cycle,
+            ORDER_TOLERANCE * 100.0
+        ));
+    }
+    if !o.steps.iter().any(|s| near(m.feed_mm_min, s.feed_mm_min)) {
+        let mut feeds: Vec<String> = o.steps.iter().map(|s| s.feed_mm_min.to_string()).collect();
+        feeds.dedup();
+        return Some(format!(
+            "feed_mm_min {} is no feed of cycle {}'s order ({} mm/min, within {} %)",
+            m.feed_mm_min,
+            o.cycle,
+            feeds.join(", "),
+            ORDER_TOLERANCE * 100.0
+        ));
+    }
+    None
+}
+
 fn typed<T: for<'de> Deserialize<'de>>(
     index: usize,
     topic: &str,
@@ -194,9 +226,9 @@ impl NcPushHandle {
     /// Take a batch of events whole, or refuse it whole with the first bad event named.
     pub fn post(&self, batch: &EventBatch) -> Result<usize, NcPushError> {
         let mut parsed = Vec::with_capacity(batch.events.len());
-        let (clock, tol) = match self.shared.lock() {
-            Ok(s) => (s.clock_ns, s.tolerance),
-            Err(_) => (None, ClockTolerance::default()),
+        let (clock, tol, order) = match self.shared.lock() {
+            Ok(s) => (s.clock_ns, s.tolerance, s.order.clone()),
+            Err(_) => (None, ClockTolerance::default(), None),
         };
         for (index, e) in batch.events.iter().enumerate() {
             if e.t_ns < 0 {
@@ -275,6 +307,15 @@ impl NcPushHandle {
                         topic: e.topic.clone(),
                         message: i.message,
                     })?;
+                    if let Some(o) = order.as_ref().filter(|o| o.cycle == m.cycle)
+                        && let Some(message) = against_order(&m, o)
+                    {
+                        return Err(NcPushError::Message {
+                            index,
+                            topic: e.topic.clone(),
+                            message,
+                        });
+                    }
                     LinkEvent::Detection(Timed { t_ns, msg: m })
                 }
                 other => {
@@ -372,7 +413,8 @@ impl MachineLink for NcPushLink {
         }
         match s.state {
             Some(MachineStateKind::Idle) => {}
-            other => return Err(LinkError::NotIdle(other.unwrap_or(MachineStateKind::Off))),
+            Some(other) => return Err(LinkError::NotIdle(other)),
+            None => return Err(LinkError::NoState),
         }
         s.order = Some(CycleOrder {
             cycle: number,
@@ -563,6 +605,56 @@ mod tests {
         assert!(h.shared.lock().unwrap().queue.is_empty());
         let ok = batch("/spindle", serde_json::json!({"rpm": -8000.0}));
         assert_eq!(h.post(&ok).unwrap(), 2);
+    }
+
+    /// Before the NC says anything, no cycle is ordered, and the refusal says it is the
+    /// missing report (not that the machine is off).
+    #[test]
+    fn no_cycle_before_the_nc_reports_its_state() {
+        let (mut link, h, _) = setup();
+        assert_eq!(link.request_cycle(1, 0), Err(LinkError::NoState));
+        assert!(h.order().is_none());
+        push(&h, vec![state(0, MachineStateKind::Idle)]);
+        link.poll(0);
+        assert_eq!(link.request_cycle(1, 1), Ok(()));
+    }
+
+    /// Issue 13, case 7: a detection of the ordered cycle made at another spindle speed or a
+    /// feed the order does not have is refused at the door, naming it.
+    #[test]
+    fn a_detection_not_made_as_ordered_is_refused() {
+        let (mut link, h, plan) = setup();
+        push(&h, vec![state(0, MachineStateKind::Idle)]);
+        link.poll(0);
+        link.request_cycle(4, 1).unwrap();
+        let LinkEvent::Detection(d) = detections(&plan, 4, 10).remove(0) else {
+            unreachable!()
+        };
+        let post = |m: &DetectionMsg| {
+            h.post(&EventBatch {
+                events: vec![PostedEvent {
+                    topic: "/probe/detection".into(),
+                    t_ns: 10,
+                    msg: serde_json::to_value(m).unwrap(),
+                }],
+            })
+        };
+        let mut slow = d.msg.clone();
+        slow.spindle_rpm = 0.0;
+        let e = post(&slow).unwrap_err().to_string();
+        assert!(e.contains("spindle_rpm 0 is not the 20000 min^-1"), "{e}");
+        let mut fast = d.msg.clone();
+        fast.feed_mm_min = 5000.0;
+        let e = post(&fast).unwrap_err().to_string();
+        assert!(e.contains("feed_mm_min 5000 is no feed of cycle 4"), "{e}");
+        // A 2 % spindle override is no reason to refuse; nor is a cycle not ordered (the loop
+        // says it belongs to no open cycle).
+        let mut over = d.msg.clone();
+        over.spindle_rpm = 20400.0;
+        assert_eq!(post(&over), Ok(1));
+        let mut other = slow.clone();
+        other.cycle = 5;
+        assert_eq!(post(&other), Ok(1));
     }
 
     #[test]
