@@ -46,6 +46,8 @@ pub struct ApiState {
     pub webhooks: Arc<WebhookStats>,
     /// Diagnoses that may run at once (each takes a core for seconds).
     pub diagnosis_slots: Arc<tokio::sync::Semaphore>,
+    /// Diagnoses kept per machine (`http.diagnoses_kept`).
+    pub diagnoses_kept: i64,
 }
 
 impl ApiState {
@@ -57,6 +59,7 @@ impl ApiState {
             latency: RequestLatency::default(),
             webhooks: Arc::default(),
             diagnosis_slots: Arc::new(tokio::sync::Semaphore::new(1)),
+            diagnoses_kept: 200,
         }
     }
 }
@@ -438,19 +441,71 @@ async fn compensation(
 }
 
 #[derive(Deserialize)]
-struct Limit {
+struct Page {
     limit: Option<i64>,
+    before: Option<String>,
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "newest first, at most this many (default 100)")), responses((status = 200, description = "cycles with status and reason")), security((), ("bearer" = [])))]
+/// Most rows one page of a list may hold.
+const MAX_PAGE: i64 = 1000;
+
+impl Page {
+    fn limit(&self) -> i64 {
+        self.limit.unwrap_or(100).clamp(1, MAX_PAGE)
+    }
+
+    /// `before` as a number (cycles, diagnoses).
+    fn before_number(&self) -> Result<Option<i64>, ApiError> {
+        self.before
+            .as_deref()
+            .map(|b| {
+                b.parse().map_err(|_| {
+                    ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad_query",
+                        format!("before={b} is not a number"),
+                    )
+                })
+            })
+            .transpose()
+    }
+}
+
+/// A page of a newest-first list, with an RFC 8288 `Link: <...>; rel="next"` header when it
+/// is full (there may be more before its last row).
+fn paged(
+    rows: Vec<serde_json::Value>,
+    limit: i64,
+    next: impl Fn(&serde_json::Value) -> Option<String>,
+    path: &str,
+) -> Response {
+    let more = rows.len() as i64 == limit;
+    let link = more
+        .then(|| rows.last().and_then(&next))
+        .flatten()
+        .map(|cursor| format!("<{path}?limit={limit}&before={cursor}>; rel=\"next\""));
+    let mut r = Json(serde_json::Value::Array(rows)).into_response();
+    if let Some(l) = link.and_then(|l| header::HeaderValue::from_str(&l).ok()) {
+        r.headers_mut().insert(header::LINK, l);
+    }
+    r
+}
+
+#[utoipa::path(get, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "newest first, at most this many (default 100, at most 1000)"), ("before" = Option<i64>, Query, description = "only cycles numbered below this (the next page: see the Link header)")), responses((status = 200, description = "cycles with status and reason; a full page has a Link header (rel=next) to the next"), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn cycles(
     State(st): State<Shared>,
     Path(id): Path<String>,
-    Query(q): Query<Limit>,
-) -> Result<Json<serde_json::Value>, ApiError> {
+    Query(q): Query<Page>,
+) -> Result<Response, ApiError> {
     handle(&st, &id)?;
-    let limit = q.limit.unwrap_or(100).clamp(1, 10_000);
-    Ok(Json(json!(st.store.cycles(&id, limit).await?)))
+    let rows = st.store.cycles(&id, q.limit(), q.before_number()?).await?;
+    let rows = rows.iter().map(|r| json!(r)).collect();
+    Ok(paged(
+        rows,
+        q.limit(),
+        |r| r["cycle"].as_i64().map(|c| c.to_string()),
+        &format!("/api/v1/machines/{id}/cycles"),
+    ))
 }
 
 #[utoipa::path(get, path = "/api/v1/machines/{id}/cycles/{n}", params(("id" = String, Path, description = "machine id"), ("n" = i64, Path, description = "cycle number")), responses((status = 200, description = "the cycle, its detections and its result"), (status = 404, description = "no such cycle")), security((), ("bearer" = [])))]
@@ -816,16 +871,19 @@ async fn request_diagnosis(
     let text = result.as_ref().map(|r| r.to_string());
     let n = st
         .store
-        .add_diagnosis(&crate::store::NewDiagnosis {
-            machine: &id,
-            requested_ns,
-            requested_by: &caller.name,
-            from_ns: from,
-            to_ns: to,
-            status,
-            summary: &summary,
-            result: text.as_deref(),
-        })
+        .add_diagnosis(
+            &crate::store::NewDiagnosis {
+                machine: &id,
+                requested_ns,
+                requested_by: &caller.name,
+                from_ns: from,
+                to_ns: to,
+                status,
+                summary: &summary,
+                result: text.as_deref(),
+            },
+            st.diagnoses_kept,
+        )
         .await?;
     tracing::info!(machine = %id, by = %caller.name, diagnosis = n, "{summary}");
     if status == "failed" {
@@ -846,13 +904,23 @@ async fn request_diagnosis(
         .into_response())
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the diagnosis runs, newest first: id, window, who asked, status, summary")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "newest first, at most this many (default 100, at most 1000)"), ("before" = Option<i64>, Query, description = "only diagnoses numbered below this (the next page: see the Link header)")), responses((status = 200, description = "the diagnosis runs, newest first: id, window, who asked, status, summary; a full page has a Link header (rel=next) to the next"), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn diagnoses(
     State(st): State<Shared>,
     Path(id): Path<String>,
-) -> Result<Json<serde_json::Value>, ApiError> {
+    Query(q): Query<Page>,
+) -> Result<Response, ApiError> {
     handle(&st, &id)?;
-    Ok(Json(json!(st.store.diagnoses(&id).await?)))
+    let rows = st
+        .store
+        .diagnoses(&id, q.limit(), q.before_number()?)
+        .await?;
+    Ok(paged(
+        rows,
+        q.limit(),
+        |r| r["id"].as_i64().map(|c| c.to_string()),
+        &format!("/api/v1/machines/{id}/diagnoses"),
+    ))
 }
 
 #[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses/{n}", params(("id" = String, Path, description = "machine id"), ("n" = i64, Path, description = "diagnosis number")), responses((status = 200, description = "the diagnosis run with its result (the diagnosis.json layout)"), (status = 404, description = "no such diagnosis")), security((), ("bearer" = [])))]
@@ -882,7 +950,7 @@ fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiErro
 }
 
 /// The NC posts what happened (contract message shapes), a batch taken whole or refused whole.
-#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole"), (status = 400, description = "the batch was refused whole; the message names the bad event (bad_event), or an event's time lies beyond the link's tolerance from the service clock (clock_skew)"), (status = 409, description = "the machine is not on the nc_push link")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole: events queued for the loop, and detections of no ordered cycle (stray: counted in /metrics, not kept)", body = crate::nc_push::Accepted), (status = 400, description = "the batch was refused whole; the message names the bad event (bad_event), or an event's time lies beyond the link's tolerance from the service clock (clock_skew)"), (status = 409, description = "the machine is not on the nc_push link"), (status = 503, description = "too many events wait for the service loop (busy): send the batch again in a few seconds")), security(("bearer" = [])))]
 async fn nc_events(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -891,14 +959,17 @@ async fn nc_events(
     let nc = nc_handle(&st, &id)?;
     let Json(batch) =
         body.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_body", e.body_text()))?;
-    let n = nc.post(&batch).map_err(|e| {
-        let code = match e {
-            crate::nc_push::NcPushError::ClockSkew { .. } => "clock_skew",
-            _ => "bad_event",
+    let taken = nc.post(&batch).map_err(|e| {
+        let (status, code) = match e {
+            crate::nc_push::NcPushError::ClockSkew { .. } => {
+                (StatusCode::BAD_REQUEST, "clock_skew")
+            }
+            crate::nc_push::NcPushError::Busy { .. } => (StatusCode::SERVICE_UNAVAILABLE, "busy"),
+            _ => (StatusCode::BAD_REQUEST, "bad_event"),
         };
-        ApiError::new(StatusCode::BAD_REQUEST, code, e.to_string())
+        ApiError::new(status, code, e.to_string())
     })?;
-    Ok((StatusCode::ACCEPTED, Json(json!({"accepted": n}))).into_response())
+    Ok((StatusCode::ACCEPTED, Json(taken)).into_response())
 }
 
 /// The NC polls for a cycle order: 204 when none.
@@ -915,14 +986,37 @@ async fn nc_request(
 }
 
 /// Open alerts (from the loop) and the latest alert events (from the store).
-#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "open alerts and the latest alert events")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "events newest first, at most this many (default 100, at most 1000)"), ("before" = Option<String>, Query, description = "events before this cursor, `t_ns.alert.seq` of the last event of the previous page (see next_before)")), responses((status = 200, description = "open alerts and the latest alert events; next_before is the cursor of the next page when this one is full"), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn alerts(
     State(st): State<Shared>,
     Path(id): Path<String>,
+    Query(q): Query<Page>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let v = view(handle(&st, &id)?);
-    let events = st.store.alert_events(&id, 200).await?;
-    Ok(Json(json!({"open": v.open_alerts, "events": events})))
+    let before = match q.before.as_deref() {
+        None => None,
+        Some(b) => {
+            let parts: Vec<Option<i64>> = b.split('.').map(|p| p.parse().ok()).collect();
+            match parts.as_slice() {
+                [Some(t), Some(a), Some(s)] => Some((*t, *a, *s)),
+                _ => {
+                    return Err(ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad_query",
+                        format!("before={b} is not a cursor t_ns.alert.seq"),
+                    ));
+                }
+            }
+        }
+    };
+    let events = st.store.alert_events(&id, q.limit(), before).await?;
+    let next = (events.len() as i64 == q.limit())
+        .then(|| events.last())
+        .flatten()
+        .map(|e| format!("{}.{}.{}", e["t_ns"], e["alert"], e["seq"]));
+    Ok(Json(
+        json!({"open": v.open_alerts, "events": events, "next_before": next}),
+    ))
 }
 
 #[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "acknowledged"), (status = 404, description = "no such open alert"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
@@ -1011,6 +1105,18 @@ async fn metrics(State(st): State<Shared>) -> Response {
             .iter()
             .filter_map(|(id, h)| {
                 let n = h.nc.as_ref()?.refused_clock_skew();
+                Some((format!("machine=\"{id}\""), n as f64))
+            })
+            .collect(),
+    );
+    metric(
+        "driftwatch_nc_stray_detections_total",
+        "counter",
+        "NC detections of no ordered cycle: counted, not kept.",
+        st.machines
+            .iter()
+            .filter_map(|(id, h)| {
+                let n = h.nc.as_ref()?.stray_detections();
                 Some((format!("machine=\"{id}\""), n as f64))
             })
             .collect(),

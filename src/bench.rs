@@ -76,7 +76,7 @@ pub async fn year(days: f64, dir: PathBuf, prediction: bool) -> Result<ExitCode>
     }
     rt.shutdown(end).await?;
     let secs = wall.elapsed().as_secs_f64();
-    let cycles = store.cycles("sim-1", i64::MAX).await?;
+    let cycles = store.cycles("sim-1", i64::MAX, None).await?;
     let sets = store.compensation_versions("sim-1").await?.len();
     store.close().await;
     let ok = cycles.iter().filter(|c| c.status == "ok").count();

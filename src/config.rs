@@ -62,6 +62,13 @@ pub struct HttpConfig {
     pub anonymous_read: bool,
     #[serde(default)]
     pub tokens: Vec<Token>,
+    /// Diagnoses kept per machine: the oldest beyond are deleted as new ones are stored.
+    #[serde(default = "default_diagnoses_kept")]
+    pub diagnoses_kept: i64,
+}
+
+fn default_diagnoses_kept() -> i64 {
+    200
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -183,6 +190,12 @@ impl ServiceConfig {
         }
         if self.machines.is_empty() {
             return bad("no machines configured".into());
+        }
+        if self.http.diagnoses_kept < 1 {
+            return bad(format!(
+                "http.diagnoses_kept must be at least 1, not {}",
+                self.http.diagnoses_kept
+            ));
         }
         let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();
         ids.sort_unstable();

@@ -48,6 +48,10 @@ pub enum NcPushError {
     #[error("event {index}: t_ns {t_ns} is negative")]
     Time { index: usize, t_ns: i64 },
     #[error(
+        "{queued} events wait for the service loop already (at most {MAX_QUEUED}): send this batch again in a few seconds"
+    )]
+    Busy { queued: usize },
+    #[error(
         "event {index} ({topic}): t_ns {t_ns} is {} s {} the service clock ({now_ns}), beyond the {} s allowed: is the NC's clock set to local time, or not synchronised?",
         (t_ns - now_ns).abs() as f64 / 1e9,
         if t_ns > now_ns { "ahead of" } else { "behind" },
@@ -60,6 +64,18 @@ pub enum NcPushError {
         now_ns: i64,
         limit_ns: i64,
     },
+}
+
+/// Events taken but not yet handed to the loop, at most: a gateway that floods the endpoint
+/// faster than the loop polls is told to come back, instead of growing the service's memory.
+pub const MAX_QUEUED: usize = 50_000;
+
+/// What a batch added: events queued for the loop, and detections of no ordered cycle, which
+/// are counted but not kept (nothing could use them: the cycle they name is not running).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, utoipa::ToSchema)]
+pub struct Accepted {
+    pub accepted: usize,
+    pub stray: usize,
 }
 
 /// How far an event's time may lie from the service clock. A state stamped an hour ahead
@@ -138,6 +154,8 @@ struct Shared {
     refused_clock_skew: u64,
     /// Refusals since the loop's last poll, and the largest skew among them (signed).
     skew_since_poll: Option<(u64, i64)>,
+    /// Detections of no ordered cycle, counted and dropped.
+    stray_detections: u64,
     /// Per cycle, how often each measurement has tripped so far.
     received: BTreeMap<i64, ExpectedMeasurements>,
 }
@@ -165,6 +183,7 @@ pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHand
         tolerance,
         refused_clock_skew: 0,
         skew_since_poll: None,
+        stray_detections: 0,
         received: BTreeMap::new(),
     }));
     let expected = plan_measurements(&plan);
@@ -224,8 +243,9 @@ fn typed<T: for<'de> Deserialize<'de>>(
 
 impl NcPushHandle {
     /// Take a batch of events whole, or refuse it whole with the first bad event named.
-    pub fn post(&self, batch: &EventBatch) -> Result<usize, NcPushError> {
+    pub fn post(&self, batch: &EventBatch) -> Result<Accepted, NcPushError> {
         let mut parsed = Vec::with_capacity(batch.events.len());
+        let mut stray = 0;
         let (clock, tol, order) = match self.shared.lock() {
             Ok(s) => (s.clock_ns, s.tolerance, s.order.clone()),
             Err(_) => (None, ClockTolerance::default(), None),
@@ -307,14 +327,20 @@ impl NcPushHandle {
                         topic: e.topic.clone(),
                         message: i.message,
                     })?;
-                    if let Some(o) = order.as_ref().filter(|o| o.cycle == m.cycle)
-                        && let Some(message) = against_order(&m, o)
-                    {
-                        return Err(NcPushError::Message {
-                            index,
-                            topic: e.topic.clone(),
-                            message,
-                        });
+                    match order.as_ref().filter(|o| o.cycle == m.cycle) {
+                        Some(o) => {
+                            if let Some(message) = against_order(&m, o) {
+                                return Err(NcPushError::Message {
+                                    index,
+                                    topic: e.topic.clone(),
+                                    message,
+                                });
+                            }
+                        }
+                        None => {
+                            stray += 1;
+                            continue;
+                        }
                     }
                     LinkEvent::Detection(Timed { t_ns, msg: m })
                 }
@@ -329,9 +355,20 @@ impl NcPushHandle {
         }
         let n = parsed.len();
         if let Ok(mut s) = self.shared.lock() {
+            if s.queue.len() + n > MAX_QUEUED {
+                return Err(NcPushError::Busy {
+                    queued: s.queue.len(),
+                });
+            }
             s.queue.extend(parsed);
+            s.stray_detections += stray as u64;
         }
-        Ok(n)
+        Ok(Accepted { accepted: n, stray })
+    }
+
+    /// Detections of no ordered cycle, counted and dropped.
+    pub fn stray_detections(&self) -> u64 {
+        self.shared.lock().map_or(0, |s| s.stray_detections)
     }
 
     /// The pending cycle order, if any.
@@ -543,7 +580,10 @@ mod tests {
         assert!(e.to_string().contains("3600 s ahead"), "{e}");
         assert_eq!(h.refused_clock_skew(), 1);
         // Within the tolerance either way: taken.
-        assert_eq!(post(now + 30_000_000_000, "idle"), Ok(1));
+        assert_eq!(
+            post(now + 30_000_000_000, "idle").map(|a| a.accepted),
+            Ok(1)
+        );
         link.poll(now);
         assert_eq!(
             link.shared.lock().unwrap().state,
@@ -551,7 +591,7 @@ mod tests {
         );
         // A day and more behind: refused; an older state within it does not replace the newer.
         assert!(post(now - 25 * hour, "cutting").is_err());
-        assert_eq!(post(now - hour, "cutting"), Ok(1));
+        assert_eq!(post(now - hour, "cutting").map(|a| a.accepted), Ok(1));
         link.poll(now + 1);
         assert_eq!(
             link.shared.lock().unwrap().state,
@@ -604,7 +644,7 @@ mod tests {
         // rotation included).
         assert!(h.shared.lock().unwrap().queue.is_empty());
         let ok = batch("/spindle", serde_json::json!({"rpm": -8000.0}));
-        assert_eq!(h.post(&ok).unwrap(), 2);
+        assert_eq!(h.post(&ok).unwrap().accepted, 2);
     }
 
     /// Before the NC says anything, no cycle is ordered, and the refusal says it is the
@@ -651,10 +691,57 @@ mod tests {
         // says it belongs to no open cycle).
         let mut over = d.msg.clone();
         over.spindle_rpm = 20400.0;
-        assert_eq!(post(&over), Ok(1));
+        assert_eq!(post(&over).map(|a| a.accepted), Ok(1));
         let mut other = slow.clone();
         other.cycle = 5;
-        assert_eq!(post(&other), Ok(1));
+        assert_eq!(
+            post(&other),
+            Ok(Accepted {
+                accepted: 0,
+                stray: 1
+            })
+        );
+    }
+
+    /// Issue 13, case 5: detections of no ordered cycle are counted, not kept, and a flood
+    /// faster than the loop polls is told to come back; memory stays bounded either way.
+    #[test]
+    fn stray_detections_are_counted_not_kept_and_the_queue_is_bounded() {
+        let (mut link, h, plan) = setup();
+        let LinkEvent::Detection(d) = detections(&plan, 9, 10).remove(0) else {
+            unreachable!()
+        };
+        let det = PostedEvent {
+            topic: "/probe/detection".into(),
+            t_ns: 10,
+            msg: serde_json::to_value(&d.msg).unwrap(),
+        };
+        let batch = EventBatch {
+            events: vec![det; 1000],
+        };
+        for _ in 0..300 {
+            assert_eq!(h.post(&batch).unwrap().stray, 1000);
+        }
+        assert_eq!(h.stray_detections(), 300_000);
+        assert!(h.shared.lock().unwrap().queue.is_empty());
+        assert!(link.poll(20).is_empty());
+        let spindle = EventBatch {
+            events: vec![
+                PostedEvent {
+                    topic: "/spindle".into(),
+                    t_ns: 10,
+                    msg: serde_json::json!({"rpm": 1000.0}),
+                };
+                10_000
+            ],
+        };
+        for _ in 0..MAX_QUEUED / 10_000 {
+            h.post(&spindle).unwrap();
+        }
+        let e = h.post(&spindle).unwrap_err();
+        assert!(matches!(e, NcPushError::Busy { queued: MAX_QUEUED }), "{e}");
+        assert_eq!(link.poll(20).len(), MAX_QUEUED);
+        assert!(h.post(&spindle).is_ok());
     }
 
     #[test]

@@ -164,6 +164,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
         },
     );
     state.webhooks = notifier.stats.clone();
+    state.diagnoses_kept = cfg.http.diagnoses_kept;
     drop(notifier);
     let state = Arc::new(state);
     let listener = tokio::net::TcpListener::bind(cfg.http.listen)

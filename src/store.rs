@@ -424,13 +424,21 @@ impl Store {
         rows.iter().map(|r| Ok(r.try_get::<i64, _>(0)?)).collect()
     }
 
-    pub async fn cycles(&self, machine: &str, limit: i64) -> Result<Vec<CycleRow>, StoreError> {
+    /// A machine's cycles, newest first: at most `limit`, numbered below `before` if given
+    /// (the next page starts before the last number of this one).
+    pub async fn cycles(
+        &self,
+        machine: &str,
+        limit: i64,
+        before: Option<i64>,
+    ) -> Result<Vec<CycleRow>, StoreError> {
         let rows = sqlx::query(
             "SELECT cycle, started_ns, trigger, attempt, status, finished_ns, reason FROM cycles
-             WHERE machine_id = $1 ORDER BY cycle DESC LIMIT $2",
+             WHERE machine_id = $1 AND cycle < $3 ORDER BY cycle DESC LIMIT $2",
         )
         .bind(machine)
         .bind(limit)
+        .bind(before.unwrap_or(i64::MAX))
         .fetch_all(&self.pool)
         .await?;
         rows.iter().map(cycle_row).collect()
@@ -690,13 +698,25 @@ impl Store {
     }
 
     /// Alert events of a machine, newest first.
-    pub async fn alert_events(&self, machine: &str, limit: i64) -> Result<Vec<Value>, StoreError> {
+    /// A machine's alert events, newest first: at most `limit`, before the cursor `(t_ns,
+    /// alert, seq)` of the last event of the previous page if given.
+    pub async fn alert_events(
+        &self,
+        machine: &str,
+        limit: i64,
+        before: Option<(i64, i64, i64)>,
+    ) -> Result<Vec<Value>, StoreError> {
+        let (t, a, q) = before.unwrap_or((i64::MAX, i64::MAX, i64::MAX));
         let rows = sqlx::query(
             "SELECT alert_id, seq, t_ns, kind, rule, severity, message, value FROM alert_events
-             WHERE machine_id = $1 ORDER BY t_ns DESC, alert_id DESC, seq DESC LIMIT $2",
+             WHERE machine_id = $1 AND (t_ns, alert_id, seq) < ($3, $4, $5)
+             ORDER BY t_ns DESC, alert_id DESC, seq DESC LIMIT $2",
         )
         .bind(machine)
         .bind(limit)
+        .bind(t)
+        .bind(a)
+        .bind(q)
         .fetch_all(&self.pool)
         .await?;
         rows.iter()
@@ -886,8 +906,9 @@ impl Store {
             .collect()
     }
 
-    /// Store a diagnosis run (its result JSON when it succeeded); returns its number.
-    pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>) -> Result<i64, StoreError> {
+    /// Store a diagnosis run (its result JSON when it succeeded) and keep only the machine's
+    /// newest `keep` (at least 1: numbers are never given twice); returns its number.
+    pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>, keep: i64) -> Result<i64, StoreError> {
         // One statement: the number and the row together, whatever else writes meanwhile.
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO diagnoses (machine_id, id, requested_ns, requested_by, from_ns, to_ns, status, summary, result)
@@ -905,6 +926,11 @@ impl Store {
         .bind(d.result)
         .fetch_one(&self.pool)
         .await?;
+        sqlx::query("DELETE FROM diagnoses WHERE machine_id = $1 AND id <= $2")
+            .bind(d.machine)
+            .bind(id - keep.max(1))
+            .execute(&self.pool)
+            .await?;
         Ok(id)
     }
 
@@ -918,13 +944,21 @@ impl Store {
         )
     }
 
-    /// The diagnosis runs of a machine, newest first, without their results.
-    pub async fn diagnoses(&self, machine: &str) -> Result<Vec<Value>, StoreError> {
+    /// The diagnosis runs of a machine, newest first, without their results: at most `limit`,
+    /// numbered below `before` if given.
+    pub async fn diagnoses(
+        &self,
+        machine: &str,
+        limit: i64,
+        before: Option<i64>,
+    ) -> Result<Vec<Value>, StoreError> {
         let rows = sqlx::query(
             "SELECT id, requested_ns, requested_by, from_ns, to_ns, status, summary FROM diagnoses
-             WHERE machine_id = $1 ORDER BY id DESC",
+             WHERE machine_id = $1 AND id < $3 ORDER BY id DESC LIMIT $2",
         )
         .bind(machine)
+        .bind(limit)
+        .bind(before.unwrap_or(i64::MAX))
         .fetch_all(&self.pool)
         .await?;
         rows.iter().map(diagnosis_row).collect()
@@ -1047,7 +1081,7 @@ mod tests {
             .unwrap();
         assert_eq!(series.len(), 2);
         assert!(series.iter().all(|s| s.cycle == 1));
-        let cycles = store.cycles("m1", 10).await.unwrap();
+        let cycles = store.cycles("m1", 10, None).await.unwrap();
         assert_eq!(cycles[0].status, "rejected");
         assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
         assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);

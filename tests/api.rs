@@ -169,9 +169,9 @@ async fn write_endpoints_need_a_write_token() {
     assert_eq!(s, StatusCode::ACCEPTED);
     assert_eq!(body["by"], "operator");
     // The request reaches the loop: a cycle starts at the next idle moment.
-    let before = store.cycles("m1", 100).await.unwrap().len();
+    let before = store.cycles("m1", 100, None).await.unwrap().len();
     run_to(&mut rt, t0 + 5 * MIN, t0 + 8 * MIN).await;
-    let after = store.cycles("m1", 100).await.unwrap();
+    let after = store.cycles("m1", 100, None).await.unwrap();
     assert_eq!(after.len(), before + 1);
     assert!(
         after[0].trigger.contains("operator"),
@@ -561,4 +561,89 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
         (s, body["code"].as_str()),
         (StatusCode::TOO_MANY_REQUESTS, Some("diagnosis_busy"))
     );
+}
+
+/// Issue 13, case 5: cycles, diagnoses and alert events come in pages (`?limit=&before=`,
+/// the next one named in a Link header or `next_before`), and the stored diagnoses are capped.
+#[tokio::test]
+async fn lists_are_paged_and_stored_diagnoses_are_capped() {
+    let (mut rt, t0, store) = runtime("paging").await;
+    run_to(&mut rt, t0, t0 + 300 * MIN).await;
+    let app = app(&rt, store.clone(), true);
+    let (_, _, all) = call(&app, get("/api/v1/machines/m1/cycles?limit=1000")).await;
+    let all: Vec<i64> = all
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["cycle"].as_i64().unwrap())
+        .collect();
+    assert!(all.len() >= 5, "{all:?}");
+    let mut walked = Vec::new();
+    let mut uri = "/api/v1/machines/m1/cycles?limit=2".to_string();
+    loop {
+        let (s, h, page) = call(&app, get(&uri)).await;
+        assert_eq!(s, StatusCode::OK);
+        walked.extend(
+            page.as_array()
+                .unwrap()
+                .iter()
+                .map(|c| c["cycle"].as_i64().unwrap()),
+        );
+        let Some(link) = h.get(header::LINK) else {
+            break;
+        };
+        let link = link.to_str().unwrap();
+        assert!(link.ends_with("; rel=\"next\""), "{link}");
+        uri = link[1..link.find('>').unwrap()].to_string();
+    }
+    assert_eq!(walked, all);
+    let (s, _, body) = call(&app, get("/api/v1/machines/m1/cycles?before=x")).await;
+    assert_eq!(
+        (s, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_query"))
+    );
+
+    // Alert events, one per page, by their cursor.
+    let (_, _, first) = call(&app, get("/api/v1/machines/m1/alerts?limit=1000")).await;
+    let every = first["events"].as_array().unwrap().clone();
+    assert!(every.len() >= 2, "{first}");
+    let mut seen = Vec::new();
+    let mut uri = "/api/v1/machines/m1/alerts?limit=1".to_string();
+    loop {
+        let (_, _, page) = call(&app, get(&uri)).await;
+        seen.extend(page["events"].as_array().unwrap().iter().cloned());
+        match page["next_before"].as_str() {
+            Some(c) => uri = format!("/api/v1/machines/m1/alerts?limit=1&before={c}"),
+            None => break,
+        }
+        assert!(seen.len() <= every.len(), "the cursor does not advance");
+    }
+    assert_eq!(seen, every);
+
+    // Diagnoses: the newest `keep` stay, numbers are never given again.
+    for i in 0..5 {
+        let d = driftwatch::store::NewDiagnosis {
+            machine: "m1",
+            requested_ns: t0 + i,
+            requested_by: "test",
+            from_ns: 0,
+            to_ns: 1,
+            status: "failed",
+            summary: "test",
+            result: None,
+        };
+        assert_eq!(store.add_diagnosis(&d, 3).await.unwrap(), i + 1);
+    }
+    let (_, h, list) = call(&app, get("/api/v1/machines/m1/diagnoses?limit=2")).await;
+    let ids: Vec<i64> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["id"].as_i64().unwrap())
+        .collect();
+    assert_eq!(ids, vec![5, 4]);
+    assert!(h[header::LINK].to_str().unwrap().contains("before=4"));
+    let (_, _, rest) = call(&app, get("/api/v1/machines/m1/diagnoses?before=4")).await;
+    assert_eq!(rest.as_array().unwrap().len(), 1, "{rest}");
+    assert_eq!(rest[0]["id"], 3);
 }

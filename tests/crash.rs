@@ -276,7 +276,7 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
     copy_dir(&data, &snapshot);
     let at_kill = rt().block_on(async {
         let store = Store::open(&snapshot.join("driftwatch.db")).await.unwrap();
-        let cycles = store.cycles(MACHINE, 1000).await.unwrap();
+        let cycles = store.cycles(MACHINE, 1000, None).await.unwrap();
         let open = store.open_cycles(MACHINE).await.unwrap();
         let open_detections = store.detections(MACHINE, open_cycle).await.unwrap().len();
         let version = store
@@ -403,7 +403,7 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
     rt().block_on(async {
         let store = Store::open(&data.join("driftwatch.db")).await.unwrap();
         assert_eq!(store.integrity_check().await.unwrap(), "ok");
-        let rows = store.cycles(MACHINE, 1000).await.unwrap();
+        let rows = store.cycles(MACHINE, 1000, None).await.unwrap();
         let status = |n: i64| {
             rows.iter()
                 .find(|r| r.cycle == n)

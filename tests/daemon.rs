@@ -103,7 +103,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     }
     rt.shutdown(end).await.unwrap();
 
-    let cycles = store.cycles("sim-1", 1000).await.unwrap();
+    let cycles = store.cycles("sim-1", 1000, None).await.unwrap();
     println!("{} cycles", cycles.len());
     for c in cycles.iter().rev() {
         println!(

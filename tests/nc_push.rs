@@ -208,7 +208,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         }
         now += MIN;
     }
-    let cycles = store.cycles("nc1", 100).await.unwrap();
+    let cycles = store.cycles("nc1", 100, None).await.unwrap();
     println!("{orders} orders; versions after each cycle: {versions:?}");
     for c in cycles.iter().rev() {
         println!(
