@@ -508,8 +508,9 @@ impl AlertEngine {
     }
 
     /// Acknowledges an open alert. It stays open and resolves by its rule as before; a second
-    /// acknowledgement keeps the first (who saw it first is what matters).
-    pub fn ack(&mut self, id: u64, by: &str, now: i64) -> Result<(), AlertError> {
+    /// acknowledgement keeps the first (who saw it first is what matters) and changes nothing.
+    /// Returns whether this one acknowledged it.
+    pub fn ack(&mut self, id: u64, by: &str, now: i64) -> Result<bool, AlertError> {
         if by.trim().is_empty() {
             return Err(AlertError::AnonymousAck);
         }
@@ -519,13 +520,14 @@ impl AlertEngine {
             .values_mut()
             .find(|a| a.id == id)
             .ok_or(AlertError::UnknownAlert(id))?;
-        if alert.acknowledged.is_none() {
-            alert.acknowledged = Some(Acknowledgement {
-                by: by.to_string(),
-                t_ns: now,
-            });
+        if alert.acknowledged.is_some() {
+            return Ok(false);
         }
-        Ok(())
+        alert.acknowledged = Some(Acknowledgement {
+            by: by.to_string(),
+            t_ns: now,
+        });
+        Ok(true)
     }
 
     /// Applies every rule to one input, in rule order. A cycle not later than the last one
@@ -1165,8 +1167,8 @@ mod tests {
             Err(AlertError::UnknownAlert(id + 1))
         );
         assert_eq!(e.ack(id, " ", T0), Err(AlertError::AnonymousAck));
-        e.ack(id, "ops", T0 + 5).unwrap();
-        e.ack(id, "later", T0 + 6).unwrap();
+        assert_eq!(e.ack(id, "ops", T0 + 5), Ok(true));
+        assert_eq!(e.ack(id, "later", T0 + 6), Ok(false));
         let ack = e.alert(id).unwrap().acknowledged.clone().unwrap();
         assert_eq!((ack.by.as_str(), ack.t_ns), ("ops", T0 + 5));
         let ev = e.evaluate(&ok(2, &[("EZ0B", 10.0)]), T0 + 7);

@@ -136,6 +136,49 @@ async fn timed(State(st): State<Shared>, req: Request, next: Next) -> Response {
     res
 }
 
+/// Every error answer is the API's JSON error, also those the framework writes itself (a path
+/// or query parameter that does not parse, a body too large or of the wrong type, a method
+/// not allowed): their text becomes the message, the status gives the code.
+async fn json_errors(req: Request, next: Next) -> Response {
+    let res = next.run(req).await;
+    let status = res.status();
+    let is_json = res
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return res;
+    }
+    let (parts, body) = res.into_parts();
+    let text = match axum::body::to_bytes(body, 64 * 1024).await {
+        Ok(b) => String::from_utf8_lossy(&b).trim().to_string(),
+        Err(_) => String::new(),
+    };
+    let code = match status {
+        StatusCode::BAD_REQUEST => "bad_request",
+        StatusCode::NOT_FOUND => "not_found",
+        StatusCode::METHOD_NOT_ALLOWED => "method_not_allowed",
+        StatusCode::PAYLOAD_TOO_LARGE => "body_too_large",
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported_media_type",
+        StatusCode::UNPROCESSABLE_ENTITY => "bad_body",
+        _ => "error",
+    };
+    let message = if text.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_string()
+    } else {
+        text
+    };
+    let mut out = ApiError::new(status, code, message).into_response();
+    // Keep what the framework said besides the body (Allow on a 405, for one).
+    for (k, v) in parts.headers.iter() {
+        if k != header::CONTENT_TYPE && k != header::CONTENT_LENGTH {
+            out.headers_mut().insert(k.clone(), v.clone());
+        }
+    }
+    out
+}
+
 type Shared = Arc<ApiState>;
 
 /// An error as the API answers it: a status, a stable code and a message for people.
@@ -188,6 +231,41 @@ pub struct Caller {
     pub role: Option<Role>,
 }
 
+/// What an anonymous reader sees of token holders: not their names (who acknowledged an
+/// alert, who asked for a diagnosis). Authenticated readers see everything.
+fn for_caller(mut v: serde_json::Value, caller: &Caller) -> serde_json::Value {
+    fn walk(v: &mut serde_json::Value) {
+        match v {
+            serde_json::Value::Object(m) => {
+                for (k, x) in m.iter_mut() {
+                    match (k.as_str(), &mut *x) {
+                        ("requested_by", serde_json::Value::String(_)) => {
+                            *x = json!("a token holder");
+                        }
+                        ("acknowledged", serde_json::Value::Object(a)) => {
+                            if a.contains_key("by") {
+                                a.insert("by".into(), json!("a token holder"));
+                            }
+                        }
+                        ("message", serde_json::Value::String(t))
+                            if t.starts_with("acknowledged by ") =>
+                        {
+                            *x = json!("acknowledged");
+                        }
+                        _ => walk(x),
+                    }
+                }
+            }
+            serde_json::Value::Array(a) => a.iter_mut().for_each(walk),
+            _ => {}
+        }
+    }
+    if caller.role.is_none() {
+        walk(&mut v);
+    }
+    v
+}
+
 /// Equal-time comparison: the time taken does not tell how much of a token matched.
 fn same(a: &[u8], b: &[u8]) -> bool {
     let mut diff = a.len() ^ b.len();
@@ -202,12 +280,14 @@ async fn authenticate(
     mut req: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
+    // The scheme is case-insensitive (RFC 7235 section 2.1, RFC 6750).
     let presented = req
         .headers()
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::trim);
+        .and_then(|v| v.trim_start().split_once(' '))
+        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+        .map(|(_, tok)| tok.trim());
     let caller = match presented {
         None => Caller {
             name: "anonymous".into(),
@@ -274,9 +354,54 @@ async fn authenticate(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
     paths(ready, machines, machine, compensation, cycles, cycle, errors, model, prediction, request_cycle, alerts, ack_alert, metrics, nc_events, nc_request, request_diagnosis, diagnoses, diagnosis),
     components(schemas(DiagnosisRequest, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
-    modifiers(&BearerAuth)
+    modifiers(&BearerAuth, &StandardErrors)
 )]
 pub struct ApiDoc;
+
+/// The error answers every operation may give besides its own, so that the document lists
+/// every status a path returns: each is the JSON error `{"code", "message"}`.
+struct StandardErrors;
+
+impl utoipa::Modify for StandardErrors {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::{RefOr, ResponseBuilder};
+        for (path, item) in openapi.paths.paths.iter_mut() {
+            let machine = path.contains("{id}");
+            for (op, write) in [(&mut item.get, false), (&mut item.post, true)] {
+                let Some(op) = op.as_mut() else { continue };
+                let body = op.request_body.is_some();
+                let mut add = |code: &str, text: &str| {
+                    op.responses
+                        .responses
+                        .entry(code.to_string())
+                        .or_insert_with(|| {
+                            RefOr::T(ResponseBuilder::new().description(text).build())
+                        });
+                };
+                add(
+                    "400",
+                    "a path or query parameter that does not parse (bad_request, bad_query), or a bad body",
+                );
+                add(
+                    "401",
+                    "no token where one is needed (token_required: a write, or any read with anonymous_read = false), or a token not known (bad_token)",
+                );
+                add("500", "the database could not answer (storage)");
+                if machine {
+                    add("404", "no such machine (unknown_machine)");
+                }
+                if write {
+                    add("403", "the token may only read (role)");
+                }
+                if body {
+                    add("413", "the body is larger than 2 MB (body_too_large)");
+                    add("415", "the body is not application/json");
+                    add("422", "the body is JSON but not the request's shape");
+                }
+            }
+        }
+    }
+}
 
 struct BearerAuth;
 
@@ -322,14 +447,22 @@ pub fn router(state: Shared) -> Router {
                 .url("/api/v1/openapi.json", ApiDoc::openapi()),
         )
         .nest("/api/v1", api)
+        // They name the machines: readers only (anonymous ones when anonymous_read allows).
+        // /healthz says no more than that the process answers.
+        .merge(
+            Router::new()
+                .route("/readyz", get(ready))
+                .route("/metrics", get(metrics))
+                .layer(middleware::from_fn_with_state(state.clone(), authenticate))
+                .with_state(state.clone()),
+        )
         .route("/healthz", get(|| async { "ok" }))
-        .route("/readyz", get(ready))
-        .route("/metrics", get(metrics))
         .route_layer(middleware::from_fn_with_state(state.clone(), timed))
         .with_state(state)
         .fallback(|| async {
             ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such endpoint")
         })
+        .layer(middleware::from_fn(json_errors))
 }
 
 fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle, ApiError> {
@@ -909,12 +1042,16 @@ async fn diagnoses(
     State(st): State<Shared>,
     Path(id): Path<String>,
     Query(q): Query<Page>,
+    axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Response, ApiError> {
     handle(&st, &id)?;
     let rows = st
         .store
         .diagnoses(&id, q.limit(), q.before_number()?)
-        .await?;
+        .await?
+        .into_iter()
+        .map(|r| for_caller(r, &caller))
+        .collect();
     Ok(paged(
         rows,
         q.limit(),
@@ -927,6 +1064,7 @@ async fn diagnoses(
 async fn diagnosis(
     State(st): State<Shared>,
     Path((id, n)): Path<(String, i64)>,
+    axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     handle(&st, &id)?;
     let d = st.store.diagnosis(&id, n).await?.ok_or_else(|| {
@@ -936,7 +1074,7 @@ async fn diagnosis(
             format!("machine '{id}' has no diagnosis {n}"),
         )
     })?;
-    Ok(Json(d))
+    Ok(Json(for_caller(d, &caller)))
 }
 
 fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiError> {
@@ -957,8 +1095,14 @@ async fn nc_events(
     body: Result<Json<EventBatch>, axum::extract::rejection::JsonRejection>,
 ) -> Result<Response, ApiError> {
     let nc = nc_handle(&st, &id)?;
-    let Json(batch) =
-        body.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_body", e.body_text()))?;
+    let Json(batch) = body.map_err(|e| {
+        let code = if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            "body_too_large"
+        } else {
+            "bad_body"
+        };
+        ApiError::new(e.status(), code, e.body_text())
+    })?;
     let taken = nc.post(&batch).map_err(|e| {
         let (status, code) = match e {
             crate::nc_push::NcPushError::ClockSkew { .. } => {
@@ -991,6 +1135,7 @@ async fn alerts(
     State(st): State<Shared>,
     Path(id): Path<String>,
     Query(q): Query<Page>,
+    axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let v = view(handle(&st, &id)?);
     let before = match q.before.as_deref() {
@@ -1014,24 +1159,33 @@ async fn alerts(
         .then(|| events.last())
         .flatten()
         .map(|e| format!("{}.{}.{}", e["t_ns"], e["alert"], e["seq"]));
-    Ok(Json(
+    Ok(Json(for_caller(
         json!({"open": v.open_alerts, "events": events, "next_before": next}),
-    ))
+        &caller,
+    )))
 }
 
-#[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "acknowledged"), (status = 404, description = "no such open alert"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "the acknowledgement is taken (the loop applies it at its next step)"), (status = 200, description = "already acknowledged: who did it first, and when (nothing changes)"), (status = 404, description = "no such open alert, or no such machine"), (status = 400, description = "an alert id that is not a number (bad_request)"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
 async fn ack_alert(
     State(st): State<Shared>,
     Path((id, alert)): Path<(String, u64)>,
     axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Response, ApiError> {
     let h = handle(&st, &id)?;
-    if !view(h).open_alerts.iter().any(|a| a.id == alert) {
+    let Some(open) = view(h).open_alerts.into_iter().find(|a| a.id == alert) else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
             "unknown_alert",
             format!("machine '{id}' has no open alert {alert}"),
         ));
+    };
+    // Idempotent: an acknowledged alert stays acknowledged by whoever did it first.
+    if let Some(a) = open.acknowledged {
+        return Ok((
+            StatusCode::OK,
+            Json(json!({"alert": alert, "by": a.by, "t_ns": a.t_ns, "already": true})),
+        )
+            .into_response());
     }
     if let Ok(mut inbox) = h.inbox.lock() {
         inbox.acks.push((alert, caller.name.clone()));

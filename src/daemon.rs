@@ -404,7 +404,8 @@ impl MachineRuntime {
         };
         for (id, by) in acks {
             match self.alerts.ack(id, &by, now_ns) {
-                Ok(()) => {
+                Ok(false) => {}
+                Ok(true) => {
                     info!(machine = %self.id, alert = id, by = %by, "alert acknowledged");
                     self.store
                         .add_alert_event(

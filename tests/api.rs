@@ -103,6 +103,14 @@ fn get(uri: &str) -> Request<Body> {
     Request::get(uri).body(Body::empty()).unwrap()
 }
 
+/// A read with the dashboard's token: it sees token holders' names.
+fn read(uri: &str) -> Request<Body> {
+    Request::get(uri)
+        .header(header::AUTHORIZATION, "Bearer read-token")
+        .body(Body::empty())
+        .unwrap()
+}
+
 #[tokio::test]
 async fn the_nc_reads_the_last_validated_set_with_etag_and_304() {
     let (mut rt, t0, store) = runtime("etag").await;
@@ -235,7 +243,7 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
         StatusCode::ACCEPTED
     );
     run_to(&mut rt, t0 + 100 * MIN, t0 + 101 * MIN).await;
-    let (_, _, body) = call(&app, get("/api/v1/machines/m1/alerts")).await;
+    let (_, _, body) = call(&app, read("/api/v1/machines/m1/alerts")).await;
     let ez = body["open"]
         .as_array()
         .unwrap()
@@ -294,6 +302,22 @@ async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
         );
     }
     assert!(doc["components"]["securitySchemes"]["bearer"].is_object());
+    // Every status a path can answer is listed, the shared error answers included.
+    for (p, item) in paths {
+        for (method, op) in item.as_object().unwrap() {
+            let codes = op["responses"].as_object().unwrap();
+            let mut want = vec!["400", "401", "500"];
+            if p.contains("{id}") {
+                want.push("404");
+            }
+            if method == "post" {
+                want.push("403");
+            }
+            for c in want {
+                assert!(codes.contains_key(c), "{method} {p} does not document {c}");
+            }
+        }
+    }
     let r = app.clone().oneshot(get("/api/v1/docs/")).await.unwrap();
     assert_eq!(r.status(), StatusCode::OK);
 }
@@ -511,12 +535,12 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
     );
     assert!(body["summary"].as_str().unwrap().contains("readings"));
 
-    let (s, _, list) = call(&app, get("/api/v1/machines/m1/diagnoses")).await;
+    let (s, _, list) = call(&app, read("/api/v1/machines/m1/diagnoses")).await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(list.as_array().unwrap().len(), 1);
     assert_eq!(list[0]["status"], "done");
     assert_eq!(list[0]["requested_by"], "operator");
-    let (s, _, one) = call(&app, get("/api/v1/machines/m1/diagnoses/1")).await;
+    let (s, _, one) = call(&app, read("/api/v1/machines/m1/diagnoses/1")).await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(
         one["result"], body["result"],
@@ -646,4 +670,134 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
     let (_, _, rest) = call(&app, get("/api/v1/machines/m1/diagnoses?before=4")).await;
     assert_eq!(rest.as_array().unwrap().len(), 1, "{rest}");
     assert_eq!(rest[0]["id"], 3);
+}
+
+/// Issue 13, case 7: the API's conformance: 413 for a body too large, the JSON error for
+/// every failure the framework answers itself, the bearer scheme in any case, /metrics and
+/// /readyz behind anonymous_read, token holders' names only for authenticated readers, and an
+/// idempotent acknowledgement.
+#[tokio::test]
+async fn errors_are_json_names_are_for_readers_and_an_ack_is_idempotent() {
+    let (mut rt, t0, store) = runtime("conformance").await;
+    run_to(&mut rt, t0, t0 + 100 * MIN).await;
+    let closed = app(&rt, store.clone(), false);
+    let open = app(&rt, store, true);
+    let with = |uri: &str, auth: &str| {
+        Request::get(uri)
+            .header(header::AUTHORIZATION, auth)
+            .body(Body::empty())
+            .unwrap()
+    };
+    // The scheme is case-insensitive.
+    for auth in [
+        "Bearer read-token",
+        "bearer read-token",
+        "BEARER  read-token",
+    ] {
+        let (s, _, _) = call(&closed, with("/api/v1/machines", auth)).await;
+        assert_eq!(s, StatusCode::OK, "{auth}");
+    }
+    // Metrics and readiness name the machines: not for anonymous callers of a closed service.
+    for uri in ["/metrics", "/readyz"] {
+        let (s, _, body) = call(&closed, get(uri)).await;
+        assert_eq!(
+            (s, body["code"].as_str()),
+            (StatusCode::UNAUTHORIZED, Some("token_required"))
+        );
+        let (s, _, _) = call(&closed, with(uri, "Bearer read-token")).await;
+        assert_ne!(s, StatusCode::UNAUTHORIZED, "{uri}");
+        assert_ne!(call(&open, get(uri)).await.0, StatusCode::UNAUTHORIZED);
+    }
+    assert_eq!(call(&closed, get("/healthz")).await.0, StatusCode::OK);
+    // Failures the framework answers: JSON with a code, the status kept.
+    let big = Request::post("/api/v1/machines/m1/diagnoses")
+        .header(header::AUTHORIZATION, "Bearer write-token")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(vec![b' '; 10 << 20]))
+        .unwrap();
+    for (req, status, code) in [
+        (big, StatusCode::PAYLOAD_TOO_LARGE, "body_too_large"),
+        (
+            get("/api/v1/machines/m1/cycles/abc"),
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+        ),
+        (
+            get("/api/v1/machines/m1/cycles?limit=x"),
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+        ),
+        (
+            Request::delete("/api/v1/machines")
+                .header(header::AUTHORIZATION, "Bearer write-token")
+                .body(Body::empty())
+                .unwrap(),
+            StatusCode::METHOD_NOT_ALLOWED,
+            "method_not_allowed",
+        ),
+        (get("/nowhere"), StatusCode::NOT_FOUND, "not_found"),
+    ] {
+        let uri = req.uri().to_string();
+        let (s, h, body) = call(&open, req).await;
+        assert_eq!(
+            (s, body["code"].as_str()),
+            (status, Some(code)),
+            "{uri}: {body}"
+        );
+        assert!(
+            body["message"].as_str().is_some_and(|m| !m.is_empty()),
+            "{uri}"
+        );
+        assert_eq!(h[header::CONTENT_TYPE], "application/json", "{uri}");
+    }
+
+    // Acknowledge once; again is answered 200 with who did it first, and changes nothing.
+    let (_, _, alerts) = call(&open, get("/api/v1/machines/m1/alerts")).await;
+    let id = alerts["open"][0]["id"].as_u64().expect("an open alert");
+    let ack = |token: &str| {
+        Request::post(format!("/api/v1/machines/m1/alerts/{id}/ack"))
+            .header(header::AUTHORIZATION, format!("Bearer {token}"))
+            .body(Body::empty())
+            .unwrap()
+    };
+    assert_eq!(
+        call(&open, ack("write-token")).await.0,
+        StatusCode::ACCEPTED
+    );
+    run_to(&mut rt, t0 + 100 * MIN, t0 + 101 * MIN).await;
+    let (s, _, again) = call(&open, ack("write-token")).await;
+    assert_eq!(
+        (s, again["already"].as_bool()),
+        (StatusCode::OK, Some(true)),
+        "{again}"
+    );
+    assert_eq!(again["by"], "operator");
+    // Names: for the token holder, not for an anonymous reader.
+    let (_, _, anon) = call(&open, get("/api/v1/machines/m1/alerts")).await;
+    let (_, _, reader) = call(
+        &open,
+        with("/api/v1/machines/m1/alerts", "Bearer read-token"),
+    )
+    .await;
+    let acked = |v: &Value| {
+        v["open"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|a| a["id"] == id)
+            .unwrap()["acknowledged"]["by"]
+            .clone()
+    };
+    assert_eq!(acked(&reader), "operator");
+    assert_eq!(acked(&anon), "a token holder");
+    assert!(!anon.to_string().contains("operator"), "{anon}");
+    let events = |v: &Value| {
+        v["events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|e| e["kind"] == "acknowledged")
+            .count()
+    };
+    assert_eq!(events(&reader), 1, "{reader}");
 }
