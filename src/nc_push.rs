@@ -144,6 +144,9 @@ pub struct CycleOrder {
 struct Shared {
     queue: Vec<LinkEvent>,
     order: Option<CycleOrder>,
+    /// The NC has posted a detection of the order: it runs it, so the order is no longer
+    /// handed out (an NC polling again before the loop closed the cycle would run it twice).
+    order_running: bool,
     state: Option<MachineStateKind>,
     /// The time of the state above: an older state posted later does not overwrite it.
     state_t_ns: i64,
@@ -177,6 +180,7 @@ pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHand
     let shared = Arc::new(Mutex::new(Shared {
         queue: Vec::new(),
         order: None,
+        order_running: false,
         state: None,
         state_t_ns: i64::MIN,
         clock_ns: None,
@@ -360,6 +364,14 @@ impl NcPushHandle {
                     queued: s.queue.len(),
                 });
             }
+            if let Some(o) = &order
+                && parsed
+                    .iter()
+                    .any(|e| matches!(e, LinkEvent::Detection(d) if d.msg.cycle == o.cycle))
+                && s.order.as_ref().is_some_and(|now| now.cycle == o.cycle)
+            {
+                s.order_running = true;
+            }
             s.queue.extend(parsed);
             s.stray_detections += stray as u64;
         }
@@ -371,9 +383,14 @@ impl NcPushHandle {
         self.shared.lock().map_or(0, |s| s.stray_detections)
     }
 
-    /// The pending cycle order, if any.
+    /// The pending cycle order, if any, until the NC posts a detection of it (it runs it then;
+    /// an NC that dies mid-cycle gets a new order after the scheduler's timeout).
     pub fn order(&self) -> Option<CycleOrder> {
-        self.shared.lock().ok().and_then(|s| s.order.clone())
+        self.shared
+            .lock()
+            .ok()
+            .filter(|s| !s.order_running)
+            .and_then(|s| s.order.clone())
     }
 
     /// Events refused because their time lay too far from the service clock.
@@ -453,6 +470,7 @@ impl MachineLink for NcPushLink {
             Some(other) => return Err(LinkError::NotIdle(other)),
             None => return Err(LinkError::NoState),
         }
+        s.order_running = false;
         s.order = Some(CycleOrder {
             cycle: number,
             requested_ns: now_ns,
@@ -691,7 +709,13 @@ mod tests {
         // says it belongs to no open cycle).
         let mut over = d.msg.clone();
         over.spindle_rpm = 20400.0;
+        assert!(
+            h.order().is_some(),
+            "refused detections do not start the order"
+        );
         assert_eq!(post(&over).map(|a| a.accepted), Ok(1));
+        // Being run: not handed out again, however soon the NC polls.
+        assert!(h.order().is_none());
         let mut other = slow.clone();
         other.cycle = 5;
         assert_eq!(
