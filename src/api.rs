@@ -12,7 +12,7 @@ use axum::extract::{Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{MethodRouter, get, post};
 use serde::Deserialize;
 use serde_json::json;
 
@@ -316,12 +316,13 @@ async fn authenticate(
             }
         }
     };
-    let needed =
-        if req.method() == axum::http::Method::GET || req.method() == axum::http::Method::HEAD {
-            Role::Read
-        } else {
-            Role::Write
-        };
+    // The safe methods (RFC 9110 section 9.2.1) read; one a path does not have then gets its
+    // 405, not a request for a token.
+    let needed = if req.method().is_safe() {
+        Role::Read
+    } else {
+        Role::Write
+    };
     match caller.role {
         None if needed == Role::Read && st.auth.anonymous_read => {}
         None => {
@@ -417,28 +418,31 @@ impl utoipa::Modify for BearerAuth {
 }
 
 pub fn router(state: Shared) -> Router {
+    // Authentication on each route's methods (route_layer), so that a method a path does
+    // not have is 405 before any token is asked for.
+    let auth = middleware::from_fn_with_state(state.clone(), authenticate);
+    let guard = |m: MethodRouter<Shared>| m.route_layer(auth.clone());
     let api = Router::new()
-        .route("/machines", get(machines))
-        .route("/machines/{id}", get(machine))
-        .route("/machines/{id}/compensation", get(compensation))
-        .route("/machines/{id}/cycles", get(cycles).post(request_cycle))
-        .route("/machines/{id}/cycles/{n}", get(cycle))
-        .route("/machines/{id}/errors", get(errors))
-        .route("/machines/{id}/model", get(model))
-        .route("/machines/{id}/prediction", get(prediction))
-        .route("/machines/{id}/alerts", get(alerts))
+        .route("/machines", guard(get(machines)))
+        .route("/machines/{id}", guard(get(machine)))
+        .route("/machines/{id}/compensation", guard(get(compensation)))
         .route(
-            "/machines/{id}/alerts/{alert}/ack",
-            axum::routing::post(ack_alert),
+            "/machines/{id}/cycles",
+            guard(get(cycles).post(request_cycle)),
         )
+        .route("/machines/{id}/cycles/{n}", guard(get(cycle)))
+        .route("/machines/{id}/errors", guard(get(errors)))
+        .route("/machines/{id}/model", guard(get(model)))
+        .route("/machines/{id}/prediction", guard(get(prediction)))
+        .route("/machines/{id}/alerts", guard(get(alerts)))
+        .route("/machines/{id}/alerts/{alert}/ack", guard(post(ack_alert)))
         .route(
             "/machines/{id}/diagnoses",
-            get(diagnoses).post(request_diagnosis),
+            guard(get(diagnoses).post(request_diagnosis)),
         )
-        .route("/machines/{id}/diagnoses/{n}", get(diagnosis))
-        .route("/machines/{id}/nc/events", axum::routing::post(nc_events))
-        .route("/machines/{id}/nc/request", get(nc_request))
-        .layer(middleware::from_fn_with_state(state.clone(), authenticate))
+        .route("/machines/{id}/diagnoses/{n}", guard(get(diagnosis)))
+        .route("/machines/{id}/nc/events", guard(post(nc_events)))
+        .route("/machines/{id}/nc/request", guard(get(nc_request)))
         .with_state(state.clone());
     use utoipa::OpenApi as _;
     Router::new()
@@ -451,9 +455,8 @@ pub fn router(state: Shared) -> Router {
         // /healthz says no more than that the process answers.
         .merge(
             Router::new()
-                .route("/readyz", get(ready))
-                .route("/metrics", get(metrics))
-                .layer(middleware::from_fn_with_state(state.clone(), authenticate))
+                .route("/readyz", guard(get(ready)))
+                .route("/metrics", guard(get(metrics)))
                 .with_state(state.clone()),
         )
         .route("/healthz", get(|| async { "ok" }))
@@ -776,7 +779,7 @@ struct Window {
     source: Option<String>,
 }
 
-#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch"), ("source" = Option<String>, Query, description = "measured (validated cycles), predicted (the thermal model's served sets) or all (default); every value says its source"), ("every" = Option<String>, Query, description = "bucket width: seconds or a number with s, m, h or d (15m, 1h); each bucket gives per error n, the inverse-variance weighted mean, its sigma, min, max and the last cycle")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time, or their buckets with `every`"), (status = 400, description = "from after to, or a bad `every`")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/errors", params(("id" = String, Path, description = "machine id"), ("from" = Option<i64>, Query, description = "ns since the Unix epoch"), ("to" = Option<i64>, Query, description = "ns since the Unix epoch"), ("source" = Option<String>, Query, pattern = "^(measured|predicted|all)$", description = "measured (validated cycles), predicted (the thermal model's served sets) or all (default); every value says its source"), ("every" = Option<String>, Query, pattern = r"^([1-9][0-9]{0,6}s?|[1-9][0-9]{0,4}m|[1-9][0-9]{0,2}h|([1-9][0-9]?|[12][0-9]{2}|3[0-5][0-9]|36[0-6])d)$", description = "bucket width, 1 s to 366 d: seconds or a number with s, m, h or d (15m, 1h; decimals are taken too); each bucket gives per error n, the inverse-variance weighted mean, its sigma, min, max and the last cycle")), responses((status = 200, description = "validated error values (um, urad) at each cycle reference time, or their buckets with `every`"), (status = 400, description = "from after to, or a bad `every`")), security((), ("bearer" = [])))]
 async fn errors(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -1117,7 +1120,7 @@ async fn nc_events(
 }
 
 /// The NC polls for a cycle order: 204 when none.
-#[utoipa::path(get, path = "/api/v1/machines/{id}/nc/request", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the cycle order to run", body = crate::nc_push::CycleOrder), (status = 204, description = "nothing asked")), security(("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/nc/request", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the cycle order to run", body = crate::nc_push::CycleOrder), (status = 204, description = "nothing asked"), (status = 409, description = "the machine is not on the nc_push link")), security(("bearer" = [])))]
 async fn nc_request(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -1130,7 +1133,7 @@ async fn nc_request(
 }
 
 /// Open alerts (from the loop) and the latest alert events (from the store).
-#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "events newest first, at most this many (default 100, at most 1000)"), ("before" = Option<String>, Query, description = "events before this cursor, `t_ns.alert.seq` of the last event of the previous page (see next_before)")), responses((status = 200, description = "open alerts and the latest alert events; next_before is the cursor of the next page when this one is full"), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "events newest first, at most this many (default 100, at most 1000)"), ("before" = Option<String>, Query, pattern = r"^-?[0-9]{1,18}\.[0-9]{1,9}\.[0-9]{1,18}$", description = "events before this cursor, `t_ns.alert.seq` of the last event of the previous page (see next_before)")), responses((status = 200, description = "open alerts and the latest alert events; next_before is the cursor of the next page when this one is full"), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 async fn alerts(
     State(st): State<Shared>,
     Path(id): Path<String>,

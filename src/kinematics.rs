@@ -165,7 +165,35 @@ pub struct MachineConfig {
     /// fuller calibration. Missing ones are 0.
     #[serde(default)]
     pub held: BTreeMap<String, f64>,
+    /// What the machine can report; the NC door refuses anything outside.
+    #[serde(default)]
+    pub limits: Limits,
 }
+
+/// What a machine can report: an event outside is refused at the NC door (a gateway's unit
+/// error or a broken sensor), so that the thermal model never takes it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// The spindle's rated maximum speed, min^-1 (either sense).
+    pub spindle_max_rpm: f64,
+    /// The range the machine's temperature sensors can read where it stands, deg C.
+    pub celsius: [f64; 2],
+}
+
+impl Default for Limits {
+    /// Wide enough for any machining centre's spindle and sensors; a machine file should
+    /// narrow them to the machine's own.
+    fn default() -> Self {
+        Limits {
+            spindle_max_rpm: 60_000.0,
+            celsius: [-20.0, 100.0],
+        }
+    }
+}
+
+/// The longest name (sensor, program, tool, step) an event may carry, characters.
+pub const MAX_NAME_CHARS: usize = 64;
 
 /// Where an error lives in the chain: rotary axis index and slot
 /// (0, 1 positions; 2, 3 orientations; 4 zero angle).
@@ -404,6 +432,19 @@ impl Kinematics {
             sigma_um: s.sigma_um,
             latency_s: s.latency_ms * 1e-3,
         };
+        let l = &cfg.limits;
+        let (lo, hi) = crate::thermal_model::PLAUSIBLE_CELSIUS;
+        if !(crate::positive(l.spindle_max_rpm)
+            && l.spindle_max_rpm <= crate::thermal_model::MAX_PLAUSIBLE_RPM
+            && lo <= l.celsius[0]
+            && l.celsius[0] < l.celsius[1]
+            && l.celsius[1] <= hi)
+        {
+            return Err(invalid(format!(
+                "limits: spindle_max_rpm must lie in (0, {}] and celsius = [min, max] within [{lo}, {hi}]",
+                crate::thermal_model::MAX_PLAUSIBLE_RPM
+            )));
+        }
         if !crate::positive(cfg.tool.radius_mm) {
             return Err(invalid("tool.radius_mm must be > 0".into()));
         }
@@ -699,6 +740,40 @@ mod tests {
         let e = Kinematics::load("no_such_machine").unwrap_err().to_string();
         assert!(
             e.contains("no_such_machine") && e.contains("table_bc"),
+            "{e}"
+        );
+    }
+
+    /// The NC door's ranges come from the machine file; a file whose ranges no machine has,
+    /// and a plan that runs the spindle faster than the file allows, are refused at load.
+    #[test]
+    fn the_limits_of_a_machine_file_are_checked_and_bind_its_plans() {
+        let k = Kinematics::load("table_bc").unwrap();
+        assert_eq!(k.config.limits.spindle_max_rpm, 30000.0);
+        assert_eq!(k.config.limits.celsius, [-10.0, 100.0]);
+        for (rpm, celsius) in [
+            (0.0, [-10.0, 100.0]),
+            (1e9, [-10.0, 100.0]),
+            (30000.0, [50.0, 20.0]),
+            (30000.0, [-10.0, 1e6]),
+        ] {
+            let mut cfg = k.config.clone();
+            cfg.limits = Limits {
+                spindle_max_rpm: rpm,
+                celsius,
+            };
+            let e = Kinematics::from_config(cfg).unwrap_err().to_string();
+            assert!(e.contains("limits:"), "{e}");
+        }
+        let mut cfg = k.config.clone();
+        cfg.limits.spindle_max_rpm = 15000.0;
+        let slow = Kinematics::from_config(cfg).unwrap();
+        let plan = crate::plan::PlanConfig::load("patent").unwrap();
+        let e = crate::plan::Plan::build(&slow, &plan)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("spindle_rpm 20000 is above the spindle_max_rpm 15000"),
             "{e}"
         );
     }

@@ -26,6 +26,7 @@ use serde_json::Value;
 use thiserror::Error;
 
 use crate::cycle::{ExpectedMeasurements, MeasurementKey, plan_measurements};
+use crate::kinematics::{Limits, MAX_NAME_CHARS};
 use crate::link::{LinkError, LinkEvent, MachineLink};
 use crate::plan::Plan;
 use crate::recording::{
@@ -167,6 +168,7 @@ struct Shared {
 #[derive(Clone)]
 pub struct NcPushHandle {
     shared: Arc<Mutex<Shared>>,
+    limits: Limits,
 }
 
 /// The service side: a `MachineLink`.
@@ -176,7 +178,11 @@ pub struct NcPushLink {
     expected: ExpectedMeasurements,
 }
 
-pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHandle) {
+pub fn nc_push(
+    plan: Plan,
+    limits: Limits,
+    tolerance: ClockTolerance,
+) -> (NcPushLink, NcPushHandle) {
     let shared = Arc::new(Mutex::new(Shared {
         queue: Vec::new(),
         order: None,
@@ -197,7 +203,7 @@ pub fn nc_push(plan: Plan, tolerance: ClockTolerance) -> (NcPushLink, NcPushHand
             plan,
             expected,
         },
-        NcPushHandle { shared },
+        NcPushHandle { shared, limits },
     )
 }
 
@@ -243,6 +249,27 @@ fn typed<T: for<'de> Deserialize<'de>>(
         topic: topic.to_string(),
         message: e.to_string(),
     })
+}
+
+fn refuse(index: usize, topic: &str, message: String) -> NcPushError {
+    NcPushError::Message {
+        index,
+        topic: topic.to_string(),
+        message,
+    }
+}
+
+/// A name an event carries, no longer than [`MAX_NAME_CHARS`] (it is stored and logged).
+fn named(index: usize, topic: &str, what: &str, name: &str) -> Result<(), NcPushError> {
+    let n = name.chars().count();
+    if n > MAX_NAME_CHARS {
+        return Err(refuse(
+            index,
+            topic,
+            format!("{what} is {n} characters long, more than {MAX_NAME_CHARS}"),
+        ));
+    }
+    Ok(())
 }
 
 impl NcPushHandle {
@@ -292,35 +319,42 @@ impl NcPushHandle {
             let ev = match e.topic.as_str() {
                 rec::TOPIC_SPINDLE => {
                     let m: SpindleMsg = typed(index, &e.topic, &e.msg)?;
-                    if !crate::thermal_model::plausible_rpm(m.rpm) {
-                        return Err(NcPushError::Message {
+                    let max = self.limits.spindle_max_rpm;
+                    if !(m.rpm.is_finite() && m.rpm.abs() <= max) {
+                        return Err(refuse(
                             index,
-                            topic: e.topic.clone(),
-                            message: format!(
-                                "rpm {} is not a spindle speed (finite, at most {} min^-1 either way)",
-                                m.rpm,
-                                crate::thermal_model::MAX_PLAUSIBLE_RPM
+                            &e.topic,
+                            format!(
+                                "rpm {} is not a speed of this spindle (finite, at most {max} min^-1 either way: limits.spindle_max_rpm of the machine file)",
+                                m.rpm
                             ),
-                        });
+                        ));
                     }
                     LinkEvent::Spindle(Timed { t_ns, msg: m })
                 }
-                rec::TOPIC_STATE => LinkEvent::State(Timed {
-                    t_ns,
-                    msg: typed::<StateMsg>(index, &e.topic, &e.msg)?,
-                }),
+                rec::TOPIC_STATE => {
+                    let m: StateMsg = typed(index, &e.topic, &e.msg)?;
+                    named(
+                        index,
+                        &e.topic,
+                        "program",
+                        m.program.as_deref().unwrap_or(""),
+                    )?;
+                    LinkEvent::State(Timed { t_ns, msg: m })
+                }
                 rec::TOPIC_TEMPERATURE => {
                     let m: TemperatureMsg = typed(index, &e.topic, &e.msg)?;
-                    if !crate::thermal_model::plausible_celsius(m.celsius) {
-                        let (lo, hi) = crate::thermal_model::PLAUSIBLE_CELSIUS;
-                        return Err(NcPushError::Message {
+                    named(index, &e.topic, "sensor", &m.sensor)?;
+                    let [lo, hi] = self.limits.celsius;
+                    if !(lo..=hi).contains(&m.celsius) {
+                        return Err(refuse(
                             index,
-                            topic: e.topic.clone(),
-                            message: format!(
-                                "{} deg C from sensor '{}' is not a machine temperature ({lo} to {hi})",
+                            &e.topic,
+                            format!(
+                                "{} deg C from sensor '{}' is not a temperature of this machine ({lo} to {hi}: limits.celsius of the machine file)",
                                 m.celsius, m.sensor
                             ),
-                        });
+                        ));
                     }
                     LinkEvent::Temperature(Timed { t_ns, msg: m })
                 }
@@ -331,6 +365,8 @@ impl NcPushHandle {
                         topic: e.topic.clone(),
                         message: i.message,
                     })?;
+                    named(index, &e.topic, "step", &m.step)?;
+                    named(index, &e.topic, "tool_id", &m.tool_id)?;
                     match order.as_ref().filter(|o| o.cycle == m.cycle) {
                         Some(o) => {
                             if let Some(message) = against_order(&m, o) {
@@ -519,7 +555,7 @@ mod tests {
     fn setup() -> (NcPushLink, NcPushHandle, Plan) {
         let k = Kinematics::load("table_bc").unwrap();
         let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-        let (link, handle) = nc_push(plan.clone(), ClockTolerance::default());
+        let (link, handle) = nc_push(plan.clone(), k.config.limits, ClockTolerance::default());
         (link, handle, plan)
     }
 
@@ -635,21 +671,39 @@ mod tests {
                 },
             ],
         };
+        let long = "x".repeat(MAX_NAME_CHARS + 1);
         for (topic, msg, says) in [
             (
                 "/spindle",
                 serde_json::json!({"rpm": 1e300}),
-                "not a spindle speed",
+                "not a speed of this spindle",
             ),
+            // The machine file's limits, not only physics: table_bc's spindle turns at most
+            // 30 000 min^-1 and its sensors read -10 to 100 deg C.
             (
                 "/spindle",
-                serde_json::json!({"rpm": -250000.0}),
-                "not a spindle speed",
+                serde_json::json!({"rpm": -30001.0}),
+                "at most 30000 min^-1",
             ),
             (
                 "/temperature",
                 serde_json::json!({"sensor": "ambient", "celsius": 1e6}),
-                "not a machine temperature",
+                "not a temperature of this machine",
+            ),
+            (
+                "/temperature",
+                serde_json::json!({"sensor": "ambient", "celsius": -10.5}),
+                "(-10 to 100",
+            ),
+            (
+                "/temperature",
+                serde_json::json!({"sensor": long, "celsius": 20.0}),
+                "sensor is 65 characters long",
+            ),
+            (
+                "/machine/state",
+                serde_json::json!({"state": "idle", "program": long}),
+                "program is 65 characters long",
             ),
         ] {
             let e = h.post(&batch(topic, msg)).unwrap_err();
@@ -661,7 +715,13 @@ mod tests {
         // Nothing of a refused batch is kept; a plausible one is taken whole (reverse
         // rotation included).
         assert!(h.shared.lock().unwrap().queue.is_empty());
-        let ok = batch("/spindle", serde_json::json!({"rpm": -8000.0}));
+        let ok = batch("/spindle", serde_json::json!({"rpm": -30000.0}));
+        assert_eq!(h.post(&ok).unwrap().accepted, 2);
+        let name = "y".repeat(MAX_NAME_CHARS);
+        let ok = batch(
+            "/temperature",
+            serde_json::json!({"sensor": name, "celsius": 99.0}),
+        );
         assert_eq!(h.post(&ok).unwrap().accepted, 2);
     }
 
@@ -705,6 +765,10 @@ mod tests {
         fast.feed_mm_min = 5000.0;
         let e = post(&fast).unwrap_err().to_string();
         assert!(e.contains("feed_mm_min 5000 is no feed of cycle 4"), "{e}");
+        let mut named = d.msg.clone();
+        named.tool_id = "T".repeat(MAX_NAME_CHARS + 1);
+        let e = post(&named).unwrap_err().to_string();
+        assert!(e.contains("tool_id is 65 characters long"), "{e}");
         // A 2 % spindle override is no reason to refuse; nor is a cycle not ordered (the loop
         // says it belongs to no open cycle).
         let mut over = d.msg.clone();

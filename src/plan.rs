@@ -209,6 +209,12 @@ impl Plan {
         if !(cfg.dwell_s >= 0.0 && cfg.spindle_rpm >= 0.0) {
             return Err(invalid("dwell_s and spindle_rpm must be >= 0".into()));
         }
+        if cfg.spindle_rpm > k.config.limits.spindle_max_rpm {
+            return Err(invalid(format!(
+                "spindle_rpm {} is above the spindle_max_rpm {} of machine '{}'",
+                cfg.spindle_rpm, k.config.limits.spindle_max_rpm, k.name
+            )));
+        }
         if cfg.poses.is_empty() {
             return Err(invalid("has no poses".into()));
         }

@@ -110,7 +110,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
             }
             LinkConfig::NcPush { .. } => {
                 let tolerance = m.link.clock_tolerance().unwrap_or_default();
-                let (link, handle) = nc_push(plan.clone(), tolerance);
+                let (link, handle) = nc_push(plan.clone(), k.config.limits, tolerance);
                 nc_handles.insert(m.id.clone(), handle);
                 t0 = t0.min(wall_now);
                 machines.push((m.id.clone(), k, plan, Box::new(link), settings));

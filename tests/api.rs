@@ -736,6 +736,19 @@ async fn errors_are_json_names_are_for_readers_and_an_ack_is_idempotent() {
             "method_not_allowed",
         ),
         (get("/nowhere"), StatusCode::NOT_FOUND, "not_found"),
+        // A method the path does not have is 405 before any token is asked for.
+        (
+            Request::put("/metrics").body(Body::empty()).unwrap(),
+            StatusCode::METHOD_NOT_ALLOWED,
+            "method_not_allowed",
+        ),
+        (
+            Request::delete("/api/v1/machines/m1/cycles")
+                .body(Body::empty())
+                .unwrap(),
+            StatusCode::METHOD_NOT_ALLOWED,
+            "method_not_allowed",
+        ),
     ] {
         let uri = req.uri().to_string();
         let (s, h, body) = call(&open, req).await;

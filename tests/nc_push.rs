@@ -58,7 +58,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
     let scn = Scenario::load("patent").unwrap();
     let k = Kinematics::load(&scn.machine).unwrap();
     let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-    let (link, handle) = nc_push(plan.clone(), ClockTolerance::default());
+    let (link, handle) = nc_push(plan.clone(), k.config.limits, ClockTolerance::default());
     let mut vm = VirtualMachine::new(&k, &scn).unwrap();
     let t0 = vm.start_ns();
     let store = Store::open(&d.join("db.sqlite")).await.unwrap();

@@ -1,0 +1,220 @@
+"""Property-based API test of a driftwatch binary with Schemathesis, against its own OpenAPI document.
+
+usage: python3 schemathesis_run.py BINARY OUTDIR [--max-examples N] [--seed S]
+
+Starts `BINARY serve` (600x time, data in OUTDIR/data, a free loopback port, an operator token
+with role write from DRIFTWATCH_OPERATOR_TOKEN), waits for GET /healthz, lets it run ~5 s so that
+cycles and alerts exist, asks one diagnosis so that /diagnoses/{n} has something to read, then runs
+`st run` on /api/v1/openapi.json:
+  * pass "token": every operation but POST .../diagnoses (a multi-second computation, 429 while
+    another runs), Authorization: Bearer <token>, N examples per operation;
+  * pass "anonymous": the same without a token (anonymous reads are allowed), N/4 examples.
+N defaults to 300: about 4,500 requests, under a minute on 2 cores.
+All of Schemathesis' checks run (among them not_a_server_error, status_code_conformance,
+content_type_conformance, response_schema_conformance, negative_data_rejection,
+positive_data_acceptance, ignored_auth). Path parameters come from a small dictionary (machine
+sim-1, numbers 1-3) part of the time so that requests reach past the 404s.
+From Schemathesis' NDJSON event reports (OUTDIR/<pass>/) it counts every request sent, the 5xx
+answers and the distinct failures per check (operation, check, title), prints each failure with
+one request and its response, and closes with
+  schemathesis: N requests, K 5xx, F failures (check: count, ...)
+The exit status is 1 on any 5xx or failure (or if Schemathesis could not run), else 0.
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import glob
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+CONFIG = """\
+[dictionaries.machines]
+values = ["sim-1"]
+[dictionaries.numbers]
+values = [1, 2, 3]
+[parameters]
+"path.id" = { dictionary = "machines", probability = 0.8 }
+"path.n" = { dictionary = "numbers", probability = 0.5 }
+"path.alert" = { dictionary = "numbers", probability = 0.5 }
+"""
+
+# Two refusals OpenAPI cannot state, so generated queries are kept clear of them: a window's
+# `from` after its `to` (400 bad_window: a constraint between two parameters; windows are put
+# in order) and a prediction `at` before the model's last input (400 before_last_input: it
+# depends on the service's state; times are moved to 2033-2065, which also asks the model
+# decades ahead).
+HOOKS = """\
+import schemathesis
+
+
+@schemathesis.hook
+def map_query(ctx, query):
+    if isinstance(query, dict):
+        a, b = query.get("from"), query.get("to")
+        if isinstance(a, int) and isinstance(b, int) and a > b:
+            query["from"], query["to"] = b, a
+        at = query.get("at")
+        if isinstance(at, int) and at < 2 * 10**18:
+            query["at"] = 2 * 10**18 + abs(at) % 10**18
+    return query
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def http(method: str, url: str, token: str | None = None, body: bytes | None = None) -> int:
+    req = urllib.request.Request(url, data=body, method=method)
+    if token:
+        req.add_header("Authorization", f"Bearer {token}")
+    if body is not None:
+        req.add_header("Content-Type", "application/json")
+    try:
+        with urllib.request.urlopen(req, timeout=60) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
+def start(binary: str, outdir: str, token: str) -> tuple[subprocess.Popen, str]:
+    env = dict(os.environ, DRIFTWATCH_OPERATOR_TOKEN=token)
+    log = open(os.path.join(outdir, "service.log"), "ab")
+    for _ in range(5):
+        port = free_port()
+        proc = subprocess.Popen(
+            [binary, "serve", "--time-scale", "600", "--until", "100000",
+             "--data-dir", os.path.join(outdir, "data"), "--listen", f"127.0.0.1:{port}"],
+            env=env, stdout=log, stderr=subprocess.STDOUT)
+        base = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                if http("GET", base + "/healthz") == 200:
+                    return proc, base
+            except OSError:
+                pass
+            time.sleep(0.2)
+        stop(proc)
+    sys.exit("schemathesis: the service did not answer /healthz (see service.log)")
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def run_st(base: str, outdir: str, name: str, n: int, seed: int, token: str | None) -> str:
+    st = [shutil.which("st")] if shutil.which("st") else [sys.executable, "-m", "schemathesis.cli"]
+    repdir = os.path.join(outdir, name)
+    shutil.rmtree(repdir, ignore_errors=True)
+    os.makedirs(repdir)
+    cfg = os.path.join(outdir, "schemathesis.toml")
+    cmd = st + ["--config-file", cfg, "run", base + "/api/v1/openapi.json", "--checks", "all",
+                "--max-examples", str(n), "--seed", str(seed), "--workers", "2",
+                "--generation-database", "none", "--request-timeout", "30",
+                "--exclude-operation-id", "request_diagnosis",
+                "--report", "ndjson", "--report-dir", repdir, "--no-color"]
+    if token:
+        cmd += ["--header", f"Authorization: Bearer {token}"]
+    env = dict(os.environ, SCHEMATHESIS_HOOKS="driftwatch_hooks",
+               PYTHONPATH=os.pathsep.join(filter(None, [outdir, os.environ.get("PYTHONPATH")])))
+    with open(os.path.join(outdir, f"{name}.log"), "w") as out:
+        subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=outdir, env=env)
+    found = glob.glob(os.path.join(repdir, "*.ndjson"))
+    if not found:
+        sys.exit(f"schemathesis: pass {name} wrote no report (see {name}.log)")
+    return found[0]
+
+
+def body_text(resp: dict) -> str:
+    c = resp.get("content") or {}
+    raw = base64.b64decode(c["$base64"]) if "$base64" in c else (c.get("string") or "").encode()
+    return raw.decode("utf-8", "replace")[:400]
+
+
+def tally(report: str, stats: dict) -> None:
+    for line in open(report, encoding="utf-8"):
+        ev = json.loads(line).get("ScenarioFinished")
+        if not ev:
+            continue
+        rec = ev["recorder"]
+        inter = rec.get("interactions") or {}
+        for i in inter.values():
+            stats["requests"] += 1
+            code = (i.get("response") or {}).get("status_code") or 0
+            if code >= 500:
+                stats["5xx"] += 1
+        for case_id, checks in (rec.get("checks") or {}).items():
+            for c in checks:
+                if c.get("status") != "failure":
+                    continue
+                f = (c.get("failure_info") or {}).get("failure") or {}
+                key = (f.get("operation") or rec.get("label"), c["name"], f.get("title"))
+                if key in stats["failures"]:
+                    continue
+                i = inter.get(case_id) or {}
+                req, resp = i.get("request") or {}, i.get("response") or {}
+                stats["failures"][key] = (
+                    f"{stats['pass']}: {key[0]} [{key[1]}] {f.get('title')}: "
+                    f"{(f.get('message') or '').splitlines()[0][:200] if f.get('message') else ''}\n"
+                    f"    request: {req.get('method')} {req.get('uri')} body={req.get('body')!r:.300}\n"
+                    f"    response: {resp.get('status_code')} {body_text(resp)}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("binary")
+    ap.add_argument("outdir")
+    ap.add_argument("--max-examples", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=1)
+    a = ap.parse_args()
+    outdir = os.path.abspath(a.outdir)
+    os.makedirs(outdir, exist_ok=True)
+    shutil.rmtree(os.path.join(outdir, "data"), ignore_errors=True)
+    with open(os.path.join(outdir, "schemathesis.toml"), "w") as f:
+        f.write(CONFIG)
+    with open(os.path.join(outdir, "driftwatch_hooks.py"), "w") as f:
+        f.write(HOOKS)
+    token = secrets.token_hex(16)
+    proc, base = start(os.path.abspath(a.binary), outdir, token)
+    stats = {"requests": 0, "5xx": 0, "failures": {}}
+    try:
+        time.sleep(5)
+        http("POST", base + "/api/v1/machines/sim-1/diagnoses", token, b"{}")
+        for name, n, tok in (("token", a.max_examples, token),
+                             ("anonymous", max(1, a.max_examples // 4), None)):
+            stats["pass"] = name
+            tally(run_st(base, outdir, name, n, a.seed, tok), stats)
+    finally:
+        stop(proc)
+    per_check: dict[str, int] = {}
+    for (_, check, _), text in stats["failures"].items():
+        per_check[check] = per_check.get(check, 0) + 1
+        print(text)
+    detail = ", ".join(f"{k}: {v}" for k, v in sorted(per_check.items()))
+    nf = len(stats["failures"])
+    print(f"schemathesis: {stats['requests']} requests, {stats['5xx']} 5xx, {nf} failures"
+          + (f" ({detail})" if detail else ""))
+    return 1 if stats["5xx"] or nf else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
