@@ -4,11 +4,11 @@ detections for each order), then started again on the same data directory.
 
 usage: python3 kill_harness.py BINARY OUTDIR [--sim N] [--nc N] [--seed S]
 
-Each simulated trial runs a fresh data directory at 600x, is killed 0.3-3 s after it answers
+Each simulated trial runs a fresh data directory at 600x, is killed 0.3-2 s after it answers
 (every other trial as soon as a cycle is seen running: a cycle takes 0.1 s of wall time),
 restarted, checked and stopped. The
 nc_push trials share one data directory on the wall clock: the NC runs operator-requested
-cycles back to back, and the service is killed 0.3-2.5 s into each trial, mid-cycle included
+cycles back to back, and the service is killed 0.3-2 s into each trial, mid-cycle included
 (while the NC posts a cycle's detections), and started again. After every restart:
 - lost: a cycle seen `ok` before the kill that is not `ok` after it;
 - versions back: the served compensation version below the highest seen before the kill;
@@ -153,7 +153,7 @@ def sim_series(binary, out, trials, rng):
         log = os.path.join(out, f"sim-{i}.log")
         svc = Service(binary, data, log, scale=600)
         w = Watch()
-        end = time.time() + rng.uniform(0.3, 3.0)
+        end = time.time() + rng.uniform(0.3, 2.0)
         while time.time() < end:
             w.look(svc, "sim-1")
             time.sleep(0.02)
@@ -275,7 +275,7 @@ def nc_series(binary, out, trials, rng):
     nc.base = svc.base
     w = Watch()
     for _ in range(trials):
-        end = time.time() + rng.uniform(0.3, 2.5)
+        end = time.time() + rng.uniform(0.3, 2.0)
         while time.time() < end:
             w.look(svc, "nc-1")
             time.sleep(0.02)
