@@ -552,3 +552,165 @@ pub fn power(trials: usize) -> Result<ExitCode> {
     }
     Ok(ExitCode::SUCCESS)
 }
+
+/// A shipped real data set for `bench thermal`: a CSV under the data directory, its columns
+/// and where its hold-out starts.
+struct RealSet {
+    name: &'static str,
+    csv: &'static str,
+    time_column: &'static str,
+    spindle: Option<&'static str>,
+    temperatures: Vec<String>,
+    channels: Vec<String>,
+    train_h: f64,
+}
+
+fn real_sets() -> Vec<RealSet> {
+    let temps: Vec<String> = (1..=16).map(|i| format!("t{i}_C")).collect();
+    let chans: Vec<String> = (1..=5).map(|i| format!("ch{i}_um")).collect();
+    vec![
+        RealSet {
+            name: "fl-thermal",
+            csv: "fl-thermal/fl_thermal.csv",
+            time_column: "time_s",
+            spindle: Some("spindle_rpm"),
+            temperatures: temps.clone(),
+            channels: chans.clone(),
+            train_h: 40.0,
+        },
+        // The same test with the spindle log left out at import: temperatures alone.
+        RealSet {
+            name: "fl-thermal, no spindle column",
+            csv: "fl-thermal/fl_thermal.csv",
+            time_column: "time_s",
+            spindle: None,
+            temperatures: temps,
+            channels: chans,
+            train_h: 40.0,
+        },
+    ]
+}
+
+/// Every family against the baselines on every shipped real data set: rolling-origin CV on
+/// the training span, then the hold-out with no reading used.
+pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
+    use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
+    use driftwatch::families::{Family, compete, grid};
+    use driftwatch::thermal_model::events_from;
+    let step_ns = (step_min * 60e9) as i64;
+    let mut rows = Vec::new();
+    for set in real_sets() {
+        let path = data.join(set.csv);
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {} (give --data DIR)", path.display()))?;
+        let im = import_csv(
+            &text,
+            &CsvOptions {
+                time: RowTime::Column(set.time_column.into()),
+                start_ns: 0,
+                spindle: set.spindle.map(String::from),
+                temperatures: set.temperatures.clone(),
+                displacements: set.channels.clone(),
+                machine_id: set.name.into(),
+            },
+        )
+        .with_context(|| format!("importing {}", path.display()))?;
+        let events = events_from(&[im.recording]);
+        let train_end_ns = (set.train_h * 3600e9) as i64;
+        if !json {
+            println!(
+                "\n{}: fit on 0-{} h, hold-out to the end; {}-min grid; inputs: {}",
+                set.name,
+                set.train_h,
+                step_min,
+                if set.spindle.is_some() {
+                    "spindle + temperatures"
+                } else {
+                    "temperatures only"
+                }
+            );
+            println!(
+                "{:<8} {:<15} {:>8} {:>9} {:>8} {:>7} {:>7}  chosen / inputs",
+                "channel", "family", "CV rmse", "hold rmse", "hold max", "cov68", "cov95",
+            );
+        }
+        for ch in &set.channels {
+            let Some(g) = grid(&events, ch, step_ns) else {
+                continue;
+            };
+            let grey = driftwatch::families::grey_box_config(&g);
+            let scores = compete(&events, &g, train_end_ns, &Family::ALL, &grey);
+            for s in &scores {
+                if !json {
+                    println!(
+                        "{:<8} {:<15} {:>8.2} {:>9.2} {:>8.2} {:>6.0}% {:>6.0}%  {}{}",
+                        ch,
+                        s.family,
+                        s.cv_rmse,
+                        s.holdout_rmse,
+                        s.holdout_max,
+                        100.0 * s.cover68,
+                        100.0 * s.cover95,
+                        if s.chosen { "<- chosen; " } else { "" },
+                        s.detail
+                    );
+                }
+            }
+            // What predict serves: the chosen family, and the grey box from where an
+            // empirical family leaves the inputs' range of its fit data.
+            let served = served_holdout(&events, &g, train_end_ns, &scores, &grey);
+            if let (false, Some((rmse, why))) = (json, &served) {
+                println!("{ch:<8} served: hold-out RMSE {rmse:.2} ({why})");
+            }
+            rows.push(serde_json::json!({
+                "set": set.name, "channel": ch, "families": scores,
+                "served_rmse": served.as_ref().map(|s| s.0),
+                "served": served.map(|s| s.1),
+            }));
+        }
+    }
+    if json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The hold-out RMSE of what `predict` serves for a channel: the chosen family, handing over
+/// to the grey box where it leaves the inputs' range of its fit data; and what that was.
+fn served_holdout(
+    events: &[driftwatch::thermal_model::Event],
+    g: &driftwatch::families::Grid,
+    train_end_ns: i64,
+    scores: &[driftwatch::families::FamilyScore],
+    grey: &driftwatch::thermal_model::ModelConfig,
+) -> Option<(f64, String)> {
+    use driftwatch::families::{
+        Family, fit_family, grey_box, input_ranges, leaves_range, simulate,
+    };
+    let chosen = scores.iter().find(|s| s.chosen)?;
+    let family = Family::parse(&chosen.family)?;
+    let n_train = g.index_at(train_end_ns);
+    let n = g.len();
+    if family == Family::GreyBox || n_train >= n {
+        return Some((chosen.holdout_rmse, chosen.family.clone()));
+    }
+    let f = fit_family(family, g, n_train)?;
+    let mut p = simulate(&f, g, n_train, n);
+    let mut why = chosen.family.clone();
+    if let Some((k, j, _)) = leaves_range(&f, g, &input_ranges(g, n_train), n_train, n) {
+        let gb = grey_box(events, grey, g, n_train, n)?;
+        p[k - n_train..].copy_from_slice(&gb[k - n_train..]);
+        why = format!(
+            "{}, the grey box from {:.2} h where {} leaves its fit range",
+            chosen.family,
+            g.t_ns[k] as f64 / 3.6e12,
+            g.names[j]
+        );
+    }
+    let e2: f64 = p
+        .iter()
+        .zip(&g.y[n_train..])
+        .map(|(p, y)| (p - y).powi(2))
+        .sum();
+    Some(((e2 / p.len().max(1) as f64).sqrt(), why))
+}

@@ -18,6 +18,7 @@ pub mod diagnosis_report;
 pub mod displacement_diagnosis;
 pub mod effects;
 pub mod experiment;
+pub mod families;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;

@@ -165,9 +165,15 @@ enum Command {
         /// Seconds of load per endpoint (bench http).
         #[arg(long, default_value_t = 10.0)]
         seconds: f64,
-        /// Print JSON (bench compensation).
+        /// Print JSON (bench compensation, bench thermal).
         #[arg(long)]
         json: bool,
+        /// Directory of the shipped real data sets (bench thermal).
+        #[arg(long, default_value = "tests/data")]
+        data: PathBuf,
+        /// Grid step of the thermal families, min (bench thermal).
+        #[arg(long, default_value_t = 5.0)]
+        step_min: f64,
         /// Serve predicted sets between cycles (bench year): on or off.
         #[arg(long, default_value = "on", value_parser = ["on", "off"])]
         prediction: String,
@@ -224,6 +230,9 @@ enum BenchWhich {
     /// Detection rate against amplitude for two effects, next to the detection threshold
     /// (--n trials per amplitude; 20 unless given below 20000).
     Power,
+    /// Every thermal model family against persistence, regression, key-temperature
+    /// regression and ARX on every shipped real data set (--data, default tests/data).
+    Thermal,
 }
 
 fn main() -> ExitCode {
@@ -357,6 +366,13 @@ fn run(cmd: Command) -> Result<ExitCode> {
             days,
             ..
         } => bench::diagnosis(days),
+        Command::Bench {
+            which: BenchWhich::Thermal,
+            data,
+            step_min,
+            json,
+            ..
+        } => bench::thermal(&data, step_min, json),
         Command::Bench {
             which: BenchWhich::Power,
             n,

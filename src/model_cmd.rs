@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use driftwatch::csv_import::{CsvOptions, RowTime, import_csv, split_columns};
+use driftwatch::families::{ChannelChoice, Family};
 use driftwatch::kinematics::Kinematics;
 use driftwatch::recording::Recording;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
@@ -122,9 +123,10 @@ fn read_recordings(paths: &[PathBuf]) -> Result<Vec<Recording>> {
 
 #[derive(clap::Args)]
 pub struct FitArgs {
-    /// Machine TOML, or a built-in name (table_bc).
+    /// Machine TOML, or a built-in name (table_bc): checked when given; a displacement
+    /// recording needs none.
     #[arg(long)]
-    machine: String,
+    machine: Option<String>,
     /// Recordings (spindle, temperatures, displacements, cycle results), in any order.
     #[arg(long, num_args = 1.., required = true)]
     recording: Vec<PathBuf>,
@@ -149,6 +151,68 @@ pub struct FitArgs {
     /// Fit only these channels (comma-separated; default: every observed channel).
     #[arg(long, num_args = 1..)]
     channels: Vec<String>,
+    /// The model family of each displacement channel: `auto` (the lowest rolling-origin CV
+    /// error on the fit data among grey_box, persistence, regression, key_regression and
+    /// arx), or one of them. Cycle-result channels always take the grey box.
+    #[arg(long, default_value = "auto")]
+    family: String,
+    /// Use only these temperature sensors as inputs, in every family (comma-separated;
+    /// default: every sensor the recordings have).
+    #[arg(long, num_args = 1..)]
+    sensors: Vec<String>,
+    /// Grid step of the families, min (displacement channels).
+    #[arg(long, default_value_t = 5.0)]
+    step_min: f64,
+}
+
+/// What `fit` writes: the grey-box model (read by the service as it is) and, for
+/// displacement channels, the family competition and the chosen family.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ModelFile {
+    #[serde(flatten)]
+    model: ThermalModel,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    families: Vec<ChannelChoice>,
+}
+
+/// Keep only the named temperature sensors (all when none are named).
+fn only_sensors(events: Vec<Event>, sensors: &[String]) -> Vec<Event> {
+    if sensors.is_empty() {
+        return events;
+    }
+    events
+        .into_iter()
+        .filter(|e| match e {
+            Event::Temperature { sensor, .. } => sensors.contains(sensor),
+            _ => true,
+        })
+        .collect()
+}
+
+/// Whether the spindle turned in the events (a log of zeros is no spindle log).
+fn spins(events: &[Event]) -> bool {
+    events
+        .iter()
+        .any(|e| matches!(e, Event::Spindle { rpm, .. } if *rpm != 0.0))
+}
+
+/// The displacement channels (observations without an uncertainty, as CSV imports and
+/// `/displacement` messages give them) of the events.
+fn displacement_channels(events: &[Event]) -> Vec<String> {
+    let mut v: Vec<String> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Observation {
+                channel,
+                sigma: None,
+                ..
+            } => Some(channel.clone()),
+            _ => None,
+        })
+        .collect();
+    v.sort();
+    v.dedup();
+    v
 }
 
 pub fn model_config(
@@ -195,21 +259,101 @@ pub fn filter_channels(events: Vec<Event>, channels: &[String]) -> Vec<Event> {
 }
 
 pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
-    Kinematics::load(&a.machine).with_context(|| format!("machine '{}'", a.machine))?;
-    let cfg = model_config(
+    if let Some(m) = &a.machine {
+        Kinematics::load(m).with_context(|| format!("machine '{m}'"))?;
+    }
+    let force = match a.family.as_str() {
+        "auto" => None,
+        f => Some(Family::parse(f).with_context(|| {
+            format!(
+                "--family {f}: use auto, {}",
+                Family::ALL.map(Family::as_str).join(", ")
+            )
+        })?),
+    };
+    anyhow::ensure!(
+        a.step_min > 0.0 && a.step_min.is_finite(),
+        "--step-min must be > 0"
+    );
+    let sensors = split_columns(&a.sensors);
+    let events = only_sensors(
+        filter_channels(events_from(&read_recordings(&a.recording)?), &a.channels),
+        &sensors,
+    );
+    let mut cfg = model_config(
         a.model_config.as_ref(),
         a.n_ref_rpm,
         &a.temperature_inputs,
         &a.taus_min,
     )?;
-    let events = filter_channels(events_from(&read_recordings(&a.recording)?), &a.channels);
+    let all_sensors = driftwatch::thermal_model::sensors_of(&events);
+    for s in &sensors {
+        anyhow::ensure!(
+            all_sensors.contains(s),
+            "--sensors {s}: the recordings have no such sensor (they have: {})",
+            all_sensors.join(", ")
+        );
+    }
+    if !spins(&events) {
+        // No spindle log: the spindle basis would be a column of zeros. The temperatures
+        // are the inputs, every one unless some are named.
+        cfg.taus_min.clear();
+        cfg.instant_speed = false;
+        if cfg.temperatures.is_empty() {
+            cfg.temperatures = all_sensors
+                .iter()
+                .map(|s| TemperatureInput {
+                    sensor: s.clone(),
+                    taus_min: driftwatch::thermal_model::default_temperature_taus(),
+                })
+                .collect();
+        }
+        eprintln!(
+            "warning: the recordings have no spindle speed (no /spindle message, or only 0): the models use the temperatures alone{}",
+            if cfg.temperatures.is_empty() {
+                " (there are none: an offset only)"
+            } else {
+                ""
+            }
+        );
+    }
+    println!(
+        "inputs: {}{}",
+        if spins(&events) {
+            "spindle speed, "
+        } else {
+            ""
+        },
+        if all_sensors.is_empty() {
+            "no temperatures".to_string()
+        } else {
+            format!("temperatures {}", all_sensors.join(", "))
+        }
+    );
     let t0 = events.first().map_or(0, Event::t_ns);
     let until = a.until.as_deref().map(|u| parse_time(u, t0)).transpose()?;
     let model = fit(&cfg, &events, until)?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
-    std::fs::write(&a.out, serde_json::to_string_pretty(&model)?)
+    // The families compete on each displacement channel, on the fit data only.
+    let step_ns = (a.step_min * 60e9) as i64;
+    let train_end = until.unwrap_or(i64::MAX);
+    let mut families = Vec::new();
+    for ch in displacement_channels(&events) {
+        let Some(g) = driftwatch::families::grid(&events, &ch, step_ns) else {
+            continue;
+        };
+        match driftwatch::families::choose(&events, &g, train_end, &Family::ALL, &cfg, force) {
+            Some(c) => families.push(c),
+            None => eprintln!(
+                "{ch}: no family could be fitted (too few readings for the rolling origins)"
+            ),
+        }
+    }
+    let file = ModelFile { model, families };
+    let model = &file.model;
+    std::fs::write(&a.out, serde_json::to_string_pretty(&file)?)
         .with_context(|| format!("writing {}", a.out.display()))?;
     println!(
         "model of {} channel(s) fitted on {:.2} h of data -> {}",
@@ -240,8 +384,39 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             }
         );
     }
+    if !file.families.is_empty() {
+        println!(
+            "model families, rolling-origin cross-validation on the fit data (origins at 1/2, 5/8, 6/8, 7/8 of it, each predicting freely to the next): RMSE, and the band of the CV errors"
+        );
+        println!(
+            "{:<12} {:<15} {:>9} {:>8} {:>8}  chosen / inputs",
+            "channel", "family", "CV rmse", "band68", "band95"
+        );
+        for c in &file.families {
+            for s in &c.scores {
+                println!(
+                    "{:<12} {:<15} {:>9.3} {:>8.3} {:>8.3}  {}{}",
+                    c.channel,
+                    s.family,
+                    s.cv_rmse,
+                    s.band68,
+                    s.band95,
+                    if s.family == c.family {
+                        if force.is_some() {
+                            "<- forced; "
+                        } else {
+                            "<- chosen; "
+                        }
+                    } else {
+                        ""
+                    },
+                    s.detail
+                );
+            }
+        }
+    }
     // What each channel will serve, from the held-out tail of the fit data.
-    let p = driftwatch::thermal_model::Predictor::new(&model, model.to_ns);
+    let p = driftwatch::thermal_model::Predictor::new(model, model.to_ns);
     println!(
         "what each channel serves, from the held-out tail ({:.0} % of its observations):",
         100.0 * model.config.holdout_share
@@ -274,6 +449,109 @@ pub struct PredictArgs {
     /// before they are used (default: those after --update-until).
     #[arg(long)]
     from: Option<String>,
+}
+
+#[derive(serde::Deserialize)]
+struct FamiliesOnly {
+    #[serde(default)]
+    families: Vec<ChannelChoice>,
+}
+
+/// A channel another family than the grey box serves: it runs freely from the last reading
+/// before grid point `origin` (the fit's end, or --update-until), without updates. Rows from
+/// `from` on at `step_ns`, then RMSE, largest error and band coverage against the readings after the
+/// origin, next to persistence.
+struct FamilyRun<'a> {
+    c: &'a ChannelChoice,
+    g: &'a driftwatch::families::Grid,
+    origin: usize,
+    /// The grid point where the family leaves its fit data: the grey box serves from there.
+    leave: Option<usize>,
+    /// The grey box's served values of the channel, by time.
+    grey: &'a [(i64, f64)],
+}
+
+fn predict_family(r: &FamilyRun, t0: i64, from: i64, step_ns: i64, json: bool) -> Result<()> {
+    let (c, g, origin) = (r.c, r.g, r.origin);
+    let family = driftwatch::families::simulate(&c.fitted, g, origin, g.len());
+    let p: Vec<(f64, &str)> = family
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let k = origin + i;
+            if r.leave.is_some_and(|l| k >= l) {
+                let at = r.grey.partition_point(|(t, _)| *t <= g.t_ns[k]);
+                (
+                    at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1),
+                    "grey_box",
+                )
+            } else {
+                (*v, c.family.as_str())
+            }
+        })
+        .collect();
+    let mut next_row = from;
+    let mut out = std::io::stdout().lock();
+    let mut errors = Vec::new();
+    let mut persistence = Vec::new();
+    for (i, (v, by)) in p.iter().enumerate() {
+        let k = origin + i;
+        let y = g.y[k];
+        errors.push(v - y);
+        persistence.push(g.y[origin - 1] - y);
+        // Rows at the requested step (the family runs on its own grid).
+        if g.t_ns[k] < next_row {
+            continue;
+        }
+        next_row = g.t_ns[k].saturating_add(step_ns);
+        if json {
+            let line = serde_json::json!({
+                "t_ns": g.t_ns[k],
+                "time": chrono::DateTime::from_timestamp_nanos(g.t_ns[k]).to_rfc3339(),
+                "values": {c.channel.clone(): {
+                    "value": v,
+                    "sigma": c.band68,
+                    "band95": c.band95,
+                    "source": "predicted",
+                    "family": by,
+                    "measured": y,
+                }},
+            });
+            writeln!(out, "{line}")?;
+        } else {
+            writeln!(
+                out,
+                "{:>10.3} {:<12} {:>10.3} {:>8.3} predicted ({by}; measured {:.3})",
+                (g.t_ns[k] - t0) as f64 / 3.6e12,
+                c.channel,
+                v,
+                c.band68,
+                y
+            )?;
+        }
+    }
+    drop(out);
+    let rms = |e: &[f64]| (e.iter().map(|x| x * x).sum::<f64>() / e.len().max(1) as f64).sqrt();
+    eprintln!(
+        "{}: {} ({}){}, free run from {:.2} h, {} readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
+        c.channel,
+        c.family,
+        c.fitted.describe(g),
+        if r.leave.is_some() {
+            ", then the grey box"
+        } else {
+            ""
+        },
+        (g.t_ns[origin.min(g.len() - 1)] - t0) as f64 / 3.6e12,
+        errors.len(),
+        c.step_ns as f64 / 60e9,
+        rms(&errors),
+        rms(&persistence),
+        errors.iter().fold(0.0f64, |m, e| m.max(e.abs())),
+        100.0 * driftwatch::families::coverage(&errors, c.band68),
+        100.0 * driftwatch::families::coverage(&errors, c.band95),
+    );
+    Ok(())
 }
 
 /// The truth of a simulated recording (`/sim/truth`, the minute samples, not the cycles'):
@@ -319,11 +597,49 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     let text = std::fs::read_to_string(&a.model)
         .with_context(|| format!("reading {}", a.model.display()))?;
     let model = ThermalModel::from_json(&text).with_context(|| a.model.display().to_string())?;
+    let chosen: Vec<ChannelChoice> = serde_json::from_str::<FamiliesOnly>(&text)
+        .with_context(|| a.model.display().to_string())?
+        .families
+        .into_iter()
+        .filter(|c| c.family != Family::GreyBox.as_str())
+        .collect();
     let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
     let Some(first) = events.first() else {
         anyhow::bail!("{}: no events to replay", a.recording.display());
     };
     let t0 = first.t_ns();
+    let origin_t = match &a.update_until {
+        Some(u) => parse_time(u, t0)?,
+        None => model.to_ns,
+    };
+    // An empirical family serves only while its inputs stay within what it was fitted on.
+    let mut runs = Vec::new();
+    for c in chosen {
+        let g = driftwatch::families::grid(&events, &c.channel, c.step_ns)
+            .with_context(|| format!("{}: no readings with every input", c.channel))?;
+        anyhow::ensure!(
+            g.names == c.inputs,
+            "{}: the model's {} inputs are {}, the recording has {}",
+            c.channel,
+            c.family,
+            c.inputs.join(", "),
+            g.names.join(", ")
+        );
+        let origin = g.index_at(origin_t.saturating_add(1)).max(1);
+        let leave = driftwatch::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
+        if let Some((k, j, v)) = leave {
+            eprintln!(
+                "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
+                c.channel,
+                c.family,
+                (g.t_ns[k] - t0) as f64 / 3.6e12,
+                g.names[j],
+                c.ranges[j][0],
+                c.ranges[j][1],
+            );
+        }
+        runs.push((c, g, origin, leave.map(|l| l.0)));
+    }
     let update_until = a
         .update_until
         .as_deref()
@@ -342,7 +658,27 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         update_until.saturating_add(1)
     };
     let step_ns = (a.step_s * 1e9).round() as i64;
-    let (steps, scores, served) = replay(&model, &events, step_ns, update_until, score_from);
+    let (mut steps, mut scores, served) =
+        replay(&model, &events, step_ns, update_until, score_from);
+    // Channels another family serves are not the grey box's; it takes over where the
+    // family leaves its fit data.
+    let other = |ch: &str| runs.iter().any(|(c, ..)| c.channel == ch);
+    let grey_of = |ch: &str| -> Vec<(i64, f64)> {
+        steps
+            .iter()
+            .filter_map(|s| {
+                s.predictions
+                    .iter()
+                    .find(|p| p.channel == ch)
+                    .map(|p| (s.t_ns, p.value))
+            })
+            .collect()
+    };
+    let greys: Vec<Vec<(i64, f64)>> = runs.iter().map(|(c, ..)| grey_of(&c.channel)).collect();
+    for s in &mut steps {
+        s.predictions.retain(|p| !other(&p.channel));
+    }
+    scores.retain(|s| !other(&s.channel));
     let mut out = std::io::stdout().lock();
     if !a.json {
         writeln!(
@@ -351,7 +687,10 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
             "t h", "channel", "value", "sigma"
         )?;
     }
-    for s in steps.iter().filter(|s| s.t_ns >= from) {
+    for s in steps
+        .iter()
+        .filter(|s| s.t_ns >= from && !s.predictions.is_empty())
+    {
         let source = |ch: &str| {
             if s.measured.contains_key(ch) {
                 "measured"
@@ -419,8 +758,18 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
             u = driftwatch::compensation::unit(&s.channel)
         );
     }
-    for g in &served {
+    for g in served.iter().filter(|g| !other(&g.channel)) {
         eprintln!("at the end: {g}\n  {}", g.reason);
+    }
+    for ((c, g, origin, leave), grey) in runs.iter().zip(&greys) {
+        let run = FamilyRun {
+            c,
+            g,
+            origin: *origin,
+            leave: *leave,
+            grey,
+        };
+        predict_family(&run, t0, from, step_ns, a.json)?;
     }
     let truth = truth_of(&a.recording)?;
     if let Some((_, reference)) = truth.first() {

@@ -440,9 +440,12 @@ fn import_fit_and_predict_a_thermal_test_table() {
         "3h",
         "--n-ref-rpm",
         "10000",
+        "--family",
+        "grey_box",
     ]);
     assert!(ok, "{out}{err}");
     assert!(out.contains("ch1"), "{out}");
+    assert!(out.contains("<- forced; pole basis"), "{out}");
     let (ok, out, err) = run(&[
         "predict",
         "--model",
@@ -489,7 +492,114 @@ fn import_fit_and_predict_a_thermal_test_table() {
     // A 30-min lag between the basis poles (15, 40 min), 4-decimal data: within 1 um of a
     // 12-um swing, where holding the last reading is 10 um off.
     assert!(rmse < 1.0, "{err}");
+    // Left to choose, the families compete on the fit data: there the spindle never stops,
+    // so an ARX model predicts the heating perfectly and wins the cross-validation, but it
+    // never learnt what a stop does. When the spindle stops it hands over to the grey box,
+    // whose pole basis knows, and says so.
+    let auto = tmp("table-auto.json");
+    let (ok, out, err) = run(&[
+        "fit",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        auto.to_str().unwrap(),
+        "--until",
+        "3h",
+        "--n-ref-rpm",
+        "10000",
+    ]);
+    assert!(ok, "{out}{err}");
+    for family in [
+        "persistence",
+        "regression",
+        "key_regression",
+        "arx",
+        "grey_box",
+    ] {
+        assert!(out.contains(&format!("ch1          {family}")), "{out}");
+    }
+    assert!(out.contains("<- chosen; na"), "{out}");
+    let (ok, out, err) = run(&[
+        "predict",
+        "--model",
+        auto.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--step-s",
+        "600",
+        "--json",
+        "--update-until",
+        "3h",
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("ch1: arx leaves its fit data at 3.08 h (spindle_rpm = 0.000"),
+        "{err}"
+    );
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 12, "every 10 min over the last 2 h: {out}");
+    assert!(
+        lines
+            .iter()
+            .all(|l| l["values"]["ch1"]["family"] == "grey_box"
+                && l["values"]["ch1"]["measured"].is_number())
+    );
+    let rmse: f64 = err
+        .split("then the grey box")
+        .nth(1)
+        .and_then(|s| s.split("RMSE ").nth(1))
+        .and_then(|s| s.split(' ').next())
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(rmse < 2.0, "{err}");
+    // Without a spindle log the models use the temperatures alone, and fit says so.
+    let bare = tmp("table-bare.mcap");
+    let (ok, out, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv_path.to_str().unwrap(),
+        "--out",
+        bare.to_str().unwrap(),
+        "--time-column",
+        "t_s",
+        "--temperature-columns",
+        "ambient",
+        "--displacement-columns",
+        "ch1",
+    ]);
+    assert!(ok, "{out}{err}");
+    let (ok, out, err) = run(&[
+        "fit",
+        "--recording",
+        bare.to_str().unwrap(),
+        "--out",
+        auto.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(
+        err.contains("warning: the recordings have no spindle speed"),
+        "{err}"
+    );
+    assert!(out.contains("inputs: temperatures ambient"), "{out}");
     // Bad input is named.
+    let (ok, _, err) = run(&[
+        "fit",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        auto.to_str().unwrap(),
+        "--family",
+        "neural",
+    ]);
+    assert!(
+        !ok && err.contains("--family neural: use auto, persistence"),
+        "{err}"
+    );
     let (ok, _, err) = run(&[
         "import",
         "csv",

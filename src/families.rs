@@ -1,0 +1,820 @@
+//! Model families that compete for one displacement channel, judged the same way on the
+//! same points: the pole-basis grey box of [`crate::thermal_model`] and the textbook
+//! baselines a thermal engineer would try first, persistence (the last training value held),
+//! multiple linear regression on every temperature, regression on a few key temperatures
+//! chosen by forward selection, and an ARX model run in simulation (free-run, multi-step)
+//! mode. Every family is scored by rolling-origin (forward-chaining) cross-validation on the
+//! training span only: at each origin it is fitted on what came before (its own choices, the
+//! key sensors or the ARX orders, made again inside) and predicts freely to the next origin,
+//! with no reading after the origin. The chosen family has the lowest CV error; persistence
+//! and regression are among the candidates, so the choice never loses to them in CV.
+//!
+//! Pure: plain data in and out, no I/O.
+
+use nalgebra::{DMatrix, DVector};
+
+use crate::thermal_model::{self, Event, ModelConfig};
+
+/// One channel on a regular grid: the latest reading and the latest value of every input
+/// at each grid time (held between readings).
+#[derive(Debug, Clone)]
+pub struct Grid {
+    pub channel: String,
+    pub t_ns: Vec<i64>,
+    pub y: Vec<f64>,
+    /// Input names: the temperature sensors, then `spindle_rpm` when the spindle turned.
+    pub names: Vec<String>,
+    /// `inputs[j][k]`: input j at grid time k.
+    pub inputs: Vec<Vec<f64>>,
+}
+
+impl Grid {
+    pub fn len(&self) -> usize {
+        self.t_ns.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.t_ns.is_empty()
+    }
+    /// The first grid index at or after `t_ns`.
+    pub fn index_at(&self, t_ns: i64) -> usize {
+        self.t_ns.partition_point(|&t| t < t_ns)
+    }
+}
+
+/// Sample `channel` and the inputs every `step_ns`, from the first time the channel and
+/// every input have a value. A spindle that never turned is no input (a column of zeros
+/// says nothing and makes every design singular).
+pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
+    let sensors = thermal_model::sensors_of(events);
+    let spins = events
+        .iter()
+        .any(|e| matches!(e, Event::Spindle { rpm, .. } if *rpm != 0.0));
+    let mut names = sensors.clone();
+    if spins {
+        names.push("spindle_rpm".into());
+    }
+    let mut now: Vec<Option<f64>> = vec![None; names.len()];
+    if spins {
+        // The spindle is off until told otherwise.
+        if let Some(last) = now.last_mut() {
+            *last = Some(0.0);
+        }
+    }
+    let mut y: Option<f64> = None;
+    let step_ns = step_ns.max(1);
+    let mut g = Grid {
+        channel: channel.to_string(),
+        t_ns: Vec::new(),
+        y: Vec::new(),
+        names: names.clone(),
+        inputs: vec![Vec::new(); names.len()],
+    };
+    let mut next: Option<i64> = None;
+    let mut k = 0;
+    let last_t = events.last()?.t_ns();
+    loop {
+        // Take every event up to the next grid time (or the first event).
+        let until = next.unwrap_or(events.first()?.t_ns());
+        while k < events.len() && events[k].t_ns() <= until {
+            match &events[k] {
+                Event::Spindle { rpm, .. } if spins => {
+                    if let Some(last) = now.last_mut() {
+                        *last = Some(*rpm);
+                    }
+                }
+                Event::Temperature {
+                    sensor, celsius, ..
+                } => {
+                    if let Ok(i) = sensors.binary_search(sensor) {
+                        now[i] = Some(*celsius);
+                    }
+                }
+                Event::Observation {
+                    channel: c, value, ..
+                } if c == channel => y = Some(*value),
+                _ => {}
+            }
+            k += 1;
+        }
+        if let (Some(v), true) = (y, now.iter().all(Option::is_some)) {
+            g.t_ns.push(until);
+            g.y.push(v);
+            for (j, x) in now.iter().enumerate() {
+                g.inputs[j].push(x.unwrap_or(0.0));
+            }
+        }
+        let t = until.checked_add(step_ns)?;
+        if t > last_t {
+            break;
+        }
+        next = Some(t);
+    }
+    (!g.is_empty()).then_some(g)
+}
+
+/// The families that compete.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Family {
+    /// The last training reading, held.
+    Persistence,
+    /// Least squares on every input at the same time.
+    Regression,
+    /// Least squares on the inputs forward selection keeps (at most [`MAX_KEY`]).
+    KeyRegression,
+    /// `y_k = sum a_i y_(k-i) + sum b_jl u_j,(k-l) + c`, fitted one step ahead, run freely.
+    Arx,
+    /// The pole-basis grey box with its filter (`thermal_model`), as `fit` and `predict` run it.
+    GreyBox,
+}
+
+impl Family {
+    pub const ALL: [Family; 5] = [
+        Family::Persistence,
+        Family::Regression,
+        Family::KeyRegression,
+        Family::Arx,
+        Family::GreyBox,
+    ];
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Family::Persistence => "persistence",
+            Family::Regression => "regression",
+            Family::KeyRegression => "key_regression",
+            Family::Arx => "arx",
+            Family::GreyBox => "grey_box",
+        }
+    }
+    pub fn parse(s: &str) -> Option<Family> {
+        Family::ALL.into_iter().find(|f| f.as_str() == s)
+    }
+    /// A textbook baseline (not driftwatch's own model).
+    pub fn is_baseline(self) -> bool {
+        self != Family::GreyBox
+    }
+}
+
+/// Most inputs key-temperature regression keeps.
+pub const MAX_KEY: usize = 5;
+
+/// A fitted family: what it needs to predict forward from an origin.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Fitted {
+    Persistence,
+    Linear {
+        inputs: Vec<usize>,
+        /// Intercept first, then one gain per input (on the inputs' own scale).
+        coef: Vec<f64>,
+    },
+    Arx {
+        na: usize,
+        nb: usize,
+        inputs: Vec<usize>,
+        /// a_1..a_na, then b_j0..b_j(nb-1) per input, then c.
+        theta: Vec<f64>,
+    },
+    /// The grey box is fitted and run on the events themselves.
+    GreyBox,
+}
+
+impl Fitted {
+    /// The inputs the fit uses, by name.
+    pub fn input_names(&self, g: &Grid) -> Vec<String> {
+        match self {
+            Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => {
+                inputs.iter().map(|&j| g.names[j].clone()).collect()
+            }
+            Fitted::Persistence => Vec::new(),
+            Fitted::GreyBox => g.names.clone(),
+        }
+    }
+    pub fn describe(&self, g: &Grid) -> String {
+        match self {
+            Fitted::Persistence => "last value held".into(),
+            Fitted::Linear { inputs, .. } => {
+                format!(
+                    "{} inputs: {}",
+                    inputs.len(),
+                    self.input_names(g).join(", ")
+                )
+            }
+            Fitted::Arx { na, nb, inputs, .. } => format!(
+                "na {na}, nb {nb}, {} inputs: {}",
+                inputs.len(),
+                self.input_names(g).join(", ")
+            ),
+            Fitted::GreyBox => "pole basis + every temperature".into(),
+        }
+    }
+}
+
+/// Least squares with a vanishing ridge (only so that a collinear design still solves),
+/// on centred and scaled columns. `None` when the design has fewer rows than columns.
+fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
+    let (n, p) = x.shape();
+    if n <= p || p == 0 {
+        return None;
+    }
+    let scale: Vec<f64> = (0..p)
+        .map(|j| {
+            let c = x.column(j);
+            (c.norm_squared() / n as f64).sqrt().max(1e-12)
+        })
+        .collect();
+    let xs = DMatrix::from_fn(n, p, |i, j| x[(i, j)] / scale[j]);
+    let mut a = xs.transpose() * &xs;
+    for j in 0..p {
+        a[(j, j)] += 1e-9 * n as f64;
+    }
+    let b = xs.transpose() * y;
+    let sol = a.cholesky()?.solve(&b);
+    let out = DVector::from_fn(p, |j, _| sol[j] / scale[j]);
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+fn fit_linear(g: &Grid, inputs: &[usize], end: usize) -> Option<Fitted> {
+    let x = DMatrix::from_fn(end, inputs.len() + 1, |i, j| {
+        if j == 0 {
+            1.0
+        } else {
+            g.inputs[inputs[j - 1]][i]
+        }
+    });
+    let y = DVector::from_row_slice(&g.y[..end]);
+    let coef = least_squares(&x, &y)?;
+    Some(Fitted::Linear {
+        inputs: inputs.to_vec(),
+        coef: coef.iter().copied().collect(),
+    })
+}
+
+fn fit_arx(g: &Grid, na: usize, nb: usize, inputs: &[usize], end: usize) -> Option<Fitted> {
+    let lag = na.max(nb.saturating_sub(1));
+    if end <= lag + 1 {
+        return None;
+    }
+    let rows = end - lag;
+    let p = na + nb * inputs.len() + 1;
+    let x = DMatrix::from_fn(rows, p, |r, c| {
+        let k = r + lag;
+        if c < na {
+            g.y[k - 1 - c]
+        } else if c < na + nb * inputs.len() {
+            let (j, l) = ((c - na) / nb, (c - na) % nb);
+            g.inputs[inputs[j]][k - l]
+        } else {
+            1.0
+        }
+    });
+    let y = DVector::from_fn(rows, |r, _| g.y[r + lag]);
+    let theta = least_squares(&x, &y)?;
+    let a: Vec<f64> = theta.iter().take(na).copied().collect();
+    // Run freely, the model must be stable: every root of z^na - a1 z^(na-1) - ... inside
+    // the unit circle (checked for the orders used here, 1 and 2).
+    let stable = match a.as_slice() {
+        [a1] => a1.abs() < 1.0,
+        // Jury's conditions for z^2 - a1 z - a2.
+        [a1, a2] => a2.abs() < 1.0 && (1.0 - a1 - a2) > 0.0 && (1.0 + a1 - a2) > 0.0,
+        _ => false,
+    };
+    stable.then(|| Fitted::Arx {
+        na,
+        nb,
+        inputs: inputs.to_vec(),
+        theta: theta.iter().copied().collect(),
+    })
+}
+
+/// Predictions for grid indices `origin..end`, from readings before `origin` only (and the
+/// inputs, which are measured as they happen).
+pub fn simulate(f: &Fitted, g: &Grid, origin: usize, end: usize) -> Vec<f64> {
+    let end = end.min(g.len());
+    if origin == 0 || origin >= end {
+        return Vec::new();
+    }
+    match f {
+        Fitted::Persistence => vec![g.y[origin - 1]; end - origin],
+        Fitted::Linear { inputs, coef } => {
+            let at = |k: usize| {
+                coef[0]
+                    + inputs
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &j)| coef[i + 1] * g.inputs[j][k])
+                        .sum::<f64>()
+            };
+            (origin..end).map(at).collect()
+        }
+        Fitted::Arx {
+            na,
+            nb,
+            inputs,
+            theta,
+        } => {
+            // The past outputs: measured before the origin, simulated after it.
+            let mut y: Vec<f64> = g.y[..origin].to_vec();
+            for k in origin..end {
+                let mut v = theta[theta.len() - 1];
+                for i in 0..*na {
+                    v += theta[i] * y[k - 1 - i];
+                }
+                for (ji, &j) in inputs.iter().enumerate() {
+                    for l in 0..*nb {
+                        if k >= l {
+                            v += theta[na + ji * nb + l] * g.inputs[j][k - l];
+                        }
+                    }
+                }
+                y.push(v);
+            }
+            y.split_off(origin)
+        }
+        Fitted::GreyBox => Vec::new(),
+    }
+}
+
+/// Rolling origins over the first `end` grid points: at 1/2, 5/8, 6/8 and 7/8 of them, each
+/// fold predicting to the next origin (the last to `end`).
+pub fn folds(end: usize) -> Vec<(usize, usize)> {
+    let o: Vec<usize> = [4, 5, 6, 7].iter().map(|&q| end * q / 8).collect();
+    (0..o.len())
+        .map(|i| (o[i], o.get(i + 1).copied().unwrap_or(end)))
+        .filter(|(a, b)| a < b && *a > 0)
+        .collect()
+}
+
+/// Squared errors of a fit procedure over the folds of `0..end`; `None` when a fold could
+/// not be fitted.
+fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Option<Vec<f64>> {
+    let mut e = Vec::new();
+    for (o, stop) in folds(end) {
+        let f = fit(o)?;
+        let p = simulate(&f, g, o, stop);
+        e.extend(p.iter().zip(&g.y[o..stop]).map(|(p, y)| p - y));
+    }
+    (!e.is_empty()).then_some(e)
+}
+
+fn rms(e: &[f64]) -> f64 {
+    (e.iter().map(|v| v * v).sum::<f64>() / e.len().max(1) as f64).sqrt()
+}
+
+/// Forward selection of key inputs on `0..end`, by the inner rolling-origin CV of a
+/// regression on them: add the input that lowers it most, stop when none lowers it by 1 %.
+pub fn key_inputs(g: &Grid, end: usize) -> Vec<usize> {
+    let mut chosen: Vec<usize> = Vec::new();
+    let mut best = f64::INFINITY;
+    while chosen.len() < MAX_KEY {
+        let mut step: Option<(usize, f64)> = None;
+        for j in 0..g.names.len() {
+            if chosen.contains(&j) {
+                continue;
+            }
+            let mut with = chosen.clone();
+            with.push(j);
+            let Some(e) = cv_errors(g, end, &|o| fit_linear(g, &with, o)) else {
+                continue;
+            };
+            let s = rms(&e);
+            if step.is_none_or(|(_, b)| s < b) {
+                step = Some((j, s));
+            }
+        }
+        match step {
+            Some((j, s)) if s < 0.99 * best => {
+                chosen.push(j);
+                best = s;
+            }
+            _ => break,
+        }
+    }
+    chosen
+}
+
+/// Fit `family` on grid points `0..end` (its inner choices made there).
+pub fn fit_family(family: Family, g: &Grid, end: usize) -> Option<Fitted> {
+    let all: Vec<usize> = (0..g.names.len()).collect();
+    match family {
+        Family::Persistence => Some(Fitted::Persistence),
+        Family::Regression => fit_linear(g, &all, end),
+        Family::KeyRegression => {
+            let key = key_inputs(g, end);
+            fit_linear(g, &key, end)
+        }
+
+        Family::Arx => {
+            // Orders and inputs by the inner CV: first or second order, on the key inputs
+            // or on every input.
+            let key = key_inputs(g, end);
+            let mut best: Option<(Fitted, f64)> = None;
+            for inputs in [&key, &all] {
+                if inputs.is_empty() {
+                    continue;
+                }
+                for na in [1, 2] {
+                    let nb = 2;
+                    let Some(e) = cv_errors(g, end, &|o| fit_arx(g, na, nb, inputs, o)) else {
+                        continue;
+                    };
+                    let s = rms(&e);
+                    if best.as_ref().is_none_or(|(_, b)| s < *b)
+                        && let Some(f) = fit_arx(g, na, nb, inputs, end)
+                    {
+                        best = Some((f, s));
+                    }
+                }
+            }
+            best.map(|(f, _)| f)
+        }
+        Family::GreyBox => Some(Fitted::GreyBox),
+    }
+}
+
+/// The grey box's configuration for a grid's inputs: the spindle basis when the spindle
+/// turned, and every temperature with the default lags.
+pub fn grey_box_config(g: &Grid) -> ModelConfig {
+    let spins = g.names.iter().any(|n| n == "spindle_rpm");
+    let n_ref = g
+        .names
+        .iter()
+        .position(|n| n == "spindle_rpm")
+        .and_then(|j| g.inputs[j].iter().map(|v| v.abs()).reduce(f64::max))
+        .filter(|m| *m > 0.0)
+        .unwrap_or(1.0);
+    let base = ModelConfig::default();
+    ModelConfig {
+        taus_min: if spins {
+            base.taus_min.clone()
+        } else {
+            Vec::new()
+        },
+        n_ref_rpm: n_ref,
+        temperatures: g
+            .names
+            .iter()
+            .filter(|n| n.as_str() != "spindle_rpm")
+            .map(|s| thermal_model::TemperatureInput {
+                sensor: s.clone(),
+                taus_min: thermal_model::default_temperature_taus(),
+            })
+            .collect(),
+        ..base
+    }
+}
+
+/// The grey box's free-run predictions for grid points `origin..stop`: fitted on the events
+/// before the origin, replayed with no correction after it, the value `predict` serves.
+pub fn grey_box(
+    events: &[Event],
+    cfg: &ModelConfig,
+    g: &Grid,
+    origin: usize,
+    stop: usize,
+) -> Option<Vec<f64>> {
+    let t0 = *g.t_ns.get(origin)?;
+    let t1 = *g.t_ns.get(stop.checked_sub(1)?)?;
+    let until: Vec<Event> = events
+        .iter()
+        .filter(|e| e.t_ns() <= t1)
+        .filter(|e| !matches!(e, Event::Observation { channel, .. } if *channel != g.channel))
+        .cloned()
+        .collect();
+    let model = thermal_model::fit(cfg, &until, Some(t0 - 1)).ok()?;
+    let step = g.t_ns.get(1).map_or(1, |t1| t1 - g.t_ns[0]);
+    let (steps, _, _) = thermal_model::replay(&model, &until, step, t0 - 1, t0);
+    // Replay steps run from the first event; take the step at or just before each grid time.
+    let mut out = Vec::with_capacity(stop - origin);
+    let mut s = 0;
+    for &t in &g.t_ns[origin..stop] {
+        while s + 1 < steps.len() && steps[s + 1].t_ns <= t {
+            s += 1;
+        }
+        let v = steps
+            .get(s)
+            .and_then(|st| st.predictions.iter().find(|p| p.channel == g.channel))
+            .map(|p| p.value)?;
+        out.push(v);
+    }
+    Some(out)
+}
+
+/// One family's figures on one channel.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FamilyScore {
+    pub family: String,
+    /// What the fit on the whole training span chose (inputs, orders).
+    pub detail: String,
+    /// Rolling-origin CV on the training span, RMSE.
+    pub cv_rmse: f64,
+    /// The 68 % and 95 % quantiles of the CV errors' size: the band the family claims.
+    pub band68: f64,
+    pub band95: f64,
+    /// Hold-out (after the training span, no reading used): RMSE, largest error, and the
+    /// shares within the 68 % and 95 % bands.
+    pub holdout_rmse: f64,
+    pub holdout_max: f64,
+    pub cover68: f64,
+    pub cover95: f64,
+    pub chosen: bool,
+}
+
+/// The share of errors within `band` (NaN without errors).
+pub fn coverage(errors: &[f64], band: f64) -> f64 {
+    if errors.is_empty() {
+        return f64::NAN;
+    }
+    errors.iter().filter(|e| e.abs() <= band).count() as f64 / errors.len() as f64
+}
+
+fn quantile_abs(e: &[f64], q: f64) -> f64 {
+    let mut a: Vec<f64> = e.iter().map(|v| v.abs()).collect();
+    a.sort_by(f64::total_cmp);
+    if a.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((a.len() as f64 * q).ceil() as usize).clamp(1, a.len()) - 1;
+    a[i]
+}
+
+/// Every family on one channel: CV on grid points before `train_end_ns`, hold-out on the
+/// rest. The chosen family has the lowest CV RMSE among those that could be fitted.
+pub fn compete(
+    events: &[Event],
+    g: &Grid,
+    train_end_ns: i64,
+    families: &[Family],
+    grey: &ModelConfig,
+) -> Vec<FamilyScore> {
+    let n_train = g.index_at(train_end_ns);
+    let n = g.len();
+    let cfg = grey;
+    let mut out = Vec::new();
+    for &fam in families {
+        let (cv, hold, detail) = if fam == Family::GreyBox {
+            let mut e = Vec::new();
+            let mut ok = true;
+            for (o, stop) in folds(n_train) {
+                match grey_box(events, cfg, g, o, stop) {
+                    Some(p) => e.extend(p.iter().zip(&g.y[o..stop]).map(|(p, y)| p - y)),
+                    None => ok = false,
+                }
+            }
+            if !ok || e.is_empty() {
+                continue;
+            }
+            // No hold-out when the training span is the whole grid.
+            let hold = if n_train < n {
+                match grey_box(events, cfg, g, n_train, n) {
+                    Some(h) => h,
+                    None => continue,
+                }
+            } else {
+                Vec::new()
+            };
+            (e, hold, Fitted::GreyBox.describe(g))
+        } else {
+            let Some(e) = cv_errors(g, n_train, &|o| fit_family(fam, g, o)) else {
+                continue;
+            };
+            let Some(f) = fit_family(fam, g, n_train) else {
+                continue;
+            };
+            (e, simulate(&f, g, n_train, n), f.describe(g))
+        };
+        let he: Vec<f64> = hold
+            .iter()
+            .zip(&g.y[n_train..n])
+            .map(|(p, y)| p - y)
+            .collect();
+        let (b68, b95) = (quantile_abs(&cv, 0.68), quantile_abs(&cv, 0.95));
+        let share = |b: f64| coverage(&he, b);
+        out.push(FamilyScore {
+            family: fam.as_str().to_string(),
+            detail,
+            cv_rmse: rms(&cv),
+            band68: b68,
+            band95: b95,
+            holdout_rmse: if he.is_empty() { f64::NAN } else { rms(&he) },
+            holdout_max: if he.is_empty() {
+                f64::NAN
+            } else {
+                he.iter().fold(0.0, |m: f64, e| m.max(e.abs()))
+            },
+            cover68: share(b68),
+            cover95: share(b95),
+            chosen: false,
+        });
+    }
+    if let Some(best) = out
+        .iter_mut()
+        .min_by(|a, b| a.cv_rmse.total_cmp(&b.cv_rmse))
+    {
+        best.chosen = true;
+    }
+    out
+}
+
+/// How far beyond an input's fitted range, as a share of it, an empirical family still serves.
+pub const RANGE_SLACK: f64 = 0.5;
+
+/// Each input's range over grid points `0..n_train`.
+pub fn input_ranges(g: &Grid, n_train: usize) -> Vec<[f64; 2]> {
+    g.inputs
+        .iter()
+        .map(|x| {
+            let seen = &x[..n_train.min(x.len())];
+            [
+                seen.iter().copied().fold(f64::INFINITY, f64::min),
+                seen.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            ]
+        })
+        .collect()
+}
+
+/// Where an empirical family leaves what it learnt from: the first grid point in
+/// `origin..end` where one of its inputs lies outside its range over the fit data by more
+/// than half that range (any change of an input that was constant: its gain was never
+/// learnt), with the input's index and value. Half the range: a linear model's gains are
+/// trusted that far beyond the data they were fitted on, not to a regime it never saw. Regression and ARX have no physics to extrapolate with (a spindle that
+/// never stopped in the fit data teaches them nothing about a stop); the grey box's pole
+/// basis does, so it serves there instead.
+pub fn leaves_range(
+    f: &Fitted,
+    g: &Grid,
+    ranges: &[[f64; 2]],
+    origin: usize,
+    end: usize,
+) -> Option<(usize, usize, f64)> {
+    let inputs: &[usize] = match f {
+        Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => inputs,
+        Fitted::Persistence | Fitted::GreyBox => return None,
+    };
+    for k in origin..end.min(g.len()) {
+        for &j in inputs {
+            let [lo, hi] = *ranges.get(j)?;
+            let slack = (RANGE_SLACK * (hi - lo)).max(1e-9 * lo.abs().max(hi.abs()));
+            let v = g.inputs[j][k];
+            if v < lo - slack || v > hi + slack {
+                return Some((k, j, v));
+            }
+        }
+    }
+    None
+}
+
+/// What `fit` keeps of a channel's competition: the chosen family fitted on the whole
+/// training span, its CV band, and every family's CV figures.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ChannelChoice {
+    pub channel: String,
+    pub family: String,
+    pub fitted: Fitted,
+    /// The grid the family was fitted on: step and input names (a recording to predict must
+    /// have the same inputs).
+    pub step_ns: i64,
+    pub inputs: Vec<String>,
+    /// Each input's range over the fit data (see [`leaves_range`]).
+    pub ranges: Vec<[f64; 2]>,
+    pub band68: f64,
+    pub band95: f64,
+    pub scores: Vec<FamilyScore>,
+}
+
+/// Run the competition on the training span (`train_end_ns`: all of the grid when it lies
+/// beyond it) and keep the chosen family, or `force` it. `None` when nothing could be fitted.
+pub fn choose(
+    events: &[Event],
+    g: &Grid,
+    train_end_ns: i64,
+    families: &[Family],
+    grey: &ModelConfig,
+    force: Option<Family>,
+) -> Option<ChannelChoice> {
+    let scores = compete(events, g, train_end_ns, families, grey);
+    let pick = match force {
+        Some(f) => scores.iter().find(|s| s.family == f.as_str())?,
+        None => scores.iter().find(|s| s.chosen)?,
+    };
+    let family = Family::parse(&pick.family)?;
+    let n_train = g.index_at(train_end_ns);
+    let fitted = fit_family(family, g, n_train)?;
+    let ranges = input_ranges(g, n_train);
+    Some(ChannelChoice {
+        channel: g.channel.clone(),
+        family: pick.family.clone(),
+        fitted,
+        step_ns: g.t_ns.get(1).map_or(1, |t| t - g.t_ns[0]),
+        inputs: g.names.clone(),
+        ranges,
+        band68: pick.band68,
+        band95: pick.band95,
+        scores,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: i64 = 60_000_000_000;
+
+    /// A first-order plant driven by one temperature, another temperature that is noise,
+    /// sampled every minute.
+    fn plant(n: usize, gain: f64) -> Vec<Event> {
+        let mut ev = Vec::new();
+        let mut x = 0.0;
+        let mut rng = 12345u64;
+        let mut noise = || {
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((rng >> 33) as f64 / (1u64 << 31) as f64) - 0.5
+        };
+        for k in 0..n {
+            let t = k as i64 * MIN;
+            let drive = 20.0 + 5.0 * ((k as f64) / 300.0).sin();
+            x += (gain * (drive - 20.0) - x) / 60.0;
+            ev.push(Event::Temperature {
+                t_ns: t,
+                sensor: "drive".into(),
+                celsius: drive,
+            });
+            ev.push(Event::Temperature {
+                t_ns: t,
+                sensor: "other".into(),
+                celsius: 20.0 + noise(),
+            });
+            ev.push(Event::Observation {
+                t_ns: t,
+                channel: "d".into(),
+                value: x + 0.05 * noise(),
+                sigma: None,
+            });
+        }
+        ev
+    }
+
+    #[test]
+    fn the_grid_holds_each_value_and_leaves_out_a_spindle_that_never_turned() {
+        let mut ev = plant(30, 2.0);
+        ev.push(Event::Spindle { t_ns: 0, rpm: 0.0 });
+        ev.sort_by_key(|e| e.t_ns());
+        let g = grid(&ev, "d", 5 * MIN).unwrap();
+        assert_eq!(g.names, ["drive", "other"]);
+        assert_eq!(g.len(), 6);
+        assert_eq!(g.t_ns[1], 5 * MIN);
+        assert!(grid(&ev, "nothing", MIN).is_none());
+    }
+
+    #[test]
+    fn folds_chain_forward_and_cover_the_second_half() {
+        assert_eq!(folds(80), [(40, 50), (50, 60), (60, 70), (70, 80)]);
+        assert!(folds(1).is_empty());
+    }
+
+    /// On a lagged plant the free-run ARX beats regression at the same time, both beat
+    /// persistence, key selection finds the driving sensor, and the CV choice is ARX.
+    #[test]
+    fn the_family_that_matches_the_plant_wins_the_cross_validation() {
+        let ev = plant(3000, 2.0);
+        let g = grid(&ev, "d", 5 * MIN).unwrap();
+        let n_train = g.index_at(2000 * MIN);
+        assert_eq!(key_inputs(&g, n_train), [0]);
+        let s = compete(
+            &ev,
+            &g,
+            2000 * MIN,
+            &[
+                Family::Persistence,
+                Family::Regression,
+                Family::KeyRegression,
+                Family::Arx,
+            ],
+            &grey_box_config(&g),
+        );
+        let by = |f: Family| s.iter().find(|x| x.family == f.as_str()).unwrap();
+        let arx = by(Family::Arx);
+        assert!(arx.chosen, "{s:#?}");
+        assert!(
+            arx.holdout_rmse < 0.2 * by(Family::Regression).holdout_rmse,
+            "{s:#?}"
+        );
+        assert!(by(Family::Regression).holdout_rmse < by(Family::Persistence).holdout_rmse);
+        // Its band, from the CV errors, covers about what it claims on the hold-out.
+        assert!(arx.cover95 > 0.8, "{arx:?}");
+    }
+
+    #[test]
+    fn an_unstable_arx_is_not_run() {
+        // A growing series: the one-step fit has a pole outside the unit circle.
+        let mut g = Grid {
+            channel: "d".into(),
+            t_ns: (0..50).collect(),
+            y: (0..50).map(|k| 1.1f64.powi(k)).collect(),
+            names: vec!["u".into()],
+            inputs: vec![vec![0.0; 50]],
+        };
+        g.inputs[0][3] = 1.0;
+        assert!(fit_arx(&g, 1, 2, &[0], 50).is_none());
+    }
+}
