@@ -307,10 +307,11 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
             &d.channels
                 .iter()
                 .flat_map(|c| {
-                    std::iter::once(ModelInput::SpindleLag {
-                        tau_min: c.baseline_mode.tau_min,
-                    })
-                    .chain(c.accepted.iter().map(|t| t.input.clone()))
+                    c.baseline_mode
+                        .as_ref()
+                        .map(|m| ModelInput::SpindleLag { tau_min: m.tau_min })
+                        .into_iter()
+                        .chain(c.accepted.iter().map(|t| t.input.clone()))
                 })
                 .collect::<Vec<_>>(),
         ),

@@ -315,10 +315,12 @@ pub fn displacement_html(
     h.push_str("<h2>Fit before and after</h2><table><tr><th>channel</th><th>baseline mode</th><th>terms</th><th>RMS training (um)</th><th>RMS held-out (um)</th></tr>");
     for c in &d.channels {
         h.push_str(&format!(
-            "<tr><td>{}</td><td>{} min, {:.2} um</td><td>{}</td><td>{} &rarr; {}</td><td>{} &rarr; {}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{} &rarr; {}</td><td>{} &rarr; {}</td></tr>",
             esc(&c.channel),
-            c.baseline_mode.tau_min,
-            c.baseline_mode.gain_um,
+            match &c.baseline_mode {
+                Some(m) => format!("{} min, {:.2} um", m.tau_min, m.gain_um),
+                None => "offset alone (no spindle log)".into(),
+            },
             c.accepted.len(),
             f(c.baseline.rms_train_um),
             f(c.final_fit.rms_train_um),
@@ -359,7 +361,7 @@ pub fn displacement_html(
             "um",
             &[
                 ("measured", BLACK, pts(&s.y_um)),
-                ("one spindle mode", RED, pts(&s.baseline_um)),
+                ("baseline", RED, pts(&s.baseline_um)),
                 ("with the accepted terms", BLUE, pts(&s.final_um)),
             ],
         ));
@@ -369,7 +371,7 @@ pub fn displacement_html(
             "time (h)",
             "um",
             &[
-                ("one spindle mode", RED, pts(&res(&s.baseline_um))),
+                ("baseline", RED, pts(&res(&s.baseline_um))),
                 ("with the accepted terms", BLUE, pts(&res(&s.final_um))),
             ],
         ));

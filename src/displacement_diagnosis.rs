@@ -189,7 +189,9 @@ pub struct ChannelDiagnosis {
     pub channel: String,
     pub n_train: usize,
     pub n_heldout: usize,
-    pub baseline_mode: Mode,
+    /// The baseline's spindle mode; none when the spindle never turned (no spindle log): the
+    /// baseline is then the offset alone and only temperatures can explain the readings.
+    pub baseline_mode: Option<Mode>,
     pub baseline: Fit,
     pub final_fit: Fit,
     pub phases: Vec<PhaseResidual>,
@@ -529,7 +531,10 @@ pub fn diagnose_displacements(
     // The new model version: the baselines' modes and every accepted input, on the
     // reference speed and exponent the diagnosis used.
     let base = ModelConfig {
-        taus_min: out.iter().map(|c| c.baseline_mode.tau_min).collect(),
+        taus_min: out
+            .iter()
+            .filter_map(|c| c.baseline_mode.as_ref().map(|m| m.tau_min))
+            .collect(),
         temperatures: Vec::new(),
         n_ref_rpm: opts.n_ref_rpm,
         gamma: opts.gamma,
@@ -594,8 +599,11 @@ fn diagnose_channel(
         return Err(DisplacementError::NoHeldOut(channel.into()));
     }
 
+    // A spindle that never turned (no spindle log) gives columns of zeros: no spindle
+    // candidate and no spindle mode in the baseline, or every design is singular.
+    let spins = c.speed2.iter().any(|v| *v != 0.0);
     let mut cands = Vec::new();
-    for (k, tau) in DIAGNOSIS_TAUS_MIN.iter().enumerate() {
+    for (k, tau) in DIAGNOSIS_TAUS_MIN.iter().enumerate().filter(|_| spins) {
         cands.push(Candidate {
             effect: "second_mode",
             term: format!("spindle lag {tau} min"),
@@ -644,13 +652,15 @@ fn diagnose_channel(
             input: ModelInput::None,
         });
     }
-    cands.push(Candidate {
-        effect: "speed_shift",
-        term: "(n/n_ref)^2".into(),
-        unit: "um",
-        x: pick(&c.speed2),
-        input: ModelInput::InstantSpeed,
-    });
+    if spins {
+        cands.push(Candidate {
+            effect: "speed_shift",
+            term: "(n/n_ref)^2".into(),
+            unit: "um",
+            x: pick(&c.speed2),
+            input: ModelInput::InstantSpeed,
+        });
+    }
 
     let span = (times[train[train.len() - 1]] - times[train[0]]) as f64;
     let nb = opts.blocks.max(2);
@@ -675,24 +685,33 @@ fn diagnose_channel(
     };
     let ones = vec![1.0; keep.len()];
 
-    // Baseline: one spindle mode, its time constant by the training fit.
+    // Baseline: one spindle mode, its time constant by the training fit (the offset alone
+    // without a spindle log).
     let mut best: Option<(f64, usize)> = None;
-    for k in 0..DIAGNOSIS_TAUS_MIN.len() {
+    for k in (0..DIAGNOSIS_TAUS_MIN.len()).filter(|_| spins) {
         let m = design.matrix(&[k], std::slice::from_ref(&ones));
         let (_, f) = design.fit(&m);
         if best.is_none_or(|b| f.rms_train_um < b.0) {
             best = Some((f.rms_train_um, k));
         }
     }
-    let k0 = best.map_or(0, |b| b.1);
-    let base_cols = vec![ones.clone(), cands[k0].x.clone()];
+    let k0 = best.map(|b| b.1);
+    let mut base_cols = vec![ones.clone()];
+    if let Some(k) = k0 {
+        base_cols.push(cands[k].x.clone());
+    }
     let m0 = design.matrix(&[], &base_cols);
     let (base_pred, baseline) = design.fit(&m0);
     let b0 = design.ols(&m0, &design.train);
-    let baseline_mode = Mode {
-        tau_min: DIAGNOSIS_TAUS_MIN[k0],
+    let baseline_mode = k0.map(|k| Mode {
+        tau_min: DIAGNOSIS_TAUS_MIN[k],
         gain_um: b0[1],
         offset_um: b0[0],
+    });
+    let baseline_name = if spins {
+        "one spindle mode"
+    } else {
+        "the offset alone (no spindle log)"
     };
     let resid: Vec<f64> = (0..keep.len())
         .map(|i| design.y[i] - base_pred[i])
@@ -773,7 +792,7 @@ fn diagnose_channel(
         let m = design.matrix(&chosen, &base_cols);
         let (phi, mw, yw, sse0) = design.whitened(&m);
         let mut scored: Vec<(f64, usize)> = (0..cands.len())
-            .filter(|j| *j != k0 && !chosen.contains(j))
+            .filter(|j| Some(*j) != k0 && !chosen.contains(j))
             .filter_map(|j| {
                 let (xw, _) = design.whiten(&design.matrix(&[j], &[]), phi);
                 let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
@@ -852,7 +871,7 @@ fn diagnose_channel(
             cand,
             value,
             sd,
-            &baseline_mode,
+            baseline_mode.as_ref(),
             periodic.as_ref(),
             false,
         );
@@ -970,7 +989,7 @@ fn diagnose_channel(
             &cands[j],
             t.value,
             t.sigma,
-            &baseline_mode,
+            baseline_mode.as_ref(),
             periodic.as_ref(),
             overshoots,
         );
@@ -978,7 +997,7 @@ fn diagnose_channel(
     let mut statements = Vec::new();
     if let Some(p) = &periodic {
         statements.push(format!(
-            "{channel}: the spindle-only residual has a {:.1}-min periodic part ({:.2} um amplitude, {:.2} um RMS in the {}-{} min band){}",
+            "{channel}: the residual of {baseline_name} has a {:.1}-min periodic part ({:.2} um amplitude, {:.2} um RMS in the {}-{} min band){}",
             p.period_min,
             p.amplitude_um,
             p.band_rms_um,
@@ -1018,7 +1037,7 @@ fn diagnose_channel(
     }
     statements.extend(accepted.iter().map(|t| t.statement.clone()));
     statements.push(format!(
-        "{channel}: held-out RMS {:.2} um with one spindle mode, {:.2} um with the accepted terms; training {:.2} -> {:.2} um",
+        "{channel}: held-out RMS {:.2} um with {baseline_name}, {:.2} um with the accepted terms; training {:.2} -> {:.2} um",
         baseline.rms_heldout_um, final_fit.rms_heldout_um, baseline.rms_train_um, final_fit.rms_train_um
     ));
 
@@ -1049,7 +1068,7 @@ fn statement(
     c: &Candidate,
     value: f64,
     sd: f64,
-    base: &Mode,
+    base: Option<&Mode>,
     periodic: Option<&Periodic>,
     overshoots: bool,
 ) -> String {
@@ -1058,13 +1077,18 @@ fn statement(
         "second_mode" => format!(
             "{channel}: a second thermal mode, {} ({v}){}",
             c.term,
-            if overshoots && base.gain_um != 0.0 && value.signum() != base.gain_um.signum() {
-                format!(
-                    ", of opposite sign to the baseline's {:.0}-min mode ({:.2} um): together they make the overshoot one mode cannot",
-                    base.tau_min, base.gain_um
-                )
-            } else {
-                String::new()
+            match base {
+                Some(base)
+                    if overshoots
+                        && base.gain_um != 0.0
+                        && value.signum() != base.gain_um.signum() =>
+                {
+                    format!(
+                        ", of opposite sign to the baseline's {:.0}-min mode ({:.2} um): together they make the overshoot one mode cannot",
+                        base.tau_min, base.gain_um
+                    )
+                }
+                _ => String::new(),
             }
         ),
         "missing_temperature" | "coolant_cycle" => {
@@ -1084,7 +1108,7 @@ fn statement(
             let what = if c.effect == "coolant_cycle" {
                 "the fast swing of a logged temperature"
             } else {
-                "a temperature input the spindle-only model lacks"
+                "a temperature input the baseline lacks"
             };
             format!("{channel}: {what}, {} at {v}{carries}", c.term)
         }
@@ -1156,11 +1180,59 @@ mod tests {
     fn one_mode_and_noise_select_nothing() {
         for seed in 0..10 {
             let c = run(&recording(seed, |_, _, _| 0.0));
-            assert_eq!(c.baseline_mode.tau_min, 35.0);
+            assert_eq!(c.baseline_mode.as_ref().unwrap().tau_min, 35.0);
             assert!(c.accepted.is_empty(), "seed {seed}: {:?}", c.accepted);
             assert!(c.transients.is_empty(), "{:?}", c.transients);
             assert!(c.periodic.is_none(), "seed {seed}: {:?}", c.periodic);
         }
+    }
+
+    /// Without a spindle log the baseline is the offset alone (no column of zeros in any
+    /// design), the statements say so, and a temperature still explains the readings.
+    #[test]
+    fn without_a_spindle_log_the_temperatures_are_tested() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let noise = Normal::new(0.0, 0.2).unwrap();
+        let mut chiller = 20.0;
+        let ev: Vec<Event> = recording(3, |_, _, _| 0.0)
+            .into_iter()
+            .filter_map(|e| match e {
+                Event::Spindle { .. } => None,
+                Event::Temperature {
+                    ref sensor,
+                    celsius,
+                    ..
+                } => {
+                    if sensor == "chiller" {
+                        chiller = celsius;
+                    }
+                    Some(e)
+                }
+                Event::Observation { t_ns, channel, .. } => Some(Event::Observation {
+                    t_ns,
+                    channel,
+                    value: 2.0 * (chiller - 20.0) + noise.sample(&mut rng),
+                    sigma: None,
+                }),
+            })
+            .collect();
+        let c = run(&ev);
+        assert!(c.baseline_mode.is_none());
+        assert!(
+            c.accepted.iter().any(
+                |t| matches!(&t.input, ModelInput::Temperature { sensor, .. } if sensor == "chiller")
+            ),
+            "{:?}",
+            c.accepted
+        );
+        assert!(c.final_fit.rms_heldout_um < 0.5 * c.baseline.rms_heldout_um);
+        assert!(
+            c.statements
+                .iter()
+                .any(|s| s.contains("with the offset alone (no spindle log)")),
+            "{:?}",
+            c.statements
+        );
     }
 
     #[test]
@@ -1190,7 +1262,8 @@ mod tests {
             c.transients
         );
         let opposite = c.accepted.iter().any(|t| {
-            t.effect == "second_mode" && t.value.signum() != c.baseline_mode.gain_um.signum()
+            t.effect == "second_mode"
+                && t.value.signum() != c.baseline_mode.as_ref().unwrap().gain_um.signum()
         });
         assert!(opposite, "{:?} {:?}", c.baseline_mode, c.accepted);
         assert!(c.final_fit.rms_heldout_um < 0.5 * c.baseline.rms_heldout_um);

@@ -442,7 +442,8 @@ pub struct PredictArgs {
     #[arg(long)]
     json: bool,
     /// Correct the model with the recording's observations only up to this time (a duration
-    /// after the first event, or RFC 3339); later ones are compared, not used. Default: all.
+    /// after the first event, or RFC 3339); later ones are compared, not used. `none`: no
+    /// correction after the fit's data. Default: all.
     #[arg(long)]
     update_until: Option<String>,
     /// Print steps from this time on (same forms); observations from then on are scored
@@ -608,9 +609,16 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         anyhow::bail!("{}: no events to replay", a.recording.display());
     };
     let t0 = first.t_ns();
-    let origin_t = match &a.update_until {
+    // `none`: nothing after the fit's data corrects the model (its posterior holds the rest).
+    let update_until = match a.update_until.as_deref() {
+        Some("none") => model.to_ns,
         Some(u) => parse_time(u, t0)?,
-        None => model.to_ns,
+        None => i64::MAX,
+    };
+    let origin_t = if a.update_until.is_some() {
+        update_until
+    } else {
+        model.to_ns
     };
     // An empirical family serves only while its inputs stay within what it was fitted on.
     let mut runs = Vec::new();
@@ -640,12 +648,6 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         }
         runs.push((c, g, origin, leave.map(|l| l.0)));
     }
-    let update_until = a
-        .update_until
-        .as_deref()
-        .map(|u| parse_time(u, t0))
-        .transpose()?
-        .unwrap_or(i64::MAX);
     let from = a
         .from
         .as_deref()

@@ -53,8 +53,8 @@ fn fl_thermal_diagnosis() {
         println!(
             "{}: one mode {} min {:.2} um; held-out RMS {:.2} -> {:.2} um, training {:.2} -> {:.2} um",
             c.channel,
-            c.baseline_mode.tau_min,
-            c.baseline_mode.gain_um,
+            c.baseline_mode.as_ref().unwrap().tau_min,
+            c.baseline_mode.as_ref().unwrap().gain_um,
             c.baseline.rms_heldout_um,
             c.final_fit.rms_heldout_um,
             c.baseline.rms_train_um,
@@ -106,7 +106,8 @@ fn fl_thermal_diagnosis() {
             .all(|t| t.excursion_um >= 2.0 && t.baseline_excursion_um < 0.5)
     );
     let opposite = c5.accepted.iter().any(|t| {
-        t.effect == "second_mode" && t.value.signum() != c5.baseline_mode.gain_um.signum()
+        t.effect == "second_mode"
+            && t.value.signum() != c5.baseline_mode.as_ref().unwrap().gain_um.signum()
     });
     assert!(opposite, "{:?}", c5.accepted);
     let made: f64 = stops.iter().map(|t| t.final_excursion_um).sum::<f64>()
