@@ -112,6 +112,67 @@ pub struct PhaseResidual {
     pub rms_um: f64,
 }
 
+/// What the final model leaves unexplained: whether it is structure, not noise, where it
+/// departs most, and the temperatures that follow it there.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Unexplained {
+    /// The final training residual's lag-1 autocorrelation and Ljung-Box p (10 lags).
+    pub ar1: f64,
+    pub ljung_box_p: f64,
+    /// Autocorrelated beyond noise (|ar1| > 0.5 and Ljung-Box p < 0.01).
+    pub structured: bool,
+    /// The largest departure of the residual (2-h smoothing): the run of one sign around its
+    /// largest value, h from the start, and its mean, um.
+    pub from_h: f64,
+    pub to_h: f64,
+    pub mean_um: f64,
+    /// Sensors whose temperature follows the residual over that span, best first: name and
+    /// correlation (at most 3).
+    pub drivers: Vec<(String, f64)>,
+}
+
+/// A span of readings `from..=to` where the residual departs, its mean and the sensors that
+/// follow it there.
+struct Departure {
+    from: usize,
+    to: usize,
+    mean: f64,
+    drivers: Vec<(String, f64)>,
+}
+
+/// Locate the largest departure of `resid` (times `t_min`) and rank `temps` by how well they
+/// follow it there.
+fn locate_departure(
+    t_min: &[f64],
+    resid: &[f64],
+    temps: &[(String, Vec<f64>)],
+) -> Option<Departure> {
+    let s = moving_average(t_min, resid, 120.0);
+    let peak = (0..s.len()).max_by(|&a, &b| s[a].abs().total_cmp(&s[b].abs()))?;
+    let sign = s[peak].signum();
+    let (mut a, mut b) = (peak, peak);
+    while a > 0 && s[a - 1].signum() == sign {
+        a -= 1;
+    }
+    while b + 1 < s.len() && s[b + 1].signum() == sign {
+        b += 1;
+    }
+    let mean = resid[a..=b].iter().sum::<f64>() / (b - a + 1) as f64;
+    let mut drivers: Vec<(String, f64)> = temps
+        .iter()
+        .map(|(name, x)| (name.clone(), corr(&resid[a..=b], &x[a..=b])))
+        .filter(|(_, r)| r.is_finite() && *r != 0.0)
+        .collect();
+    drivers.sort_by(|x, y| y.1.abs().total_cmp(&x.1.abs()));
+    drivers.truncate(3);
+    Some(Departure {
+        from: a,
+        to: b,
+        mean,
+        drivers,
+    })
+}
+
 /// A periodic component of the baseline residual and the logged temperature that carries it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Periodic {
@@ -197,6 +258,10 @@ pub struct ChannelDiagnosis {
     pub phases: Vec<PhaseResidual>,
     pub periodic: Option<Periodic>,
     pub transients: Vec<Transient>,
+    /// What the final model leaves, located (none without readings).
+    pub unexplained: Option<Unexplained>,
+    /// Candidates that could be scored at all (a singular design drops one before scoring).
+    pub candidates_tested: usize,
     pub accepted: Vec<Term>,
     pub refused: Vec<RefusedTerm>,
     /// What the diagnosis found, in words.
@@ -788,6 +853,7 @@ fn diagnose_channel(
     let n_w = design.train.len() - 1;
     let ln_n = (n_w as f64).ln();
     let mut held_now = baseline.rms_heldout_um;
+    let mut candidates_tested = 0;
     while chosen.len() < opts.max_terms {
         let m = design.matrix(&chosen, &base_cols);
         let (phi, mw, yw, sse0) = design.whitened(&m);
@@ -802,6 +868,9 @@ fn diagnose_channel(
             })
             .collect();
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+        if chosen.is_empty() {
+            candidates_tested = scored.len();
+        }
         let dbic = |sse: f64| n_w as f64 * (sse0 / sse).ln() - ln_n;
         let mut took = None;
         for &(sse, j) in scored.iter().take(10) {
@@ -927,6 +996,23 @@ fn diagnose_channel(
     refused.reverse();
     let mf = design.matrix(&chosen, &base_cols);
     let (final_pred, final_fit) = design.fit(&mf);
+    let final_resid: Vec<f64> = (0..keep.len())
+        .map(|i| design.y[i] - final_pred[i])
+        .collect();
+    let temps_now: Vec<(String, Vec<f64>)> = sensors
+        .iter()
+        .enumerate()
+        .map(|(s, name)| (name.clone(), pick(&c.temps[s][0])))
+        .collect();
+    let unexplained = locate_departure(&t_min, &final_resid, &temps_now).map(|d| Unexplained {
+        ar1: final_fit.ar1,
+        ljung_box_p: final_fit.ljung_box_p,
+        structured: final_fit.ar1.abs() > 0.5 && final_fit.ljung_box_p < 0.01,
+        from_h: t_min[d.from] / 60.0,
+        to_h: t_min[d.to] / 60.0,
+        mean_um: d.mean,
+        drivers: d.drivers,
+    });
 
     // Transients after each speed change, on the full-rate readings (30-min smoothing).
     let full_t: Vec<f64> = c.t_ns.iter().map(|t| (t - t0) as f64 / 6e10).collect();
@@ -1036,6 +1122,33 @@ fn diagnose_channel(
         ));
     }
     statements.extend(accepted.iter().map(|t| t.statement.clone()));
+    if candidates_tested == 0 {
+        statements.push(format!(
+            "{channel}: no candidate could be tested: every design with one was singular (an input that never changes?)"
+        ));
+    }
+    if let Some(u) = unexplained.as_ref().filter(|u| u.structured) {
+        statements.push(format!(
+            "{channel}: what the final model leaves is not noise (lag-1 autocorrelation {:.2}, Ljung-Box p {:.3}); its largest departure runs from {:.1} h to {:.1} h, {:+.2} um on average{}",
+            u.ar1,
+            u.ljung_box_p,
+            u.from_h,
+            u.to_h,
+            u.mean_um,
+            if u.drivers.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; the temperatures that follow it there: {}",
+                    u.drivers
+                        .iter()
+                        .map(|(n, r)| format!("{n} (r {r:.2})"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            }
+        ));
+    }
     statements.push(format!(
         "{channel}: held-out RMS {:.2} um with {baseline_name}, {:.2} um with the accepted terms; training {:.2} -> {:.2} um",
         baseline.rms_heldout_um, final_fit.rms_heldout_um, baseline.rms_train_um, final_fit.rms_train_um
@@ -1051,6 +1164,8 @@ fn diagnose_channel(
         phases,
         periodic,
         transients,
+        unexplained,
+        candidates_tested,
         accepted,
         refused,
         statements,
@@ -1233,6 +1348,35 @@ mod tests {
             "{:?}",
             c.statements
         );
+    }
+
+    /// A drift that starts late (tied to the room temperature after 25 h, nothing before)
+    /// is not noise to the diagnosis: it is located in time and tied to that temperature.
+    #[test]
+    fn a_late_drift_is_located_and_tied_to_its_temperature() {
+        let room = |t: f64| 22.0 + 0.3 * (t / 600.0).sin();
+        let c = run(&recording(5, |t, _, _| {
+            if t > 1500.0 {
+                8.0 * (room(t) - room(1500.0))
+            } else {
+                0.0
+            }
+        }));
+        let u = c.unexplained.as_ref().unwrap();
+        assert!(u.structured, "{u:?}");
+        assert!((u.from_h - 25.0).abs() < 3.0, "{u:?}");
+        assert!(u.to_h > 38.0, "{u:?}");
+        assert_eq!(u.drivers[0].0, "room", "{u:?}");
+        assert!(
+            c.statements
+                .iter()
+                .any(|s| s.contains("is not noise") && s.contains("room (r")),
+            "{:?}",
+            c.statements
+        );
+        // A clean recording leaves noise: nothing structured to report.
+        let clean = run(&recording(5, |_, _, _| 0.0));
+        assert!(!clean.unexplained.unwrap().structured);
     }
 
     #[test]
