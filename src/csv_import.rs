@@ -54,7 +54,40 @@ pub struct Imported {
     pub skipped: BTreeMap<String, usize>,
 }
 
+/// How the file is written: the field delimiter and the decimal mark.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CsvFormat {
+    pub delimiter: u8,
+    /// Numbers are written with a decimal comma (`20,5`); the delimiter is then not a comma.
+    pub decimal_comma: bool,
+}
+
+impl Default for CsvFormat {
+    fn default() -> Self {
+        CsvFormat {
+            delimiter: b',',
+            decimal_comma: false,
+        }
+    }
+}
+
+/// [`import_csv_with`] a comma-delimited file with decimal points.
 pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
+    import_csv_with(text, o, CsvFormat::default())
+}
+
+/// Import `text` written in `fmt`. A column is named by its header, or by its position as
+/// `#N` (1-based; the sensor then takes the header's name).
+pub fn import_csv_with(
+    text: &str,
+    o: &CsvOptions,
+    fmt: CsvFormat,
+) -> Result<Imported, ImportError> {
+    if fmt.decimal_comma && fmt.delimiter == b',' {
+        return Err(ImportError::Options(
+            "a decimal comma needs another delimiter (--delimiter ';' or tab)".into(),
+        ));
+    }
     if o.spindle.is_none() && o.temperatures.is_empty() && o.displacements.is_empty() {
         return Err(ImportError::Options(
             "nothing to import: name a spindle, temperature or displacement column".into(),
@@ -69,6 +102,7 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
     }
     let mut rd = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
+        .delimiter(fmt.delimiter)
         .from_reader(text.as_bytes());
     let header: Vec<String> = rd
         .headers()
@@ -77,9 +111,13 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
         .map(str::to_string)
         .collect();
     let col = |name: &str| -> Result<usize, ImportError> {
-        header
-            .iter()
-            .position(|h| h == name)
+        let by_index = name
+            .strip_prefix('#')
+            .and_then(|n| n.parse::<usize>().ok())
+            .filter(|&n| n >= 1 && n <= header.len())
+            .map(|n| n - 1);
+        by_index
+            .or_else(|| header.iter().position(|h| h == name))
             .ok_or_else(|| ImportError::NoColumn(name.to_string(), header.join(", ")))
     };
     let time_col = match &o.time {
@@ -87,16 +125,22 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
         RowTime::Interval(_) => None,
     };
     let spindle = o.spindle.as_deref().map(col).transpose()?;
+    // A column named by position takes its header's name.
+    let named = |c: &String| -> Result<(String, usize), ImportError> {
+        let i = col(c)?;
+        Ok((header[i].clone(), i))
+    };
     let temps: Vec<(String, usize)> = o
         .temperatures
         .iter()
-        .map(|c| Ok((c.clone(), col(c)?)))
+        .map(named)
         .collect::<Result<_, ImportError>>()?;
     let disps: Vec<(String, usize)> = o
         .displacements
         .iter()
-        .map(|c| Ok((c.clone(), col(c)?)))
+        .map(named)
         .collect::<Result<_, ImportError>>()?;
+    let spindle_name = spindle.map(|i| header[i].clone());
 
     let mut rec = Recording {
         info: Some(MachineInfo {
@@ -117,7 +161,12 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
             (RowTime::Interval(s), _) => o.start_ns + (i as f64 * s * 1e9).round() as i64,
             (_, Some(c)) => {
                 let text = r.get(c).unwrap_or("");
-                let t_ns = match text.parse::<f64>() {
+                let seconds = if fmt.decimal_comma {
+                    text.replace(',', ".").parse::<f64>()
+                } else {
+                    text.parse::<f64>()
+                };
+                let t_ns = match seconds {
                     Ok(s) if s.is_finite() => o.start_ns + (s * 1e9).round() as i64,
                     _ => chrono::DateTime::parse_from_rfc3339(text)
                         .ok()
@@ -143,7 +192,14 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
         prev_t = Some(t_ns);
         rows += 1;
         let mut num = |name: &str, c: usize| -> Option<f64> {
-            match r.get(c).map(str::parse::<f64>) {
+            let cell = r.get(c).map(|v| {
+                if fmt.decimal_comma {
+                    v.replace(',', ".")
+                } else {
+                    v.to_string()
+                }
+            });
+            match cell.as_deref().map(str::parse::<f64>) {
                 Some(Ok(v)) if v.is_finite() => Some(v),
                 _ => {
                     *skipped.entry(name.to_string()).or_default() += 1;
@@ -151,7 +207,7 @@ pub fn import_csv(text: &str, o: &CsvOptions) -> Result<Imported, ImportError> {
                 }
             }
         };
-        if let (Some(c), Some(name)) = (spindle, o.spindle.as_deref())
+        if let (Some(c), Some(name)) = (spindle, spindle_name.as_deref())
             && let Some(rpm) = num(name, c)
             && (last_rpm != Some(rpm) || rpm != 0.0)
         {
@@ -293,5 +349,48 @@ mod tests {
             split_columns(&["a,b".into(), " c ".into()]),
             ["a", "b", "c"]
         );
+    }
+
+    /// A file from a spreadsheet set to a decimal comma: semicolons, `20,5`, columns named
+    /// by position taking their header's name.
+    #[test]
+    fn semicolons_decimal_commas_and_columns_by_position() {
+        let text = "t;rpm;Motor temp;Z um\n0;0;20,5;1,25\n60;8000;21,0;2,5\n";
+        let o = CsvOptions {
+            time: RowTime::Column("#1".into()),
+            start_ns: 0,
+            spindle: Some("#2".into()),
+            temperatures: vec!["#3".into()],
+            displacements: vec!["Z um".into()],
+            machine_id: "m".into(),
+        };
+        let fmt = CsvFormat {
+            delimiter: b';',
+            decimal_comma: true,
+        };
+        let im = import_csv_with(text, &o, fmt).unwrap();
+        assert!(im.skipped.is_empty(), "{:?}", im.skipped);
+        let r = &im.recording;
+        assert_eq!(r.temperatures[1].msg.sensor, "Motor temp");
+        assert_eq!(r.temperatures[0].msg.celsius, 20.5);
+        assert_eq!(r.displacements[1].msg.um, 2.5);
+        assert_eq!(r.spindle.last().unwrap().msg.rpm, 8000.0);
+        assert_eq!(r.temperatures[1].t_ns, 60_000_000_000);
+        // Read as the default (comma, decimal point) the cells are not numbers.
+        assert!(import_csv(text, &o).is_err());
+        // A decimal comma with a comma delimiter is ambiguous, and refused.
+        let e = import_csv_with(
+            text,
+            &o,
+            CsvFormat {
+                delimiter: b',',
+                decimal_comma: true,
+            },
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("decimal comma"), "{e}");
+        let mut past = o.clone();
+        past.temperatures = vec!["#9".into()];
+        assert!(import_csv_with(text, &past, fmt).is_err());
     }
 }

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 
-use driftwatch::csv_import::{CsvOptions, RowTime, import_csv, split_columns};
+use driftwatch::csv_import::{CsvFormat, CsvOptions, RowTime, import_csv_with, split_columns};
 use driftwatch::families::{ChannelChoice, Family};
 use driftwatch::kinematics::Kinematics;
 use driftwatch::recording::Recording;
@@ -44,15 +44,35 @@ pub struct ImportCsvArgs {
     /// sensor name.
     #[arg(long, num_args = 1..)]
     temperature_columns: Vec<String>,
-    /// Columns of displacements, um (comma-separated or repeated).
+    /// Columns of displacements, um (comma-separated or repeated). Any column may be given
+    /// by its position as #N (1-based); the sensor takes the header's name.
     #[arg(long, num_args = 1..)]
     displacement_columns: Vec<String>,
     /// Machine id written to /machine/info (default: the file name).
     #[arg(long)]
     machine_id: Option<String>,
+    /// Field delimiter: one character, or `tab`.
+    #[arg(long, default_value = ",")]
+    delimiter: String,
+    /// Numbers have a decimal comma (20,5); give another --delimiter.
+    #[arg(long)]
+    decimal_comma: bool,
+    /// Replace --out if it exists (else the import is refused).
+    #[arg(long)]
+    force: bool,
 }
 
 pub fn cmd_import_csv(a: ImportCsvArgs) -> Result<ExitCode> {
+    let delimiter = match a.delimiter.as_str() {
+        "tab" | "\\t" | "\t" => b'\t',
+        d if d.len() == 1 && d.is_ascii() => d.as_bytes()[0],
+        d => anyhow::bail!("--delimiter '{d}': give one ASCII character or tab"),
+    };
+    anyhow::ensure!(
+        a.force || !a.out.exists(),
+        "{} exists: give --force to replace it",
+        a.out.display()
+    );
     let text = std::fs::read_to_string(&a.input)
         .with_context(|| format!("reading {}", a.input.display()))?;
     let start_ns = chrono::DateTime::parse_from_rfc3339(&a.start)
@@ -77,8 +97,12 @@ pub fn cmd_import_csv(a: ImportCsvArgs) -> Result<ExitCode> {
         displacements: split_columns(&a.displacement_columns),
         machine_id,
     };
-    let im =
-        import_csv(&text, &opts).with_context(|| format!("importing {}", a.input.display()))?;
+    let fmt = CsvFormat {
+        delimiter,
+        decimal_comma: a.decimal_comma,
+    };
+    let im = import_csv_with(&text, &opts, fmt)
+        .with_context(|| format!("importing {}", a.input.display()))?;
     write_recording_file(&a.out, &im.recording)
         .with_context(|| format!("writing {}", a.out.display()))?;
     let r = &im.recording;

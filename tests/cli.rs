@@ -407,6 +407,7 @@ fn import_fit_and_predict_a_thermal_test_table() {
     let (ok, out, err) = run(&[
         "import",
         "csv",
+        "--force",
         "--in",
         csv_path.to_str().unwrap(),
         "--out",
@@ -424,6 +425,23 @@ fn import_fit_and_predict_a_thermal_test_table() {
     ]);
     assert!(ok, "{out}{err}");
     assert!(out.contains("301 rows"), "{out}");
+    // An existing recording is not overwritten without --force.
+    let (ok, _, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv_path.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--interval-s",
+        "60",
+        "--temperature-columns",
+        "ambient",
+    ]);
+    assert!(
+        !ok && err.contains("exists: give --force to replace it"),
+        "{err}"
+    );
     let r = read_file(&rec, &ReadOptions::default()).unwrap();
     assert_eq!(r.displacements.len(), 301);
     assert_eq!(r.temperatures.len(), 301);
@@ -561,6 +579,7 @@ fn import_fit_and_predict_a_thermal_test_table() {
     let (ok, out, err) = run(&[
         "import",
         "csv",
+        "--force",
         "--in",
         csv_path.to_str().unwrap(),
         "--out",
@@ -603,6 +622,7 @@ fn import_fit_and_predict_a_thermal_test_table() {
     let (ok, _, err) = run(&[
         "import",
         "csv",
+        "--force",
         "--in",
         csv_path.to_str().unwrap(),
         "--out",
@@ -805,6 +825,7 @@ fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model
     let (ok, out, err) = run(&[
         "import",
         "csv",
+        "--force",
         "--in",
         csv,
         "--out",
