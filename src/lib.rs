@@ -29,6 +29,7 @@ pub mod nc_push;
 pub mod patent_relations;
 pub mod phase;
 pub mod plan;
+pub mod prediction_plot;
 pub mod recorder;
 pub mod recording;
 pub mod scenario;

@@ -9,6 +9,7 @@ use anyhow::{Context, Result};
 use driftwatch::csv_import::{CsvFormat, CsvOptions, RowTime, import_csv_with, split_columns};
 use driftwatch::families::{ChannelChoice, Family};
 use driftwatch::kinematics::Kinematics;
+use driftwatch::prediction_plot::Panel;
 use driftwatch::recording::Recording;
 use driftwatch::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
 use driftwatch::thermal_model::{
@@ -474,6 +475,9 @@ pub struct PredictArgs {
     /// before they are used (default: those after --update-until).
     #[arg(long)]
     from: Option<String>,
+    /// Also draw each channel (measured, predicted, band, where the updates stop) to this SVG.
+    #[arg(long)]
+    plot: Option<PathBuf>,
 }
 
 #[derive(serde::Deserialize)]
@@ -496,7 +500,15 @@ struct FamilyRun<'a> {
     grey: &'a [(i64, f64)],
 }
 
-fn predict_family(r: &FamilyRun, t0: i64, from: i64, step_ns: i64, json: bool) -> Result<()> {
+/// Runs the family, prints its rows and figures, and gives its predicted series (h, value,
+/// 68 % band) for a plot.
+fn predict_family(
+    r: &FamilyRun,
+    t0: i64,
+    from: i64,
+    step_ns: i64,
+    json: bool,
+) -> Result<Vec<(f64, f64, f64)>> {
     let (c, g, origin) = (r.c, r.g, r.origin);
     let family = driftwatch::families::simulate(&c.fitted, g, origin, g.len());
     let p: Vec<(f64, &str)> = family
@@ -516,6 +528,7 @@ fn predict_family(r: &FamilyRun, t0: i64, from: i64, step_ns: i64, json: bool) -
         })
         .collect();
     let mut next_row = from;
+    let mut series = Vec::new();
     let mut out = std::io::stdout().lock();
     let mut errors = Vec::new();
     let mut persistence = Vec::new();
@@ -524,6 +537,9 @@ fn predict_family(r: &FamilyRun, t0: i64, from: i64, step_ns: i64, json: bool) -
         let y = g.y[k];
         errors.push(v - y);
         persistence.push(g.y[origin - 1] - y);
+        if g.t_ns[k] >= from {
+            series.push(((g.t_ns[k] - t0) as f64 / 3.6e12, *v, c.band68));
+        }
         // Rows at the requested step (the family runs on its own grid).
         if g.t_ns[k] < next_row {
             continue;
@@ -576,7 +592,7 @@ fn predict_family(r: &FamilyRun, t0: i64, from: i64, step_ns: i64, json: bool) -
         100.0 * driftwatch::families::coverage(&errors, c.band68),
         100.0 * driftwatch::families::coverage(&errors, c.band95),
     );
-    Ok(())
+    Ok(series)
 }
 
 /// The truth of a simulated recording (`/sim/truth`, the minute samples, not the cycles'):
@@ -787,6 +803,16 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     for g in served.iter().filter(|g| !other(&g.channel)) {
         eprintln!("at the end: {g}\n  {}", g.reason);
     }
+    // One panel per channel: the grey box's served values, or the family's.
+    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+    let mut panels: std::collections::BTreeMap<String, Panel> = Default::default();
+    for s in steps.iter().filter(|s| s.t_ns >= from) {
+        for p in &s.predictions {
+            let panel = panels.entry(p.channel.clone()).or_default();
+            panel.source = "grey box (one sigma)".into();
+            panel.predicted.push((h(s.t_ns), p.value, p.sigma));
+        }
+    }
     for ((c, g, origin, leave), grey) in runs.iter().zip(&greys) {
         let run = FamilyRun {
             c,
@@ -795,7 +821,48 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
             leave: *leave,
             grey,
         };
-        predict_family(&run, t0, from, step_ns, a.json)?;
+        let series = predict_family(&run, t0, from, step_ns, a.json)?;
+        let panel = panels.entry(c.channel.clone()).or_default();
+        panel.source = format!(
+            "{}{} (68 % band of its CV)",
+            c.family,
+            if leave.is_some() {
+                ", then the grey box"
+            } else {
+                ""
+            }
+        );
+        panel.predicted = series;
+        panel.boundary_h = g.t_ns.get(origin.saturating_sub(1)).map(|t| h(*t));
+    }
+    if let Some(path) = &a.plot {
+        for e in events.iter().filter(|e| e.t_ns() >= from) {
+            if let Event::Observation {
+                channel,
+                value,
+                t_ns,
+                ..
+            } = e
+                && let Some(p) = panels.get_mut(channel)
+            {
+                p.measured.push((h(*t_ns), *value));
+            }
+        }
+        let list: Vec<Panel> = panels
+            .into_iter()
+            .map(|(ch, mut p)| {
+                p.unit = driftwatch::compensation::unit(&ch).to_string();
+                if p.boundary_h.is_none() && a.update_until.is_some() {
+                    p.boundary_h = Some(h(update_until));
+                }
+                p.channel = ch;
+                p
+            })
+            .collect();
+        let svg = driftwatch::prediction_plot::svg(&list)
+            .map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))?;
+        std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
+        eprintln!("plot of {} channel(s) -> {}", list.len(), path.display());
     }
     let truth = truth_of(&a.recording)?;
     if let Some((_, reference)) = truth.first() {

@@ -515,6 +515,8 @@ fn import_fit_and_predict_a_thermal_test_table() {
     // never learnt what a stop does. When the spindle stops it hands over to the grey box,
     // whose pole basis knows, and says so.
     let auto = tmp("table-auto.json");
+    let plot = tmp("table-auto.svg");
+    let _ = std::fs::remove_file(&plot);
     let (ok, out, err) = run(&[
         "fit",
         "--recording",
@@ -548,11 +550,19 @@ fn import_fit_and_predict_a_thermal_test_table() {
         "--json",
         "--update-until",
         "3h",
+        "--plot",
+        plot.to_str().unwrap(),
     ]);
     assert!(ok, "{err}");
     assert!(
         err.contains("ch1: arx leaves its fit data at 3.08 h (spindle_rpm = 0.000"),
         "{err}"
+    );
+    let svg = std::fs::read_to_string(&plot).unwrap();
+    assert!(
+        svg.contains("ch1 (predicted: arx, then the grey box") && svg.contains("updates stop"),
+        "{}",
+        &svg[..svg.len().min(400)]
     );
     let lines: Vec<Value> = out
         .lines()
