@@ -707,10 +707,6 @@ fn served_holdout(
             g.names[j]
         );
     }
-    let e2: f64 = p
-        .iter()
-        .zip(&g.y[n_train..])
-        .map(|(p, y)| (p - y).powi(2))
-        .sum();
-    Some(((e2 / p.len().max(1) as f64).sqrt(), why))
+    let e: Vec<f64> = p.iter().zip(&g.y[n_train..]).map(|(p, y)| p - y).collect();
+    Some((driftwatch::families::rms(&e), why))
 }

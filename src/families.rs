@@ -147,10 +147,6 @@ impl Family {
     pub fn parse(s: &str) -> Option<Family> {
         Family::ALL.into_iter().find(|f| f.as_str() == s)
     }
-    /// A textbook baseline (not driftwatch's own model).
-    pub fn is_baseline(self) -> bool {
-        self != Family::GreyBox
-    }
 }
 
 /// Most inputs key-temperature regression keeps.
@@ -179,7 +175,7 @@ pub enum Fitted {
 
 impl Fitted {
     /// The inputs the fit uses, by name.
-    pub fn input_names(&self, g: &Grid) -> Vec<String> {
+    fn input_names(&self, g: &Grid) -> Vec<String> {
         match self {
             Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => {
                 inputs.iter().map(|&j| g.names[j].clone()).collect()
@@ -209,7 +205,9 @@ impl Fitted {
 }
 
 /// Least squares with a vanishing ridge (only so that a collinear design still solves),
-/// on centred and scaled columns. `None` when the design has fewer rows than columns.
+/// on columns scaled to unit mean square. `None` when the design has no more rows than
+/// columns. (`diagnosis::lsq` truncates the SVD instead, and reports the rank: here a
+/// collinear input must still give a usable, if arbitrary, split of its gain.)
 fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
     let (n, p) = x.shape();
     if n <= p || p == 0 {
@@ -355,7 +353,8 @@ fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Opt
     (!e.is_empty()).then_some(e)
 }
 
-fn rms(e: &[f64]) -> f64 {
+/// Root mean square (0 for no values).
+pub fn rms(e: &[f64]) -> f64 {
     (e.iter().map(|v| v * v).sum::<f64>() / e.len().max(1) as f64).sqrt()
 }
 

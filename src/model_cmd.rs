@@ -480,6 +480,161 @@ pub struct PredictArgs {
     plot: Option<PathBuf>,
 }
 
+/// The grey box's rows from `from` on: a table, or one JSON object per step.
+fn print_steps(
+    steps: &[driftwatch::thermal_model::ReplayStep],
+    from: i64,
+    t0: i64,
+    json: bool,
+) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    if !json {
+        writeln!(
+            out,
+            "{:>10} {:<12} {:>10} {:>8} source",
+            "t h", "channel", "value", "sigma"
+        )?;
+    }
+    for s in steps
+        .iter()
+        .filter(|s| s.t_ns >= from && !s.predictions.is_empty())
+    {
+        let source = |ch: &str| {
+            if s.measured.contains_key(ch) {
+                "measured"
+            } else {
+                "predicted"
+            }
+        };
+        if json {
+            let values: serde_json::Map<String, serde_json::Value> = s
+                .predictions
+                .iter()
+                .map(|x| {
+                    (
+                        x.channel.clone(),
+                        serde_json::json!({
+                            "value": x.value,
+                            "sigma": x.sigma,
+                            "source": source(&x.channel),
+                            "served_from": x.source.as_str(),
+                            "model_value": x.model_value,
+                            "fallback_reason": x.reason,
+                            "measured": s.measured.get(&x.channel),
+                        }),
+                    )
+                })
+                .collect();
+            let line = serde_json::json!({
+                "t_ns": s.t_ns,
+                "time": chrono::DateTime::from_timestamp_nanos(s.t_ns).to_rfc3339(),
+                "values": values,
+            });
+            writeln!(out, "{line}")?;
+        } else {
+            for x in &s.predictions {
+                writeln!(
+                    out,
+                    "{:>10.3} {:<12} {:>10.3} {:>8.3} {}",
+                    (s.t_ns - t0) as f64 / 3.6e12,
+                    x.channel,
+                    x.value,
+                    x.sigma,
+                    source(&x.channel)
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Draw the panels, with the readings from `from` on, to `path`. `boundary_h`: where the
+/// grey box's updates stop (a family's panel has its own).
+fn write_plot(
+    path: &std::path::Path,
+    mut panels: std::collections::BTreeMap<String, Panel>,
+    events: &[Event],
+    from: i64,
+    t0: i64,
+    boundary_h: Option<f64>,
+) -> Result<()> {
+    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+    for e in events.iter().filter(|e| e.t_ns() >= from) {
+        if let Event::Observation {
+            channel,
+            value,
+            t_ns,
+            ..
+        } = e
+            && let Some(p) = panels.get_mut(channel)
+        {
+            p.measured.push((h(*t_ns), *value));
+        }
+    }
+    let list: Vec<Panel> = panels
+        .into_iter()
+        .map(|(ch, mut p)| {
+            p.unit = driftwatch::compensation::unit(&ch).to_string();
+            p.boundary_h = p.boundary_h.or(boundary_h);
+            p.channel = ch;
+            p
+        })
+        .collect();
+    let svg = driftwatch::prediction_plot::svg(&list)
+        .map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))?;
+    std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
+    eprintln!("plot of {} channel(s) -> {}", list.len(), path.display());
+    Ok(())
+}
+
+/// A family channel ready to run: its choice, its grid on the recording, the first grid point
+/// it predicts, and where it leaves its fit data (the grey box serves from there).
+type Run = (
+    ChannelChoice,
+    driftwatch::families::Grid,
+    usize,
+    Option<usize>,
+);
+
+/// Grid each chosen family on the recording, from the last reading at or before `origin_t`,
+/// and say where one leaves the inputs' range it was fitted on.
+fn family_runs(
+    chosen: Vec<ChannelChoice>,
+    events: &[Event],
+    origin_t: i64,
+    t0: i64,
+) -> Result<Vec<Run>> {
+    // An empirical family serves only while its inputs stay within what it was fitted on.
+    let mut runs = Vec::new();
+    for c in chosen {
+        let g = driftwatch::families::grid(events, &c.channel, c.step_ns)
+            .with_context(|| format!("{}: no readings with every input", c.channel))?;
+        anyhow::ensure!(
+            g.names == c.inputs,
+            "{}: the model's {} inputs are {}, the recording has {}",
+            c.channel,
+            c.family,
+            c.inputs.join(", "),
+            g.names.join(", ")
+        );
+        let origin = g.index_at(origin_t.saturating_add(1)).max(1);
+        let leave = driftwatch::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
+        if let Some((k, j, v)) = leave {
+            eprintln!(
+                "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
+                c.channel,
+                c.family,
+                (g.t_ns[k] - t0) as f64 / 3.6e12,
+                g.names[j],
+                c.ranges[j][0],
+                c.ranges[j][1],
+            );
+        }
+        runs.push((c, g, origin, leave.map(|l| l.0)));
+    }
+    Ok(runs)
+}
+
 #[derive(serde::Deserialize)]
 struct FamiliesOnly {
     #[serde(default)]
@@ -572,7 +727,7 @@ fn predict_family(
         }
     }
     drop(out);
-    let rms = |e: &[f64]| (e.iter().map(|x| x * x).sum::<f64>() / e.len().max(1) as f64).sqrt();
+    let rms = driftwatch::families::rms;
     eprintln!(
         "{}: {} ({}){}, free run from {:.2} h, {} readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
         c.channel,
@@ -660,34 +815,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     } else {
         model.to_ns
     };
-    // An empirical family serves only while its inputs stay within what it was fitted on.
-    let mut runs = Vec::new();
-    for c in chosen {
-        let g = driftwatch::families::grid(&events, &c.channel, c.step_ns)
-            .with_context(|| format!("{}: no readings with every input", c.channel))?;
-        anyhow::ensure!(
-            g.names == c.inputs,
-            "{}: the model's {} inputs are {}, the recording has {}",
-            c.channel,
-            c.family,
-            c.inputs.join(", "),
-            g.names.join(", ")
-        );
-        let origin = g.index_at(origin_t.saturating_add(1)).max(1);
-        let leave = driftwatch::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
-        if let Some((k, j, v)) = leave {
-            eprintln!(
-                "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
-                c.channel,
-                c.family,
-                (g.t_ns[k] - t0) as f64 / 3.6e12,
-                g.names[j],
-                c.ranges[j][0],
-                c.ranges[j][1],
-            );
-        }
-        runs.push((c, g, origin, leave.map(|l| l.0)));
-    }
+    let runs = family_runs(chosen, &events, origin_t, t0)?;
     let from = a
         .from
         .as_deref()
@@ -721,65 +849,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         s.predictions.retain(|p| !other(&p.channel));
     }
     scores.retain(|s| !other(&s.channel));
-    let mut out = std::io::stdout().lock();
-    if !a.json {
-        writeln!(
-            out,
-            "{:>10} {:<12} {:>10} {:>8} source",
-            "t h", "channel", "value", "sigma"
-        )?;
-    }
-    for s in steps
-        .iter()
-        .filter(|s| s.t_ns >= from && !s.predictions.is_empty())
-    {
-        let source = |ch: &str| {
-            if s.measured.contains_key(ch) {
-                "measured"
-            } else {
-                "predicted"
-            }
-        };
-        if a.json {
-            let values: serde_json::Map<String, serde_json::Value> = s
-                .predictions
-                .iter()
-                .map(|x| {
-                    (
-                        x.channel.clone(),
-                        serde_json::json!({
-                            "value": x.value,
-                            "sigma": x.sigma,
-                            "source": source(&x.channel),
-                            "served_from": x.source.as_str(),
-                            "model_value": x.model_value,
-                            "fallback_reason": x.reason,
-                            "measured": s.measured.get(&x.channel),
-                        }),
-                    )
-                })
-                .collect();
-            let line = serde_json::json!({
-                "t_ns": s.t_ns,
-                "time": chrono::DateTime::from_timestamp_nanos(s.t_ns).to_rfc3339(),
-                "values": values,
-            });
-            writeln!(out, "{line}")?;
-        } else {
-            for x in &s.predictions {
-                writeln!(
-                    out,
-                    "{:>10.3} {:<12} {:>10.3} {:>8.3} {}",
-                    (s.t_ns - t0) as f64 / 3.6e12,
-                    x.channel,
-                    x.value,
-                    x.sigma,
-                    source(&x.channel)
-                )?;
-            }
-        }
-    }
-    drop(out);
+    print_steps(&steps, from, t0, a.json)?;
     let what = if a.from.is_some() {
         "readings from --from on, each scored before it is used"
     } else {
@@ -836,33 +906,8 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         panel.boundary_h = g.t_ns.get(origin.saturating_sub(1)).map(|t| h(*t));
     }
     if let Some(path) = &a.plot {
-        for e in events.iter().filter(|e| e.t_ns() >= from) {
-            if let Event::Observation {
-                channel,
-                value,
-                t_ns,
-                ..
-            } = e
-                && let Some(p) = panels.get_mut(channel)
-            {
-                p.measured.push((h(*t_ns), *value));
-            }
-        }
-        let list: Vec<Panel> = panels
-            .into_iter()
-            .map(|(ch, mut p)| {
-                p.unit = driftwatch::compensation::unit(&ch).to_string();
-                if p.boundary_h.is_none() && a.update_until.is_some() {
-                    p.boundary_h = Some(h(update_until));
-                }
-                p.channel = ch;
-                p
-            })
-            .collect();
-        let svg = driftwatch::prediction_plot::svg(&list)
-            .map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))?;
-        std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
-        eprintln!("plot of {} channel(s) -> {}", list.len(), path.display());
+        let boundary = a.update_until.is_some().then(|| h(update_until));
+        write_plot(path, panels, &events, from, t0, boundary)?;
     }
     let truth = truth_of(&a.recording)?;
     if let Some((_, reference)) = truth.first() {

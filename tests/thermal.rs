@@ -10,7 +10,13 @@ use driftwatch::thermal_model::{
 
 const H: i64 = 3_600_000_000_000;
 
+/// ch1 and ch3 with the spindle log and all 16 temperatures.
 fn events() -> Vec<Event> {
+    fl_thermal(true, &["ch1_um", "ch3_um"])
+}
+
+/// fl-thermal imported with or without its spindle column, all 16 temperatures and `channels`.
+fn fl_thermal(spindle: bool, channels: &[&str]) -> Vec<Event> {
     let text = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/data/fl-thermal/fl_thermal.csv"
@@ -21,9 +27,9 @@ fn events() -> Vec<Event> {
         &CsvOptions {
             time: RowTime::Column("time_s".into()),
             start_ns: 0,
-            spindle: Some("spindle_rpm".into()),
+            spindle: spindle.then(|| "spindle_rpm".into()),
             temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: vec!["ch1_um".into(), "ch3_um".into()],
+            displacements: channels.iter().map(|c| c.to_string()).collect(),
             machine_id: "fl-thermal".into(),
         },
     )
@@ -199,6 +205,8 @@ fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
     }
 }
 
+const CHANNELS: [&str; 5] = ["ch1_um", "ch2_um", "ch3_um", "ch4_um", "ch5_um"];
+
 /// The families compete on fl-thermal's five channels (fit on 0-40 h, cross-validated there,
 /// judged on 40-46.3 h with no reading used), with the spindle log and without it. What is
 /// chosen beats persistence on every channel of the shipped real data; without the spindle
@@ -207,8 +215,8 @@ fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
 #[test]
 fn on_fl_thermal_the_chosen_family_beats_persistence_on_every_channel() {
     use driftwatch::families::{Family, compete, grey_box_config, grid};
-    let ev = events_all_channels(true);
-    for ch in ["ch1_um", "ch2_um", "ch3_um", "ch4_um", "ch5_um"] {
+    let ev = fl_thermal(true, &CHANNELS);
+    for ch in CHANNELS {
         let g = grid(&ev, ch, 300_000_000_000).unwrap();
         let s = compete(&ev, &g, 40 * H, &Family::ALL, &grey_box_config(&g));
         assert_eq!(s.len(), 5, "{ch}: every family fitted: {s:#?}");
@@ -221,7 +229,7 @@ fn on_fl_thermal_the_chosen_family_beats_persistence_on_every_channel() {
             "{ch}: {chosen:?} vs {persistence:?}"
         );
     }
-    let bare = events_all_channels(false);
+    let bare = fl_thermal(false, &CHANNELS);
     assert!(!bare.iter().any(|e| matches!(e, Event::Spindle { .. })));
     let g = grid(&bare, "ch3_um", 300_000_000_000).unwrap();
     assert_eq!(g.names.len(), 16, "temperatures only: {:?}", g.names);
@@ -231,25 +239,4 @@ fn on_fl_thermal_the_chosen_family_beats_persistence_on_every_channel() {
         s.iter()
             .all(|x| x.cv_rmse.is_finite() && x.holdout_rmse.is_finite())
     );
-}
-
-fn events_all_channels(spindle: bool) -> Vec<Event> {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/fl-thermal/fl_thermal.csv"
-    ))
-    .unwrap();
-    let im = import_csv(
-        &text,
-        &CsvOptions {
-            time: RowTime::Column("time_s".into()),
-            start_ns: 0,
-            spindle: spindle.then(|| "spindle_rpm".into()),
-            temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: (1..=5).map(|i| format!("ch{i}_um")).collect(),
-            machine_id: "fl-thermal".into(),
-        },
-    )
-    .unwrap();
-    events_from(&[im.recording])
 }
