@@ -630,8 +630,8 @@ pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
                 }
             );
             println!(
-                "{:<8} {:<15} {:>8} {:>9} {:>8} {:>7} {:>7}  chosen / inputs",
-                "channel", "family", "CV rmse", "hold rmse", "hold max", "cov68", "cov95",
+                "{:<8} {:<15} {:>8} {:>11} {:>9} {:>8} {:>11}  chosen / inputs",
+                "channel", "family", "CV rmse", "CV cov68/95", "hold rmse", "hold max", "cov68/95",
             );
         }
         for ch in &set.channels {
@@ -643,10 +643,12 @@ pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
             for s in &scores {
                 if !json {
                     println!(
-                        "{:<8} {:<15} {:>8.2} {:>9.2} {:>8.2} {:>6.0}% {:>6.0}%  {}{}",
+                        "{:<8} {:<15} {:>8.2} {:>5.0}%/{:>3.0}% {:>9.2} {:>8.2} {:>5.0}%/{:>3.0}%  {}{}",
                         ch,
                         s.family,
                         s.cv_rmse,
+                        100.0 * s.cv_cover68.unwrap_or(f64::NAN),
+                        100.0 * s.cv_cover95.unwrap_or(f64::NAN),
                         s.holdout_rmse,
                         s.holdout_max,
                         100.0 * s.cover68,
@@ -685,7 +687,7 @@ fn served_holdout(
     grey: &driftwatch::thermal_model::ModelConfig,
 ) -> Option<(f64, String)> {
     use driftwatch::families::{
-        Family, fit_family, grey_box, input_ranges, leaves_range, simulate,
+        Family, fit_scored, grey_box, input_ranges, leaves_range, simulate_with,
     };
     let chosen = scores.iter().find(|s| s.chosen)?;
     let family = Family::parse(&chosen.family)?;
@@ -694,11 +696,11 @@ fn served_holdout(
     if family == Family::GreyBox || n_train >= n {
         return Some((chosen.holdout_rmse, chosen.family.clone()));
     }
-    let f = fit_family(family, g, n_train)?;
-    let mut p = simulate(&f, g, n_train, n);
+    let f = fit_scored(chosen, g, n_train)?;
+    let gb = grey_box(events, grey, g, n_train, n)?;
+    let mut p = simulate_with(&f, g, n_train, n, &gb);
     let mut why = chosen.family.clone();
     if let Some((k, j, _)) = leaves_range(&f, g, &input_ranges(g, n_train), n_train, n) {
-        let gb = grey_box(events, grey, g, n_train, n)?;
         p[k - n_train..].copy_from_slice(&gb[k - n_train..]);
         why = format!(
             "{}, the grey box from {:.2} h where {} leaves its fit range",

@@ -3,11 +3,13 @@
 //! baselines a thermal engineer would try first, persistence (the last training value held),
 //! multiple linear regression on every temperature, regression on a few key temperatures
 //! chosen by forward selection, and an ARX model run in simulation (free-run, multi-step)
-//! mode. Every family is scored by rolling-origin (forward-chaining) cross-validation on the
-//! training span only: at each origin it is fitted on what came before (its own choices, the
-//! key sensors or the ARX orders, made again inside) and predicts freely to the next origin,
-//! with no reading after the origin. The chosen family has the lowest CV error; persistence
-//! and regression are among the candidates, so the choice never loses to them in CV.
+//! mode; and the inverse-MSE combination of all but persistence. Every family is scored by
+//! rolling-origin (forward-chaining) cross-validation on the training span only: at each
+//! origin it is fitted on what came before (its own choices, the key sensors or the ARX
+//! orders, made again inside) and predicts freely to the end of the span, with no reading
+//! after the origin. The chosen family has the lowest CV error; persistence and regression
+//! are among the candidates, so the choice never loses to them in CV. Its band is the CV
+//! errors' quantiles by horizon ([`Bands`]), judged on each fold against the others.
 //!
 //! Pure: plain data in and out, no I/O.
 
@@ -125,15 +127,20 @@ pub enum Family {
     Arx,
     /// The pole-basis grey box with its filter (`thermal_model`), as `fit` and `predict` run it.
     GreyBox,
+    /// The other families but persistence, averaged with weights inversely proportional to
+    /// their CV mean square error (Bates and Granger, 1969): a combination of forecasts
+    /// often beats the single model a noisy CV picks, and it competes in the same CV.
+    Combination,
 }
 
 impl Family {
-    pub const ALL: [Family; 5] = [
+    pub const ALL: [Family; 6] = [
         Family::Persistence,
         Family::Regression,
         Family::KeyRegression,
         Family::Arx,
         Family::GreyBox,
+        Family::Combination,
     ];
     pub fn as_str(self) -> &'static str {
         match self {
@@ -142,6 +149,7 @@ impl Family {
             Family::KeyRegression => "key_regression",
             Family::Arx => "arx",
             Family::GreyBox => "grey_box",
+            Family::Combination => "combination",
         }
     }
     pub fn parse(s: &str) -> Option<Family> {
@@ -171,6 +179,10 @@ pub enum Fitted {
     },
     /// The grey box is fitted and run on the events themselves.
     GreyBox,
+    /// Each part with its weight (the weights sum to one).
+    Combination {
+        parts: Vec<(Fitted, f64)>,
+    },
 }
 
 impl Fitted {
@@ -182,7 +194,30 @@ impl Fitted {
             }
             Fitted::Persistence => Vec::new(),
             Fitted::GreyBox => g.names.clone(),
+            Fitted::Combination { .. } => {
+                let mut all: Vec<String> = Vec::new();
+                for j in self.empirical_inputs() {
+                    all.push(g.names[j].clone());
+                }
+                all
+            }
         }
+    }
+
+    /// The grid inputs an empirical (regression or ARX) part uses: the ones whose range
+    /// bounds where it may serve (see [`leaves_range`]).
+    fn empirical_inputs(&self) -> Vec<usize> {
+        let mut out: Vec<usize> = match self {
+            Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => inputs.clone(),
+            Fitted::Persistence | Fitted::GreyBox => Vec::new(),
+            Fitted::Combination { parts } => parts
+                .iter()
+                .flat_map(|(f, _)| f.empirical_inputs())
+                .collect(),
+        };
+        out.sort_unstable();
+        out.dedup();
+        out
     }
     pub fn describe(&self, g: &Grid) -> String {
         match self {
@@ -200,6 +235,11 @@ impl Fitted {
                 self.input_names(g).join(", ")
             ),
             Fitted::GreyBox => "pole basis + every temperature".into(),
+            Fitted::Combination { parts } => parts
+                .iter()
+                .map(|(f, w)| format!("{w:.2} x [{}]", f.describe(g)))
+                .collect::<Vec<_>>()
+                .join(" + "),
         }
     }
 }
@@ -327,30 +367,78 @@ pub fn simulate(f: &Fitted, g: &Grid, origin: usize, end: usize) -> Vec<f64> {
             }
             y.split_off(origin)
         }
-        Fitted::GreyBox => Vec::new(),
+        Fitted::GreyBox | Fitted::Combination { .. } => Vec::new(),
     }
 }
 
-/// Rolling origins over the first `end` grid points: at 1/2, 5/8, 6/8 and 7/8 of them, each
-/// fold predicting to the next origin (the last to `end`).
+/// [`simulate`] with the grey box's own predictions for `origin..end` (`grey`, which only
+/// the events can give): the grey box and a combination that holds it run too. Empty when a
+/// part cannot run.
+pub fn simulate_with(f: &Fitted, g: &Grid, origin: usize, end: usize, grey: &[f64]) -> Vec<f64> {
+    match f {
+        Fitted::GreyBox => grey.to_vec(),
+        Fitted::Combination { parts } => {
+            let n = end.min(g.len()).saturating_sub(origin);
+            let mut sum = vec![0.0; n];
+            for (part, w) in parts {
+                let p = simulate_with(part, g, origin, end, grey);
+                if p.len() != n {
+                    return Vec::new();
+                }
+                sum.iter_mut().zip(&p).for_each(|(s, p)| *s += w * p);
+            }
+            sum
+        }
+        _ => simulate(f, g, origin, end),
+    }
+}
+
+/// Rolling origins over the first `end` grid points: eight, at 8/16, 9/16, ... 15/16 of
+/// them, each fold predicting freely to `end`. To the end, not to the next origin: what is
+/// served runs freely for hours, so the CV must judge long horizons (with folds to the next
+/// origin, a model that drifts slowly won the CV and lost the hold-out on fl-thermal).
 pub fn folds(end: usize) -> Vec<(usize, usize)> {
-    let o: Vec<usize> = [4, 5, 6, 7].iter().map(|&q| end * q / 8).collect();
-    (0..o.len())
-        .map(|i| (o[i], o.get(i + 1).copied().unwrap_or(end)))
+    let mut o: Vec<usize> = (8..16).map(|q| end * q / 16).collect();
+    o.dedup();
+    o.into_iter()
+        .map(|a| (a, end))
         .filter(|(a, b)| a < b && *a > 0)
         .collect()
 }
 
-/// Squared errors of a fit procedure over the folds of `0..end`; `None` when a fold could
-/// not be fitted.
-fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Option<Vec<f64>> {
+/// One CV error: its fold, its horizon in grid steps after the fold's origin, its value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CvError {
+    pub fold: usize,
+    pub horizon: usize,
+    pub e: f64,
+}
+
+fn fold_errors(fold: usize, p: &[f64], y: &[f64]) -> impl Iterator<Item = CvError> {
+    p.iter()
+        .zip(y)
+        .enumerate()
+        .map(move |(horizon, (p, y))| CvError {
+            fold,
+            horizon,
+            e: p - y,
+        })
+}
+
+/// The errors of a fit procedure over the folds of `0..end`; `None` when a fold could not
+/// be fitted.
+fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Option<Vec<CvError>> {
     let mut e = Vec::new();
-    for (o, stop) in folds(end) {
+    for (i, (o, stop)) in folds(end).into_iter().enumerate() {
         let f = fit(o)?;
         let p = simulate(&f, g, o, stop);
-        e.extend(p.iter().zip(&g.y[o..stop]).map(|(p, y)| p - y));
+        e.extend(fold_errors(i, &p, &g.y[o..stop]));
     }
     (!e.is_empty()).then_some(e)
+}
+
+fn cv_rms(e: &[CvError]) -> f64 {
+    rms(&e.iter().map(|c| c.e).collect::<Vec<_>>())
 }
 
 /// Root mean square (0 for no values).
@@ -374,7 +462,7 @@ pub fn key_inputs(g: &Grid, end: usize) -> Vec<usize> {
             let Some(e) = cv_errors(g, end, &|o| fit_linear(g, &with, o)) else {
                 continue;
             };
-            let s = rms(&e);
+            let s = cv_rms(&e);
             if step.is_none_or(|(_, b)| s < b) {
                 step = Some((j, s));
             }
@@ -415,7 +503,7 @@ pub fn fit_family(family: Family, g: &Grid, end: usize) -> Option<Fitted> {
                     let Some(e) = cv_errors(g, end, &|o| fit_arx(g, na, nb, inputs, o)) else {
                         continue;
                     };
-                    let s = rms(&e);
+                    let s = cv_rms(&e);
                     if best.as_ref().is_none_or(|(_, b)| s < *b)
                         && let Some(f) = fit_arx(g, na, nb, inputs, end)
                     {
@@ -426,6 +514,8 @@ pub fn fit_family(family: Family, g: &Grid, end: usize) -> Option<Fitted> {
             best.map(|(f, _)| f)
         }
         Family::GreyBox => Some(Fitted::GreyBox),
+        // Its weights come from the competition's CV: see `choose`.
+        Family::Combination => None,
     }
 }
 
@@ -497,6 +587,116 @@ pub fn grey_box(
     Some(out)
 }
 
+/// Upper edges of the horizon bins of a band, hours after the last reading used: a free
+/// run's error grows with the horizon, so one band for all horizons is too wide early and
+/// too narrow late.
+pub const BAND_EDGES_H: [f64; 4] = [1.0, 3.0, 8.0, 20.0];
+
+/// Fewest CV errors a horizon bin needs for its own quantiles; a thinner bin takes the
+/// previous bin's.
+const MIN_BIN: usize = 20;
+
+/// A band by horizon, from CV errors: in each bin the 68 % and 95 % quantiles of the
+/// errors' size, never narrower than the bin before (the last bin holds every longer
+/// horizon, beyond what the CV saw: there the band is extrapolated flat, and says so by
+/// its hold-out coverage).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Bands {
+    /// Upper edge of each bin but the last, in grid steps.
+    pub edges: Vec<usize>,
+    pub b68: Vec<f64>,
+    pub b95: Vec<f64>,
+}
+
+impl Bands {
+    pub fn from_errors(errors: &[CvError], step_ns: i64) -> Bands {
+        let edges: Vec<usize> = BAND_EDGES_H
+            .iter()
+            .map(|h| (h * 3.6e12 / step_ns.max(1) as f64).round() as usize)
+            .collect();
+        let pooled: Vec<f64> = errors.iter().map(|c| c.e).collect();
+        let (mut b68, mut b95) = (Vec::new(), Vec::new());
+        let mut prev = (quantile_abs(&pooled, 0.68), quantile_abs(&pooled, 0.95));
+        let mut first = true;
+        for i in 0..=edges.len() {
+            let lo = if i == 0 { 0 } else { edges[i - 1] };
+            let hi = edges.get(i).copied().unwrap_or(usize::MAX);
+            let e: Vec<f64> = errors
+                .iter()
+                .filter(|c| c.horizon >= lo && c.horizon < hi)
+                .map(|c| c.e)
+                .collect();
+            let here = if e.len() >= MIN_BIN {
+                let q = (quantile_abs(&e, 0.68), quantile_abs(&e, 0.95));
+                if first {
+                    q
+                } else {
+                    (q.0.max(prev.0), q.1.max(prev.1))
+                }
+            } else {
+                prev
+            };
+            first = false;
+            b68.push(here.0);
+            b95.push(here.1);
+            prev = here;
+        }
+        Bands { edges, b68, b95 }
+    }
+
+    /// The 68 % and 95 % half-widths at `horizon` grid steps after the last reading.
+    pub fn at(&self, horizon: usize) -> (f64, f64) {
+        let i = self.edges.partition_point(|&e| e <= horizon);
+        (
+            self.b68.get(i).copied().unwrap_or(f64::NAN),
+            self.b95.get(i).copied().unwrap_or(f64::NAN),
+        )
+    }
+
+    /// The shares of `errors` (by horizon) within the 68 % and 95 % bands.
+    pub fn coverage(&self, errors: &[(usize, f64)]) -> (f64, f64) {
+        if errors.is_empty() {
+            return (f64::NAN, f64::NAN);
+        }
+        let (mut c68, mut c95) = (0usize, 0usize);
+        for &(h, e) in errors {
+            let (b68, b95) = self.at(h);
+            c68 += usize::from(e.abs() <= b68);
+            c95 += usize::from(e.abs() <= b95);
+        }
+        let n = errors.len() as f64;
+        (c68 as f64 / n, c95 as f64 / n)
+    }
+}
+
+/// The calibration of CV bands on the CV folds themselves: each fold's errors against the
+/// bands the other folds give, pooled. A band built and judged on the same errors would
+/// cover its share by construction.
+fn cv_coverage(errors: &[CvError], step_ns: i64) -> (f64, f64) {
+    let n_folds = errors.iter().map(|c| c.fold + 1).max().unwrap_or(0);
+    let (mut c68, mut c95, mut n) = (0.0, 0.0, 0usize);
+    for f in 0..n_folds {
+        let others: Vec<CvError> = errors.iter().filter(|c| c.fold != f).copied().collect();
+        let mine: Vec<(usize, f64)> = errors
+            .iter()
+            .filter(|c| c.fold == f)
+            .map(|c| (c.horizon, c.e))
+            .collect();
+        if others.is_empty() || mine.is_empty() {
+            continue;
+        }
+        let (a, b) = Bands::from_errors(&others, step_ns).coverage(&mine);
+        c68 += a * mine.len() as f64;
+        c95 += b * mine.len() as f64;
+        n += mine.len();
+    }
+    if n == 0 {
+        (f64::NAN, f64::NAN)
+    } else {
+        (c68 / n as f64, c95 / n as f64)
+    }
+}
+
 /// One family's figures on one channel.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FamilyScore {
@@ -505,16 +705,27 @@ pub struct FamilyScore {
     pub detail: String,
     /// Rolling-origin CV on the training span, RMSE.
     pub cv_rmse: f64,
-    /// The 68 % and 95 % quantiles of the CV errors' size: the band the family claims.
+    /// The 68 % and 95 % quantiles of the CV errors' size, all horizons pooled.
     pub band68: f64,
     pub band95: f64,
+    /// The band by horizon the family claims (absent in model files written before it).
+    #[serde(default)]
+    pub bands: Option<Bands>,
+    /// The bands' coverage on the CV folds, each fold against the others' bands.
+    #[serde(default)]
+    pub cv_cover68: Option<f64>,
+    #[serde(default)]
+    pub cv_cover95: Option<f64>,
     /// Hold-out (after the training span, no reading used): RMSE, largest error, and the
-    /// shares within the 68 % and 95 % bands.
+    /// shares within the 68 % and 95 % bands at their horizons.
     pub holdout_rmse: f64,
     pub holdout_max: f64,
     pub cover68: f64,
     pub cover95: f64,
     pub chosen: bool,
+    /// A combination's parts and weights.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub weights: Vec<(String, f64)>,
 }
 
 /// The share of errors within `band` (NaN without errors).
@@ -535,6 +746,125 @@ fn quantile_abs(e: &[f64], q: f64) -> f64 {
     a[i]
 }
 
+/// A family's CV errors and hold-out predictions, before scoring.
+struct Run {
+    family: Family,
+    detail: String,
+    cv: Vec<CvError>,
+    hold: Vec<f64>,
+    weights: Vec<(String, f64)>,
+}
+
+/// The grey box's CV errors and hold-out predictions; `None` when a fold cannot be fitted.
+fn grey_box_run(
+    events: &[Event],
+    cfg: &ModelConfig,
+    g: &Grid,
+    n_train: usize,
+) -> Option<(Vec<CvError>, Vec<f64>)> {
+    let mut e = Vec::new();
+    for (i, (o, stop)) in folds(n_train).into_iter().enumerate() {
+        let p = grey_box(events, cfg, g, o, stop)?;
+        e.extend(fold_errors(i, &p, &g.y[o..stop]));
+    }
+    if e.is_empty() {
+        return None;
+    }
+    // No hold-out when the training span is the whole grid.
+    let hold = if n_train < g.len() {
+        grey_box(events, cfg, g, n_train, g.len())?
+    } else {
+        Vec::new()
+    };
+    Some((e, hold))
+}
+
+/// The inverse-MSE combination of every run but persistence (at least two, with the same
+/// folds and hold-out).
+fn combine(runs: &[Run]) -> Option<Run> {
+    let parts: Vec<&Run> = runs
+        .iter()
+        .filter(|r| r.family != Family::Persistence)
+        .collect();
+    let first = parts.first()?;
+    if parts.len() < 2
+        || parts
+            .iter()
+            .any(|r| r.cv.len() != first.cv.len() || r.hold.len() != first.hold.len())
+    {
+        return None;
+    }
+    let inv: Vec<f64> = parts
+        .iter()
+        .map(|r| 1.0 / cv_rms(&r.cv).powi(2).max(1e-12))
+        .collect();
+    let total: f64 = inv.iter().sum();
+    let w: Vec<f64> = inv.iter().map(|v| v / total).collect();
+    let mut cv = first.cv.clone();
+    for (i, c) in cv.iter_mut().enumerate() {
+        c.e = parts.iter().zip(&w).map(|(r, w)| w * r.cv[i].e).sum();
+    }
+    let hold = (0..first.hold.len())
+        .map(|i| parts.iter().zip(&w).map(|(r, w)| w * r.hold[i]).sum())
+        .collect();
+    let weights: Vec<(String, f64)> = parts
+        .iter()
+        .zip(&w)
+        .map(|(r, w)| (r.family.as_str().to_string(), *w))
+        .collect();
+    Some(Run {
+        family: Family::Combination,
+        detail: weights
+            .iter()
+            .map(|(f, w)| format!("{w:.2} {f}"))
+            .collect::<Vec<_>>()
+            .join(" + "),
+        cv,
+        hold,
+        weights,
+    })
+}
+
+fn score(r: Run, g: &Grid, n_train: usize) -> FamilyScore {
+    let step_ns = g.t_ns.get(1).map_or(1, |t| t - g.t_ns[0]);
+    let he: Vec<(usize, f64)> = r
+        .hold
+        .iter()
+        .zip(&g.y[n_train..])
+        .enumerate()
+        .map(|(h, (p, y))| (h, p - y))
+        .collect();
+    let bands = Bands::from_errors(&r.cv, step_ns);
+    let (cover68, cover95) = bands.coverage(&he);
+    let (cv68, cv95) = cv_coverage(&r.cv, step_ns);
+    let pooled: Vec<f64> = r.cv.iter().map(|c| c.e).collect();
+    let hold_e: Vec<f64> = he.iter().map(|x| x.1).collect();
+    FamilyScore {
+        family: r.family.as_str().to_string(),
+        detail: r.detail,
+        cv_rmse: rms(&pooled),
+        band68: quantile_abs(&pooled, 0.68),
+        band95: quantile_abs(&pooled, 0.95),
+        bands: Some(bands),
+        cv_cover68: Some(cv68),
+        cv_cover95: Some(cv95),
+        holdout_rmse: if he.is_empty() {
+            f64::NAN
+        } else {
+            rms(&hold_e)
+        },
+        holdout_max: if he.is_empty() {
+            f64::NAN
+        } else {
+            hold_e.iter().fold(0.0, |m: f64, e| m.max(e.abs()))
+        },
+        cover68,
+        cover95,
+        chosen: false,
+        weights: r.weights,
+    }
+}
+
 /// Every family on one channel: CV on grid points before `train_end_ns`, hold-out on the
 /// rest. The chosen family has the lowest CV RMSE among those that could be fitted.
 pub fn compete(
@@ -546,64 +876,36 @@ pub fn compete(
 ) -> Vec<FamilyScore> {
     let n_train = g.index_at(train_end_ns);
     let n = g.len();
-    let cfg = grey;
-    let mut out = Vec::new();
-    for &fam in families {
-        let (cv, hold, detail) = if fam == Family::GreyBox {
-            let mut e = Vec::new();
-            let mut ok = true;
-            for (o, stop) in folds(n_train) {
-                match grey_box(events, cfg, g, o, stop) {
-                    Some(p) => e.extend(p.iter().zip(&g.y[o..stop]).map(|(p, y)| p - y)),
-                    None => ok = false,
-                }
-            }
-            if !ok || e.is_empty() {
-                continue;
-            }
-            // No hold-out when the training span is the whole grid.
-            let hold = if n_train < n {
-                match grey_box(events, cfg, g, n_train, n) {
-                    Some(h) => h,
-                    None => continue,
-                }
-            } else {
-                Vec::new()
-            };
-            (e, hold, Fitted::GreyBox.describe(g))
-        } else {
-            let Some(e) = cv_errors(g, n_train, &|o| fit_family(fam, g, o)) else {
-                continue;
-            };
-            let Some(f) = fit_family(fam, g, n_train) else {
-                continue;
-            };
-            (e, simulate(&f, g, n_train, n), f.describe(g))
+    let mut runs = Vec::new();
+    for &family in families {
+        let run = match family {
+            Family::Combination => continue,
+            Family::GreyBox => grey_box_run(events, grey, g, n_train).map(|(cv, hold)| Run {
+                family,
+                detail: Fitted::GreyBox.describe(g),
+                cv,
+                hold,
+                weights: Vec::new(),
+            }),
+            _ => cv_errors(g, n_train, &|o| fit_family(family, g, o)).and_then(|cv| {
+                let f = fit_family(family, g, n_train)?;
+                Some(Run {
+                    family,
+                    detail: f.describe(g),
+                    cv,
+                    hold: simulate(&f, g, n_train, n),
+                    weights: Vec::new(),
+                })
+            }),
         };
-        let he: Vec<f64> = hold
-            .iter()
-            .zip(&g.y[n_train..n])
-            .map(|(p, y)| p - y)
-            .collect();
-        let (b68, b95) = (quantile_abs(&cv, 0.68), quantile_abs(&cv, 0.95));
-        let share = |b: f64| coverage(&he, b);
-        out.push(FamilyScore {
-            family: fam.as_str().to_string(),
-            detail,
-            cv_rmse: rms(&cv),
-            band68: b68,
-            band95: b95,
-            holdout_rmse: if he.is_empty() { f64::NAN } else { rms(&he) },
-            holdout_max: if he.is_empty() {
-                f64::NAN
-            } else {
-                he.iter().fold(0.0, |m: f64, e| m.max(e.abs()))
-            },
-            cover68: share(b68),
-            cover95: share(b95),
-            chosen: false,
-        });
+        runs.extend(run);
     }
+    if families.contains(&Family::Combination)
+        && let Some(c) = combine(&runs)
+    {
+        runs.push(c);
+    }
+    let mut out: Vec<FamilyScore> = runs.into_iter().map(|r| score(r, g, n_train)).collect();
     if let Some(best) = out
         .iter_mut()
         .min_by(|a, b| a.cv_rmse.total_cmp(&b.cv_rmse))
@@ -644,12 +946,9 @@ pub fn leaves_range(
     origin: usize,
     end: usize,
 ) -> Option<(usize, usize, f64)> {
-    let inputs: &[usize] = match f {
-        Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => inputs,
-        Fitted::Persistence | Fitted::GreyBox => return None,
-    };
+    let inputs = f.empirical_inputs();
     for k in origin..end.min(g.len()) {
-        for &j in inputs {
+        for &j in &inputs {
             let [lo, hi] = *ranges.get(j)?;
             let slack = (RANGE_SLACK * (hi - lo)).max(1e-9 * lo.abs().max(hi.abs()));
             let v = g.inputs[j][k];
@@ -676,7 +975,34 @@ pub struct ChannelChoice {
     pub ranges: Vec<[f64; 2]>,
     pub band68: f64,
     pub band95: f64,
+    /// The band by horizon (absent in model files written before it: the pooled band
+    /// serves).
+    #[serde(default)]
+    pub bands: Option<Bands>,
     pub scores: Vec<FamilyScore>,
+}
+
+impl ChannelChoice {
+    /// The 68 % and 95 % half-widths `horizon` grid steps after the last reading used.
+    pub fn band_at(&self, horizon: usize) -> (f64, f64) {
+        self.bands
+            .as_ref()
+            .map_or((self.band68, self.band95), |b| b.at(horizon))
+    }
+}
+
+/// A scored family fitted on grid points `0..end` (a combination with its CV weights).
+pub fn fit_scored(score: &FamilyScore, g: &Grid, end: usize) -> Option<Fitted> {
+    match Family::parse(&score.family)? {
+        Family::Combination => {
+            let mut parts = Vec::new();
+            for (name, w) in &score.weights {
+                parts.push((fit_family(Family::parse(name)?, g, end)?, *w));
+            }
+            Some(Fitted::Combination { parts })
+        }
+        family => fit_family(family, g, end),
+    }
 }
 
 /// Run the competition on the training span (`train_end_ns`: all of the grid when it lies
@@ -694,9 +1020,8 @@ pub fn choose(
         Some(f) => scores.iter().find(|s| s.family == f.as_str())?,
         None => scores.iter().find(|s| s.chosen)?,
     };
-    let family = Family::parse(&pick.family)?;
     let n_train = g.index_at(train_end_ns);
-    let fitted = fit_family(family, g, n_train)?;
+    let fitted = fit_scored(pick, g, n_train)?;
     let ranges = input_ranges(g, n_train);
     Some(ChannelChoice {
         channel: g.channel.clone(),
@@ -707,6 +1032,7 @@ pub fn choose(
         ranges,
         band68: pick.band68,
         band95: pick.band95,
+        bands: pick.bands.clone(),
         scores,
     })
 }
@@ -767,7 +1093,8 @@ mod tests {
 
     #[test]
     fn folds_chain_forward_and_cover_the_second_half() {
-        assert_eq!(folds(80), [(40, 50), (50, 60), (60, 70), (70, 80)]);
+        assert_eq!(folds(80), [40, 45, 50, 55, 60, 65, 70, 75].map(|o| (o, 80)));
+        assert_eq!(folds(8), [4, 5, 6, 7].map(|o| (o, 8)));
         assert!(folds(1).is_empty());
     }
 
@@ -801,6 +1128,79 @@ mod tests {
         assert!(by(Family::Regression).holdout_rmse < by(Family::Persistence).holdout_rmse);
         // Its band, from the CV errors, covers about what it claims on the hold-out.
         assert!(arx.cover95 > 0.8, "{arx:?}");
+    }
+
+    /// Errors that grow with the horizon get a band that grows with it; the band from one
+    /// fold's errors, judged on another fold like it, covers about its share.
+    #[test]
+    fn bands_widen_with_the_horizon_and_are_judged_on_other_folds() {
+        let step = 5 * MIN;
+        let mut rng = 7u64;
+        let mut errors = Vec::new();
+        for fold in 0..4 {
+            for horizon in 0..300 {
+                rng = rng
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let u = ((rng >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0;
+                errors.push(CvError {
+                    fold,
+                    horizon,
+                    e: u * (1.0 + horizon as f64 / 12.0),
+                });
+            }
+        }
+        let b = Bands::from_errors(&errors, step);
+        // Edges at 1, 3, 8 and 20 h on a 5-min grid.
+        assert_eq!(b.edges, [12, 36, 96, 240]);
+        assert!(b.b68.windows(2).all(|w| w[0] <= w[1]), "{b:?}");
+        assert!(b.at(0).0 < 0.5 * b.at(200).0, "{b:?}");
+        assert!(b.at(0).0 < b.at(0).1);
+        // Uniform errors: the 68 % quantile of |u| is 0.68 of the half-width.
+        let (c68, c95) = cv_coverage(&errors, step);
+        assert!(
+            (c68 - 0.68).abs() < 0.05 && (c95 - 0.95).abs() < 0.03,
+            "{c68} {c95}"
+        );
+    }
+
+    /// Two runs with opposite errors: the inverse-MSE combination has the smaller CV error,
+    /// weights that sum to one, and leaves persistence out.
+    #[test]
+    fn the_combination_weighs_by_cv_error_and_leaves_persistence_out() {
+        let cv = |scale: f64| -> Vec<CvError> {
+            (0..40)
+                .map(|h| CvError {
+                    fold: h / 20,
+                    horizon: h % 20,
+                    e: scale * if h % 2 == 0 { 1.0 } else { -1.0 },
+                })
+                .collect()
+        };
+        let run = |family, scale: f64| Run {
+            family,
+            detail: String::new(),
+            cv: cv(scale),
+            hold: vec![scale; 5],
+            weights: Vec::new(),
+        };
+        let runs = vec![
+            run(Family::Persistence, 0.1),
+            run(Family::Regression, 1.0),
+            run(Family::Arx, -2.0),
+        ];
+        let c = combine(&runs).unwrap();
+        let w: Vec<f64> = c.weights.iter().map(|x| x.1).collect();
+        assert_eq!(c.weights[0].0, "regression");
+        assert_eq!(c.weights.len(), 2);
+        assert!(
+            (w[0] - 0.8).abs() < 1e-12 && (w[1] - 0.2).abs() < 1e-12,
+            "{w:?}"
+        );
+        // 0.8 * 1 + 0.2 * (-2) = 0.4 on every point.
+        assert!((cv_rms(&c.cv) - 0.4).abs() < 1e-12);
+        assert!(c.hold.iter().all(|h| (h - 0.4).abs() < 1e-12));
+        assert!(combine(&runs[..2]).is_none());
     }
 
     #[test]

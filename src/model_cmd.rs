@@ -214,6 +214,23 @@ fn only_sensors(events: Vec<Event>, sensors: &[String]) -> Vec<Event> {
         .collect()
 }
 
+/// Whether a temperature sensor's readings vary in the events.
+fn varies(events: &[Event], sensor: &str) -> bool {
+    let mut range: Option<(f64, f64)> = None;
+    for e in events {
+        if let Event::Temperature {
+            sensor: s, celsius, ..
+        } = e
+            && s == sensor
+        {
+            let (lo, hi) = range.get_or_insert((*celsius, *celsius));
+            *lo = lo.min(*celsius);
+            *hi = hi.max(*celsius);
+        }
+    }
+    range.is_some_and(|(lo, hi)| hi > lo)
+}
+
 /// Whether the spindle turned in the events (a log of zeros is no spindle log).
 fn spins(events: &[Event]) -> bool {
     events
@@ -319,19 +336,29 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             all_sensors.join(", ")
         );
     }
+    let every_sensor = || {
+        all_sensors
+            .iter()
+            .map(|s| TemperatureInput {
+                sensor: s.clone(),
+                taus_min: driftwatch::thermal_model::default_temperature_taus(),
+            })
+            .collect()
+    };
+    // A displacement recording's grey box takes every temperature that varies unless some
+    // are named: it competes with regressions that take them all, and `bench thermal` judges
+    // it so. (A constant one is the offset again.)
+    if cfg.temperatures.is_empty() && !displacement_channels(&events).is_empty() {
+        cfg.temperatures = every_sensor();
+        cfg.temperatures.retain(|t| varies(&events, &t.sensor));
+    }
     if !spins(&events) {
         // No spindle log: the spindle basis would be a column of zeros. The temperatures
         // are the inputs, every one unless some are named.
         cfg.taus_min.clear();
         cfg.instant_speed = false;
         if cfg.temperatures.is_empty() {
-            cfg.temperatures = all_sensors
-                .iter()
-                .map(|s| TemperatureInput {
-                    sensor: s.clone(),
-                    taus_min: driftwatch::thermal_model::default_temperature_taus(),
-                })
-                .collect();
+            cfg.temperatures = every_sensor();
         }
         eprintln!(
             "warning: the recordings have no spindle speed (no /spindle message, or only 0): the models use the temperatures alone{}",
@@ -411,21 +438,31 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     }
     if !file.families.is_empty() {
         println!(
-            "model families, rolling-origin cross-validation on the fit data (origins at 1/2, 5/8, 6/8, 7/8 of it, each predicting freely to the next): RMSE, and the band of the CV errors"
+            "model families, rolling-origin cross-validation on the fit data (eight origins from 1/2 to 15/16 of it, each predicting freely to its end): CV RMSE; the 68/95 % band of the CV errors at horizons under 1 h and over 8 h; and its CV coverage (each fold against the other folds' bands; 68 and 95 % when calibrated). These are CV figures on the fit data, not a hold-out."
         );
         println!(
-            "{:<12} {:<15} {:>9} {:>8} {:>8}  chosen / inputs",
-            "channel", "family", "CV rmse", "band68", "band95"
+            "{:<12} {:<15} {:>9} {:>13} {:>13} {:>11}  chosen / inputs",
+            "channel", "family", "CV rmse", "band <1 h", "band >8 h", "CV cov"
         );
         for c in &file.families {
             for s in &c.scores {
+                let (early, late) = s
+                    .bands
+                    .as_ref()
+                    .map_or(((s.band68, s.band95), (s.band68, s.band95)), |b| {
+                        (b.at(0), b.at(usize::MAX))
+                    });
                 println!(
-                    "{:<12} {:<15} {:>9.3} {:>8.3} {:>8.3}  {}{}",
+                    "{:<12} {:<15} {:>9.3} {:>6.2}/{:<6.2} {:>6.2}/{:<6.2} {:>4.0}%/{:>3.0}%  {}{}",
                     c.channel,
                     s.family,
                     s.cv_rmse,
-                    s.band68,
-                    s.band95,
+                    early.0,
+                    early.1,
+                    late.0,
+                    late.1,
+                    100.0 * s.cv_cover68.unwrap_or(f64::NAN),
+                    100.0 * s.cv_cover95.unwrap_or(f64::NAN),
                     if s.family == c.family {
                         if force.is_some() {
                             "<- forced; "
@@ -665,18 +702,23 @@ fn predict_family(
     json: bool,
 ) -> Result<Vec<(f64, f64, f64)>> {
     let (c, g, origin) = (r.c, r.g, r.origin);
-    let family = driftwatch::families::simulate(&c.fitted, g, origin, g.len());
+    // The grey box's served value at each grid time (a combination holds it; it serves where
+    // the family leaves its fit data).
+    let grey: Vec<f64> = g.t_ns[origin.min(g.len())..]
+        .iter()
+        .map(|t| {
+            let at = r.grey.partition_point(|(tg, _)| tg <= t);
+            at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
+        })
+        .collect();
+    let family = driftwatch::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
     let p: Vec<(f64, &str)> = family
         .iter()
+        .zip(&grey)
         .enumerate()
-        .map(|(i, v)| {
-            let k = origin + i;
-            if r.leave.is_some_and(|l| k >= l) {
-                let at = r.grey.partition_point(|(t, _)| *t <= g.t_ns[k]);
-                (
-                    at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1),
-                    "grey_box",
-                )
+        .map(|(i, (v, gb))| {
+            if r.leave.is_some_and(|l| origin + i >= l) {
+                (*gb, "grey_box")
             } else {
                 (*v, c.family.as_str())
             }
@@ -690,10 +732,12 @@ fn predict_family(
     for (i, (v, by)) in p.iter().enumerate() {
         let k = origin + i;
         let y = g.y[k];
-        errors.push(v - y);
+        // The band widens with the time since the last reading used.
+        let (b68, b95) = c.band_at(i);
+        errors.push((i, v - y));
         persistence.push(g.y[origin - 1] - y);
         if g.t_ns[k] >= from {
-            series.push(((g.t_ns[k] - t0) as f64 / 3.6e12, *v, c.band68));
+            series.push(((g.t_ns[k] - t0) as f64 / 3.6e12, *v, b68));
         }
         // Rows at the requested step (the family runs on its own grid).
         if g.t_ns[k] < next_row {
@@ -706,8 +750,8 @@ fn predict_family(
                 "time": chrono::DateTime::from_timestamp_nanos(g.t_ns[k]).to_rfc3339(),
                 "values": {c.channel.clone(): {
                     "value": v,
-                    "sigma": c.band68,
-                    "band95": c.band95,
+                    "sigma": b68,
+                    "band95": b95,
                     "source": "predicted",
                     "family": by,
                     "measured": y,
@@ -721,15 +765,28 @@ fn predict_family(
                 (g.t_ns[k] - t0) as f64 / 3.6e12,
                 c.channel,
                 v,
-                c.band68,
+                b68,
                 y
             )?;
         }
     }
     drop(out);
     let rms = driftwatch::families::rms;
+    let (cover68, cover95) = match &c.bands {
+        Some(b) => b.coverage(&errors),
+        None => {
+            let e: Vec<(usize, f64)> = errors.iter().map(|&(_, e)| (0, e)).collect();
+            let flat = driftwatch::families::Bands {
+                edges: Vec::new(),
+                b68: vec![c.band68],
+                b95: vec![c.band95],
+            };
+            flat.coverage(&e)
+        }
+    };
+    let errors: Vec<f64> = errors.into_iter().map(|(_, e)| e).collect();
     eprintln!(
-        "{}: {} ({}){}, free run from {:.2} h, {} readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
+        "{}: {} ({}){}, free run from {:.2} h, {} readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band by horizon: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
         c.channel,
         c.family,
         c.fitted.describe(g),
@@ -744,8 +801,8 @@ fn predict_family(
         rms(&errors),
         rms(&persistence),
         errors.iter().fold(0.0f64, |m, e| m.max(e.abs())),
-        100.0 * driftwatch::families::coverage(&errors, c.band68),
-        100.0 * driftwatch::families::coverage(&errors, c.band95),
+        100.0 * cover68,
+        100.0 * cover95,
     );
     Ok(series)
 }
