@@ -591,31 +591,166 @@ fn real_sets() -> Vec<RealSet> {
     ]
 }
 
+/// A shipped real data set's events (from t = 0).
+fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch::thermal_model::Event>> {
+    use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
+    let path = data.join(set.csv);
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("reading {} (give --data DIR)", path.display()))?;
+    let im = import_csv(
+        &text,
+        &CsvOptions {
+            time: RowTime::Column(set.time_column.into()),
+            start_ns: 0,
+            spindle: set.spindle.map(String::from),
+            temperatures: set.temperatures.clone(),
+            displacements: set.channels.clone(),
+            machine_id: set.name.into(),
+        },
+    )
+    .with_context(|| format!("importing {}", path.display()))?;
+    Ok(driftwatch::thermal_model::events_from(&[im.recording]))
+}
+
+/// The displacement diagnosis on every shipped real data set and on null recordings made
+/// from the first: the terms that worsen the held-out end, the false positives on `n_nulls`
+/// nulls, and the power on injected temperature effects; each under the acceptance rules
+/// before issue 14 and now.
+pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
+    use driftwatch::diagnosis_calibration::{null_trial, power_trial, worsening_terms};
+    use driftwatch::displacement_diagnosis::{DisplacementOptions, diagnose_displacements};
+    use driftwatch::surrogates::Null;
+    let rules = [
+        ("before", DisplacementOptions::before_issue_14()),
+        ("now", DisplacementOptions::default()),
+    ];
+    let sets = real_sets();
+    let mut report = serde_json::Map::new();
+    // 1. Real data: held-out end, and terms that worsen it.
+    let mut real = Vec::new();
+    for set in &sets {
+        let events = real_events(data, set)?;
+        for (rule, opts) in &rules {
+            let mut opts = opts.clone();
+            opts.n_ref_rpm = top_speed(&events);
+            let d = diagnose_displacements(&events, &set.channels, &opts)?;
+            let worse = worsening_terms(&d);
+            for c in &d.channels {
+                let w = worse.iter().filter(|w| w.0 == c.channel).count();
+                if !json {
+                    println!(
+                        "{:<30} {:<7} {:<7} held-out {:>6.2} um baseline, {:>6.2} um final; {} terms accepted, {} worsen the held-out end",
+                        set.name,
+                        rule,
+                        c.channel,
+                        c.baseline.rms_heldout_um,
+                        c.final_fit.rms_heldout_um,
+                        c.accepted.len(),
+                        w
+                    );
+                }
+                real.push(serde_json::json!({
+                    "set": set.name, "rule": rule, "channel": c.channel,
+                    "baseline_heldout_um": c.baseline.rms_heldout_um,
+                    "final_heldout_um": c.final_fit.rms_heldout_um,
+                    "accepted": c.accepted.len(), "worsening": w,
+                }));
+            }
+        }
+    }
+    report.insert("real".into(), real.into());
+    // 2. Nulls from the first set (with its spindle log): four kinds in turn, the channels
+    // in turn, one seed each.
+    let base = real_events(data, &sets[0])?;
+    let n_ref = top_speed(&base);
+    let mut null_rows = Vec::new();
+    for (rule, opts) in &rules {
+        let opts = DisplacementOptions {
+            n_ref_rpm: n_ref,
+            ..opts.clone()
+        };
+        let mut hits = 0;
+        for i in 0..n_nulls {
+            let kind = Null::ALL[i % Null::ALL.len()];
+            let ch = &sets[0].channels[(i / Null::ALL.len()) % sets[0].channels.len()];
+            let o = null_trial(&base, kind, ch, i as u64, &opts)?;
+            hits += usize::from(!o.false_terms.is_empty());
+            if !json && !o.false_terms.is_empty() {
+                println!(
+                    "null {i:>3} {rule:<7} {:<17} {:<7} false: {}",
+                    o.null,
+                    o.channel,
+                    o.false_terms.join(", ")
+                );
+            }
+            null_rows.push(serde_json::json!({"rule": rule, "outcome": o}));
+        }
+        if !json {
+            println!(
+                "nulls, rule {rule}: {hits} of {n_nulls} with a false term ({:.1} %)",
+                100.0 * hits as f64 / n_nulls.max(1) as f64
+            );
+        }
+    }
+    report.insert("nulls".into(), null_rows.into());
+    // 3. Power: t11_C's change injected into AR-noise nulls of ch1, by size.
+    let mut power_rows = Vec::new();
+    let trials = 10;
+    for rms in [0.25, 0.5, 1.0, 2.0, 4.0] {
+        for (rule, opts) in &rules {
+            let opts = DisplacementOptions {
+                n_ref_rpm: n_ref,
+                ..opts.clone()
+            };
+            let mut found = 0;
+            for seed in 0..trials {
+                found += usize::from(power_trial(
+                    &base,
+                    "ch1_um",
+                    "t11_C",
+                    rms,
+                    1000 + seed,
+                    &opts,
+                )?);
+            }
+            if !json {
+                println!(
+                    "power, rule {rule:<7} t11_C effect of {rms:>4} um RMS in {} um AR noise: found {found} of {trials}",
+                    driftwatch::diagnosis_calibration::NULL_NOISE_UM
+                );
+            }
+            power_rows.push(
+                serde_json::json!({"rule": rule, "rms_um": rms, "found": found, "trials": trials}),
+            );
+        }
+    }
+    report.insert("power".into(), power_rows.into());
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The top logged spindle speed (1 without a spindle log): the diagnosis' reference speed.
+fn top_speed(events: &[driftwatch::thermal_model::Event]) -> f64 {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            driftwatch::thermal_model::Event::Spindle { rpm, .. } => Some(rpm.abs()),
+            _ => None,
+        })
+        .fold(0.0, f64::max)
+        .max(1.0)
+}
+
 /// Every family against the baselines on every shipped real data set: rolling-origin CV on
 /// the training span, then the hold-out with no reading used.
 pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
-    use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
     use driftwatch::families::{Family, compete, grid};
-    use driftwatch::thermal_model::events_from;
     let step_ns = (step_min * 60e9) as i64;
     let mut rows = Vec::new();
     for set in real_sets() {
-        let path = data.join(set.csv);
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("reading {} (give --data DIR)", path.display()))?;
-        let im = import_csv(
-            &text,
-            &CsvOptions {
-                time: RowTime::Column(set.time_column.into()),
-                start_ns: 0,
-                spindle: set.spindle.map(String::from),
-                temperatures: set.temperatures.clone(),
-                displacements: set.channels.clone(),
-                machine_id: set.name.into(),
-            },
-        )
-        .with_context(|| format!("importing {}", path.display()))?;
-        let events = events_from(&[im.recording]);
+        let events = real_events(data, &set)?;
         let train_end_ns = (set.train_h * 3600e9) as i64;
         if !json {
             println!(

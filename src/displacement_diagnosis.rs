@@ -14,6 +14,7 @@
 use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, DVector};
+use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::diagnosis::{DIAGNOSIS_TAUS_MIN, lsq};
@@ -54,6 +55,38 @@ pub struct DisplacementOptions {
     pub band_min: (f64, f64),
     /// Smallest post-change excursion reported as an overshoot, um.
     pub min_overshoot_um: f64,
+    /// Largest order of the AR noise model the acceptance whitens with; the order is chosen
+    /// by BIC on the residual up to it (1: AR(1), as before issue 14).
+    pub ar_max: usize,
+    /// The folds a term must improve: rolling origins (fit on what came before, predict the
+    /// rest of the training span), or leave-one-block-out blocks (as before issue 14).
+    pub rolling_origin: bool,
+    /// Drop a final term that worsens the held-out end (then the held-out RMS is a
+    /// validation figure the selection has seen, and is labelled so).
+    pub heldout_veto: bool,
+    /// Surrogate replicates of the best-candidate threshold (0: none, the fixed delta-BIC
+    /// alone). In each, every candidate is replaced by a phase-randomised copy (the same
+    /// spectrum, no relation to the readings) and the best delta-BIC among them noted; a
+    /// term must beat the highest of those (with 39, the 97.5 % point: each step of the
+    /// forward selection is a test, and a selection takes several). The bar is then what the best of this many
+    /// candidates reaches by chance on residuals like these, not a fixed number.
+    pub surrogates: usize,
+    /// Seed of the surrogates.
+    pub seed: u64,
+}
+
+impl DisplacementOptions {
+    /// The acceptance rules before issue 14 (AR(1) whitening, leave-one-block-out blocks, no
+    /// held-out veto): kept to measure what the change did.
+    pub fn before_issue_14() -> Self {
+        DisplacementOptions {
+            ar_max: 1,
+            rolling_origin: false,
+            heldout_veto: false,
+            surrogates: 0,
+            ..Default::default()
+        }
+    }
 }
 
 impl Default for DisplacementOptions {
@@ -71,6 +104,11 @@ impl Default for DisplacementOptions {
             max_um: 200.0,
             band_min: (10.0, 60.0),
             min_overshoot_um: 1.5,
+            ar_max: 4,
+            rolling_origin: true,
+            heldout_veto: true,
+            surrogates: 39,
+            seed: 14,
         }
     }
 }
@@ -129,6 +167,147 @@ pub struct Unexplained {
     /// Sensors whose temperature follows the residual over that span, best first: name and
     /// correlation (at most 3).
     pub drivers: Vec<(String, f64)>,
+    /// The best drift that starts at some hour and follows a temperature.
+    pub onset: Option<Onset>,
+}
+
+/// A drift of the residual that starts at some hour and follows one temperature from then
+/// on: `c + a (T(t) - T(t_on))` after `t_on`, `c` before, fitted over every sensor and every
+/// onset on an hourly grid (10 % to 90 % of the span). A location, not an acceptance test.
+/// Its delta-BICs count the residual's samples as `n (1 - r) / (1 + r)` independent ones
+/// (`r` the lag-1 autocorrelation left by the best fit): a slow residual holds far fewer
+/// independent readings than samples, and raw figures would tell apart what it cannot.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Onset {
+    pub at_h: f64,
+    /// The onsets within delta-BIC 2 of the best, for its sensor: a temperature that stays
+    /// flat for hours cannot say when within them the drift began.
+    pub earliest_h: f64,
+    pub latest_h: f64,
+    pub sensor: String,
+    pub gain_um_per_k: f64,
+    /// Independent samples the delta-BICs count.
+    pub n_eff: f64,
+    /// Against no change, and against the best change of shape that follows no temperature
+    /// (a step or a ramp from some hour on the same grid); both with two parameters more.
+    pub delta_bic: f64,
+    pub delta_bic_vs_shape: f64,
+    /// The other sensors' delta-BIC with the same onset, best first (at most 3).
+    pub others: Vec<(String, f64)>,
+    /// Told apart: at least 10 above the shapes and above every other sensor.
+    pub tied: bool,
+}
+
+/// The SSE of `r` fitted by an offset and `x` (the offset alone when `x` is constant).
+fn sse_with(r: &[f64], x: &[f64]) -> f64 {
+    let n = r.len() as f64;
+    let (mr, mx) = (r.iter().sum::<f64>() / n, x.iter().sum::<f64>() / n);
+    let (mut sxx, mut sxr, mut srr) = (0.0, 0.0, 0.0);
+    for (a, b) in r.iter().zip(x) {
+        sxx += (b - mx).powi(2);
+        sxr += (b - mx) * (a - mr);
+        srr += (a - mr).powi(2);
+    }
+    if sxx <= 1e-12 {
+        srr
+    } else {
+        srr - sxr * sxr / sxx
+    }
+}
+
+/// The onset search of [`Onset`] on residual `r` at times `t_min`, temperatures `temps`.
+fn locate_onset(t_min: &[f64], r: &[f64], temps: &[(String, Vec<f64>)]) -> Option<Onset> {
+    let n = r.len();
+    if n < 20 {
+        return None;
+    }
+    let (t0, t1) = (t_min[0], t_min[n - 1]);
+    let sse0 = sse_with(r, &vec![0.0; n]);
+    let onsets: Vec<usize> = {
+        let mut v = Vec::new();
+        let mut h = t0 + 0.1 * (t1 - t0);
+        while h <= t0 + 0.9 * (t1 - t0) {
+            v.push(t_min.partition_point(|t| *t < h));
+            h += 60.0;
+        }
+        v.dedup();
+        v
+    };
+    let mut shape = f64::INFINITY;
+    // (sse, onset row, sensor index); every sensor's SSE at every onset.
+    let mut best: Option<(f64, usize, usize)> = None;
+    let mut table: Vec<Vec<f64>> = vec![Vec::new(); temps.len()];
+    for &k in &onsets {
+        let step: Vec<f64> = (0..n).map(|i| f64::from(u8::from(i >= k))).collect();
+        let ramp: Vec<f64> = (0..n).map(|i| (t_min[i] - t_min[k]).max(0.0)).collect();
+        shape = shape.min(sse_with(r, &step)).min(sse_with(r, &ramp));
+        for (s, (_, x)) in temps.iter().enumerate() {
+            let g: Vec<f64> = (0..n)
+                .map(|i| if i >= k { x[i] - x[k] } else { 0.0 })
+                .collect();
+            let sse = sse_with(r, &g);
+            table[s].push(sse);
+            if best.is_none_or(|b| sse < b.0) {
+                best = Some((sse, k, s));
+            }
+        }
+    }
+    let (sse, k, s) = best?;
+    let gated = |x: &[f64]| -> Vec<f64> {
+        (0..n)
+            .map(|i| if i >= k { x[i] - x[k] } else { 0.0 })
+            .collect()
+    };
+    let g = gated(&temps[s].1);
+    let nf = n as f64;
+    let (gain, rho) = {
+        let (mg, mr) = (g.iter().sum::<f64>() / nf, r.iter().sum::<f64>() / nf);
+        let sxx: f64 = g.iter().map(|v| (v - mg).powi(2)).sum();
+        let sxr: f64 = g.iter().zip(r).map(|(a, b)| (a - mg) * (b - mr)).sum();
+        let gain = if sxx > 0.0 { sxr / sxx } else { 0.0 };
+        let left: Vec<f64> = g
+            .iter()
+            .zip(r)
+            .map(|(a, b)| b - mr - gain * (a - mg))
+            .collect();
+        (gain, ar1(&left).clamp(0.0, 0.99))
+    };
+    let n_eff = nf * (1.0 - rho) / (1.0 + rho);
+    let dbic = |sse: f64, base: f64| n_eff * (base / sse.max(1e-300)).ln();
+    let near: Vec<f64> = onsets
+        .iter()
+        .zip(&table[s])
+        .filter(|(_, e)| dbic(**e, sse) > -2.0)
+        .map(|(&k, _)| t_min[k] / 60.0)
+        .collect();
+    let mut others: Vec<(String, f64)> = temps
+        .iter()
+        .enumerate()
+        .filter(|(o, _)| *o != s)
+        .map(|(_, (name, x))| {
+            (
+                name.clone(),
+                dbic(sse_with(r, &gated(x)), sse0) - 2.0 * n_eff.ln(),
+            )
+        })
+        .collect();
+    others.sort_by(|a, b| b.1.total_cmp(&a.1));
+    others.truncate(3);
+    let delta_bic = dbic(sse, sse0) - 2.0 * n_eff.ln();
+    let delta_bic_vs_shape = dbic(sse, shape);
+    let tied = delta_bic_vs_shape >= 10.0 && others.first().is_none_or(|o| delta_bic - o.1 >= 10.0);
+    Some(Onset {
+        at_h: t_min[k] / 60.0,
+        earliest_h: near.iter().copied().fold(f64::INFINITY, f64::min),
+        latest_h: near.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        sensor: temps[s].0.clone(),
+        gain_um_per_k: gain,
+        n_eff,
+        delta_bic,
+        delta_bic_vs_shape,
+        others,
+        tied,
+    })
 }
 
 /// A span of readings `from..=to` where the residual departs, its mean and the sensors that
@@ -217,7 +396,7 @@ pub struct Term {
     pub delta_bic: f64,
     pub t: f64,
     pub blocks_improved: usize,
-    /// Held-out RMS of the model before and after this term, um.
+    /// Held-out RMS of the final model without this term and with it, um.
     pub heldout_before_um: f64,
     pub heldout_after_um: f64,
     /// Candidates within delta-BIC 10 of this one at its step.
@@ -262,6 +441,8 @@ pub struct ChannelDiagnosis {
     pub unexplained: Option<Unexplained>,
     /// Candidates that could be scored at all (a singular design drops one before scoring).
     pub candidates_tested: usize,
+    /// The surrogate bar of each selection step (delta-BIC), where one was computed.
+    pub surrogate_bars: Vec<f64>,
     pub accepted: Vec<Term>,
     pub refused: Vec<RefusedTerm>,
     /// What the diagnosis found, in words.
@@ -363,13 +544,58 @@ fn excursion(y: &[f64]) -> (f64, usize) {
     best
 }
 
+/// Whether the AR polynomial with coefficients `phi` has real roots only: an overdamped
+/// process, as slow thermal noise is. An oscillating one is refused: a cycle in the
+/// residuals is a candidate's to explain (a chiller cycle is an AR(2) process with complex
+/// roots, and whitening with it would annihilate the very column that explains it).
+fn overdamped(phi: &[f64]) -> bool {
+    let p = phi.len();
+    let companion = DMatrix::from_fn(p, p, |r, c| {
+        if r == 0 {
+            phi[c]
+        } else if r == c + 1 {
+            1.0
+        } else {
+            0.0
+        }
+    });
+    companion
+        .complex_eigenvalues()
+        .iter()
+        .all(|z| z.im.abs() <= 1e-9 * z.norm().max(1e-12))
+}
+
+/// AR coefficients of `e`, the order (1..=`p_max`) chosen by BIC on the same rows among the
+/// overdamped fits.
+fn ar_by_bic(e: &[f64], p_max: usize) -> Vec<f64> {
+    let n = e.len();
+    if n <= 2 * p_max + 2 {
+        return vec![ar1(e)];
+    }
+    let y = DVector::from_fn(n - p_max, |r, _| e[r + p_max]);
+    let mut best: Option<(f64, Vec<f64>)> = None;
+    for p in 1..=p_max {
+        let x = DMatrix::from_fn(n - p_max, p, |r, l| e[r + p_max - 1 - l]);
+        let f = lsq(&x, &y);
+        let m = (n - p_max) as f64;
+        let bic = m * (f.chi2 / m).max(1e-300).ln() + p as f64 * m.ln();
+        let phi: Vec<f64> = f.beta.iter().copied().collect();
+        if overdamped(&phi) && best.as_ref().is_none_or(|b| bic < b.0) {
+            best = Some((bic, phi));
+        }
+    }
+    best.map_or_else(|| vec![ar1(e)], |b| b.1)
+}
+
 /// The design of one channel's thinned samples.
 struct Design<'a> {
     cands: &'a [Candidate],
     y: DVector<f64>,
     train: Vec<usize>,
     test: Vec<usize>,
-    blocks: Vec<Vec<usize>>,
+    /// Folds of the training span: the rows a fit sees, and the rows it predicts.
+    blocks: Vec<(Vec<usize>, Vec<usize>)>,
+    ar_max: usize,
 }
 
 impl Design<'_> {
@@ -390,26 +616,36 @@ impl Design<'_> {
         .beta
     }
 
-    /// Whitened training rows of `m` and `y` for AR(1) coefficient `phi`.
-    fn whiten(&self, m: &DMatrix<f64>, phi: f64) -> (DMatrix<f64>, DVector<f64>) {
-        let pairs: Vec<(usize, usize)> = self.train.windows(2).map(|w| (w[0], w[1])).collect();
-        let mw = DMatrix::from_fn(pairs.len(), m.ncols(), |r, j| {
-            m[(pairs[r].1, j)] - phi * m[(pairs[r].0, j)]
-        });
-        let yw = DVector::from_fn(pairs.len(), |r, _| {
-            self.y[pairs[r].1] - phi * self.y[pairs[r].0]
-        });
+    /// Whitened training rows of `m` and `y` for AR coefficients `phi` (the first
+    /// `ar_max` rows are dropped whatever the order, so that every order compares on the
+    /// same rows).
+    fn whiten(&self, m: &DMatrix<f64>, phi: &[f64]) -> (DMatrix<f64>, DVector<f64>) {
+        let rows: Vec<usize> = (self.ar_max.max(1)..self.train.len()).collect();
+        let w = |col: &dyn Fn(usize) -> f64, r: usize| {
+            col(self.train[r])
+                - phi
+                    .iter()
+                    .enumerate()
+                    .map(|(l, p)| p * col(self.train[r - 1 - l]))
+                    .sum::<f64>()
+        };
+        let mw = DMatrix::from_fn(rows.len(), m.ncols(), |r, j| w(&|i| m[(i, j)], rows[r]));
+        let yw = DVector::from_fn(rows.len(), |r, _| w(&|i| self.y[i], rows[r]));
         (mw, yw)
     }
 
-    /// The training rows of `m` whitened with the lag-1 autocorrelation of its own OLS
-    /// residuals: `(phi, whitened m, whitened y, whitened SSE)`.
-    fn whitened(&self, m: &DMatrix<f64>) -> (f64, DMatrix<f64>, DVector<f64>, f64) {
+    /// The training rows of `m` whitened with the AR model of its own OLS residuals:
+    /// `(phi, whitened m, whitened y, whitened SSE)`.
+    fn whitened(&self, m: &DMatrix<f64>) -> (Vec<f64>, DMatrix<f64>, DVector<f64>, f64) {
         let beta = self.ols(m, &self.train);
         let pred = m * &beta;
         let e: Vec<f64> = self.train.iter().map(|&i| self.y[i] - pred[i]).collect();
-        let phi = ar1(&e);
-        let (mw, yw) = self.whiten(m, phi);
+        let phi = if self.ar_max <= 1 {
+            vec![ar1(&e)]
+        } else {
+            ar_by_bic(&e, self.ar_max)
+        };
+        let (mw, yw) = self.whiten(m, &phi);
         let sse = lsq(&mw, &yw).chi2;
         (phi, mw, yw, sse)
     }
@@ -433,27 +669,72 @@ impl Design<'_> {
         (pred, fit)
     }
 
-    /// Blocks of the training span in which adding column `x` to `m` lowers the error of a
-    /// fit on the other blocks.
-    fn blocks_improved(&self, m: &DMatrix<f64>, m2: &DMatrix<f64>) -> usize {
-        self.blocks
-            .iter()
-            .filter(|b| {
-                let rest: Vec<usize> = self
-                    .train
+    /// The training rows of a column given on them, whitened as `whiten` does.
+    fn whiten_train(&self, x: &[f64], phi: &[f64]) -> DVector<f64> {
+        let rows: Vec<usize> = (self.ar_max.max(1)..self.train.len()).collect();
+        DVector::from_fn(rows.len(), |r, _| {
+            let k = rows[r];
+            x[k] - phi
+                .iter()
+                .enumerate()
+                .map(|(l, p)| p * x[k - 1 - l])
+                .sum::<f64>()
+        })
+    }
+
+    /// The highest over `k` replicates of the best delta-BIC that phase-randomised copies
+    /// of candidates `cols` reach when added to the whitened design `mw` (readings `yw`).
+    fn surrogate_bar(
+        &self,
+        mw: &DMatrix<f64>,
+        yw: &DVector<f64>,
+        phi: &[f64],
+        cols: &[usize],
+        k: usize,
+        rng: &mut impl rand::Rng,
+    ) -> f64 {
+        let q = mw.clone().qr().q();
+        let resid = yw - &q * (q.transpose() * yw);
+        let sse0 = resid.norm_squared();
+        let n_w = yw.len() as f64;
+        let mut best = Vec::with_capacity(k);
+        for _ in 0..k {
+            let mut top = f64::NEG_INFINITY;
+            for &j in cols {
+                let x: Vec<f64> = self.train.iter().map(|&i| self.cands[j].x[i]).collect();
+                let xw = self.whiten_train(&crate::surrogates::phase_randomised(&x, rng), phi);
+                let xp = &xw - &q * (q.transpose() * &xw);
+                let xx = xp.norm_squared();
+                if xx <= 1e-12 * xw.norm_squared().max(1e-300) {
+                    continue;
+                }
+                let gain = resid.dot(&xp).powi(2) / xx;
+                let sse = (sse0 - gain).max(1e-300);
+                top = top.max(n_w * (sse0 / sse).ln() - n_w.ln());
+            }
+            best.push(top);
+        }
+        best.into_iter().fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// The folds in which `m2` predicts better than `m` (each fitted on the fold's fit rows,
+    /// judged on its predicted rows), and whether it does over all folds together.
+    fn blocks_improved(&self, m: &DMatrix<f64>, m2: &DMatrix<f64>) -> (usize, bool) {
+        let (mut wins, mut sum, mut sum2) = (0, 0.0, 0.0);
+        for (fit, judge) in &self.blocks {
+            let sse = |m: &DMatrix<f64>| {
+                let beta = self.ols(m, fit);
+                judge
                     .iter()
-                    .copied()
-                    .filter(|i| !b.contains(i))
-                    .collect();
-                let sse = |m: &DMatrix<f64>| {
-                    let beta = self.ols(m, &rest);
-                    b.iter()
-                        .map(|&i| (self.y[i] - m.row(i).transpose().dot(&beta)).powi(2))
-                        .sum::<f64>()
-                };
-                sse(m2) < sse(m)
-            })
-            .count()
+                    .map(|&i| (self.y[i] - m.row(i).transpose().dot(&beta)).powi(2))
+                    .sum::<f64>()
+            };
+            let (a, b) = (sse(m), sse(m2));
+            wins += usize::from(b < a);
+            sum += a;
+            sum2 += b;
+        }
+        (wins, sum2 < sum)
     }
 }
 
@@ -624,6 +905,31 @@ pub fn diagnose_displacements(
     })
 }
 
+/// Rolling origins over the training rows: at 1/2, then evenly to the last `n - 1`-th, each
+/// fold fitted on the rows before it and judged on the rest of the training span (a term
+/// must help predict what comes later, not fill a gap between known rows).
+fn rolling_folds(train: &[usize], n: usize) -> Vec<(Vec<usize>, Vec<usize>)> {
+    (0..n)
+        .map(|k| train.len() / 2 + k * train.len() / (2 * n))
+        .filter(|&o| o > 0 && o < train.len())
+        .map(|o| (train[..o].to_vec(), train[o..].to_vec()))
+        .collect()
+}
+
+/// `nb` blocks of the training span by time, each judged on a fit to the others.
+fn leave_block_out(train: &[usize], times: &[i64], nb: usize) -> Vec<(Vec<usize>, Vec<usize>)> {
+    let span = (times[train[train.len() - 1]] - times[train[0]]) as f64;
+    (0..nb)
+        .map(|b| {
+            let (judge, fit): (Vec<usize>, Vec<usize>) = train.iter().partition(|&&i| {
+                let f = (times[i] - times[train[0]]) as f64 / span;
+                ((f * nb as f64) as usize).min(nb - 1) == b
+            });
+            (fit, judge)
+        })
+        .collect()
+}
+
 fn lag_label(sensor: &str, tau: f64) -> String {
     if tau == 0.0 {
         sensor.to_string()
@@ -727,26 +1033,18 @@ fn diagnose_channel(
         });
     }
 
-    let span = (times[train[train.len() - 1]] - times[train[0]]) as f64;
-    let nb = opts.blocks.max(2);
-    let blocks: Vec<Vec<usize>> = (0..nb)
-        .map(|b| {
-            train
-                .iter()
-                .copied()
-                .filter(|&i| {
-                    let f = (times[i] - times[train[0]]) as f64 / span;
-                    ((f * nb as f64) as usize).min(nb - 1) == b
-                })
-                .collect()
-        })
-        .collect();
+    let blocks = if opts.rolling_origin {
+        rolling_folds(&train, opts.blocks.max(2) + 1)
+    } else {
+        leave_block_out(&train, &times, opts.blocks.max(2))
+    };
     let design = Design {
         cands: &cands,
         y: DVector::from_vec(pick(&c.y)),
         train,
         test,
         blocks,
+        ar_max: opts.ar_max.max(1),
     };
     let ones = vec![1.0; keep.len()];
 
@@ -850,55 +1148,94 @@ fn diagnose_channel(
     let mut chosen: Vec<usize> = Vec::new();
     let mut accepted = Vec::new();
     let mut refused = Vec::new();
-    let n_w = design.train.len() - 1;
+    let n_w = design.train.len() - design.ar_max;
     let ln_n = (n_w as f64).ln();
-    let mut held_now = baseline.rms_heldout_um;
     let mut candidates_tested = 0;
+    let mut surrogate_bars = Vec::new();
     while chosen.len() < opts.max_terms {
         let m = design.matrix(&chosen, &base_cols);
         let (phi, mw, yw, sse0) = design.whitened(&m);
         let mut scored: Vec<(f64, usize)> = (0..cands.len())
             .filter(|j| Some(*j) != k0 && !chosen.contains(j))
             .filter_map(|j| {
-                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), phi);
+                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
                 let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
                 full.column_mut(mw.ncols()).copy_from(&xw.column(0));
                 let f = lsq(&full, &yw);
-                (f.rank == full.ncols()).then_some((f.chi2, j))
+                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
             })
             .collect();
-        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
         if chosen.is_empty() {
             candidates_tested = scored.len();
         }
-        let dbic = |sse: f64| n_w as f64 * (sse0 / sse).ln() - ln_n;
+        // The bar: the fixed delta-BIC, and what the best of these candidates reaches on
+        // phase-randomised copies (only worth computing when the best real one passes the
+        // fixed bar).
+        let passes_fixed = scored.first().is_some_and(|s| s.0 >= opts.min_delta_bic);
+        let bar = if opts.surrogates > 0 && passes_fixed {
+            let cols: Vec<usize> = scored.iter().map(|s| s.1).collect();
+            let seed = opts.seed
+                ^ channel.bytes().fold(chosen.len() as u64, |h, b| {
+                    h.wrapping_mul(31).wrapping_add(b as u64)
+                });
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let b = design.surrogate_bar(&mw, &yw, &phi, &cols, opts.surrogates, &mut rng);
+            surrogate_bars.push(b);
+            b.max(opts.min_delta_bic)
+        } else {
+            opts.min_delta_bic
+        };
         let mut took = None;
-        for &(sse, j) in scored.iter().take(10) {
-            let db = dbic(sse);
-            if db < opts.min_delta_bic {
+        for &(db, j) in scored.iter().take(10) {
+            if db < bar {
+                if db >= opts.min_delta_bic {
+                    refused.push(RefusedTerm {
+                        effect: cands[j].effect,
+                        term: cands[j].term.clone(),
+                        delta_bic: db,
+                        t: f64::NAN,
+                        blocks_improved: 0,
+                        reason: format!(
+                            "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
+                            scored.len(),
+                            opts.surrogates
+                        ),
+                    });
+                }
                 break;
             }
             let mut cols = chosen.clone();
             cols.push(j);
             let m2 = design.matrix(&cols, &base_cols);
-            let (mw2, yw2) = design.whiten(&m2, phi);
+            let (mw2, yw2) = design.whiten(&m2, &phi);
             let f = lsq(&mw2, &yw2);
             let p = m2.ncols();
             let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
             let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
             let t = f.beta[p - 1] / sd;
-            let wins = design.blocks_improved(&m, &m2);
+            let (wins, overall) = design.blocks_improved(&m, &m2);
             let xs = &cands[j].x;
             let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
                 - xs.iter().copied().fold(f64::INFINITY, f64::min);
             let footprint = (f.beta[p - 1] * range).abs();
             let reason = if t.abs() < opts.min_t {
                 Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
-            } else if wins < opts.min_blocks_improved {
+            } else if wins < opts.min_blocks_improved || (opts.rolling_origin && !overall) {
                 Some(format!(
-                    "improves {wins} of {} held-out blocks (needs {})",
+                    "improves {wins} of {} {} (needs {}{})",
                     design.blocks.len(),
-                    opts.min_blocks_improved
+                    if opts.rolling_origin {
+                        "rolling-origin predictions"
+                    } else {
+                        "held-out blocks"
+                    },
+                    opts.min_blocks_improved,
+                    if opts.rolling_origin {
+                        ", and their sum"
+                    } else {
+                        ""
+                    }
                 ))
             } else if footprint > opts.max_um {
                 Some(format!(
@@ -918,22 +1255,21 @@ fn diagnose_channel(
                     reason,
                 }),
                 None => {
-                    took = Some((j, db, t, f.beta[p - 1], sd, wins, sse));
+                    took = Some((j, db, t, f.beta[p - 1], sd, wins));
                     break;
                 }
             }
         }
-        let Some((j, db, t, value, sd, wins, sse)) = took else {
+        let Some((j, db, t, value, sd, wins)) = took else {
             break;
         };
         let ambiguous_with: Vec<String> = scored
             .iter()
-            .filter(|(s, k)| *k != j && dbic(sse) - dbic(*s) < 10.0)
+            .filter(|(s, k)| *k != j && db - s < 10.0)
             .take(4)
             .map(|(_, k)| cands[*k].term.clone())
             .collect();
         chosen.push(j);
-        let (_, after) = design.fit(&design.matrix(&chosen, &base_cols));
         let cand = &cands[j];
         let statement = statement(
             channel,
@@ -953,13 +1289,12 @@ fn diagnose_channel(
             delta_bic: db,
             t,
             blocks_improved: wins,
-            heldout_before_um: held_now,
-            heldout_after_um: after.rms_heldout_um,
+            heldout_before_um: f64::NAN,
+            heldout_after_um: f64::NAN,
             ambiguous_with,
             input: cand.input.clone(),
             statement,
         });
-        held_now = after.rms_heldout_um;
     }
 
     // Backward pruning: drop a term the others have made redundant.
@@ -969,7 +1304,7 @@ fn diagnose_channel(
             .map(|k| {
                 let mut rest = chosen.clone();
                 rest.remove(k);
-                let (mw, yw) = design.whiten(&design.matrix(&rest, &base_cols), phi);
+                let (mw, yw) = design.whiten(&design.matrix(&rest, &base_cols), &phi);
                 (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
             })
             .min_by(|a, b| a.0.total_cmp(&b.0));
@@ -988,6 +1323,49 @@ fn diagnose_channel(
             }
             _ => break,
         }
+    }
+    // The held-out veto: while dropping a term lowers the held-out RMS, drop the one whose
+    // loss lowers it most. Then each term's figures: the final model without it and with it.
+    let held = |cols: &[usize]| {
+        design
+            .fit(&design.matrix(cols, &base_cols))
+            .1
+            .rms_heldout_um
+    };
+    while opts.heldout_veto && !chosen.is_empty() {
+        let now = held(&chosen);
+        let Some((without, k)) = (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.clone();
+                rest.remove(k);
+                (held(&rest), k)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+        else {
+            break;
+        };
+        if without >= now {
+            break;
+        }
+        chosen.remove(k);
+        let t = accepted.remove(k);
+        refused.push(RefusedTerm {
+            effect: t.effect,
+            term: t.term,
+            delta_bic: t.delta_bic,
+            t: t.t,
+            blocks_improved: t.blocks_improved,
+            reason: format!(
+                "vetoed: worsens the held-out end ({without:.2} um without it, {now:.2} um with it)"
+            ),
+        });
+    }
+    let now = held(&chosen);
+    for (k, term) in accepted.iter_mut().enumerate() {
+        let mut rest = chosen.clone();
+        rest.remove(k);
+        term.heldout_before_um = held(&rest);
+        term.heldout_after_um = now;
     }
     // One entry per candidate: its last refusal, none for what was accepted.
     let mut seen = std::collections::BTreeSet::new();
@@ -1012,6 +1390,7 @@ fn diagnose_channel(
         to_h: t_min[d.to] / 60.0,
         mean_um: d.mean,
         drivers: d.drivers,
+        onset: locate_onset(&t_min, &final_resid, &temps_now),
     });
 
     // Transients after each speed change, on the full-rate readings (30-min smoothing).
@@ -1149,9 +1528,52 @@ fn diagnose_channel(
             }
         ));
     }
+    // Only a drift that stands out over no change is worth a statement.
+    if let Some(o) = unexplained
+        .as_ref()
+        .and_then(|u| u.onset.as_ref())
+        .filter(|o| o.delta_bic >= 10.0)
+    {
+        statements.push(format!(
+            "{channel}: the residual is best followed by a drift from {:.1} h (between {:.1} and {:.1} h) of {:.2} um/K of {}'s change since then (delta-BIC {:.0} over no change and {:.0} over a step or ramp that follows no temperature, on {:.0} independent samples); {}",
+            o.at_h,
+            o.earliest_h,
+            o.latest_h,
+            o.gain_um_per_k,
+            o.sensor,
+            o.delta_bic,
+            o.delta_bic_vs_shape,
+            o.n_eff,
+            if o.tied {
+                format!("{} is told apart from every other sensor", o.sensor)
+            } else {
+                format!(
+                    "it cannot be told apart from {}",
+                    if o.delta_bic_vs_shape < 10.0 {
+                        "a change that follows no temperature".to_string()
+                    } else {
+                        o.others
+                            .iter()
+                            .filter(|x| o.delta_bic - x.1 < 10.0)
+                            .map(|(n, b)| format!("{n} (delta-BIC {b:.0})"))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    }
+                )
+            }
+        ));
+    }
     statements.push(format!(
-        "{channel}: held-out RMS {:.2} um with {baseline_name}, {:.2} um with the accepted terms; training {:.2} -> {:.2} um",
-        baseline.rms_heldout_um, final_fit.rms_heldout_um, baseline.rms_train_um, final_fit.rms_train_um
+        "{channel}: held-out RMS {:.2} um with {baseline_name}, {:.2} um with the accepted terms{}; training {:.2} -> {:.2} um",
+        baseline.rms_heldout_um,
+        final_fit.rms_heldout_um,
+        if opts.heldout_veto {
+            " (the held-out end vetoed terms that worsen it: a validation figure, not a blind test)"
+        } else {
+            ""
+        },
+        baseline.rms_train_um,
+        final_fit.rms_train_um
     ));
 
     Ok(ChannelDiagnosis {
@@ -1166,6 +1588,7 @@ fn diagnose_channel(
         transients,
         unexplained,
         candidates_tested,
+        surrogate_bars,
         accepted,
         refused,
         statements,
@@ -1244,6 +1667,12 @@ mod tests {
     /// A 40-h thermal test at one reading per minute: 4-h runs at rising speeds and 4-h
     /// stops; one 35-min spindle mode of 20 um, plus `extra(t_min, chiller)`; a chiller
     /// temperature swinging 0.5 K with a 25-min period and a room sensor that drifts.
+    /// The room temperature at minute `t`: a slow swing and a half-day one, so that a drift
+    /// that follows it differs from a plain ramp.
+    fn room_at(t: f64) -> f64 {
+        22.0 + 0.3 * (t / 600.0).sin() + 0.15 * (t / 110.0).sin()
+    }
+
     fn recording(seed: u64, extra: impl Fn(f64, f64, f64) -> f64) -> Vec<Event> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let noise = Normal::new(0.0, 0.2).unwrap();
@@ -1259,7 +1688,7 @@ mod tests {
             };
             let u = (rpm / 5000.0f64).powf(1.5);
             let chiller = 20.0 + 0.5 * (std::f64::consts::TAU * t / 25.0).sin();
-            let room = 22.0 + 0.3 * (t / 600.0).sin();
+            let room = room_at(t);
             let t_ns = m * MIN;
             ev.push(Event::Spindle { t_ns, rpm });
             for (sensor, celsius) in [("chiller", chiller), ("room", room)] {
@@ -1354,7 +1783,7 @@ mod tests {
     /// is not noise to the diagnosis: it is located in time and tied to that temperature.
     #[test]
     fn a_late_drift_is_located_and_tied_to_its_temperature() {
-        let room = |t: f64| 22.0 + 0.3 * (t / 600.0).sin();
+        let room = room_at;
         let c = run(&recording(5, |t, _, _| {
             if t > 1500.0 {
                 8.0 * (room(t) - room(1500.0))
@@ -1367,6 +1796,16 @@ mod tests {
         assert!((u.from_h - 25.0).abs() < 3.0, "{u:?}");
         assert!(u.to_h > 38.0, "{u:?}");
         assert_eq!(u.drivers[0].0, "room", "{u:?}");
+        // The onset search: the drift starts near 25 h and follows the room temperature's
+        // change since then, told apart from every other sensor and from a plain step or ramp.
+        let o = u.onset.as_ref().unwrap();
+        assert_eq!(o.sensor, "room", "{o:?}");
+        assert!(o.tied, "{o:?}");
+        assert!(
+            o.earliest_h - 1.0 <= 25.0 && 25.0 <= o.latest_h + 1.0,
+            "{o:?}"
+        );
+        assert!((o.gain_um_per_k - 8.0).abs() < 1.0, "{o:?}");
         assert!(
             c.statements
                 .iter()

@@ -233,6 +233,10 @@ enum BenchWhich {
     /// Every thermal model family against persistence, regression, key-temperature
     /// regression and ARX on every shipped real data set (--data, default tests/data).
     Thermal,
+    /// The displacement diagnosis on the shipped real data and on null recordings made from
+    /// it: terms that worsen the held-out end, false positives on --n nulls (40 unless given
+    /// below 20000), power on injected effects; before issue 14's acceptance rules and now.
+    Nulls,
 }
 
 fn main() -> ExitCode {
@@ -373,6 +377,13 @@ fn run(cmd: Command) -> Result<ExitCode> {
             json,
             ..
         } => bench::thermal(&data, step_min, json),
+        Command::Bench {
+            which: BenchWhich::Nulls,
+            data,
+            n,
+            json,
+            ..
+        } => bench::nulls(&data, if n >= 20000 { 40 } else { n.max(1) }, json),
         Command::Bench {
             which: BenchWhich::Power,
             n,

@@ -4,14 +4,16 @@
 //! `cargo test --release --test displacement -- --nocapture`.
 
 use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
+use driftwatch::diagnosis_calibration::{null_trial, power_trial, worsening_terms};
 use driftwatch::displacement_diagnosis::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
-use driftwatch::thermal_model::{ModelInput, events_from};
+use driftwatch::surrogates::Null;
+use driftwatch::thermal_model::{Event, ModelInput, events_from};
 
 const H: i64 = 3_600_000_000_000;
 
-fn diagnosis() -> DisplacementDiagnosis {
+fn events(spindle: bool) -> Vec<Event> {
     let text = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/data/fl-thermal/fl_thermal.csv"
@@ -23,14 +25,23 @@ fn diagnosis() -> DisplacementDiagnosis {
         &CsvOptions {
             time: RowTime::Column("time_s".into()),
             start_ns: 0,
-            spindle: Some("spindle_rpm".into()),
+            spindle: spindle.then(|| "spindle_rpm".into()),
             temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: channels.clone(),
+            displacements: channels,
             machine_id: "fl-thermal".into(),
         },
     )
     .unwrap();
-    let ev = events_from(&[im.recording]);
+    events_from(&[im.recording])
+}
+
+fn channels() -> Vec<String> {
+    (1..=5).map(|i| format!("ch{i}_um")).collect()
+}
+
+fn diagnosis() -> DisplacementDiagnosis {
+    let ev = events(true);
+    let channels = channels();
     let opts = DisplacementOptions {
         n_ref_rpm: 5000.0,
         holdout_from_ns: Some(40 * H),
@@ -105,11 +116,8 @@ fn fl_thermal_diagnosis() {
             .iter()
             .all(|t| t.excursion_um >= 2.0 && t.baseline_excursion_um < 0.5)
     );
-    let opposite = c5.accepted.iter().any(|t| {
-        t.effect == "second_mode"
-            && t.value.signum() != c5.baseline_mode.as_ref().unwrap().gain_um.signum()
-    });
-    assert!(opposite, "{:?}", c5.accepted);
+    // (Before issue 14 a second spindle mode of opposite sign was accepted here; under the
+    // surrogate bar the fast swing of t1_C is, and makes the overshoot as well.)
     let made: f64 = stops.iter().map(|t| t.final_excursion_um).sum::<f64>()
         / stops.iter().map(|t| t.excursion_um).sum::<f64>();
     println!(
@@ -118,7 +126,151 @@ fn fl_thermal_diagnosis() {
     );
     assert!(made > 0.6, "{made}");
 
+    // No accepted term worsens the held-out end.
+    assert!(worsening_terms(&d).is_empty(), "{:?}", worsening_terms(&d));
+
     // The new model version carries the accepted inputs.
     assert!(d.model.temperatures.iter().any(|t| t.sensor == "t4_C"));
     assert!(d.model.taus_min.len() >= 2);
+}
+
+/// The acceptance rules hold on every shipped data set: with and without the spindle log,
+/// no term in a final model worsens the held-out end (the last 15 %).
+#[test]
+fn no_accepted_term_worsens_the_held_out_end() {
+    for spindle in [true, false] {
+        let opts = DisplacementOptions {
+            n_ref_rpm: 5000.0,
+            ..Default::default()
+        };
+        let d = diagnose_displacements(&events(spindle), &channels(), &opts).unwrap();
+        assert_eq!(d.channels.len(), 5);
+        let worse = worsening_terms(&d);
+        assert!(worse.is_empty(), "spindle log {spindle}: {worse:?}");
+        for c in &d.channels {
+            assert!(
+                c.final_fit.rms_heldout_um <= c.baseline.rms_heldout_um,
+                "{}: {:?}",
+                c.channel,
+                c.final_fit
+            );
+        }
+    }
+}
+
+/// Forty nulls made from fl-thermal, ten of each kind (the readings replaced by a random
+/// walk or slow AR noise; the temperatures phase-randomised or block-shuffled), the channels
+/// in turn: at most 5 % hold a false term. Figures, before issue 14's rules and now:
+/// `cargo run --release -- bench nulls`.
+#[test]
+fn forty_realistic_nulls_hold_at_most_two_false_terms() {
+    let ev = events(true);
+    let opts = DisplacementOptions {
+        n_ref_rpm: 5000.0,
+        ..Default::default()
+    };
+    let chans = channels();
+    let mut false_nulls = Vec::new();
+    for i in 0..40 {
+        let kind = Null::ALL[i % 4];
+        let ch = &chans[(i / 4) % 5];
+        let o = null_trial(&ev, kind, ch, i as u64, &opts).unwrap();
+        if !o.false_terms.is_empty() {
+            false_nulls.push(o);
+        }
+    }
+    println!(
+        "false positives: {} of 40: {false_nulls:?}",
+        false_nulls.len()
+    );
+    assert!(false_nulls.len() <= 2, "{false_nulls:?}");
+}
+
+/// An effect of t11_C injected into slow AR noise of 2 um is found when it is as large as
+/// the noise, and not made up when it is absent.
+#[test]
+fn an_injected_temperature_effect_is_found_when_it_stands_out() {
+    let ev = events(true);
+    let opts = DisplacementOptions {
+        n_ref_rpm: 5000.0,
+        ..Default::default()
+    };
+    let found = (0..5)
+        .filter(|&seed| power_trial(&ev, "ch1_um", "t11_C", 4.0, 1000 + seed, &opts).unwrap())
+        .count();
+    assert_eq!(found, 5);
+    let made_up = (0..5)
+        .filter(|&seed| power_trial(&ev, "ch1_um", "t11_C", 0.0, 1000 + seed, &opts).unwrap())
+        .count();
+    assert_eq!(made_up, 0);
+}
+
+/// Located, not silent: 8 um/K of t11_C's change after 25 h added to fl-thermal's ch1. The
+/// late drift is never accepted as a term (it is not in the first half of the training span,
+/// so it predicts nothing there), but what is left is searched for a drift that starts at
+/// some hour: t11_C is found, within hours of 25 h, with its gain; and the statement says
+/// whether it can be told apart from the other sensors on the residual's independent samples.
+#[test]
+fn a_late_drift_in_real_data_is_located_and_tied_to_its_temperature() {
+    let mut t11: Option<f64> = None;
+    let mut at_25h: Option<f64> = None;
+    let ev: Vec<Event> = events(true)
+        .into_iter()
+        .map(|e| match e {
+            Event::Temperature {
+                ref sensor,
+                celsius,
+                ..
+            } if sensor == "t11_C" => {
+                t11 = Some(celsius);
+                e
+            }
+            Event::Observation {
+                t_ns,
+                channel,
+                value,
+                sigma,
+            } if channel == "ch1_um" && t_ns >= 25 * H => {
+                let v0 = *at_25h.get_or_insert(t11.unwrap());
+                Event::Observation {
+                    t_ns,
+                    channel,
+                    value: value + 8.0 * (t11.unwrap() - v0),
+                    sigma,
+                }
+            }
+            e => e,
+        })
+        .collect();
+    let opts = DisplacementOptions {
+        n_ref_rpm: 5000.0,
+        ..Default::default()
+    };
+    let d = diagnose_displacements(&ev, &["ch1_um".to_string()], &opts).unwrap();
+    let c = &d.channels[0];
+    let o = c.unexplained.as_ref().unwrap().onset.as_ref().unwrap();
+    println!("{o:?}");
+    assert_eq!(o.sensor, "t11_C", "{o:?}");
+    assert!((o.at_h - 25.0).abs() <= 5.0, "{o:?}");
+    assert!((4.0..=12.0).contains(&o.gain_um_per_k), "{o:?}");
+    assert!(
+        c.statements
+            .iter()
+            .any(|s| s.contains("of t11_C's change since then")),
+        "{:?}",
+        c.statements
+    );
+    // Without the injection the best onset is elsewhere.
+    let clean = diagnose_displacements(&events(true), &["ch1_um".to_string()], &opts).unwrap();
+    let o2 = clean.channels[0]
+        .unexplained
+        .as_ref()
+        .unwrap()
+        .onset
+        .clone()
+        .unwrap();
+    assert!(
+        o2.sensor != "t11_C" || (o2.at_h - 25.0).abs() > 5.0,
+        "{o2:?}"
+    );
 }
