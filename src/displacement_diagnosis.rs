@@ -1144,234 +1144,13 @@ fn diagnose_channel(
     });
     let periodic = periodic.filter(|p| p.matched || p.amplitude_um >= 5.0 * median_amp);
 
-    // Forward selection on the whitened model.
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut accepted = Vec::new();
-    let mut refused = Vec::new();
-    let n_w = design.train.len() - design.ar_max;
-    let ln_n = (n_w as f64).ln();
-    let mut candidates_tested = 0;
-    let mut surrogate_bars = Vec::new();
-    while chosen.len() < opts.max_terms {
-        let m = design.matrix(&chosen, &base_cols);
-        let (phi, mw, yw, sse0) = design.whitened(&m);
-        let mut scored: Vec<(f64, usize)> = (0..cands.len())
-            .filter(|j| Some(*j) != k0 && !chosen.contains(j))
-            .filter_map(|j| {
-                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
-                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
-                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
-                let f = lsq(&full, &yw);
-                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
-            })
-            .collect();
-        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
-        if chosen.is_empty() {
-            candidates_tested = scored.len();
-        }
-        // The bar: the fixed delta-BIC, and what the best of these candidates reaches on
-        // phase-randomised copies (only worth computing when the best real one passes the
-        // fixed bar).
-        let passes_fixed = scored.first().is_some_and(|s| s.0 >= opts.min_delta_bic);
-        let bar = if opts.surrogates > 0 && passes_fixed {
-            let cols: Vec<usize> = scored.iter().map(|s| s.1).collect();
-            let seed = opts.seed
-                ^ channel.bytes().fold(chosen.len() as u64, |h, b| {
-                    h.wrapping_mul(31).wrapping_add(b as u64)
-                });
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-            let b = design.surrogate_bar(&mw, &yw, &phi, &cols, opts.surrogates, &mut rng);
-            surrogate_bars.push(b);
-            b.max(opts.min_delta_bic)
-        } else {
-            opts.min_delta_bic
-        };
-        let mut took = None;
-        for &(db, j) in scored.iter().take(10) {
-            if db < bar {
-                if db >= opts.min_delta_bic {
-                    refused.push(RefusedTerm {
-                        effect: cands[j].effect,
-                        term: cands[j].term.clone(),
-                        delta_bic: db,
-                        t: f64::NAN,
-                        blocks_improved: 0,
-                        reason: format!(
-                            "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
-                            scored.len(),
-                            opts.surrogates
-                        ),
-                    });
-                }
-                break;
-            }
-            let mut cols = chosen.clone();
-            cols.push(j);
-            let m2 = design.matrix(&cols, &base_cols);
-            let (mw2, yw2) = design.whiten(&m2, &phi);
-            let f = lsq(&mw2, &yw2);
-            let p = m2.ncols();
-            let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
-            let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
-            let t = f.beta[p - 1] / sd;
-            let (wins, overall) = design.blocks_improved(&m, &m2);
-            let xs = &cands[j].x;
-            let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
-                - xs.iter().copied().fold(f64::INFINITY, f64::min);
-            let footprint = (f.beta[p - 1] * range).abs();
-            let reason = if t.abs() < opts.min_t {
-                Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
-            } else if wins < opts.min_blocks_improved || (opts.rolling_origin && !overall) {
-                Some(format!(
-                    "improves {wins} of {} {} (needs {}{})",
-                    design.blocks.len(),
-                    if opts.rolling_origin {
-                        "rolling-origin predictions"
-                    } else {
-                        "held-out blocks"
-                    },
-                    opts.min_blocks_improved,
-                    if opts.rolling_origin {
-                        ", and their sum"
-                    } else {
-                        ""
-                    }
-                ))
-            } else if footprint > opts.max_um {
-                Some(format!(
-                    "footprint {footprint:.0} um > {} um plausible",
-                    opts.max_um
-                ))
-            } else {
-                None
-            };
-            match reason {
-                Some(reason) => refused.push(RefusedTerm {
-                    effect: cands[j].effect,
-                    term: cands[j].term.clone(),
-                    delta_bic: db,
-                    t,
-                    blocks_improved: wins,
-                    reason,
-                }),
-                None => {
-                    took = Some((j, db, t, f.beta[p - 1], sd, wins));
-                    break;
-                }
-            }
-        }
-        let Some((j, db, t, value, sd, wins)) = took else {
-            break;
-        };
-        let ambiguous_with: Vec<String> = scored
-            .iter()
-            .filter(|(s, k)| *k != j && db - s < 10.0)
-            .take(4)
-            .map(|(_, k)| cands[*k].term.clone())
-            .collect();
-        chosen.push(j);
-        let cand = &cands[j];
-        let statement = statement(
-            channel,
-            cand,
-            value,
-            sd,
-            baseline_mode.as_ref(),
-            periodic.as_ref(),
-            false,
-        );
-        accepted.push(Term {
-            effect: cand.effect,
-            term: cand.term.clone(),
-            unit: cand.unit,
-            value,
-            sigma: sd,
-            delta_bic: db,
-            t,
-            blocks_improved: wins,
-            heldout_before_um: f64::NAN,
-            heldout_after_um: f64::NAN,
-            ambiguous_with,
-            input: cand.input.clone(),
-            statement,
-        });
-    }
-
-    // Backward pruning: drop a term the others have made redundant.
-    loop {
-        let (phi, _, _, sse) = design.whitened(&design.matrix(&chosen, &base_cols));
-        let weakest = (0..chosen.len())
-            .map(|k| {
-                let mut rest = chosen.clone();
-                rest.remove(k);
-                let (mw, yw) = design.whiten(&design.matrix(&rest, &base_cols), &phi);
-                (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0));
-        match weakest {
-            Some((db, k)) if db < opts.min_delta_bic => {
-                chosen.remove(k);
-                let t = accepted.remove(k);
-                refused.push(RefusedTerm {
-                    effect: t.effect,
-                    term: t.term,
-                    delta_bic: db,
-                    t: t.t,
-                    blocks_improved: t.blocks_improved,
-                    reason: "pruned: the later terms make it redundant".into(),
-                });
-            }
-            _ => break,
-        }
-    }
-    // The held-out veto: while dropping a term lowers the held-out RMS, drop the one whose
-    // loss lowers it most. Then each term's figures: the final model without it and with it.
-    let held = |cols: &[usize]| {
-        design
-            .fit(&design.matrix(cols, &base_cols))
-            .1
-            .rms_heldout_um
-    };
-    while opts.heldout_veto && !chosen.is_empty() {
-        let now = held(&chosen);
-        let Some((without, k)) = (0..chosen.len())
-            .map(|k| {
-                let mut rest = chosen.clone();
-                rest.remove(k);
-                (held(&rest), k)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0))
-        else {
-            break;
-        };
-        if without >= now {
-            break;
-        }
-        chosen.remove(k);
-        let t = accepted.remove(k);
-        refused.push(RefusedTerm {
-            effect: t.effect,
-            term: t.term,
-            delta_bic: t.delta_bic,
-            t: t.t,
-            blocks_improved: t.blocks_improved,
-            reason: format!(
-                "vetoed: worsens the held-out end ({without:.2} um without it, {now:.2} um with it)"
-            ),
-        });
-    }
-    let now = held(&chosen);
-    for (k, term) in accepted.iter_mut().enumerate() {
-        let mut rest = chosen.clone();
-        rest.remove(k);
-        term.heldout_before_um = held(&rest);
-        term.heldout_after_um = now;
-    }
-    // One entry per candidate: its last refusal, none for what was accepted.
-    let mut seen = std::collections::BTreeSet::new();
-    refused.reverse();
-    refused.retain(|r| !accepted.iter().any(|a| a.term == r.term) && seen.insert(r.term.clone()));
-    refused.reverse();
+    let Selection {
+        chosen,
+        mut accepted,
+        refused,
+        candidates_tested,
+        surrogate_bars,
+    } = select(&design, &cands, &base_cols, k0, channel, opts);
     let mf = design.matrix(&chosen, &base_cols);
     let (final_pred, final_fit) = design.fit(&mf);
     let final_resid: Vec<f64> = (0..keep.len())
@@ -1599,6 +1378,274 @@ fn diagnose_channel(
             final_um: final_pred.iter().copied().collect(),
         },
     })
+}
+
+/// What the selection keeps of one channel: the chosen candidates (indices), their terms,
+/// each refused candidate's last refusal, how many could be scored, the surrogate bars.
+struct Selection {
+    chosen: Vec<usize>,
+    accepted: Vec<Term>,
+    refused: Vec<RefusedTerm>,
+    candidates_tested: usize,
+    surrogate_bars: Vec<f64>,
+}
+
+/// Forward selection over `cands` on the baseline `base_cols` (candidate `k0` is in it),
+/// backward pruning, then the held-out veto: the acceptance rules of
+/// [`DisplacementOptions`].
+fn select(
+    design: &Design,
+    cands: &[Candidate],
+    base_cols: &[Vec<f64>],
+    k0: Option<usize>,
+    channel: &str,
+    opts: &DisplacementOptions,
+) -> Selection {
+    // Forward selection on the whitened model.
+    let mut chosen: Vec<usize> = Vec::new();
+    let mut accepted = Vec::new();
+    let mut refused = Vec::new();
+    let n_w = design.train.len() - design.ar_max;
+    let ln_n = (n_w as f64).ln();
+    let mut candidates_tested = 0;
+    let mut surrogate_bars = Vec::new();
+    while chosen.len() < opts.max_terms {
+        let m = design.matrix(&chosen, base_cols);
+        let (phi, mw, yw, sse0) = design.whitened(&m);
+        let mut scored: Vec<(f64, usize)> = (0..cands.len())
+            .filter(|j| Some(*j) != k0 && !chosen.contains(j))
+            .filter_map(|j| {
+                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
+                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
+                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
+                let f = lsq(&full, &yw);
+                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
+            })
+            .collect();
+        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+        if chosen.is_empty() {
+            candidates_tested = scored.len();
+        }
+        // The bar: the fixed delta-BIC, and what the best of these candidates reaches on
+        // phase-randomised copies (only worth computing when the best real one passes the
+        // fixed bar).
+        let passes_fixed = scored.first().is_some_and(|s| s.0 >= opts.min_delta_bic);
+        let bar = if opts.surrogates > 0 && passes_fixed {
+            let cols: Vec<usize> = scored.iter().map(|s| s.1).collect();
+            let seed = opts.seed
+                ^ channel.bytes().fold(chosen.len() as u64, |h, b| {
+                    h.wrapping_mul(31).wrapping_add(b as u64)
+                });
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let b = design.surrogate_bar(&mw, &yw, &phi, &cols, opts.surrogates, &mut rng);
+            surrogate_bars.push(b);
+            b.max(opts.min_delta_bic)
+        } else {
+            opts.min_delta_bic
+        };
+        let mut took = None;
+        for &(db, j) in scored.iter().take(10) {
+            if db < bar {
+                if db >= opts.min_delta_bic {
+                    refused.push(RefusedTerm {
+                        effect: cands[j].effect,
+                        term: cands[j].term.clone(),
+                        delta_bic: db,
+                        t: f64::NAN,
+                        blocks_improved: 0,
+                        reason: format!(
+                            "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
+                            scored.len(),
+                            opts.surrogates
+                        ),
+                    });
+                }
+                break;
+            }
+            let mut cols = chosen.clone();
+            cols.push(j);
+            let m2 = design.matrix(&cols, base_cols);
+            let (mw2, yw2) = design.whiten(&m2, &phi);
+            let f = lsq(&mw2, &yw2);
+            let p = m2.ncols();
+            let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
+            let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
+            let t = f.beta[p - 1] / sd;
+            let (wins, overall) = design.blocks_improved(&m, &m2);
+            let xs = &cands[j].x;
+            let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                - xs.iter().copied().fold(f64::INFINITY, f64::min);
+            let footprint = (f.beta[p - 1] * range).abs();
+            let reason = if t.abs() < opts.min_t {
+                Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
+            } else if wins < opts.min_blocks_improved || (opts.rolling_origin && !overall) {
+                Some(format!(
+                    "improves {wins} of {} {} (needs {}{})",
+                    design.blocks.len(),
+                    if opts.rolling_origin {
+                        "rolling-origin predictions"
+                    } else {
+                        "held-out blocks"
+                    },
+                    opts.min_blocks_improved,
+                    if opts.rolling_origin {
+                        ", and their sum"
+                    } else {
+                        ""
+                    }
+                ))
+            } else if footprint > opts.max_um {
+                Some(format!(
+                    "footprint {footprint:.0} um > {} um plausible",
+                    opts.max_um
+                ))
+            } else {
+                None
+            };
+            match reason {
+                Some(reason) => refused.push(RefusedTerm {
+                    effect: cands[j].effect,
+                    term: cands[j].term.clone(),
+                    delta_bic: db,
+                    t,
+                    blocks_improved: wins,
+                    reason,
+                }),
+                None => {
+                    took = Some((j, db, t, f.beta[p - 1], sd, wins));
+                    break;
+                }
+            }
+        }
+        let Some((j, db, t, value, sd, wins)) = took else {
+            break;
+        };
+        let ambiguous_with: Vec<String> = scored
+            .iter()
+            .filter(|(s, k)| *k != j && db - s < 10.0)
+            .take(4)
+            .map(|(_, k)| cands[*k].term.clone())
+            .collect();
+        chosen.push(j);
+        let cand = &cands[j];
+        accepted.push(Term {
+            effect: cand.effect,
+            term: cand.term.clone(),
+            unit: cand.unit,
+            value,
+            sigma: sd,
+            delta_bic: db,
+            t,
+            blocks_improved: wins,
+            heldout_before_um: f64::NAN,
+            heldout_after_um: f64::NAN,
+            ambiguous_with,
+            input: cand.input.clone(),
+            // Written once the whole channel is known.
+            statement: String::new(),
+        });
+    }
+
+    // Backward pruning: drop a term the others have made redundant.
+    loop {
+        let (phi, _, _, sse) = design.whitened(&design.matrix(&chosen, base_cols));
+        let weakest = (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.clone();
+                rest.remove(k);
+                let (mw, yw) = design.whiten(&design.matrix(&rest, base_cols), &phi);
+                (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        match weakest {
+            Some((db, k)) if db < opts.min_delta_bic => {
+                chosen.remove(k);
+                let t = accepted.remove(k);
+                refused.push(RefusedTerm {
+                    effect: t.effect,
+                    term: t.term,
+                    delta_bic: db,
+                    t: t.t,
+                    blocks_improved: t.blocks_improved,
+                    reason: "pruned: the later terms make it redundant".into(),
+                });
+            }
+            _ => break,
+        }
+    }
+    if opts.heldout_veto {
+        veto(design, base_cols, &mut chosen, &mut accepted, &mut refused);
+    }
+    heldout_figures(design, base_cols, &chosen, &mut accepted);
+    // One entry per candidate: its last refusal, none for what was accepted.
+    let mut seen = std::collections::BTreeSet::new();
+    refused.reverse();
+    refused.retain(|r| !accepted.iter().any(|a| a.term == r.term) && seen.insert(r.term.clone()));
+    refused.reverse();
+    Selection {
+        chosen,
+        accepted,
+        refused,
+        candidates_tested,
+        surrogate_bars,
+    }
+}
+
+/// The held-out veto: while dropping a term lowers the held-out RMS, drop the one whose loss
+/// lowers it most (refused, with both figures).
+fn veto(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    chosen: &mut Vec<usize>,
+    accepted: &mut Vec<Term>,
+    refused: &mut Vec<RefusedTerm>,
+) {
+    let held = |cols: &[usize]| design.fit(&design.matrix(cols, base_cols)).1.rms_heldout_um;
+    while !chosen.is_empty() {
+        let now = held(chosen);
+        let Some((without, k)) = (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.clone();
+                rest.remove(k);
+                (held(&rest), k)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+        else {
+            break;
+        };
+        if without >= now {
+            break;
+        }
+        chosen.remove(k);
+        let t = accepted.remove(k);
+        refused.push(RefusedTerm {
+            effect: t.effect,
+            term: t.term,
+            delta_bic: t.delta_bic,
+            t: t.t,
+            blocks_improved: t.blocks_improved,
+            reason: format!(
+                "vetoed: worsens the held-out end ({without:.2} um without it, {now:.2} um with it)"
+            ),
+        });
+    }
+}
+
+/// Each term's held-out figures: the final model without it and with it.
+fn heldout_figures(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    chosen: &[usize],
+    accepted: &mut [Term],
+) {
+    let held = |cols: &[usize]| design.fit(&design.matrix(cols, base_cols)).1.rms_heldout_um;
+    let now = held(chosen);
+    for (k, term) in accepted.iter_mut().enumerate() {
+        let mut rest = chosen.to_vec();
+        rest.remove(k);
+        term.heldout_before_um = held(&rest);
+        term.heldout_after_um = now;
+    }
 }
 
 fn statement(
