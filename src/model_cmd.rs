@@ -850,12 +850,12 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     let text = std::fs::read_to_string(&a.model)
         .with_context(|| format!("reading {}", a.model.display()))?;
     let model = ThermalModel::from_json(&text).with_context(|| a.model.display().to_string())?;
-    let chosen: Vec<ChannelChoice> = serde_json::from_str::<FamiliesOnly>(&text)
-        .with_context(|| a.model.display().to_string())?
-        .families
-        .into_iter()
-        .filter(|c| c.family != Family::GreyBox.as_str())
-        .collect();
+    let (grey_chosen, chosen): (Vec<ChannelChoice>, Vec<ChannelChoice>) =
+        serde_json::from_str::<FamiliesOnly>(&text)
+            .with_context(|| a.model.display().to_string())?
+            .families
+            .into_iter()
+            .partition(|c| c.family == Family::GreyBox.as_str());
     let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
     let Some(first) = events.first() else {
         anyhow::bail!("{}: no events to replay", a.recording.display());
@@ -926,6 +926,44 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
             100.0 * s.within_2_sigma,
             u = driftwatch::compensation::unit(&s.channel)
         );
+    }
+    // Where the families' CV chose the grey box and the updates stop, its CV band by
+    // horizon (the filter's own band assumes the updates go on).
+    if update_until < i64::MAX {
+        for c in &grey_chosen {
+            // Each reading after the last update against the step at or before it.
+            let e: Vec<(usize, f64)> = events
+                .iter()
+                .filter_map(|ev| match ev {
+                    Event::Observation {
+                        t_ns,
+                        channel,
+                        value,
+                        ..
+                    } if *channel == c.channel && *t_ns > update_until => Some((*t_ns, *value)),
+                    _ => None,
+                })
+                .filter_map(|(t, m)| {
+                    let k = steps.partition_point(|s| s.t_ns <= t).checked_sub(1)?;
+                    let p = steps[k]
+                        .predictions
+                        .iter()
+                        .find(|p| p.channel == c.channel)?;
+                    let h = ((t - update_until) / c.step_ns.max(1)) as usize;
+                    Some((h, p.value - m))
+                })
+                .collect();
+            if let (false, Some(b)) = (e.is_empty(), &c.bands) {
+                let (c68, c95) = b.coverage(&e);
+                eprintln!(
+                    "{}: the grey box's CV band by horizon since the last update (from the families' CV): within the 68 % band {:.0} %, the 95 % band {:.0} % of {} readings",
+                    c.channel,
+                    100.0 * c68,
+                    100.0 * c95,
+                    e.len()
+                );
+            }
+        }
     }
     for g in served.iter().filter(|g| !other(&g.channel)) {
         eprintln!("at the end: {g}\n  {}", g.reason);
