@@ -822,7 +822,8 @@ fn served_holdout(
     grey: &driftwatch::thermal_model::ModelConfig,
 ) -> Option<(f64, String)> {
     use driftwatch::families::{
-        Family, fit_scored, grey_box, input_ranges, leaves_range, simulate_with,
+        Family, fit_scored, grey_box, input_ranges, leaves_range, origin_residual, relax_weight,
+        simulate_with,
     };
     let chosen = scores.iter().find(|s| s.chosen)?;
     let family = Family::parse(&chosen.family)?;
@@ -832,8 +833,15 @@ fn served_holdout(
         return Some((chosen.holdout_rmse, chosen.family.clone()));
     }
     let f = fit_scored(chosen, g, n_train)?;
-    let gb = grey_box(events, grey, g, n_train, n)?;
-    let mut p = simulate_with(&f, g, n_train, n, &gb);
+    // From a step early: the grey box's value at the last reading gives the residual there.
+    let gb_prev = grey_box(events, grey, g, n_train - 1, n)?;
+    let gb = &gb_prev[1..];
+    let mut p = simulate_with(&f, g, n_train, n, gb);
+    let r0 = origin_residual(&f, g, n_train, gb_prev[0]);
+    let step_ns = g.t_ns.get(1).map_or(1, |t| t - g.t_ns[0]);
+    for (h, v) in p.iter_mut().enumerate() {
+        *v += r0 * relax_weight(chosen.relax_h, h, step_ns);
+    }
     let mut why = chosen.family.clone();
     if let Some((k, j, _)) = leaves_range(&f, g, &input_ranges(g, n_train), n_train, n) {
         p[k - n_train..].copy_from_slice(&gb[k - n_train..]);

@@ -167,7 +167,9 @@ pub struct FitArgs {
     /// Reference speed of the heat input, min^-1 (overrides the configuration).
     #[arg(long)]
     n_ref_rpm: Option<f64>,
-    /// Temperature sensors to use as inputs, with the default lags (comma-separated).
+    /// Temperature sensors to use as inputs, with the default lags (comma-separated). A
+    /// displacement recording's grey box takes every temperature that varies unless some are
+    /// named here; `none`: no temperature (the spindle basis alone).
     #[arg(long, num_args = 1..)]
     temperature_inputs: Vec<String>,
     /// Spindle pole basis, min (comma-separated; overrides the configuration).
@@ -276,7 +278,10 @@ pub fn model_config(
     if !taus_min.is_empty() {
         cfg.taus_min = taus_min.to_vec();
     }
-    for s in split_columns(temperature_inputs) {
+    for s in split_columns(temperature_inputs)
+        .into_iter()
+        .filter(|s| s != "none")
+    {
         cfg.temperatures.push(TemperatureInput {
             sensor: s,
             taus_min: driftwatch::thermal_model::default_temperature_taus(),
@@ -348,7 +353,8 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     // A displacement recording's grey box takes every temperature that varies unless some
     // are named: it competes with regressions that take them all, and `bench thermal` judges
     // it so. (A constant one is the offset again.)
-    if cfg.temperatures.is_empty() && !displacement_channels(&events).is_empty() {
+    let none_named = split_columns(&a.temperature_inputs) == ["none"];
+    if cfg.temperatures.is_empty() && !none_named && !displacement_channels(&events).is_empty() {
         cfg.temperatures = every_sensor();
         cfg.temperatures.retain(|t| varies(&events, &t.sensor));
     }
@@ -357,7 +363,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         // are the inputs, every one unless some are named.
         cfg.taus_min.clear();
         cfg.instant_speed = false;
-        if cfg.temperatures.is_empty() {
+        if cfg.temperatures.is_empty() && !none_named {
             cfg.temperatures = every_sensor();
         }
         eprintln!(
@@ -711,7 +717,17 @@ fn predict_family(
             at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
         })
         .collect();
-    let family = driftwatch::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
+    let mut family = driftwatch::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
+    // The residual at the origin, relaxed into the prediction as the CV chose.
+    let grey_prev = {
+        let t = g.t_ns[origin - 1];
+        let at = r.grey.partition_point(|(tg, _)| *tg <= t);
+        at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
+    };
+    let r0 = driftwatch::families::origin_residual(&c.fitted, g, origin, grey_prev);
+    for (h, v) in family.iter_mut().enumerate() {
+        *v += r0 * driftwatch::families::relax_weight(c.relax_h, h, c.step_ns);
+    }
     let p: Vec<(f64, &str)> = family
         .iter()
         .zip(&grey)

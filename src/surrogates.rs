@@ -196,28 +196,9 @@ pub fn null_recording(
                 ar2(n, p, s, &mut rng)
             }
         };
-        let mut k = 0;
-        return events
-            .iter()
-            .map(|e| match e {
-                Event::Observation {
-                    t_ns,
-                    channel: c,
-                    sigma,
-                    ..
-                } if c == channel => {
-                    let v = slow[k] + 0.1 * rng.sample::<f64, _>(StandardNormal);
-                    k += 1;
-                    Event::Observation {
-                        t_ns: *t_ns,
-                        channel: c.clone(),
-                        value: v,
-                        sigma: *sigma,
-                    }
-                }
-                other => other.clone(),
-            })
-            .collect();
+        return map_readings(events, channel, |k, _| {
+            slow[k] + 0.1 * rng.sample::<f64, _>(StandardNormal)
+        });
     }
     let grid = temperature_grid(events, step_ns);
     // Two hours a block: longer than the lags the candidates use, so a block keeps a
@@ -284,6 +265,15 @@ pub fn with_temperature_effect(
     }
     let r = (change.iter().map(|v| v * v).sum::<f64>() / change.len().max(1) as f64).sqrt();
     let gain = if r > 0.0 { rms_um / r } else { 0.0 };
+    map_readings(events, channel, |k, v| v + gain * change[k])
+}
+
+/// `events` with the `k`-th reading `v` of `channel` replaced by `f(k, v)`.
+fn map_readings(
+    events: &[Event],
+    channel: &str,
+    mut f: impl FnMut(usize, f64) -> f64,
+) -> Vec<Event> {
     let mut k = 0;
     events
         .iter()
@@ -294,7 +284,7 @@ pub fn with_temperature_effect(
                 value,
                 sigma,
             } if c == channel => {
-                let v = value + gain * change[k];
+                let v = f(k, *value);
                 k += 1;
                 Event::Observation {
                     t_ns: *t_ns,
