@@ -68,8 +68,9 @@ pub struct DisplacementOptions {
     /// alone). In each, every candidate is replaced by a phase-randomised copy (the same
     /// spectrum, no relation to the readings) and the best delta-BIC among them noted; a
     /// term must beat the highest of those (with 39, the 97.5 % point: each step of the
-    /// forward selection is a test, and a selection takes several). The bar is then what the best of this many
-    /// candidates reaches by chance on residuals like these, not a fixed number.
+    /// forward selection is a test, and a selection takes several). The bar is then what
+    /// the best of this many candidates reaches by chance on residuals like these, not a
+    /// fixed number.
     pub surrogates: usize,
     /// Seed of the surrogates.
     pub seed: u64,

@@ -1062,9 +1062,10 @@ pub fn input_ranges(g: &Grid, n_train: usize) -> Vec<[f64; 2]> {
 /// `origin..end` where one of its inputs lies outside its range over the fit data by more
 /// than half that range (any change of an input that was constant: its gain was never
 /// learnt), with the input's index and value. Half the range: a linear model's gains are
-/// trusted that far beyond the data they were fitted on, not to a regime it never saw. Regression and ARX have no physics to extrapolate with (a spindle that
-/// never stopped in the fit data teaches them nothing about a stop); the grey box's pole
-/// basis does, so it serves there instead.
+/// trusted that far beyond the data they were fitted on, not to a regime it never saw.
+/// Regression and ARX have no physics to extrapolate with (a spindle that never stopped in
+/// the fit data teaches them nothing about a stop); the grey box's pole basis does, so it
+/// serves there instead.
 pub fn leaves_range(
     f: &Fitted,
     g: &Grid,
