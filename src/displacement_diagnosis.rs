@@ -939,41 +939,17 @@ fn lag_label(sensor: &str, tau: f64) -> String {
     }
 }
 
-fn diagnose_channel(
-    channel: &str,
+/// The candidate columns of one channel on its thinned samples `keep` (times `t_min`): the
+/// spindle lags and the speed term when the spindle turned, every temperature with its lags
+/// and its fast swing, the day cycle.
+fn candidates(
     c: &Columns,
     sensors: &[String],
-    changes: &[(i64, f64)],
-    holdout: i64,
-    t0: i64,
-    opts: &DisplacementOptions,
-) -> Result<ChannelDiagnosis, DisplacementError> {
-    // Thinned samples.
-    let step = (opts.thin_s * 1e9) as i64;
-    let mut keep = Vec::new();
-    for (i, &t) in c.t_ns.iter().enumerate() {
-        if keep.last().is_none_or(|&k: &usize| t - c.t_ns[k] >= step) {
-            keep.push(i);
-        }
-    }
+    keep: &[usize],
+    t_min: &[f64],
+    spins: bool,
+) -> Vec<Candidate> {
     let pick = |v: &[f64]| -> Vec<f64> { keep.iter().map(|&i| v[i]).collect() };
-    let times: Vec<i64> = keep.iter().map(|&i| c.t_ns[i]).collect();
-    let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
-    let train: Vec<usize> = (0..keep.len()).filter(|&i| times[i] < holdout).collect();
-    let test: Vec<usize> = (0..keep.len()).filter(|&i| times[i] >= holdout).collect();
-    if train.len() < 30 {
-        return Err(DisplacementError::TooFewTraining(
-            channel.into(),
-            train.len(),
-        ));
-    }
-    if test.is_empty() {
-        return Err(DisplacementError::NoHeldOut(channel.into()));
-    }
-
-    // A spindle that never turned (no spindle log) gives columns of zeros: no spindle
-    // candidate and no spindle mode in the baseline, or every design is singular.
-    let spins = c.speed2.iter().any(|v| *v != 0.0);
     let mut cands = Vec::new();
     for (k, tau) in DIAGNOSIS_TAUS_MIN.iter().enumerate().filter(|_| spins) {
         cands.push(Candidate {
@@ -1033,6 +1009,45 @@ fn diagnose_channel(
             input: ModelInput::InstantSpeed,
         });
     }
+    cands
+}
+
+fn diagnose_channel(
+    channel: &str,
+    c: &Columns,
+    sensors: &[String],
+    changes: &[(i64, f64)],
+    holdout: i64,
+    t0: i64,
+    opts: &DisplacementOptions,
+) -> Result<ChannelDiagnosis, DisplacementError> {
+    // Thinned samples.
+    let step = (opts.thin_s * 1e9) as i64;
+    let mut keep = Vec::new();
+    for (i, &t) in c.t_ns.iter().enumerate() {
+        if keep.last().is_none_or(|&k: &usize| t - c.t_ns[k] >= step) {
+            keep.push(i);
+        }
+    }
+    let pick = |v: &[f64]| -> Vec<f64> { keep.iter().map(|&i| v[i]).collect() };
+    let times: Vec<i64> = keep.iter().map(|&i| c.t_ns[i]).collect();
+    let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
+    let train: Vec<usize> = (0..keep.len()).filter(|&i| times[i] < holdout).collect();
+    let test: Vec<usize> = (0..keep.len()).filter(|&i| times[i] >= holdout).collect();
+    if train.len() < 30 {
+        return Err(DisplacementError::TooFewTraining(
+            channel.into(),
+            train.len(),
+        ));
+    }
+    if test.is_empty() {
+        return Err(DisplacementError::NoHeldOut(channel.into()));
+    }
+
+    // A spindle that never turned (no spindle log) gives columns of zeros: no spindle
+    // candidate and no spindle mode in the baseline, or every design is singular.
+    let spins = c.speed2.iter().any(|v| *v != 0.0);
+    let cands = candidates(c, sensors, &keep, &t_min, spins);
 
     let blocks = if opts.rolling_origin {
         rolling_folds(&train, opts.blocks.max(2) + 1)
@@ -1239,6 +1254,45 @@ fn diagnose_channel(
             overshoots,
         );
     }
+
+    let mut d = ChannelDiagnosis {
+        channel: channel.to_string(),
+        n_train: design.train.len(),
+        n_heldout: design.test.len(),
+        baseline_mode,
+        baseline,
+        final_fit,
+        phases,
+        periodic,
+        transients,
+        unexplained,
+        candidates_tested,
+        surrogate_bars,
+        accepted,
+        refused,
+        statements: Vec::new(),
+        series: ChannelSeries {
+            t_h: t_min.iter().map(|t| t / 60.0).collect(),
+            y_um: design.y.iter().copied().collect(),
+            baseline_um: base_pred.iter().copied().collect(),
+            final_um: final_pred.iter().copied().collect(),
+        },
+    };
+    d.statements = statements_of(&d, changes, baseline_name, opts);
+    Ok(d)
+}
+
+/// What the diagnosis of one channel found, in words.
+fn statements_of(
+    d: &ChannelDiagnosis,
+    changes: &[(i64, f64)],
+    baseline_name: &str,
+    opts: &DisplacementOptions,
+) -> Vec<String> {
+    let channel = d.channel.as_str();
+    let (periodic, transients, accepted) = (&d.periodic, &d.transients, &d.accepted);
+    let (unexplained, baseline, final_fit) = (&d.unexplained, &d.baseline, &d.final_fit);
+    let candidates_tested = d.candidates_tested;
     let mut statements = Vec::new();
     if let Some(p) = &periodic {
         statements.push(format!(
@@ -1355,30 +1409,73 @@ fn diagnose_channel(
         baseline.rms_train_um,
         final_fit.rms_train_um
     ));
+    statements
+}
 
-    Ok(ChannelDiagnosis {
-        channel: channel.to_string(),
-        n_train: design.train.len(),
-        n_heldout: design.test.len(),
-        baseline_mode,
-        baseline,
-        final_fit,
-        phases,
-        periodic,
-        transients,
-        unexplained,
-        candidates_tested,
-        surrogate_bars,
-        accepted,
-        refused,
-        statements,
-        series: ChannelSeries {
-            t_h: t_min.iter().map(|t| t / 60.0).collect(),
-            y_um: design.y.iter().copied().collect(),
-            baseline_um: base_pred.iter().copied().collect(),
-            final_um: final_pred.iter().copied().collect(),
-        },
-    })
+/// One candidate's figures when added to the model `m` (whitened with `phi`): `cols` are the
+/// model's candidates and this one, on `base_cols`; and why it is refused, if it is.
+struct Judged {
+    value: f64,
+    sd: f64,
+    t: f64,
+    wins: usize,
+    reason: Option<String>,
+}
+
+fn judge(
+    design: &Design,
+    cand: &Candidate,
+    base_cols: &[Vec<f64>],
+    cols: &[usize],
+    m: &DMatrix<f64>,
+    phi: &[f64],
+    opts: &DisplacementOptions,
+) -> Judged {
+    let m2 = design.matrix(cols, base_cols);
+    let (mw2, yw2) = design.whiten(&m2, phi);
+    let f = lsq(&mw2, &yw2);
+    let p = m2.ncols();
+    let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
+    let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
+    let t = f.beta[p - 1] / sd;
+    let (wins, overall) = design.blocks_improved(m, &m2);
+    let xs = &cand.x;
+    let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+        - xs.iter().copied().fold(f64::INFINITY, f64::min);
+    let footprint = (f.beta[p - 1] * range).abs();
+    let reason = if t.abs() < opts.min_t {
+        Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
+    } else if wins < opts.min_blocks_improved || (opts.rolling_origin && !overall) {
+        Some(format!(
+            "improves {wins} of {} {} (needs {}{})",
+            design.blocks.len(),
+            if opts.rolling_origin {
+                "rolling-origin predictions"
+            } else {
+                "held-out blocks"
+            },
+            opts.min_blocks_improved,
+            if opts.rolling_origin {
+                ", and their sum"
+            } else {
+                ""
+            }
+        ))
+    } else if footprint > opts.max_um {
+        Some(format!(
+            "footprint {footprint:.0} um > {} um plausible",
+            opts.max_um
+        ))
+    } else {
+        None
+    };
+    Judged {
+        value: f.beta[p - 1],
+        sd,
+        t,
+        wins,
+        reason,
+    }
 }
 
 /// What the selection keeps of one channel: the chosen candidates (indices), their terms,
@@ -1463,46 +1560,21 @@ fn select(
                 }
                 break;
             }
-            let mut cols = chosen.clone();
-            cols.push(j);
-            let m2 = design.matrix(&cols, base_cols);
-            let (mw2, yw2) = design.whiten(&m2, &phi);
-            let f = lsq(&mw2, &yw2);
-            let p = m2.ncols();
-            let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
-            let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
-            let t = f.beta[p - 1] / sd;
-            let (wins, overall) = design.blocks_improved(&m, &m2);
-            let xs = &cands[j].x;
-            let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
-                - xs.iter().copied().fold(f64::INFINITY, f64::min);
-            let footprint = (f.beta[p - 1] * range).abs();
-            let reason = if t.abs() < opts.min_t {
-                Some(format!("|t| {:.1} < {}", t.abs(), opts.min_t))
-            } else if wins < opts.min_blocks_improved || (opts.rolling_origin && !overall) {
-                Some(format!(
-                    "improves {wins} of {} {} (needs {}{})",
-                    design.blocks.len(),
-                    if opts.rolling_origin {
-                        "rolling-origin predictions"
-                    } else {
-                        "held-out blocks"
-                    },
-                    opts.min_blocks_improved,
-                    if opts.rolling_origin {
-                        ", and their sum"
-                    } else {
-                        ""
-                    }
-                ))
-            } else if footprint > opts.max_um {
-                Some(format!(
-                    "footprint {footprint:.0} um > {} um plausible",
-                    opts.max_um
-                ))
-            } else {
-                None
-            };
+            let Judged {
+                value,
+                sd,
+                t,
+                wins,
+                reason,
+            } = judge(
+                design,
+                &cands[j],
+                base_cols,
+                &[&chosen[..], &[j]].concat(),
+                &m,
+                &phi,
+                opts,
+            );
             match reason {
                 Some(reason) => refused.push(RefusedTerm {
                     effect: cands[j].effect,
@@ -1513,7 +1585,7 @@ fn select(
                     reason,
                 }),
                 None => {
-                    took = Some((j, db, t, f.beta[p - 1], sd, wins));
+                    took = Some((j, db, t, value, sd, wins));
                     break;
                 }
             }

@@ -194,13 +194,11 @@ impl Fitted {
             }
             Fitted::Persistence => Vec::new(),
             Fitted::GreyBox => g.names.clone(),
-            Fitted::Combination { .. } => {
-                let mut all: Vec<String> = Vec::new();
-                for j in self.empirical_inputs() {
-                    all.push(g.names[j].clone());
-                }
-                all
-            }
+            Fitted::Combination { .. } => self
+                .empirical_inputs()
+                .iter()
+                .map(|&j| g.names[j].clone())
+                .collect(),
         }
     }
 
