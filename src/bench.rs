@@ -743,73 +743,234 @@ fn top_speed(events: &[driftwatch::thermal_model::Event]) -> f64 {
         .max(1.0)
 }
 
-/// Every family against the baselines on every shipped real data set: rolling-origin CV on
-/// the training span, then the hold-out with no reading used.
+/// A data set of `bench thermal`: its events, the channels judged, where the hold-out starts
+/// and what its inputs are.
+struct ThermalSet {
+    name: String,
+    events: Vec<driftwatch::thermal_model::Event>,
+    channels: Vec<String>,
+    train_h: f64,
+    inputs: &'static str,
+}
+
+/// Days of each simulated scenario in `bench thermal`, its fit span and the sensor noise.
+const SIM_DAYS: usize = 3;
+const SIM_TRAIN_H: f64 = 40.0;
+const SIM_SIGMA: f64 = 0.5;
+
+/// The simulated scenarios as a test rig sees them (`strategies::sensor_view`): every
+/// identified error that moves by more than ten times the sensor noise is a channel.
+fn simulated_sets() -> Result<Vec<ThermalSet>> {
+    use driftwatch::thermal_model::Event;
+    let mut out = Vec::new();
+    for (name, _) in driftwatch::strategies::BENCH_SCENARIOS {
+        let events = driftwatch::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
+        let mut range: std::collections::BTreeMap<&str, (f64, f64)> = Default::default();
+        for e in &events {
+            if let Event::Observation { channel, value, .. } = e {
+                let r = range
+                    .entry(channel)
+                    .or_insert((f64::INFINITY, f64::NEG_INFINITY));
+                *r = (r.0.min(*value), r.1.max(*value));
+            }
+        }
+        let channels = range
+            .iter()
+            .filter(|(_, (lo, hi))| hi - lo > 10.0 * SIM_SIGMA)
+            .map(|(c, _)| c.to_string())
+            .collect();
+        out.push(ThermalSet {
+            name: format!("simulated {name}, {SIM_DAYS} days"),
+            events,
+            channels,
+            train_h: SIM_TRAIN_H,
+            inputs: "spindle + logged temperatures; EA0C, EB0C in urad, the rest in um",
+        });
+    }
+    Ok(out)
+}
+
+/// Every family against the baselines on every shipped real data set and the simulated
+/// scenarios: rolling-origin CV on the training span, then the hold-out with no reading used.
 pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
-    use driftwatch::families::{Family, compete, grid};
-    let step_ns = (step_min * 60e9) as i64;
-    let mut rows = Vec::new();
+    let mut sets = Vec::new();
     for set in real_sets() {
-        let events = real_events(data, &set)?;
-        let train_end_ns = (set.train_h * 3600e9) as i64;
+        sets.push(ThermalSet {
+            name: set.name.into(),
+            events: real_events(data, &set)?,
+            channels: set.channels.clone(),
+            train_h: set.train_h,
+            inputs: if set.spindle.is_some() {
+                "spindle + temperatures"
+            } else {
+                "temperatures only"
+            },
+        });
+    }
+    sets.extend(simulated_sets()?);
+    let mut rows = Vec::new();
+    for set in &sets {
         if !json {
             println!(
                 "\n{}: fit on 0-{} h, hold-out to the end; {}-min grid; inputs: {}",
-                set.name,
-                set.train_h,
-                step_min,
-                if set.spindle.is_some() {
-                    "spindle + temperatures"
-                } else {
-                    "temperatures only"
-                }
+                set.name, set.train_h, step_min, set.inputs
             );
             println!(
                 "{:<8} {:<15} {:>8} {:>11} {:>9} {:>8} {:>11}  chosen / inputs",
                 "channel", "family", "CV rmse", "CV cov68/95", "hold rmse", "hold max", "cov68/95",
             );
         }
-        for ch in &set.channels {
-            let Some(g) = grid(&events, ch, step_ns) else {
-                continue;
-            };
-            let grey = driftwatch::families::grey_box_config(&g);
-            let scores = compete(&events, &g, train_end_ns, &Family::ALL, &grey);
-            for s in &scores {
-                if !json {
-                    println!(
-                        "{:<8} {:<15} {:>8.2} {:>5.0}%/{:>3.0}% {:>9.2} {:>8.2} {:>5.0}%/{:>3.0}%  {}{}",
-                        ch,
-                        s.family,
-                        s.cv_rmse,
-                        100.0 * s.cv_cover68.unwrap_or(f64::NAN),
-                        100.0 * s.cv_cover95.unwrap_or(f64::NAN),
-                        s.holdout_rmse,
-                        s.holdout_max,
-                        100.0 * s.cover68,
-                        100.0 * s.cover95,
-                        if s.chosen { "<- chosen; " } else { "" },
-                        s.detail
-                    );
+        rows.extend(thermal_set(set, step_min, json));
+    }
+    if !json {
+        println!("\nthe bar (served beats persistence, within 10 % of the best baseline):");
+        for set in &sets {
+            let of_set: Vec<_> = rows.iter().filter(|r| r["set"] == set.name).collect();
+            let fails: Vec<&str> = of_set
+                .iter()
+                .filter(|r| {
+                    !(r["verdict"]["beats_persistence"] == true
+                        && r["verdict"]["within_10_percent"] == true)
+                })
+                .filter_map(|r| r["channel"].as_str())
+                .collect();
+            println!(
+                "  {}: {} of {} channels pass{}",
+                set.name,
+                of_set.len() - fails.len(),
+                of_set.len(),
+                if fails.is_empty() {
+                    String::new()
+                } else {
+                    format!("; fail: {}", fails.join(", "))
                 }
-            }
-            // What predict serves: the chosen family, and the grey box from where an
-            // empirical family leaves the inputs' range of its fit data.
-            let served = served_holdout(&events, &g, train_end_ns, &scores, &grey);
-            if let (false, Some((rmse, why))) = (json, &served) {
-                println!("{ch:<8} served: hold-out RMSE {rmse:.2} ({why})");
-            }
-            rows.push(serde_json::json!({
-                "set": set.name, "channel": ch, "families": scores,
-                "served_rmse": served.as_ref().map(|s| s.0),
-                "served": served.map(|s| s.1),
-            }));
+            );
         }
     }
     if json {
         println!("{}", serde_json::to_string_pretty(&rows)?);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One set of `bench thermal`: each channel's competition (printed unless `json`) and its
+/// JSON rows.
+fn thermal_set(set: &ThermalSet, step_min: f64, json: bool) -> Vec<serde_json::Value> {
+    use driftwatch::families::{Family, compete, grid};
+    let step_ns = (step_min * 60e9) as i64;
+    let train_end_ns = set
+        .events
+        .first()
+        .map_or(0, |e| e.t_ns() + (set.train_h * 3600e9) as i64);
+    let mut rows = Vec::new();
+    for ch in &set.channels {
+        let Some(g) = grid(&set.events, ch, step_ns) else {
+            continue;
+        };
+        let grey = driftwatch::families::grey_box_config(&g);
+        let scores = compete(&set.events, &g, train_end_ns, &Family::ALL, &grey);
+        for s in &scores {
+            if !json {
+                println!(
+                    "{:<8} {:<15} {:>8.2} {:>5.0}%/{:>3.0}% {:>9.2} {:>8.2} {:>5.0}%/{:>3.0}%  {}{}",
+                    ch,
+                    s.family,
+                    s.cv_rmse,
+                    100.0 * s.cv_cover68.unwrap_or(f64::NAN),
+                    100.0 * s.cv_cover95.unwrap_or(f64::NAN),
+                    s.holdout_rmse,
+                    s.holdout_max,
+                    100.0 * s.cover68,
+                    100.0 * s.cover95,
+                    if s.chosen { "<- chosen; " } else { "" },
+                    s.detail
+                );
+            }
+        }
+        // What predict serves: the chosen family, and the grey box from where an
+        // empirical family leaves the inputs' range of its fit data.
+        let served = served_holdout(&set.events, &g, train_end_ns, &scores, &grey);
+        let verdict = served
+            .as_ref()
+            .and_then(|(rmse, _)| Verdict::of(*rmse, &scores));
+        if let (false, Some((rmse, why)), Some(v)) = (json, &served, &verdict) {
+            println!("{ch:<8} served: hold-out RMSE {rmse:.2} ({why}); {v}");
+        }
+        rows.push(serde_json::json!({
+            "set": set.name, "channel": ch, "families": scores,
+            "served_rmse": served.as_ref().map(|s| s.0),
+            "served": served.map(|s| s.1),
+            "verdict": verdict,
+        }));
+    }
+    rows
+}
+
+/// What is served for a channel against the baselines on the hold-out: the bar is
+/// below persistence and within 10 % of the best baseline.
+#[derive(serde::Serialize)]
+struct Verdict {
+    beats_persistence: bool,
+    persistence_rmse: f64,
+    best_baseline: String,
+    best_baseline_rmse: f64,
+    within_10_percent: bool,
+}
+
+impl Verdict {
+    fn of(served: f64, scores: &[driftwatch::families::FamilyScore]) -> Option<Verdict> {
+        use driftwatch::families::Family;
+        let rmse = |f: Family| {
+            scores
+                .iter()
+                .find(|s| s.family == f.as_str())
+                .map(|s| s.holdout_rmse)
+        };
+        let persistence = rmse(Family::Persistence)?;
+        let (best, best_rmse) = [
+            Family::Persistence,
+            Family::Regression,
+            Family::KeyRegression,
+            Family::Arx,
+        ]
+        .into_iter()
+        .filter_map(|f| Some((f, rmse(f)?)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        Some(Verdict {
+            beats_persistence: served < persistence,
+            persistence_rmse: persistence,
+            best_baseline: best.as_str().into(),
+            best_baseline_rmse: best_rmse,
+            within_10_percent: served <= 1.1 * best_rmse,
+        })
+    }
+
+    fn passes(&self) -> bool {
+        self.beats_persistence && self.within_10_percent
+    }
+}
+
+impl std::fmt::Display for Verdict {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} persistence ({:.2}), {} the best baseline ({} {:.2}){}",
+            if self.beats_persistence {
+                "beats"
+            } else {
+                "LOSES to"
+            },
+            self.persistence_rmse,
+            if self.within_10_percent {
+                "within 10 % of"
+            } else {
+                "more than 10 % over"
+            },
+            self.best_baseline,
+            self.best_baseline_rmse,
+            if self.passes() { "" } else { ": FAILS the bar" }
+        )
+    }
 }
 
 /// The hold-out RMSE of what `predict` serves for a channel: the chosen family, handing over

@@ -716,20 +716,31 @@ pub(crate) fn lsq(m: &DMatrix<f64>, y: &DVector<f64>) -> Lsq {
     for (j, n) in norms.iter().enumerate() {
         ms.column_mut(j).scale_mut(1.0 / n);
     }
-    let svd = ms.svd(true, true);
+    // U^T y without forming U: for a tall design, through the QR's Q^T y (see `thin_svd`).
+    let (svd, uty) = if m.nrows() > m.ncols() {
+        let qr = ms.qr();
+        let mut qty = y.clone();
+        qr.q_tr_mul(&mut qty);
+        let svd = qr.r().svd(true, true);
+        let uty = svd.u.as_ref().map(|ur| ur.tr_mul(&qty.rows(0, m.ncols())));
+        (svd, uty)
+    } else {
+        let svd = ms.svd(true, true);
+        let uty = svd.u.as_ref().map(|u| u.tr_mul(y));
+        (svd, uty)
+    };
     let smax = svd.singular_values.max();
     let tol = smax * 1e-9;
     let rank = svd.singular_values.iter().filter(|s| **s > tol).count();
-    let (u, vt) = (svd.u.as_ref(), svd.v_t.as_ref());
     let p = m.ncols();
     let mut beta = DVector::zeros(p);
     let mut cov = DMatrix::zeros(p, p);
-    if let (Some(u), Some(vt)) = (u, vt) {
+    if let (Some(uty), Some(vt)) = (uty, svd.v_t.as_ref()) {
         for (k, s) in svd.singular_values.iter().enumerate() {
             if *s <= tol {
                 continue;
             }
-            let uy = u.column(k).dot(y) / s;
+            let uy = uty[k] / s;
             let v = vt.row(k).transpose();
             beta.axpy(uy, &v, 1.0);
             cov += &v * v.transpose() / (s * s);
@@ -750,6 +761,25 @@ pub(crate) fn lsq(m: &DMatrix<f64>, y: &DVector<f64>) -> Lsq {
     }
 }
 
+/// The thin SVD of a tall matrix (U n x p, V^T p x p) by a Householder QR first and the SVD
+/// of its p x p triangle: the same factors as the SVD of `m` itself, and several times
+/// faster for the long designs of a diagnosis, whose SVD would sweep every rotation across
+/// all n rows.
+pub(crate) fn thin_svd(m: DMatrix<f64>) -> nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn> {
+    let (n, p) = m.shape();
+    if n <= p {
+        return m.svd(true, true);
+    }
+    let qr = m.qr();
+    let svd = qr.r().svd(true, true);
+    let u = svd.u.as_ref().map(|ur| qr.q() * ur);
+    nalgebra::SVD {
+        u,
+        v_t: svd.v_t,
+        singular_values: svd.singular_values,
+    }
+}
+
 /// An orthonormal basis of the column space of `m` (columns scaled first).
 fn basis(m: &DMatrix<f64>) -> DMatrix<f64> {
     let mut ms = m.clone();
@@ -759,7 +789,7 @@ fn basis(m: &DMatrix<f64>) -> DMatrix<f64> {
             c.scale_mut(1.0 / n);
         }
     }
-    let svd = ms.svd(true, false);
+    let svd = thin_svd(ms);
     let tol = svd.singular_values.max() * 1e-9;
     let keep: Vec<usize> = (0..svd.singular_values.len())
         .filter(|k| svd.singular_values[*k] > tol)

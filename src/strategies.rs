@@ -98,6 +98,45 @@ pub fn simulation_inputs(sim: &Simulation) -> Vec<Event> {
     ev
 }
 
+/// A simulated scenario as a thermal test rig sees a machine: the scenario's spindle program
+/// repeated over `days` days with no measurement cycles, the logged temperatures each minute
+/// (rounded to 0.01 K, as a logger writes them) and, each minute, every identified location
+/// error read as a displacement channel with Gaussian noise of `sigma` (um or urad; the
+/// scenario's seed). What `bench thermal` judges the families on beside the real data sets:
+/// the same competition where the physics is known.
+pub fn sensor_view(name: &str, days: usize, sigma: f64) -> Result<Vec<Event>, BenchError> {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let mut scn = Scenario::load(name)?.repeated_days(days);
+    scn.cycles = Default::default();
+    scn.sample_s = 60.0;
+    let k = Kinematics::load(&scn.machine)?;
+    let plan = Plan::build(&k, &crate::plan::PlanConfig::load(&scn.plan)?)?;
+    let sim = simulate(&scn, &k, &plan)?;
+    let mut ev = simulation_inputs(&sim);
+    for e in &mut ev {
+        if let Event::Temperature { celsius, .. } = e {
+            *celsius = (*celsius * 100.0).round() / 100.0;
+        }
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(scn.seed);
+    let noise = Normal::new(0.0, sigma).map_err(|_| BenchError::Noise(sigma))?;
+    for s in &sim.truth {
+        for (channel, v) in &s.apparent {
+            if k.identify.iter().any(|id| k.error_name(*id) == channel) {
+                ev.push(Event::Observation {
+                    t_ns: s.t_ns,
+                    channel: channel.clone(),
+                    value: v + noise.sample(&mut rng),
+                    sigma: None,
+                });
+            }
+        }
+    }
+    ev.sort_by_key(|e| (e.t_ns(), matches!(e, Event::Observation { .. })));
+    Ok(ev)
+}
+
 /// Every validated cycle of a simulation, in time order.
 pub fn seen_cycles(sim: &Simulation, outcomes: &[CycleOutcome]) -> Vec<SeenCycle> {
     outcomes
@@ -408,6 +447,8 @@ pub enum BenchError {
     Plan(#[from] crate::plan::PlanError),
     #[error(transparent)]
     Sim(#[from] SimError),
+    #[error("sensor noise {0} is not a standard deviation")]
+    Noise(f64),
 }
 
 /// The benchmark's scenarios and what each one's model starts from.

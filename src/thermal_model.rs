@@ -1682,6 +1682,21 @@ pub fn replay(
     let mut sums: BTreeMap<String, ScoreSums> = BTreeMap::new();
     let mut steps = Vec::new();
     let mut measured = BTreeMap::new();
+    // The last reading taken of each channel. Within the fit's data the predictor starts from
+    // its end, so its guard's last value is the fit's last reading: a later one. There the
+    // last measured value is this one, so that nothing before the end of the fit is served
+    // or scored with a reading from after it.
+    let mut held: BTreeMap<String, f64> = BTreeMap::new();
+    let in_fit = |t: i64, mut x: Vec<Prediction>, held: &BTreeMap<String, f64>| {
+        if t <= model.to_ns {
+            for pr in &mut x {
+                if let (Served::LastMeasured, Some(v)) = (pr.source, held.get(&pr.channel)) {
+                    pr.value = *v;
+                }
+            }
+        }
+        x
+    };
     let mut k = 0;
     let mut t = first.t_ns();
     while t <= last.t_ns() {
@@ -1699,11 +1714,15 @@ pub fn replay(
                 continue;
             };
             if e.t_ns() >= score_from_ns {
-                let pred = p
-                    .predict(e.t_ns())
+                let pred = in_fit(e.t_ns(), p.predict(e.t_ns()), &held)
                     .into_iter()
                     .find(|x| &x.channel == channel);
-                if let (Some(pr), Some(prev)) = (pred, p.guard(channel).and_then(|g| g.last)) {
+                let prev = if e.t_ns() <= model.to_ns {
+                    held.get(channel).copied()
+                } else {
+                    p.guard(channel).and_then(|g| g.last)
+                };
+                if let (Some(pr), Some(prev)) = (pred, prev) {
                     let s = sums.entry(channel.clone()).or_default();
                     let obs_var = sigma.filter(|x| crate::positive(*x)).map_or(0.0, |x| x * x);
                     let z2 = (pr.value - value).powi(2) / (pr.sigma.powi(2) + obs_var).max(1e-24);
@@ -1724,13 +1743,15 @@ pub fn replay(
                 // In the fit's posterior already: taken once, not twice.
                 p.features.apply(e);
                 measured.insert(channel.clone(), *value);
+                held.insert(channel.clone(), *value);
             } else if p.apply(e) {
                 measured.insert(channel.clone(), *value);
+                held.insert(channel.clone(), *value);
             }
         }
         steps.push(ReplayStep {
             t_ns: t,
-            predictions: p.predict(t),
+            predictions: in_fit(t, p.predict(t), &held),
             measured: std::mem::take(&mut measured),
         });
         t += step_ns;
