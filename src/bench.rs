@@ -484,7 +484,7 @@ fn power_scenario(seed: u64) -> Result<Scenario> {
 /// The power curve: for skip latency (a feed change after day 1) and the speed-dependent
 /// tool radius (cycles alternating 20000 and 8000 min^-1), the share of `trials` recordings
 /// in which the diagnosis names the effect, at multiples of the detection threshold the
-/// diagnosis itself reports for that plan (physics.md 4.3: 50 % power at delta-BIC 10).
+/// diagnosis itself reports for that plan (docs/physics.md 4.3: 50 % power at delta-BIC 10).
 pub fn power(trials: usize) -> Result<ExitCode> {
     use driftwatch::diagnosis::{DiagnoseOptions, Inputs, diagnose_inputs};
     use driftwatch::scenario::FeedChange;

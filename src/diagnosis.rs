@@ -225,7 +225,7 @@ pub fn detection_rows(
     })
 }
 
-/// The baseline of physics.md 4.6: every design parameter (the location errors and the
+/// The baseline of docs/physics.md 4.6.1: every design parameter (the location errors and the
 /// nuisances) as an offset plus gains on the spindle pole basis, fitted jointly to every
 /// detection at its own time. Clean data must fit it to the noise before any search.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -337,7 +337,7 @@ pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Ve
 }
 
 // ---------------------------------------------------------------------------------------
-// The search (physics.md 4.6): baseline, outliers, located mismatches, forward selection over
+// The search (docs/physics.md 4.6.1): baseline, outliers, located mismatches, forward selection over
 // the effect library with backward pruning, ambiguity groups, what cannot be identified and
 // what stays unexplained.
 
@@ -349,7 +349,7 @@ use nalgebra::{DMatrix, DVector};
 pub const DIAGNOSIS_TAUS_MIN: [f64; 10] =
     [4.0, 7.0, 12.0, 20.0, 35.0, 60.0, 100.0, 170.0, 300.0, 600.0];
 
-/// The acceptance rules of physics.md 4.6; the defaults are the document's.
+/// The acceptance rules of docs/physics.md 4.6.1, with the defaults it gives.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DiagnoseOptions {
     /// One-reading standard uncertainty, um.
@@ -607,7 +607,7 @@ pub struct Outlier {
     pub residual_um: f64,
 }
 
-/// A per-cycle consistency figure free of every location error (physics.md 4.1).
+/// A per-cycle consistency figure free of every location error (docs/physics.md 4.1).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Redundancy {
     /// Degrees of freedom of one cycle.
@@ -645,7 +645,7 @@ pub struct Diagnosis {
     pub not_tested: Vec<String>,
     /// The smallest amplitude of each one-parameter candidate that reaches the acceptance
     /// bar (delta-BIC `min_delta_bic`, or |t| `min_t` where that binds harder) with 50 %
-    /// power on this plan (physics.md 4.3), in its unit.
+    /// power on this plan (docs/physics.md 4.3), in its unit.
     pub thresholds: Vec<Threshold>,
     pub unexplained: Vec<Unexplained>,
     #[serde(rename = "final")]

@@ -7,9 +7,11 @@
 //!
 //! Readings of a thermal test are seconds apart and their misfit is smooth, so consecutive
 //! residuals are far from independent. The selection therefore works on thinned samples
-//! (`thin_s`) and, at each step, on the AR(1)-whitened model (feasible GLS): delta-BIC is
-//! `N ln(SSE0 / SSE1) - ln N` on the whitened residuals and |t| uses the whitened covariance.
-//! Each term must also improve the fit on held-out blocks of the training span.
+//! (`thin_s`) and, at each step, on the AR(p)-whitened model (feasible GLS, p by BIC):
+//! delta-BIC is `N ln(SSE0 / SSE1) - ln N` on the whitened residuals and must clear the bar
+//! that phase-randomised surrogates of the candidates set; each term must also improve the
+//! rolling-origin held-out prediction, and the held-out end vetoes any that worsen it
+//! (docs/physics.md 4.6.2).
 
 use std::collections::BTreeMap;
 
@@ -33,7 +35,7 @@ pub enum DisplacementError {
     NoChannel(String),
 }
 
-/// Options; the acceptance rules are the cycle diagnosis' (physics.md 4.6).
+/// Options: the acceptance rules of docs/physics.md 4.6.2.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DisplacementOptions {
     pub n_ref_rpm: f64,

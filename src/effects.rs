@@ -1,4 +1,4 @@
-//! The library of candidate effects the diagnosis searches (physics.md 3 and 4.2), pure code.
+//! The library of candidate effects the diagnosis searches (docs/physics.md 3 and 4.2), pure code.
 //! Each effect is an event-level signature (how one unit of it moves every reading, from the
 //! exact measurement model) times a time shape (what drives it: the spindle, a logged
 //! temperature, the time of day, the speed, the feed, the sense of the last rotary move). A
@@ -34,7 +34,7 @@ pub struct Effect {
     pub slow: bool,
 }
 
-/// The catalogue, in the order of physics.md section 3.
+/// The catalogue, in the order of docs/physics.md 3.
 pub const EFFECTS: &[Effect] = &[
     Effect {
         id: "skip_latency",
@@ -297,7 +297,7 @@ pub struct Candidate {
     pub step_ns: Option<i64>,
 }
 
-/// The kinds of time shape of the library (physics.md 4.2).
+/// The kinds of time shape of the library (docs/physics.md 4.2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ShapeKind {

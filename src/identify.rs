@@ -72,7 +72,7 @@ enum Param {
 pub struct SolveOptions {
     /// One-reading standard uncertainty, um.
     pub sigma_um: f64,
-    /// Huber threshold in units of sigma (physics.md suggests 1.5); `None` for plain LS.
+    /// Huber threshold in units of sigma (1.5 is usual); `None` for plain LS.
     pub huber_k: Option<f64>,
     /// Nuisance parameters to estimate where the plan supports them, in priority order.
     pub nuisance: Vec<Nuisance>,

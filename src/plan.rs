@@ -4,7 +4,7 @@
 //! The default order is time-symmetric: the B = 0 poses forward, the tilted poses in the
 //! middle, then every approach again in reverse (a palindrome: the last tilted pose is probed
 //! twice in a row). Every reading then has its mean time at the centre of the cycle, so a drift
-//! that is linear over the cycle cancels in every estimate (physics.md 4.6, step 0).
+//! that is linear over the cycle cancels in every estimate (docs/physics.md 5.2).
 //! `as_listed` keeps the patent's sequential order.
 
 use serde::{Deserialize, Serialize};

@@ -1,5 +1,5 @@
 //! Statistics the checks and the diagnosis share: the chi-square distribution, the residual
-//! tests of physics.md section 4.1 (Ljung-Box for serial correlation, a two-sided CUSUM for
+//! tests of docs/physics.md 4.1 (Ljung-Box for serial correlation, a two-sided CUSUM for
 //! a shift, partial correlation with a candidate driver), a robust scale (MAD) and the
 //! selection arithmetic of section 4.3 (delta-BIC, the smallest detectable amplitude). Pure
 //! code: plain slices in, numbers out.
@@ -216,7 +216,7 @@ pub struct Cusum {
 
 /// `S+ = max(0, S+ + x - target - k)`, `S- = max(0, S- - x + target - k)`; an alarm when
 /// either passes `h`. In units of the series (divide by its sigma first for the usual k = 0.5,
-/// h = 5 of physics.md 4.6).
+/// h = 5 of docs/physics.md 4.1).
 pub fn cusum(x: &[f64], target: f64, k: f64, h: f64) -> Cusum {
     let (mut up, mut lo) = (0.0_f64, 0.0_f64);
     let mut out = Cusum {
@@ -303,13 +303,13 @@ pub fn mad_sigma(x: &[f64]) -> Option<f64> {
 }
 
 /// Delta-BIC of adding `delta_k` parameters that lower chi-square by `delta_chi2` over `n`
-/// readings (sigma fixed): `delta_chi2 - delta_k ln n`; physics.md 4.3 accepts at 10 or more.
+/// readings (sigma fixed): `delta_chi2 - delta_k ln n`; docs/physics.md 4.3 accepts at 10 or more.
 pub fn delta_bic(delta_chi2: f64, delta_k: usize, n: usize) -> f64 {
     delta_chi2 - delta_k as f64 * (n.max(1) as f64).ln()
 }
 
 /// The smallest amplitude of a one-parameter signature that reaches delta-BIC 10 with 50 %
-/// power (physics.md 4.3): `sigma sqrt((10 + ln n) / (n (1 - R^2)))`, for readings of
+/// power (docs/physics.md 4.3): `sigma sqrt((10 + ln n) / (n (1 - R^2)))`, for readings of
 /// standard uncertainty `sigma`, a signature of unit mean square over the `n` readings, and
 /// `R^2` of the signature on what the model already has.
 pub fn detection_threshold(sigma: f64, n: usize, r2: f64) -> f64 {

@@ -1,4 +1,4 @@
-//! Thermal response as sums of first-order lags of heat inputs (physics.md 2.1):
+//! Thermal response as sums of first-order lags of heat inputs (docs/physics.md 2.1):
 //!
 //! `y(t) = offset + sum_j K_j * lag(u; tau_j) + sum_m G_m * lag(T_amb - T_ref; tau_m)
 //!        + c * (n / n_ref)^2`,

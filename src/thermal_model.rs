@@ -1,4 +1,4 @@
-//! The fitted thermal model (physics.md 2.1): every channel (an apparent location error or a
+//! The fitted thermal model (docs/physics.md 2.1): every channel (an apparent location error or a
 //! displacement sensor) is
 //!
 //! `y(t) = offset + sum_j K_j lag(u; tau_j) + sum_s sum_k G_sk lag(T_s - T_s,ref; tau_sk)

@@ -371,7 +371,7 @@ fn experiment_and_plan_commands_report_their_figures() {
         out.contains("12 approaches") && out.contains("Cramer-Rao"),
         "{out}"
     );
-    // The Cramer-Rao bound of the patent design with B = +90 (physics.md 5.1, R and H
+    // The Cramer-Rao bound of the patent design with B = +90 (docs/physics.md 5.1, R and H
     // re-estimated, sigma 1 um): EX0B 0.71, EY0C 0.86, EZ0B 0.61, EX0C 0.62 um, EA0C 7.07 urad.
     for (name, v) in [
         ("EX0B", "0.707"),

@@ -286,8 +286,8 @@ fn worst_orientation_alias(plan_cfg: &PlanConfig, drift_rates: bool) -> (f64, f6
 
 #[test]
 fn in_cycle_drift_aliases_in_sequential_order_and_cancels_in_symmetric_order() {
-    // A slow cycle (air blast and spindle settle before each touch, slow probing), about the
-    // 7.5 min physics.md assumes, and the default one.
+    // A slow cycle (air blast and spindle settle before each touch, slow probing), about
+    // 7.5 min, and the default one.
     let mut slow_seq = PlanConfig::load("patent_sequential").unwrap();
     slow_seq.dwell_s = 30.0;
     slow_seq.feed_mm_min = 20.0;

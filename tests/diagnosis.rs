@@ -1,5 +1,5 @@
 //! The diagnosis on simulated recordings: injection and recovery of concealed effects
-//! (physics.md 4.8). Every recording is three production days with a cycle every 30 min and
+//! (docs/physics.md 4.8). Every recording is three production days with a cycle every 30 min and
 //! 0.5-um noise; the last day is the held-out part.
 
 use std::collections::BTreeMap;
