@@ -610,11 +610,12 @@ pub struct Outlier {
 /// A per-cycle consistency figure free of every location error (docs/physics.md 4.1).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Redundancy {
-    /// Degrees of freedom of one cycle.
+    /// Degrees of freedom of a full cycle (the most common; a cycle with a missing reading has
+    /// fewer, and is judged on its own).
     pub dof: usize,
     /// `(cycle, t_ns, chi2)`.
     pub cycles: Vec<(i64, i64, f64)>,
-    /// Cycles over the 0.999 quantile.
+    /// Cycles over the 0.999 quantile of their own degrees of freedom.
     pub alarms: Vec<i64>,
     /// First cycle at which a CUSUM of `chi2/dof - 1` (k 0.5, h 5) alarmed.
     pub cusum_alarm: Option<i64>,
@@ -1256,7 +1257,7 @@ fn redundancy(rows: &Rows, sigma_um: f64) -> Redundancy {
     let p = rows.params.len();
     let mut cycles = Vec::new();
     let mut all = Vec::new();
-    let mut dof_common = 0;
+    let mut dofs = Vec::new();
     for (c, idx) in &by_cycle {
         let s = DMatrix::from_fn(idx.len(), p, |i, j| rows.rows[idx[i]].sensitivity[j]);
         let y = DVector::from_iterator(idx.len(), idx.iter().map(|i| rows.rows[*i].deviation_um));
@@ -1276,22 +1277,32 @@ fn redundancy(rows: &Rows, sigma_um: f64) -> Redundancy {
         // readings' sigma; the residual's own entries are shrunk by sqrt(dof / n).
         let shrink = (dof as f64 / idx.len() as f64).sqrt();
         all.extend(resid.iter().map(|v| v / shrink));
-        dof_common = dof;
+        dofs.push(dof);
         // The mean time, summed as offsets: a sum of epoch nanoseconds overflows.
         let t0 = rows.rows[idx[0]].t_ns;
         let t = t0 + idx.iter().map(|i| rows.rows[*i].t_ns - t0).sum::<i64>() / idx.len() as i64;
         cycles.push((*c, t, chi2));
     }
-    let limit = crate::stats::chi2_quantile(0.999, dof_common.max(1));
+    // Each cycle against its own degrees of freedom: one with a missing reading has fewer.
     let alarms = cycles
         .iter()
-        .filter(|(_, _, c)| *c > limit)
-        .map(|(c, _, _)| *c)
+        .zip(&dofs)
+        .filter(|((_, _, c), d)| *c > crate::stats::chi2_quantile(0.999, **d))
+        .map(|((c, _, _), _)| *c)
         .collect();
     let norm: Vec<f64> = cycles
         .iter()
-        .map(|(_, _, c)| c / dof_common.max(1) as f64 - 1.0)
+        .zip(&dofs)
+        .map(|((_, _, c), d)| c / *d as f64 - 1.0)
         .collect();
+    let mut count: BTreeMap<usize, usize> = BTreeMap::new();
+    for d in &dofs {
+        *count.entry(*d).or_default() += 1;
+    }
+    let dof_common = count
+        .iter()
+        .max_by_key(|(d, n)| (**n, **d))
+        .map_or(0, |(d, _)| *d);
     let cu = crate::stats::cusum(&norm, 0.0, 0.5, 5.0);
     Redundancy {
         dof: dof_common,
@@ -2425,5 +2436,61 @@ impl Inputs {
         self.unparsed += other.unparsed;
         self.spindle.sort_by_key(Event::t_ns);
         self.temperatures.sort_by_key(Event::t_ns);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(cycle: i64, k: i64, deviation_um: f64) -> DetectionRow {
+        DetectionRow {
+            t_ns: cycle * 3_600_000_000_000 + k * 1_000_000_000,
+            cycle,
+            step: format!("z{k}"),
+            b_deg: 0.0,
+            c_deg: 0.0,
+            axis: Axis::Z,
+            direction: -1,
+            feed_mm_min: 100.0,
+            spindle_rpm: 0.0,
+            t_in_cycle_s: k as f64,
+            rotary_sense: [0; MAX_ROTARY],
+            deviation_um,
+            sensitivity: vec![1.0],
+            signature: Vec::new(),
+        }
+    }
+
+    /// One design parameter (a common offset), so a cycle of n readings has n - 1 degrees of
+    /// freedom and its chi-square is the spread of its readings about their mean.
+    fn cycle(c: i64, deviations: &[f64]) -> Vec<DetectionRow> {
+        deviations
+            .iter()
+            .enumerate()
+            .map(|(k, d)| row(c, k as i64, *d))
+            .collect()
+    }
+
+    #[test]
+    fn a_cycle_with_a_missing_reading_is_judged_on_its_own_degrees_of_freedom() {
+        // Cycle 1 lost two readings: 3 left, dof 2, chi2 = 15 (over the 0.999 quantile of 2
+        // dof, 13.8; under that of 4 dof, 18.5). Cycles 2 and 3 are full and quiet.
+        let s = 15f64.sqrt() / 2f64.sqrt();
+        let mut rows = cycle(1, &[-s, 0.0, s]);
+        rows.extend(cycle(2, &[0.1, -0.1, 0.2, -0.2, 0.0]));
+        rows.extend(cycle(3, &[0.2, 0.0, -0.1, 0.1, -0.2]));
+        let r = redundancy(
+            &Rows {
+                params: vec!["offset".into()],
+                locations: Vec::new(),
+                signatures: Vec::new(),
+                rows,
+            },
+            1.0,
+        );
+        assert_eq!(r.dof, 4, "the full cycles' degrees of freedom");
+        assert!((r.cycles[0].2 - 15.0).abs() < 1e-9, "{:?}", r.cycles);
+        assert_eq!(r.alarms, vec![1]);
     }
 }
