@@ -663,17 +663,22 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
     // in turn, one seed each.
     let base = real_events(data, &sets[0])?;
     let n_ref = top_speed(&base);
+    let rules = rules.map(|(rule, opts)| {
+        (
+            rule,
+            DisplacementOptions {
+                n_ref_rpm: n_ref,
+                ..opts
+            },
+        )
+    });
     let mut null_rows = Vec::new();
     for (rule, opts) in &rules {
-        let opts = DisplacementOptions {
-            n_ref_rpm: n_ref,
-            ..opts.clone()
-        };
         let mut hits = 0;
         for i in 0..n_nulls {
             let kind = Null::ALL[i % Null::ALL.len()];
             let ch = &sets[0].channels[(i / Null::ALL.len()) % sets[0].channels.len()];
-            let o = null_trial(&base, kind, ch, i as u64, &opts)?;
+            let o = null_trial(&base, kind, ch, i as u64, opts)?;
             hits += usize::from(!o.false_terms.is_empty());
             if !json && !o.false_terms.is_empty() {
                 println!(
@@ -698,10 +703,6 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
     let trials = 10;
     for rms in [0.25, 0.5, 1.0, 2.0, 4.0] {
         for (rule, opts) in &rules {
-            let opts = DisplacementOptions {
-                n_ref_rpm: n_ref,
-                ..opts.clone()
-            };
             let mut found = 0;
             for seed in 0..trials {
                 found += usize::from(power_trial(
@@ -710,7 +711,7 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
                     "t11_C",
                     rms,
                     1000 + seed,
-                    &opts,
+                    opts,
                 )?);
             }
             if !json {
@@ -809,6 +810,7 @@ pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
     }
     sets.extend(simulated_sets()?);
     let mut rows = Vec::new();
+    let mut summary = Vec::new();
     for set in &sets {
         if !json {
             println!(
@@ -820,31 +822,24 @@ pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
                 "channel", "family", "CV rmse", "CV cov68/95", "hold rmse", "hold max", "cov68/95",
             );
         }
-        rows.extend(thermal_set(set, step_min, json));
+        let (set_rows, fails) = thermal_set(set, step_min, json);
+        summary.push(format!(
+            "  {}: {} of {} channels pass{}",
+            set.name,
+            set_rows.len() - fails.len(),
+            set_rows.len(),
+            if fails.is_empty() {
+                String::new()
+            } else {
+                format!("; fail: {}", fails.join(", "))
+            }
+        ));
+        rows.extend(set_rows);
     }
     if !json {
         println!("\nthe bar (served beats persistence, within 10 % of the best baseline):");
-        for set in &sets {
-            let of_set: Vec<_> = rows.iter().filter(|r| r["set"] == set.name).collect();
-            let fails: Vec<&str> = of_set
-                .iter()
-                .filter(|r| {
-                    !(r["verdict"]["beats_persistence"] == true
-                        && r["verdict"]["within_10_percent"] == true)
-                })
-                .filter_map(|r| r["channel"].as_str())
-                .collect();
-            println!(
-                "  {}: {} of {} channels pass{}",
-                set.name,
-                of_set.len() - fails.len(),
-                of_set.len(),
-                if fails.is_empty() {
-                    String::new()
-                } else {
-                    format!("; fail: {}", fails.join(", "))
-                }
-            );
+        for line in &summary {
+            println!("{line}");
         }
     }
     if json {
@@ -853,9 +848,13 @@ pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// One set of `bench thermal`: each channel's competition (printed unless `json`) and its
-/// JSON rows.
-fn thermal_set(set: &ThermalSet, step_min: f64, json: bool) -> Vec<serde_json::Value> {
+/// One set of `bench thermal`: each channel's competition (printed unless `json`), its JSON
+/// rows, and the channels whose served prediction fails the bar.
+fn thermal_set(
+    set: &ThermalSet,
+    step_min: f64,
+    json: bool,
+) -> (Vec<serde_json::Value>, Vec<String>) {
     use driftwatch::families::{Family, compete, grid};
     let step_ns = (step_min * 60e9) as i64;
     let train_end_ns = set
@@ -863,6 +862,7 @@ fn thermal_set(set: &ThermalSet, step_min: f64, json: bool) -> Vec<serde_json::V
         .first()
         .map_or(0, |e| e.t_ns() + (set.train_h * 3600e9) as i64);
     let mut rows = Vec::new();
+    let mut fails = Vec::new();
     for ch in &set.channels {
         let Some(g) = grid(&set.events, ch, step_ns) else {
             continue;
@@ -896,6 +896,9 @@ fn thermal_set(set: &ThermalSet, step_min: f64, json: bool) -> Vec<serde_json::V
         if let (false, Some((rmse, why)), Some(v)) = (json, &served, &verdict) {
             println!("{ch:<8} served: hold-out RMSE {rmse:.2} ({why}); {v}");
         }
+        if !verdict.as_ref().is_some_and(Verdict::passes) {
+            fails.push(ch.clone());
+        }
         rows.push(serde_json::json!({
             "set": set.name, "channel": ch, "families": scores,
             "served_rmse": served.as_ref().map(|s| s.0),
@@ -903,7 +906,7 @@ fn thermal_set(set: &ThermalSet, step_min: f64, json: bool) -> Vec<serde_json::V
             "verdict": verdict,
         }));
     }
-    rows
+    (rows, fails)
 }
 
 /// What is served for a channel against the baselines on the hold-out: the bar is
