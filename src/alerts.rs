@@ -49,7 +49,6 @@ const UPDATE_FRACTION: f64 = 0.1;
 /// A threshold or rate exceeded by more than this multiple of its limit is critical.
 const CRITICAL_FACTOR: f64 = 1.5;
 
-const NS_PER_MIN: f64 = 60e9;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum AlertError {
@@ -147,7 +146,7 @@ impl Rule {
                 reference,
                 ..
             } => {
-                if !(crate::positive(*clear) && crate::positive(*limit) && clear < limit) {
+                if !(crate::units::positive(*clear) && crate::units::positive(*limit) && clear < limit) {
                     return invalid(format!(
                         "needs 0 < clear < limit, got clear {clear}, limit {limit}"
                     ));
@@ -161,8 +160,8 @@ impl Rule {
                 clear_per_min,
                 ..
             } => {
-                if !(crate::positive(*clear_per_min)
-                    && crate::positive(*limit_per_min)
+                if !(crate::units::positive(*clear_per_min)
+                    && crate::units::positive(*limit_per_min)
                     && clear_per_min < limit_per_min)
                 {
                     return invalid(format!(
@@ -177,12 +176,12 @@ impl Rule {
                 }
             }
             Rule::Chi2 { factor } => {
-                if !crate::positive(*factor) {
+                if !crate::units::positive(*factor) {
                     return invalid(format!("factor must be > 0, got {factor}"));
                 }
             }
             Rule::ClockSkew { clear_after_min } => {
-                if !crate::positive(*clear_after_min) {
+                if !crate::units::positive(*clear_after_min) {
                     return invalid(format!(
                         "clear_after_min must be > 0, got {clear_after_min}"
                     ));
@@ -574,7 +573,7 @@ impl AlertEngine {
                 let quiet = self
                     .state
                     .last_clock_refusal_ns
-                    .is_none_or(|t| (c.t_ns - t) as f64 >= clear_after_min * NS_PER_MIN);
+                    .is_none_or(|t| (c.t_ns - t) as f64 >= clear_after_min * crate::units::NS_PER_MIN as f64);
                 if !quiet {
                     continue;
                 }
@@ -773,7 +772,7 @@ fn threshold(error: &str, v: f64, reference: f64, limit: f64, clear: f64) -> Obs
 fn rate(error: &str, prev: Sample, now: Sample, limit: f64, clear: f64) -> Observation {
     let u = unit(error);
     // Accepted cycles are strictly later than every earlier one, so dt > 0.
-    let dt_min = (now.t_ns - prev.t_ns) as f64 / NS_PER_MIN;
+    let dt_min = (now.t_ns - prev.t_ns) as f64 / crate::units::NS_PER_MIN as f64;
     let r = (now.value - prev.value) / dt_min;
     let value = r.abs();
     let (raise, resolve) = (value > limit, value < clear);

@@ -36,22 +36,14 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use thiserror::Error;
 
-use crate::positive;
+use crate::units::positive;
 use crate::recording::{CycleResultMsg, ResultStatus};
 use crate::stats::chi2_quantile;
 
 /// The location errors a `table_bc` cycle identifies, in report order.
 pub const TABLE_BC_ERRORS: [&str; 6] = ["EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"];
 
-/// The unit of a location error by its name: orientation errors (`EA..`, `EB..`, `EC..`) are
-/// in urad, position errors in um.
-pub fn unit(name: &str) -> &'static str {
-    if is_angular(name) { "urad" } else { "um" }
-}
-
-fn is_angular(name: &str) -> bool {
-    name.starts_with("EA") || name.starts_with("EB") || name.starts_with("EC")
-}
+pub use crate::units::{error_unit as unit, is_angular};
 
 // ---------------------------------------------------------------------------------------------
 // Validation
@@ -379,7 +371,7 @@ fn usable_limits(l: &ValidationLimits, reasons: &mut Vec<String>) -> Usable {
     let max_step_um = pos("max_step_um", l.max_step_um);
     let max_step_urad = pos("max_step_urad", l.max_step_urad);
     let mut rate = |name: &str, v: f64| {
-        if crate::non_negative(v) {
+        if crate::units::non_negative(v) {
             v
         } else {
             reasons.push(format!("limit {name} = {v} is not a finite number >= 0"));

@@ -185,7 +185,7 @@ impl ServiceConfig {
                 message: m,
             })
         };
-        if !crate::positive(self.time_scale) {
+        if !crate::units::positive(self.time_scale) {
             return bad(format!("time_scale must be > 0, not {}", self.time_scale));
         }
         if self.machines.is_empty() {
@@ -219,8 +219,8 @@ impl ServiceConfig {
                 max_ahead_s,
                 max_behind_s,
             } = m.link
-                && !(crate::positive(max_ahead_s)
-                    && crate::positive(max_behind_s)
+                && !(crate::units::positive(max_ahead_s)
+                    && crate::units::positive(max_behind_s)
                     && max_ahead_s <= 86_400.0
                     && max_behind_s <= 30.0 * 86_400.0)
             {

@@ -94,7 +94,7 @@ pub fn import_csv_with(
         ));
     }
     if let RowTime::Interval(s) = o.time
-        && !crate::positive(s)
+        && !crate::units::positive(s)
     {
         return Err(ImportError::Options(format!(
             "--interval-s must be > 0, not {s}"

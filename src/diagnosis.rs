@@ -1,229 +1,20 @@
-//! Diagnosis of where a model and a recording differ (issue 5), pure code. This first part
-//! turns detections into the rows every later step works on: each reading's deviation from
-//! its nominal value, its sensitivity to the location errors and the nuisances the plan
-//! supports (the linear design of `identify`), and the event-level fields an effect's
-//! signature depends on (pose, approach, feed, speed, time within the cycle, the sense each
-//! rotary axis last moved in).
+//! Diagnosis of where a model and a cycle recording differ (docs/physics.md 4.6), pure code:
+//! the joint baseline over the rows of `rows`, outliers, located mismatches, the search over the
+//! effect library (`effects`), ambiguity groups, what cannot be identified and what stays
+//! unexplained.
 
 use std::collections::BTreeMap;
 
 use serde::Serialize;
-use thiserror::Error;
 
-use crate::identify::{Identifier, SolveError, SolveOptions};
-use crate::kinematics::{Kinematics, MAX_ROTARY};
-use crate::measurement::Axis;
+use crate::identify::SolveOptions;
+use crate::kinematics::Kinematics;
 use crate::recording::{DetectionMsg, Timed};
 
-#[derive(Debug, Error)]
-pub enum DiagnosisError {
-    #[error("no usable detections")]
-    NoDetections,
-    #[error("cycle {cycle}: {source}")]
-    Cycle { cycle: i64, source: SolveError },
-    #[error(
-        "sigma_um must be between {lo} and {hi} um (one reading's noise), not {sigma:e}",
-        lo = SIGMA_UM_RANGE.0,
-        hi = SIGMA_UM_RANGE.1
-    )]
-    BadSigma { sigma: f64 },
-}
-
-/// The reading noise a diagnosis accepts, um: below a nanometre no setter reads, and the
-/// whitened design would be numerically empty (an SVD of nothing); above 100 um a reading
-/// says nothing about micrometre errors.
-pub const SIGMA_UM_RANGE: (f64, f64) = (1e-3, 100.0);
-
-/// One detection as the diagnosis sees it.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct DetectionRow {
-    pub t_ns: i64,
-    pub cycle: i64,
-    /// What was measured (pose, approach, feed; see `cycle::MeasurementKey`), not the free label.
-    pub step: String,
-    pub b_deg: f64,
-    pub c_deg: f64,
-    pub axis: Axis,
-    pub direction: i8,
-    pub feed_mm_min: f64,
-    pub spindle_rpm: f64,
-    /// Seconds since the first detection of its cycle.
-    pub t_in_cycle_s: f64,
-    /// The sense each rotary axis last moved in before this approach (-1, 0 before any
-    /// move, +1), from the order of the detections.
-    pub rotary_sense: [i8; MAX_ROTARY],
-    /// The reading minus its nominal value, um.
-    pub deviation_um: f64,
-    /// Reading change per unit of each design parameter, um.
-    pub sensitivity: Vec<f64>,
-    /// Reading change per unit of each physical quantity outside the design
-    /// ([`Rows::signatures`]), um, from the exact measurement model.
-    pub signature: Vec<f64>,
-}
-
-/// The rows of a recording and the names of their sensitivity columns.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Rows {
-    pub params: Vec<String>,
-    /// The design parameters that are location errors (the rest are nuisances).
-    pub locations: Vec<String>,
-    /// Names of the signature columns: see [`SIGNATURES`].
-    pub signatures: Vec<String>,
-    pub rows: Vec<DetectionRow>,
-}
-
-impl Rows {
-    pub fn param(&self, name: &str) -> Option<usize> {
-        self.params.iter().position(|p| p == name)
-    }
-    pub fn signature(&self, name: &str) -> Option<usize> {
-        self.signatures.iter().position(|p| p == name)
-    }
-}
-
-/// Physical quantities outside the six location errors whose footprint on every reading the
-/// rows carry, with their units. The names are the simulator's truth channels; `angle_<axis>`
-/// is the angular positioning error of a rotary axis at its pose.
-pub const SIGNATURES: &[(&str, &str)] = &[
-    ("sx", "um"),
-    ("sy", "um"),
-    ("sz", "um"),
-    ("setter_x", "um"),
-    ("setter_y", "um"),
-    ("setter_z", "um"),
-    ("radius", "um"),
-    ("latency", "ms"),
-    ("kx", "ppm"),
-    ("ky", "ppm"),
-    ("kz", "ppm"),
-    ("sxy", "urad"),
-    ("sxz", "urad"),
-    ("syz", "urad"),
-];
-
-/// Apply one unit (um, ms, ppm, urad) of signature `i` (in [`SIGNATURES`], then one angle per
-/// rotary axis), times `x`, to a state.
-fn perturb(s: &mut crate::kinematics::MachineState, i: usize, x: f64) {
-    match i {
-        0..=2 => s.tool_tip[i] += x * 1e-3,
-        3..=5 => s.beam_point[i - 3] += x * 1e-3,
-        6 => s.radius += x * 1e-3,
-        7 => s.latency_s += x * 1e-3,
-        8..=10 => s.linear.k[i - 8] += x * 1e-6,
-        11 => s.linear.sxy += x * 1e-6,
-        12 => s.linear.sxz += x * 1e-6,
-        13 => s.linear.syz += x * 1e-6,
-        _ => s.angle_error[i - SIGNATURES.len()] += x * 1e-6,
-    }
-}
-
-/// The signatures of one observation: central differences of the exact trip, um per unit.
-fn signatures_of(k: &Kinematics, o: &crate::identify::Observation, n: usize) -> Vec<f64> {
-    let s0 = k.nominal_state();
-    (0..n)
-        .map(|i| {
-            let at = |x: f64| {
-                let mut s = s0;
-                perturb(&mut s, i, x);
-                crate::measurement::latched(k, &s, &o.angles, &o.approach, &o.position, None)
-            };
-            match (at(1.0), at(-1.0)) {
-                (Ok(p), Ok(m)) => (p - m) / 2.0 * 1e3,
-                _ => 0.0,
-            }
-        })
-        .collect()
-}
-
-/// Rows of every tripped detection, cycle by cycle in time order. The design's parameters
-/// are chosen once, on the first cycle's geometry, so that every row has the same columns;
-/// no drift rates (every row has its own time).
-pub fn detection_rows(
-    k: &Kinematics,
-    detections: &[Timed<DetectionMsg>],
-    opts: &SolveOptions,
-) -> Result<Rows, DiagnosisError> {
-    let mut cycles: BTreeMap<i64, Vec<&Timed<DetectionMsg>>> = BTreeMap::new();
-    for d in detections
-        .iter()
-        .filter(|d| d.msg.status() == crate::recording::DetectionStatus::Ok)
-    {
-        cycles.entry(d.msg.cycle).or_default().push(d);
-    }
-    for v in cycles.values_mut() {
-        v.sort_by_key(|d| d.t_ns);
-    }
-    let mut ordered: Vec<(i64, Vec<&Timed<DetectionMsg>>)> = cycles.into_iter().collect();
-    ordered.sort_by_key(|(_, v)| v.first().map_or(i64::MAX, |d| d.t_ns));
-    let Some((first_cycle, first)) = ordered.first() else {
-        return Err(DiagnosisError::NoDetections);
-    };
-    let obs = |v: &[&Timed<DetectionMsg>]| -> Vec<crate::identify::Observation> {
-        v.iter()
-            .map(|d| crate::cycle::observation(k, d.t_ns, &d.msg))
-            .collect()
-    };
-    let template = obs(first);
-    // Each row has its own time, so drift within a cycle is the time model's to carry, not a
-    // per-cycle rate's.
-    let opts = SolveOptions {
-        drift_rates: crate::identify::DriftRates::Never,
-        ..opts.clone()
-    };
-    let id = Identifier::new(k, &template, &opts).map_err(|source| DiagnosisError::Cycle {
-        cycle: *first_cycle,
-        source,
-    })?;
-    let mut signatures: Vec<String> = SIGNATURES.iter().map(|(n, _)| n.to_string()).collect();
-    for ax in &k.rotary {
-        signatures.push(format!("angle_{}", ax.name));
-    }
-    let mut params = Vec::new();
-    let mut rows = Vec::new();
-    let mut sense = crate::kinematics::RotarySense::default();
-    for (cycle, dets) in &ordered {
-        let o = obs(dets);
-        let design = id
-            .nominal_design(&o)
-            .map_err(|source| DiagnosisError::Cycle {
-                cycle: *cycle,
-                source,
-            })?;
-        params.clone_from(&design.params);
-        let t0 = dets.first().map_or(0, |d| d.t_ns);
-        for (i, (d, ob)) in dets.iter().zip(&o).enumerate() {
-            let rotary_sense = sense.go_to(&ob.angles);
-            rows.push(DetectionRow {
-                t_ns: d.t_ns,
-                cycle: *cycle,
-                // Labels are free: the channel is what was measured.
-                step: crate::cycle::MeasurementKey::of_detection(&d.msg).to_string(),
-                b_deg: d.msg.b_deg,
-                c_deg: d.msg.c_deg,
-                axis: d.msg.axis,
-                direction: d.msg.direction,
-                feed_mm_min: d.msg.feed_mm_min,
-                spindle_rpm: d.msg.spindle_rpm,
-                t_in_cycle_s: (d.t_ns - t0) as f64 / 1e9,
-                rotary_sense,
-                deviation_um: (ob.reading() - design.nominal_mm[i]) * 1e3,
-                sensitivity: design.sensitivity_um.row(i).iter().copied().collect(),
-                signature: signatures_of(k, ob, signatures.len()),
-            });
-        }
-    }
-    let names = k.identify_names();
-    Ok(Rows {
-        locations: params
-            .iter()
-            .filter(|p| names.contains(p))
-            .cloned()
-            .collect(),
-        params,
-        signatures,
-        rows,
-    })
-}
+pub use crate::rows::{
+    DetectionRow, DiagnosisError, Rows, SIGMA_UM_RANGE, SIGNATURES, detection_rows,
+};
+use crate::lsq::{basis, beyond, hstack, lsq, residual_of, scan};
 
 /// The baseline of docs/physics.md 4.6.1: every design parameter (the location errors and the
 /// nuisances) as an offset plus gains on the spindle pole basis, fitted jointly to every
@@ -696,132 +487,6 @@ impl Series {
     }
 }
 
-/// Least squares on whitened columns, by SVD with the columns scaled to unit norm.
-pub(crate) struct Lsq {
-    pub(crate) beta: DVector<f64>,
-    /// `(M^T M)^+` in the unscaled columns.
-    pub(crate) cov: DMatrix<f64>,
-    pub(crate) chi2: f64,
-    pub(crate) rank: usize,
-}
-
-pub(crate) fn lsq(m: &DMatrix<f64>, y: &DVector<f64>) -> Lsq {
-    let norms: Vec<f64> = m
-        .column_iter()
-        .map(|c| {
-            let n = c.norm();
-            if n > 0.0 { n } else { 1.0 }
-        })
-        .collect();
-    let mut ms = m.clone();
-    for (j, n) in norms.iter().enumerate() {
-        ms.column_mut(j).scale_mut(1.0 / n);
-    }
-    // U^T y without forming U: for a tall design, through the QR's Q^T y (see `thin_svd`).
-    let (svd, uty) = if m.nrows() > m.ncols() {
-        let qr = ms.qr();
-        let mut qty = y.clone();
-        qr.q_tr_mul(&mut qty);
-        let svd = qr.r().svd(true, true);
-        let uty = svd.u.as_ref().map(|ur| ur.tr_mul(&qty.rows(0, m.ncols())));
-        (svd, uty)
-    } else {
-        let svd = ms.svd(true, true);
-        let uty = svd.u.as_ref().map(|u| u.tr_mul(y));
-        (svd, uty)
-    };
-    let smax = svd.singular_values.max();
-    let tol = smax * 1e-9;
-    let rank = svd.singular_values.iter().filter(|s| **s > tol).count();
-    let p = m.ncols();
-    let mut beta = DVector::zeros(p);
-    let mut cov = DMatrix::zeros(p, p);
-    if let (Some(uty), Some(vt)) = (uty, svd.v_t.as_ref()) {
-        for (k, s) in svd.singular_values.iter().enumerate() {
-            if *s <= tol {
-                continue;
-            }
-            let uy = uty[k] / s;
-            let v = vt.row(k).transpose();
-            beta.axpy(uy, &v, 1.0);
-            cov += &v * v.transpose() / (s * s);
-        }
-    }
-    for i in 0..p {
-        beta[i] /= norms[i];
-        for j in 0..p {
-            cov[(i, j)] /= norms[i] * norms[j];
-        }
-    }
-    let r = y - m * &beta;
-    Lsq {
-        chi2: r.dot(&r),
-        beta,
-        cov,
-        rank,
-    }
-}
-
-/// The thin SVD of a tall matrix (U n x p, V^T p x p) by a Householder QR first and the SVD
-/// of its p x p triangle: the same factors as the SVD of `m` itself, and several times
-/// faster for the long designs of a diagnosis, whose SVD would sweep every rotation across
-/// all n rows.
-pub(crate) fn thin_svd(m: DMatrix<f64>) -> nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn> {
-    let (n, p) = m.shape();
-    if n <= p {
-        return m.svd(true, true);
-    }
-    let qr = m.qr();
-    let svd = qr.r().svd(true, true);
-    let u = svd.u.as_ref().map(|ur| qr.q() * ur);
-    nalgebra::SVD {
-        u,
-        v_t: svd.v_t,
-        singular_values: svd.singular_values,
-    }
-}
-
-/// An orthonormal basis of the column space of `m` (columns scaled first).
-fn basis(m: &DMatrix<f64>) -> DMatrix<f64> {
-    let mut ms = m.clone();
-    for mut c in ms.column_iter_mut() {
-        let n = c.norm();
-        if n > 0.0 {
-            c.scale_mut(1.0 / n);
-        }
-    }
-    let svd = thin_svd(ms);
-    let tol = svd.singular_values.max() * 1e-9;
-    let keep: Vec<usize> = (0..svd.singular_values.len())
-        .filter(|k| svd.singular_values[*k] > tol)
-        .collect();
-    match svd.u {
-        Some(u) => u.select_columns(keep.iter()),
-        None => DMatrix::zeros(m.nrows(), 0),
-    }
-}
-
-/// What `x` adds to a model with orthonormal basis `q` and residual `e`: `(delta chi2,
-/// 1 - R^2 of the weakest column)`.
-fn scan(q: &DMatrix<f64>, e: &DVector<f64>, x: &DMatrix<f64>) -> (f64, f64) {
-    let qx = q.tr_mul(x);
-    let a = x.tr_mul(x) - qx.tr_mul(&qx);
-    let mut free = f64::INFINITY;
-    for j in 0..x.ncols() {
-        let xx = x.column(j).norm_squared();
-        free = free.min(if xx > 0.0 { a[(j, j)] / xx } else { 0.0 });
-    }
-    if free < 1e-12 {
-        return (0.0, free.max(0.0));
-    }
-    let b = x.tr_mul(e);
-    let d = match a.clone().cholesky() {
-        Some(c) => b.dot(&c.solve(&b)),
-        None => 0.0,
-    };
-    (d.max(0.0), free)
-}
-
 /// Leverage above which a reading is not screened.
 const MAX_SCREEN_LEVERAGE: f64 = 0.9;
 
@@ -1090,41 +755,6 @@ fn periodic_scan(
         },
         block(period),
     ))
-}
-
-/// An orthonormal basis of what the columns of `x` add to the orthonormal basis `q`:
-/// columns with less than `tol` of their energy outside `q` (or none) are dropped, collinear
-/// ones are fine. `None` when nothing is left.
-fn beyond(q: &DMatrix<f64>, x: &DMatrix<f64>, tol: f64) -> Option<DMatrix<f64>> {
-    let xt = x - q * q.tr_mul(x);
-    let keep: Vec<usize> = (0..x.ncols())
-        .filter(|j| {
-            let e = x.column(*j).norm_squared();
-            e > 0.0 && xt.column(*j).norm_squared() >= tol * e
-        })
-        .collect();
-    if keep.is_empty() {
-        return None;
-    }
-    let b = basis(&xt.select_columns(keep.iter()));
-    (b.ncols() > 0).then_some(b)
-}
-
-fn residual_of(m: &DMatrix<f64>, y: &DVector<f64>) -> DVector<f64> {
-    let f = lsq(m, y);
-    y - m * f.beta
-}
-
-fn hstack(a: &DMatrix<f64>, cols: &[&DMatrix<f64>]) -> DMatrix<f64> {
-    let extra: usize = cols.iter().map(|c| c.ncols()).sum();
-    let mut m = DMatrix::zeros(a.nrows(), a.ncols() + extra);
-    m.columns_mut(0, a.ncols()).copy_from(a);
-    let mut j = a.ncols();
-    for c in cols {
-        m.columns_mut(j, c.ncols()).copy_from(c);
-        j += c.ncols();
-    }
-    m
 }
 
 /// The rows' phase: the production spindle (the log without the cycles' own spins) on for
@@ -2442,6 +2072,8 @@ impl Inputs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kinematics::MAX_ROTARY;
+    use crate::measurement::Axis;
 
     fn row(cycle: i64, k: i64, deviation_um: f64) -> DetectionRow {
         DetectionRow {

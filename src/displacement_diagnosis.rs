@@ -19,7 +19,8 @@ use nalgebra::{DMatrix, DVector};
 use rand::SeedableRng;
 use serde::Serialize;
 
-use crate::diagnosis::{DIAGNOSIS_TAUS_MIN, lsq};
+use crate::diagnosis::DIAGNOSIS_TAUS_MIN;
+use crate::lsq::lsq;
 use crate::effects::TEMPERATURE_TAUS_MIN;
 use crate::thermal_model::{Event, Features, ModelConfig, ModelInput};
 

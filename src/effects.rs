@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
-use crate::diagnosis::Rows;
+use crate::rows::Rows;
 use crate::thermal_model::{Event, Features, ModelConfig, TemperatureInput};
 
 /// One effect of the library, as `diagnose --list-effects` prints it.
@@ -562,7 +562,7 @@ impl Drivers {
 
         // Time spent tilted, as the detections show it.
         let mut tilt_steps: Vec<(i64, f64)> = Vec::new();
-        let mut by_time: Vec<&crate::diagnosis::DetectionRow> = rows.rows.iter().collect();
+        let mut by_time: Vec<&crate::rows::DetectionRow> = rows.rows.iter().collect();
         by_time.sort_by_key(|r| r.t_ns);
         for w in by_time.windows(2) {
             let tilted = if w[0].b_deg.abs() > 45.0 { 1.0 } else { 0.0 };
@@ -641,7 +641,7 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
     };
     let location = &rows.locations;
     let unit_of = |name: &str| {
-        crate::diagnosis::SIGNATURES
+        crate::rows::SIGNATURES
             .iter()
             .find(|(n, _)| *n == name)
             .map_or(
@@ -822,7 +822,7 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
         let sense: Vec<f64> = rows
             .rows
             .iter()
-            .map(|r| f64::from(r.rotary_sense[i - crate::diagnosis::SIGNATURES.len()]))
+            .map(|r| f64::from(r.rotary_sense[i - crate::rows::SIGNATURES.len()]))
             .collect();
         push(
             "rotary_backlash",
@@ -892,7 +892,7 @@ pub fn signature_column(rows: &Rows, name: &str) -> Option<Vec<f64>> {
 
 /// The unit of one signature.
 pub fn signature_unit(name: &str) -> &'static str {
-    crate::diagnosis::SIGNATURES
+    crate::rows::SIGNATURES
         .iter()
         .find(|(n, _)| *n == name)
         .map_or(

@@ -383,7 +383,7 @@ impl Kinematics {
                     r.name
                 )));
             }
-            if !crate::positive(r.speed_deg_min) || r.travel_deg[0] >= r.travel_deg[1] {
+            if !crate::units::positive(r.speed_deg_min) || r.travel_deg[0] >= r.travel_deg[1] {
                 return Err(invalid(format!(
                     "axis {} needs a positive speed and travel_deg [min, max]",
                     r.name
@@ -421,7 +421,7 @@ impl Kinematics {
             return Err(invalid("location error names must be unique".into()));
         }
         let s = &cfg.setter;
-        if !crate::positive(s.sigma_um) || !crate::non_negative(s.latency_ms) {
+        if !crate::units::positive(s.sigma_um) || !crate::units::non_negative(s.latency_ms) {
             return Err(invalid(
                 "setter.sigma_um must be > 0 and latency_ms >= 0".into(),
             ));
@@ -433,19 +433,19 @@ impl Kinematics {
             latency_s: s.latency_ms * 1e-3,
         };
         let l = &cfg.limits;
-        let (lo, hi) = crate::thermal_model::PLAUSIBLE_CELSIUS;
-        if !(crate::positive(l.spindle_max_rpm)
-            && l.spindle_max_rpm <= crate::thermal_model::MAX_PLAUSIBLE_RPM
+        let (lo, hi) = crate::units::PLAUSIBLE_CELSIUS;
+        if !(crate::units::positive(l.spindle_max_rpm)
+            && l.spindle_max_rpm <= crate::units::MAX_PLAUSIBLE_RPM
             && lo <= l.celsius[0]
             && l.celsius[0] < l.celsius[1]
             && l.celsius[1] <= hi)
         {
             return Err(invalid(format!(
                 "limits: spindle_max_rpm must lie in (0, {}] and celsius = [min, max] within [{lo}, {hi}]",
-                crate::thermal_model::MAX_PLAUSIBLE_RPM
+                crate::units::MAX_PLAUSIBLE_RPM
             )));
         }
-        if !crate::positive(cfg.tool.radius_mm) {
+        if !crate::units::positive(cfg.tool.radius_mm) {
             return Err(invalid("tool.radius_mm must be > 0".into()));
         }
         let mut k = Kinematics {

@@ -25,6 +25,7 @@ pub mod identify;
 pub mod kinematics;
 pub mod link;
 pub mod live_model;
+pub mod lsq;
 pub mod measurement;
 pub mod nc_push;
 pub mod patent_relations;
@@ -33,6 +34,7 @@ pub mod plan;
 pub mod prediction_plot;
 pub mod recorder;
 pub mod recording;
+pub mod rows;
 pub mod scenario;
 pub mod scheduler;
 pub mod series;
@@ -44,14 +46,5 @@ pub mod strategies;
 pub mod surrogates;
 pub mod thermal;
 pub mod thermal_model;
+pub mod units;
 pub mod webhook;
-
-/// A finite number above zero (false for NaN).
-pub(crate) fn positive(x: f64) -> bool {
-    x.is_finite() && x > 0.0
-}
-
-/// A finite number of at least zero (false for NaN).
-pub(crate) fn non_negative(x: f64) -> bool {
-    x.is_finite() && x >= 0.0
-}

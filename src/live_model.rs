@@ -194,7 +194,7 @@ impl LiveModel {
         let mut p = self.predictor.clone()?;
         p.predict(t_ns)
             .into_iter()
-            .find(|x| !(x.value.is_finite() && crate::positive(x.sigma)))
+            .find(|x| !(x.value.is_finite() && crate::units::positive(x.sigma)))
             .map(|x| format!("{} predicted as {} +- {}", x.channel, x.value, x.sigma))
     }
 
@@ -276,7 +276,7 @@ impl LiveModel {
                 t_ns,
                 row: row.clone(),
                 y: *v,
-                sigma: sigma.filter(|s| crate::positive(*s)),
+                sigma: sigma.filter(|s| crate::units::positive(*s)),
             });
             let old = rows.partition_point(|o| o.t_ns < keep_from);
             rows.drain(..old);

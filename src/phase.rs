@@ -18,13 +18,9 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::recording::MachineStateKind;
+use crate::units::min_to_ns;
 
-const NS_PER_MIN: f64 = 60e9;
 
-/// Minutes as a duration in ns (saturating for absurd values; NaN gives 0).
-pub(crate) fn min_to_ns(minutes: f64) -> i64 {
-    (minutes * NS_PER_MIN).round() as i64
-}
 
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum PhaseError {
@@ -85,13 +81,13 @@ impl Default for PhaseConfig {
 
 impl PhaseConfig {
     pub fn validate(&self) -> Result<(), PhaseError> {
-        if !crate::positive(self.spindle_on_rpm) {
+        if !crate::units::positive(self.spindle_on_rpm) {
             return Err(PhaseError::Config("spindle_on_rpm must be > 0"));
         }
-        if !crate::positive(self.warmup_min) {
+        if !crate::units::positive(self.warmup_min) {
             return Err(PhaseError::Config("warmup_min must be > 0"));
         }
-        if !crate::positive(self.cooling_min) {
+        if !crate::units::positive(self.cooling_min) {
             return Err(PhaseError::Config("cooling_min must be > 0"));
         }
         if !self.cold_after_min.is_finite() || self.cold_after_min < self.cooling_min {

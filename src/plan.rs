@@ -202,7 +202,7 @@ impl Plan {
             ("lateral_depth_mm", cfg.lateral_depth_mm),
         ];
         for (name, v) in positive {
-            if !crate::positive(v) {
+            if !crate::units::positive(v) {
                 return Err(invalid(format!("{name} must be a positive number")));
             }
         }

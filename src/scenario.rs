@@ -389,7 +389,7 @@ impl Scenario {
                 message: m.to_string(),
             })
         };
-        if !crate::positive(self.duration_min) {
+        if !crate::units::positive(self.duration_min) {
             return bad("duration_min must be > 0");
         }
         if self.spindle.is_empty() {
@@ -405,7 +405,7 @@ impl Scenario {
         {
             return bad("spindle rpm must be finite and >= 0");
         }
-        if !crate::non_negative(self.noise.sigma_um)
+        if !crate::units::non_negative(self.noise.sigma_um)
             || !(0.0..=1.0).contains(&self.noise.outlier_rate)
             || !(0.0..=1.0).contains(&self.noise.no_trip_rate)
         {
@@ -420,24 +420,24 @@ impl Scenario {
             return bad("skip.changes: finite times and latencies");
         }
         if self.truth.periodic.iter().any(|p| {
-            !p.amplitude.is_finite() || !crate::positive(p.period_min) || !p.phase_deg.is_finite()
+            !p.amplitude.is_finite() || !crate::units::positive(p.period_min) || !p.phase_deg.is_finite()
         }) {
             return bad("truth.periodic: finite amplitude and phase, period_min > 0");
         }
-        if !crate::positive(self.sample_s) {
+        if !crate::units::positive(self.sample_s) {
             return bad("sample_s must be > 0");
         }
         if let Some(e) = self.cycles.every_min
-            && !crate::positive(e)
+            && !crate::units::positive(e)
         {
             return bad("cycles.every_min must be > 0");
         }
         let c = &self.cycles;
-        if c.rpm_sequence.iter().any(|v| !crate::positive(*v))
-            || c.feed_sequence.iter().any(|v| !crate::positive(*v))
+        if c.rpm_sequence.iter().any(|v| !crate::units::positive(*v))
+            || c.feed_sequence.iter().any(|v| !crate::units::positive(*v))
             || c.feed_changes
                 .iter()
-                .any(|f| !crate::positive(f.feed_mm_min))
+                .any(|f| !crate::units::positive(f.feed_mm_min))
         {
             return bad("cycle speeds and feeds must be > 0");
         }

@@ -14,7 +14,8 @@ use std::fmt;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::phase::{Phase, PhaseInfo, min_to_ns};
+use crate::phase::{Phase, PhaseInfo};
+use crate::units::min_to_ns;
 use crate::recording::MachineStateKind;
 
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -66,25 +67,25 @@ impl SchedulePolicy {
     /// decisions; check it where it is loaded.
     pub fn validate(&self) -> Result<(), ScheduleError> {
         let bad = |m| Err(ScheduleError::Policy(m));
-        if !crate::positive(self.warmup_every_min) {
+        if !crate::units::positive(self.warmup_every_min) {
             return bad("warmup_every_min must be > 0");
         }
-        if !self.after_stop_min.iter().all(|&m| crate::non_negative(m)) {
+        if !self.after_stop_min.iter().all(|&m| crate::units::non_negative(m)) {
             return bad("after_stop_min offsets must be >= 0");
         }
         if self.after_stop_min.windows(2).any(|w| w[1] <= w[0]) {
             return bad("after_stop_min offsets must be increasing");
         }
-        if self.steady_every_min.is_some_and(|m| !crate::positive(m)) {
+        if self.steady_every_min.is_some_and(|m| !crate::units::positive(m)) {
             return bad("steady_every_min must be > 0 when given");
         }
-        if !crate::non_negative(self.min_spacing_min) {
+        if !crate::units::non_negative(self.min_spacing_min) {
             return bad("min_spacing_min must be >= 0");
         }
-        if !crate::positive(self.max_age_min) {
+        if !crate::units::positive(self.max_age_min) {
             return bad("max_age_min must be > 0");
         }
-        if !crate::positive(self.timeout_min) {
+        if !crate::units::positive(self.timeout_min) {
             return bad("timeout_min must be > 0");
         }
         Ok(())

@@ -132,28 +132,28 @@ impl ModelConfig {
 
     pub fn validate(&self) -> Result<(), ModelError> {
         let bad = |m: String| Err(ModelError::Config(m));
-        if self.taus_min.iter().any(|t| !crate::positive(*t)) {
+        if self.taus_min.iter().any(|t| !crate::units::positive(*t)) {
             return bad(format!("spindle taus_min must be > 0: {:?}", self.taus_min));
         }
-        if !crate::positive(self.n_ref_rpm) || !crate::positive(self.gamma) {
+        if !crate::units::positive(self.n_ref_rpm) || !crate::units::positive(self.gamma) {
             return bad("n_ref_rpm and gamma must be > 0".into());
         }
         for t in &self.temperatures {
-            if t.taus_min.is_empty() || t.taus_min.iter().any(|x| !crate::non_negative(*x)) {
+            if t.taus_min.is_empty() || t.taus_min.iter().any(|x| !crate::units::non_negative(*x)) {
                 return bad(format!("sensor {}: taus_min must be >= 0", t.sensor));
             }
         }
-        if self.ridge_grid.is_empty() || self.ridge_grid.iter().any(|x| !crate::non_negative(*x)) {
+        if self.ridge_grid.is_empty() || self.ridge_grid.iter().any(|x| !crate::units::non_negative(*x)) {
             return bad("ridge_grid needs values >= 0".into());
         }
-        if !crate::positive(self.prior_gain_sd) {
+        if !crate::units::positive(self.prior_gain_sd) {
             return bad("prior_gain_sd must be > 0".into());
         }
-        if !crate::non_negative(self.offset_walk_per_h)
+        if !crate::units::non_negative(self.offset_walk_per_h)
             || self
                 .offset_walk_grid_per_h
                 .iter()
-                .any(|x| !crate::non_negative(*x))
+                .any(|x| !crate::units::non_negative(*x))
         {
             return bad("offset_walk_per_h and offset_walk_grid_per_h must be >= 0".into());
         }
@@ -218,22 +218,9 @@ impl ModelConfig {
     }
 }
 
-/// The fastest spindle speed any machine tool turns, min^-1 (either sense): the model takes
-/// no speed beyond it (a value of 1e300 made every state infinite and every prediction NaN).
-pub const MAX_PLAUSIBLE_RPM: f64 = 200_000.0;
-
-/// The temperatures a machine tool's sensors can read, deg C.
-pub const PLAUSIBLE_CELSIUS: (f64, f64) = (-60.0, 200.0);
-
-/// A spindle speed the model takes: finite and within [`MAX_PLAUSIBLE_RPM`].
-pub fn plausible_rpm(rpm: f64) -> bool {
-    rpm.is_finite() && rpm.abs() <= MAX_PLAUSIBLE_RPM
-}
-
-/// A temperature the model takes: within [`PLAUSIBLE_CELSIUS`].
-pub fn plausible_celsius(celsius: f64) -> bool {
-    (PLAUSIBLE_CELSIUS.0..=PLAUSIBLE_CELSIUS.1).contains(&celsius)
-}
+pub use crate::units::{
+    MAX_PLAUSIBLE_RPM, PLAUSIBLE_CELSIUS, plausible_celsius, plausible_rpm,
+};
 
 /// What happens on the machine's timeline, in time order.
 #[derive(Debug, Clone, PartialEq)]
@@ -682,7 +669,7 @@ impl Guard {
     /// `c = 1` added so that a few scores move it little, within [`SCALE_RANGE`]; 1 until
     /// `min_scored` are scored.
     pub fn sigma_scale(&self, min_scored: usize) -> f64 {
-        if self.n < min_scored || !crate::positive(self.sum_model_var) {
+        if self.n < min_scored || !crate::units::positive(self.sum_model_var) {
             return 1.0;
         }
         let prior = min_scored as f64 * self.sum_model_var / self.n as f64;
@@ -822,7 +809,7 @@ impl Guard {
 
     /// Why the channel serves `served` (its [`Guard::source`], or what [`Guard::serve`] gave).
     pub fn reason(&self, channel: &str, min_scored: usize, served: Served) -> String {
-        let u = crate::compensation::unit(channel);
+        let u = crate::units::error_unit(channel);
         let (m, l, c) = (
             self.rms(self.sse_model),
             self.rms(self.sse_last),
@@ -853,7 +840,7 @@ impl Guard {
         let n = self.n.max(1) as f64;
         GuardSummary {
             channel: channel.to_string(),
-            unit: crate::compensation::unit(channel).to_string(),
+            unit: crate::units::error_unit(channel).to_string(),
             source: self.source(min_scored),
             reason: self.reason(channel, min_scored, self.source(min_scored)),
             offset_walk_per_h: walk.0,
@@ -975,7 +962,7 @@ pub fn fit(
                 t_ns: *t_ns,
                 row: f.row(),
                 y: *value,
-                sigma: sigma.filter(|s| crate::positive(*s)),
+                sigma: sigma.filter(|s| crate::units::positive(*s)),
             });
         }
     }
@@ -1549,7 +1536,7 @@ impl Predictor {
         if !value.is_finite() || h.len() != s.beta.len() {
             return false;
         }
-        let obs_var = sigma.filter(|x| crate::positive(*x)).map_or(0.0, |x| x * x);
+        let obs_var = sigma.filter(|x| crate::units::positive(*x)).map_or(0.0, |x| x * x);
         s.walk_to(t_ns);
         let (model, cold) = (s.model_at(h), s.cold(0.0));
         s.guard
@@ -1724,7 +1711,7 @@ pub fn replay(
                 };
                 if let (Some(pr), Some(prev)) = (pred, prev) {
                     let s = sums.entry(channel.clone()).or_default();
-                    let obs_var = sigma.filter(|x| crate::positive(*x)).map_or(0.0, |x| x * x);
+                    let obs_var = sigma.filter(|x| crate::units::positive(*x)).map_or(0.0, |x| x * x);
                     let z2 = (pr.value - value).powi(2) / (pr.sigma.powi(2) + obs_var).max(1e-24);
                     s.n += 1;
                     s.model += (pr.model_value - value).powi(2);

@@ -86,7 +86,7 @@ impl WebhookConfig {
             ("max_retry_s", self.max_retry_s),
             ("timeout_s", self.timeout_s),
         ] {
-            if !crate::positive(v) {
+            if !crate::units::positive(v) {
                 return Err(format!("webhook {k} must be > 0, not {v}"));
             }
         }
