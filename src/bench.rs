@@ -11,15 +11,15 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 
-use driftwatch::config::ServiceConfig;
-use driftwatch::daemon::{MachineRuntime, Settings};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::link::Simulated;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recorder::Recorder;
-use driftwatch::recording::MachineInfo;
-use driftwatch::scenario::Scenario;
-use driftwatch::store::Store;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::MachineInfo;
+use driftwatch_service::config::ServiceConfig;
+use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::link::Simulated;
+use driftwatch_service::recorder::Recorder;
+use driftwatch_service::store::Store;
+use driftwatch_sim::scenario::Scenario;
 
 fn size_of(p: &Path) -> u64 {
     match std::fs::metadata(p) {
@@ -161,7 +161,7 @@ async fn load(url: &str, connections: usize, seconds: f64) -> Result<Load> {
 }
 
 pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<ExitCode> {
-    use driftwatch::api::{ApiState, Auth, MachineHandle, router};
+    use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
     anyhow::ensure!(connections > 0, "--connections must be at least 1");
     anyhow::ensure!(seconds > 0.0, "--seconds must be > 0");
     let (mut rt, store, t0) = pipeline(&dir, true).await?;
@@ -264,8 +264,8 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 /// the service's model rebuilt from an earlier simulated day of the same machine, and the
 /// service's schedule against a fixed cadence with as many cycles.
 pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode> {
-    use driftwatch::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
-    let mut policy = driftwatch::scheduler::SchedulePolicy::default();
+    use driftwatch_sim::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
+    let mut policy = driftwatch_machine::scheduler::SchedulePolicy::default();
     let own_schedule = after_stop.is_none();
     if let Some(a) = after_stop {
         anyhow::ensure!(
@@ -290,11 +290,11 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
     }
     println!(
         "residual against the truth, every minute; tool tip at ({}, {}, {}) mm on the table at B {} C {} deg",
-        driftwatch::strategies::REFERENCE_POINT_MM[0],
-        driftwatch::strategies::REFERENCE_POINT_MM[1],
-        driftwatch::strategies::REFERENCE_POINT_MM[2],
-        driftwatch::strategies::REFERENCE_POSE_DEG[0],
-        driftwatch::strategies::REFERENCE_POSE_DEG[1]
+        driftwatch_sim::strategies::REFERENCE_POINT_MM[0],
+        driftwatch_sim::strategies::REFERENCE_POINT_MM[1],
+        driftwatch_sim::strategies::REFERENCE_POINT_MM[2],
+        driftwatch_sim::strategies::REFERENCE_POSE_DEG[0],
+        driftwatch_sim::strategies::REFERENCE_POSE_DEG[1]
     );
     for (name, start, sc) in &all {
         let c = &sc.adaptive;
@@ -314,7 +314,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
         );
         let names: Vec<&String> = c.none.errors.keys().collect();
         for n in names {
-            let f = |r: &driftwatch::strategies::StrategyResult| {
+            let f = |r: &driftwatch_sim::strategies::StrategyResult| {
                 let s = r.errors[n];
                 format!("{:>8.2} / {:>8.2}", s.rms, s.max)
             };
@@ -354,7 +354,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
         for g in &c.served {
             println!("    {g}");
         }
-        let t = |s: driftwatch::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
+        let t = |s: driftwatch_sim::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
         println!(
             "  {:<9} {:>19} {:>19} {:>19}",
             "tool tip",
@@ -368,7 +368,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
             100.0 * c.tool_tip_reduction()
         );
         let f = &sc.fixed;
-        let ez = |r: &driftwatch::strategies::StrategyResult| {
+        let ez = |r: &driftwatch_sim::strategies::StrategyResult| {
             r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max)
         };
         println!(
@@ -419,7 +419,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
 /// The diagnosis on `days` production days of the ambient-swing hall (logged), a cycle every
 /// 30 min, 0.5-um noise: simulation and diagnosis timed apart, on one thread.
 pub fn diagnosis(days: f64) -> Result<ExitCode> {
-    use driftwatch::diagnosis::{DiagnoseOptions, Inputs, detection_rows, diagnose};
+    use driftwatch_diagnosis::cycles::{DiagnoseOptions, Inputs, detection_rows, diagnose};
     let days = if days >= 365.0 {
         3
     } else {
@@ -430,9 +430,12 @@ pub fn diagnosis(days: f64) -> Result<ExitCode> {
         .with_cycles_every(30.0);
     scn.noise.sigma_um = 0.5;
     let k = Kinematics::load(&scn.machine)?;
-    let plan = driftwatch::plan::Plan::build(&k, &driftwatch::plan::PlanConfig::load(&scn.plan)?)?;
+    let plan = driftwatch_core::plan::Plan::build(
+        &k,
+        &driftwatch_core::plan::PlanConfig::load(&scn.plan)?,
+    )?;
     let t = std::time::Instant::now();
-    let sim = driftwatch::simulator::simulate(&scn, &k, &plan)?;
+    let sim = driftwatch_sim::simulator::simulate(&scn, &k, &plan)?;
     let t_sim = t.elapsed();
     let inputs = Inputs::of(&sim.recording());
     let t = std::time::Instant::now();
@@ -440,14 +443,14 @@ pub fn diagnosis(days: f64) -> Result<ExitCode> {
     let rows = detection_rows(
         &k,
         &inputs.detections,
-        &driftwatch::identify::SolveOptions::new(0.5),
+        &driftwatch_core::identify::SolveOptions::new(0.5),
     )?;
     let t_rows = t.elapsed();
     let d = diagnose(&rows, &inputs.spindle, &inputs.temperatures, &opts)?;
     let t_all = t.elapsed();
-    let n_cands = driftwatch::effects::candidates(
+    let n_cands = driftwatch_diagnosis::effects::candidates(
         &rows,
-        &driftwatch::effects::Drivers::new(
+        &driftwatch_diagnosis::effects::Drivers::new(
             &rows,
             &inputs.spindle,
             &inputs.temperatures,
@@ -486,8 +489,8 @@ fn power_scenario(seed: u64) -> Result<Scenario> {
 /// in which the diagnosis names the effect, at multiples of the detection threshold the
 /// diagnosis itself reports for that plan (docs/physics.md 4.3: 50 % power at delta-BIC 10).
 pub fn power(trials: usize) -> Result<ExitCode> {
-    use driftwatch::diagnosis::{DiagnoseOptions, Inputs, diagnose_inputs};
-    use driftwatch::scenario::FeedChange;
+    use driftwatch_diagnosis::cycles::{DiagnoseOptions, Inputs, diagnose_inputs};
+    use driftwatch_sim::scenario::FeedChange;
     type Setup = fn(&mut Scenario, f64);
     let effects: [(&str, &str, Setup); 2] = [
         ("skip_latency", "ms", |s, a| {
@@ -500,17 +503,19 @@ pub fn power(trials: usize) -> Result<ExitCode> {
         ("radius_speed", "um", |s, a| {
             s.cycles.rpm_sequence = vec![20000.0, 8000.0];
             if a != 0.0 {
-                let ch: driftwatch::thermal::Channel =
+                let ch: driftwatch_core::thermal::Channel =
                     toml::from_str(&format!("instant = {a}")).unwrap_or_default();
                 s.truth.channels.insert("radius".into(), ch);
             }
         }),
     ];
-    let run = |scn: &Scenario| -> Result<driftwatch::diagnosis::Diagnosis> {
+    let run = |scn: &Scenario| -> Result<driftwatch_diagnosis::cycles::Diagnosis> {
         let k = Kinematics::load(&scn.machine)?;
-        let plan =
-            driftwatch::plan::Plan::build(&k, &driftwatch::plan::PlanConfig::load(&scn.plan)?)?;
-        let sim = driftwatch::simulator::simulate(scn, &k, &plan)?;
+        let plan = driftwatch_core::plan::Plan::build(
+            &k,
+            &driftwatch_core::plan::PlanConfig::load(&scn.plan)?,
+        )?;
+        let sim = driftwatch_sim::simulator::simulate(scn, &k, &plan)?;
         Ok(diagnose_inputs(
             &k,
             &Inputs::of(&sim.recording()),
@@ -592,8 +597,8 @@ fn real_sets() -> Vec<RealSet> {
 }
 
 /// A shipped real data set's events (from t = 0).
-fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch::thermal_model::Event>> {
-    use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
+fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::thermal_model::Event>> {
+    use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
     let path = data.join(set.csv);
     let text = std::fs::read_to_string(&path)
         .with_context(|| format!("reading {} (give --data DIR)", path.display()))?;
@@ -609,7 +614,7 @@ fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch::thermal_mod
         },
     )
     .with_context(|| format!("importing {}", path.display()))?;
-    Ok(driftwatch::thermal_model::events_from(&[im.recording]))
+    Ok(driftwatch_core::thermal_model::events_from(&[im.recording]))
 }
 
 /// The displacement diagnosis on every shipped real data set and on null recordings made
@@ -617,9 +622,9 @@ fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch::thermal_mod
 /// nulls, and the power on injected temperature effects; each under the acceptance rules
 /// before issue 14 and now.
 pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
-    use driftwatch::diagnosis_calibration::{null_trial, power_trial, worsening_terms};
-    use driftwatch::displacement_diagnosis::{DisplacementOptions, diagnose_displacements};
-    use driftwatch::surrogates::Null;
+    use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
+    use driftwatch_diagnosis::displacement::{DisplacementOptions, diagnose_displacements};
+    use driftwatch_diagnosis::surrogates::Null;
     let rules = [
         ("before", DisplacementOptions::before_issue_14()),
         ("now", DisplacementOptions::default()),
@@ -717,7 +722,7 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
             if !json {
                 println!(
                     "power, rule {rule:<7} t11_C effect of {rms:>4} um RMS in {} um AR noise: found {found} of {trials}",
-                    driftwatch::diagnosis_calibration::NULL_NOISE_UM
+                    driftwatch_diagnosis::calibration::NULL_NOISE_UM
                 );
             }
             power_rows.push(
@@ -733,11 +738,11 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
 }
 
 /// The top logged spindle speed (1 without a spindle log): the diagnosis' reference speed.
-fn top_speed(events: &[driftwatch::thermal_model::Event]) -> f64 {
+fn top_speed(events: &[driftwatch_core::thermal_model::Event]) -> f64 {
     events
         .iter()
         .filter_map(|e| match e {
-            driftwatch::thermal_model::Event::Spindle { rpm, .. } => Some(rpm.abs()),
+            driftwatch_core::thermal_model::Event::Spindle { rpm, .. } => Some(rpm.abs()),
             _ => None,
         })
         .fold(0.0, f64::max)
@@ -748,7 +753,7 @@ fn top_speed(events: &[driftwatch::thermal_model::Event]) -> f64 {
 /// and what its inputs are.
 struct ThermalSet {
     name: String,
-    events: Vec<driftwatch::thermal_model::Event>,
+    events: Vec<driftwatch_core::thermal_model::Event>,
     channels: Vec<String>,
     train_h: f64,
     inputs: &'static str,
@@ -762,10 +767,10 @@ const SIM_SIGMA: f64 = 0.5;
 /// The simulated scenarios as a test rig sees them (`strategies::sensor_view`): every
 /// identified error that moves by more than ten times the sensor noise is a channel.
 fn simulated_sets() -> Result<Vec<ThermalSet>> {
-    use driftwatch::thermal_model::Event;
+    use driftwatch_core::thermal_model::Event;
     let mut out = Vec::new();
-    for (name, _) in driftwatch::strategies::BENCH_SCENARIOS {
-        let events = driftwatch::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
+    for (name, _) in driftwatch_sim::strategies::BENCH_SCENARIOS {
+        let events = driftwatch_sim::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
         let mut range: std::collections::BTreeMap<&str, (f64, f64)> = Default::default();
         for e in &events {
             if let Event::Observation { channel, value, .. } = e {
@@ -855,7 +860,7 @@ fn thermal_set(
     step_min: f64,
     json: bool,
 ) -> (Vec<serde_json::Value>, Vec<String>) {
-    use driftwatch::families::{Family, compete, grid};
+    use driftwatch_core::families::{Family, compete, grid};
     let step_ns = (step_min * 60e9) as i64;
     let train_end_ns = set
         .events
@@ -867,7 +872,7 @@ fn thermal_set(
         let Some(g) = grid(&set.events, ch, step_ns) else {
             continue;
         };
-        let grey = driftwatch::families::grey_box_config(&g);
+        let grey = driftwatch_core::families::grey_box_config(&g);
         let scores = compete(&set.events, &g, train_end_ns, &Family::ALL, &grey);
         for s in &scores {
             if !json {
@@ -921,8 +926,8 @@ struct Verdict {
 }
 
 impl Verdict {
-    fn of(served: f64, scores: &[driftwatch::families::FamilyScore]) -> Option<Verdict> {
-        use driftwatch::families::Family;
+    fn of(served: f64, scores: &[driftwatch_core::families::FamilyScore]) -> Option<Verdict> {
+        use driftwatch_core::families::Family;
         let rmse = |f: Family| {
             scores
                 .iter()
@@ -979,13 +984,13 @@ impl std::fmt::Display for Verdict {
 /// The hold-out RMSE of what `predict` serves for a channel: the chosen family, handing over
 /// to the grey box where it leaves the inputs' range of its fit data; and what that was.
 fn served_holdout(
-    events: &[driftwatch::thermal_model::Event],
-    g: &driftwatch::families::Grid,
+    events: &[driftwatch_core::thermal_model::Event],
+    g: &driftwatch_core::families::Grid,
     train_end_ns: i64,
-    scores: &[driftwatch::families::FamilyScore],
-    grey: &driftwatch::thermal_model::ModelConfig,
+    scores: &[driftwatch_core::families::FamilyScore],
+    grey: &driftwatch_core::thermal_model::ModelConfig,
 ) -> Option<(f64, String)> {
-    use driftwatch::families::{
+    use driftwatch_core::families::{
         Family, fit_scored, grey_box, input_ranges, leaves_range, origin_residual, relax_weight,
         simulate_with,
     };
@@ -1017,5 +1022,5 @@ fn served_holdout(
         );
     }
     let e: Vec<f64> = p.iter().zip(&g.y[n_train..]).map(|(p, y)| p - y).collect();
-    Some((driftwatch::families::rms(&e), why))
+    Some((driftwatch_core::families::rms(&e), why))
 }

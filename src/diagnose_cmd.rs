@@ -7,16 +7,16 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
-use driftwatch::diagnosis::{DiagnoseOptions, Diagnosis, Inputs, diagnose_inputs};
-use driftwatch::displacement_diagnosis::{
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::recording::Recording;
+use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
+use driftwatch_core::thermal_model::ThermalModel;
+use driftwatch_core::thermal_model::{Event, ModelConfig, ModelInput, events_from};
+use driftwatch_diagnosis::cycles::{DiagnoseOptions, Diagnosis, Inputs, diagnose_inputs};
+use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
-use driftwatch::effects::{EFFECTS, Effect};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::recording::Recording;
-use driftwatch::recording::mcap_io::{ReadOptions, read_file};
-use driftwatch::thermal_model::ThermalModel;
-use driftwatch::thermal_model::{Event, ModelConfig, ModelInput, events_from};
+use driftwatch_diagnosis::effects::{EFFECTS, Effect};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {
@@ -153,7 +153,7 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
     let (json_path, html_path) = write_report(
         &a.out,
         &file,
-        &driftwatch::diagnosis_report::html(&d, &title),
+        &driftwatch_diagnosis::report::html(&d, &title),
     )?;
     println!(
         "{} readings, {} cycles, {:.1} h; baseline chi2/dof {:.3}, held-out RMS {:.3} um -> {:.3} um",
@@ -296,7 +296,7 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
     let (json_path, html_path) = write_report(
         &a.out,
         &file,
-        &driftwatch::diagnosis_report::displacement_html(
+        &driftwatch_diagnosis::report::displacement_html(
             &d,
             "driftwatch diagnosis: displacement recording",
         ),
@@ -341,17 +341,19 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
 /// Fit `config` on `events` and write it to `path` as the new model version; a fit that
 /// fails is a note, not an error (the diagnosis is already written).
 fn write_model(config: &ModelConfig, events: &[Event], path: &std::path::Path) -> Result<String> {
-    Ok(match driftwatch::thermal_model::fit(config, events, None) {
-        Ok(model) => {
-            std::fs::write(path, serde_json::to_string_pretty(&model)?)
-                .with_context(|| format!("writing {}", path.display()))?;
-            format!(
-                "wrote {}: the thermal model with the accepted terms it can carry",
-                path.display()
-            )
-        }
-        Err(e) => format!("no model.json: {e}"),
-    })
+    Ok(
+        match driftwatch_core::thermal_model::fit(config, events, None) {
+            Ok(model) => {
+                std::fs::write(path, serde_json::to_string_pretty(&model)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                format!(
+                    "wrote {}: the thermal model with the accepted terms it can carry",
+                    path.display()
+                )
+            }
+            Err(e) => format!("no model.json: {e}"),
+        },
+    )
 }
 
 /// Write `diagnosis.json` and `report.html` into `out`; their paths.

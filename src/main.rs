@@ -7,15 +7,15 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 
-use driftwatch::cycle::{CycleChecks, group_by_cycle, infer_expected, process_cycle};
-use driftwatch::experiment;
-use driftwatch::identify::{Identifier, Observation, SolveOptions};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
-use driftwatch::recording::{self as rec, Timed};
-use driftwatch::scenario::Scenario;
-use driftwatch::simulator::simulate;
+use driftwatch_core::cycle::{CycleChecks, group_by_cycle, infer_expected, process_cycle};
+use driftwatch_core::identify::{Identifier, Observation, SolveOptions};
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
+use driftwatch_core::recording::{self as rec, Timed};
+use driftwatch_sim::experiment;
+use driftwatch_sim::scenario::Scenario;
+use driftwatch_sim::simulator::simulate;
 
 mod bench;
 mod diagnose_cmd;
@@ -71,6 +71,16 @@ enum Command {
         /// Data directory (overrides the configuration).
         #[arg(long)]
         data_dir: Option<PathBuf>,
+    },
+    /// Ask a running service whether it answers (exit 0 on 200 from the URL, 1 otherwise):
+    /// the container image's HEALTHCHECK, which has no curl.
+    Healthcheck {
+        /// The service's health endpoint.
+        #[arg(long, default_value = "http://127.0.0.1:8080/healthz")]
+        url: String,
+        /// Seconds to wait for the answer.
+        #[arg(long, default_value_t = 5.0)]
+        timeout_s: f64,
     },
     /// Run the truth simulator over a scenario and write a contract recording (MCAP).
     Simulate {
@@ -285,6 +295,13 @@ fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
 
 fn run(cmd: Command) -> Result<ExitCode> {
     match cmd {
+        Command::Healthcheck { url, timeout_s } => {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .context("starting the async runtime")?;
+            rt.block_on(serve::healthcheck(&url, timeout_s))
+        }
         Command::Serve {
             config,
             time_scale,
@@ -414,8 +431,8 @@ fn load_scenario(name: &str, plan_override: Option<&str>) -> Result<(Scenario, K
 /// Write a simulation with the truth-free results of its cycles.
 fn write_recording(
     path: &Path,
-    sim: &driftwatch::simulator::Simulation,
-    outcomes: &[driftwatch::cycle::CycleOutcome],
+    sim: &driftwatch_sim::simulator::Simulation,
+    outcomes: &[driftwatch_core::cycle::CycleOutcome],
 ) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -491,17 +508,17 @@ fn cmd_simulate(
     // A scenario that lists no cycles gets the service's schedule: warm-up and after
     // spindle stops, never while cutting.
     if scn.cycle_times_min().is_empty() {
-        scn.cycles.at_min = driftwatch::strategies::scheduled_cycles(
+        scn.cycles.at_min = driftwatch_sim::strategies::scheduled_cycles(
             &scn,
             &plan,
-            &driftwatch::scheduler::SchedulePolicy::default(),
+            &driftwatch_machine::scheduler::SchedulePolicy::default(),
         );
     }
     let sim = simulate(&scn, &k, &plan)?;
     let dets = sim.detection_stream();
     let mut checks = CycleChecks::new(&k);
-    checks.expected = Some(driftwatch::cycle::plan_measurements(&plan));
-    let (outcomes, _) = driftwatch::cycle::process_all(&k, &dets, &checks);
+    checks.expected = Some(driftwatch_core::cycle::plan_measurements(&plan));
+    let (outcomes, _) = driftwatch_core::cycle::process_all(&k, &dets, &checks);
     write_recording(out, &sim, &outcomes)?;
     let ok = outcomes.iter().filter(|o| o.is_ok()).count();
     outln!(
@@ -555,7 +572,7 @@ fn cmd_solve(
     }
     if let Some(plan) = plan {
         let p = Plan::build(&k, &PlanConfig::load(plan)?)?;
-        checks.expected = Some(driftwatch::cycle::plan_measurements(&p));
+        checks.expected = Some(driftwatch_core::cycle::plan_measurements(&p));
     } else if let Some((expected, n)) = infer_expected(&groups) {
         if !json {
             outln!(
@@ -569,7 +586,8 @@ fn cmd_solve(
     if groups.is_empty() {
         bail!("{} has no /probe/detection messages", path.display());
     }
-    let limits = driftwatch::config::ServiceConfig::load(args.config.as_deref())?.validation;
+    let limits =
+        driftwatch_service::config::ServiceConfig::load(args.config.as_deref())?.validation;
     let names = k.identify_names();
     if !json {
         out!(
@@ -591,7 +609,7 @@ fn cmd_solve(
         let o = process_cycle(&k, *c, entries, &checks);
         let closed_ns = entries.iter().map(|e| e.t_ns).max().unwrap_or(o.t_ref_ns);
         // Offline there are no predicted sets: the served set is the last measured one.
-        let (result, set) = driftwatch::compensation::admit(
+        let (result, set) = driftwatch_machine::compensation::admit(
             o.message(),
             served.as_ref(),
             served.as_ref(),
@@ -653,7 +671,7 @@ fn cmd_solve(
 fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     let (scn, k, plan) = load_scenario(scenario, None)?;
     let mut checks = CycleChecks::new(&k);
-    checks.expected = Some(driftwatch::cycle::plan_measurements(&plan));
+    checks.expected = Some(driftwatch_core::cycle::plan_measurements(&plan));
     let stop = scn
         .spindle
         .iter()

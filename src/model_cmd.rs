@@ -6,13 +6,13 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 
-use driftwatch::csv_import::{CsvFormat, CsvOptions, RowTime, import_csv_with, split_columns};
-use driftwatch::families::{ChannelChoice, Family};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::prediction_plot::Panel;
-use driftwatch::recording::Recording;
-use driftwatch::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
-use driftwatch::thermal_model::{
+use driftwatch_core::csv_import::{CsvFormat, CsvOptions, RowTime, import_csv_with, split_columns};
+use driftwatch_core::families::{ChannelChoice, Family};
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::prediction_plot::Panel;
+use driftwatch_core::recording::Recording;
+use driftwatch_core::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
+use driftwatch_core::thermal_model::{
     DEFAULT_MODEL_CONFIG, Event, ModelConfig, TemperatureInput, ThermalModel, events_from, fit,
     replay,
 };
@@ -128,7 +128,7 @@ fn parse_time(text: &str, t0_ns: i64) -> Result<i64> {
     {
         return Ok(t);
     }
-    let d = driftwatch::series::parse_every(text).map_err(|_| {
+    let d = driftwatch_core::series::parse_every(text).map_err(|_| {
         anyhow::anyhow!(
             "'{text}' is neither a duration after the start (40h, 90m, 3600) nor an RFC 3339 time"
         )
@@ -284,7 +284,7 @@ pub fn model_config(
     {
         cfg.temperatures.push(TemperatureInput {
             sensor: s,
-            taus_min: driftwatch::thermal_model::default_temperature_taus(),
+            taus_min: driftwatch_core::thermal_model::default_temperature_taus(),
         });
     }
     cfg.validate()?;
@@ -333,7 +333,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         &a.temperature_inputs,
         &a.taus_min,
     )?;
-    let all_sensors = driftwatch::thermal_model::sensors_of(&events);
+    let all_sensors = driftwatch_core::thermal_model::sensors_of(&events);
     for s in &sensors {
         anyhow::ensure!(
             all_sensors.contains(s),
@@ -346,7 +346,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             .iter()
             .map(|s| TemperatureInput {
                 sensor: s.clone(),
-                taus_min: driftwatch::thermal_model::default_temperature_taus(),
+                taus_min: driftwatch_core::thermal_model::default_temperature_taus(),
             })
             .collect()
     };
@@ -399,10 +399,10 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     let train_end = until.unwrap_or(i64::MAX);
     let mut families = Vec::new();
     for ch in displacement_channels(&events) {
-        let Some(g) = driftwatch::families::grid(&events, &ch, step_ns) else {
+        let Some(g) = driftwatch_core::families::grid(&events, &ch, step_ns) else {
             continue;
         };
-        match driftwatch::families::choose(&events, &g, train_end, &Family::ALL, &cfg, force) {
+        match driftwatch_core::families::choose(&events, &g, train_end, &Family::ALL, &cfg, force) {
             Some(c) => families.push(c),
             None => eprintln!(
                 "{ch}: no family could be fitted (too few readings for the rolling origins)"
@@ -484,7 +484,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         }
     }
     // What each channel will serve, from the held-out tail of the fit data.
-    let p = driftwatch::thermal_model::Predictor::new(model, model.to_ns);
+    let p = driftwatch_core::thermal_model::Predictor::new(model, model.to_ns);
     println!(
         "what each channel serves, from the held-out tail ({:.0} % of its observations):",
         100.0 * model.config.holdout_share
@@ -525,7 +525,7 @@ pub struct PredictArgs {
 
 /// The grey box's rows from `from` on: a table, or one JSON object per step.
 fn print_steps(
-    steps: &[driftwatch::thermal_model::ReplayStep],
+    steps: &[driftwatch_core::thermal_model::ReplayStep],
     from: i64,
     t0: i64,
     json: bool,
@@ -617,13 +617,13 @@ fn write_plot(
     let list: Vec<Panel> = panels
         .into_iter()
         .map(|(ch, mut p)| {
-            p.unit = driftwatch::compensation::unit(&ch).to_string();
+            p.unit = driftwatch_machine::compensation::unit(&ch).to_string();
             p.boundary_h = p.boundary_h.or(boundary_h);
             p.channel = ch;
             p
         })
         .collect();
-    let svg = driftwatch::prediction_plot::svg(&list)
+    let svg = driftwatch_core::prediction_plot::svg(&list)
         .map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))?;
     std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
     eprintln!("plot of {} channel(s) -> {}", list.len(), path.display());
@@ -634,7 +634,7 @@ fn write_plot(
 /// it predicts, and where it leaves its fit data (the grey box serves from there).
 type Run = (
     ChannelChoice,
-    driftwatch::families::Grid,
+    driftwatch_core::families::Grid,
     usize,
     Option<usize>,
 );
@@ -650,7 +650,7 @@ fn family_runs(
     // An empirical family serves only while its inputs stay within what it was fitted on.
     let mut runs = Vec::new();
     for c in chosen {
-        let g = driftwatch::families::grid(events, &c.channel, c.step_ns)
+        let g = driftwatch_core::families::grid(events, &c.channel, c.step_ns)
             .with_context(|| format!("{}: no readings with every input", c.channel))?;
         anyhow::ensure!(
             g.names == c.inputs,
@@ -661,7 +661,8 @@ fn family_runs(
             g.names.join(", ")
         );
         let origin = g.index_at(origin_t.saturating_add(1)).max(1);
-        let leave = driftwatch::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
+        let leave =
+            driftwatch_core::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
         if let Some((k, j, v)) = leave {
             eprintln!(
                 "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
@@ -690,7 +691,7 @@ struct FamiliesOnly {
 /// origin, next to persistence.
 struct FamilyRun<'a> {
     c: &'a ChannelChoice,
-    g: &'a driftwatch::families::Grid,
+    g: &'a driftwatch_core::families::Grid,
     origin: usize,
     /// The grid point where the family leaves its fit data: the grey box serves from there.
     leave: Option<usize>,
@@ -717,16 +718,16 @@ fn predict_family(
             at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
         })
         .collect();
-    let mut family = driftwatch::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
+    let mut family = driftwatch_core::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
     // The residual at the origin, relaxed into the prediction as the CV chose.
     let grey_prev = {
         let t = g.t_ns[origin - 1];
         let at = r.grey.partition_point(|(tg, _)| *tg <= t);
         at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
     };
-    let r0 = driftwatch::families::origin_residual(&c.fitted, g, origin, grey_prev);
+    let r0 = driftwatch_core::families::origin_residual(&c.fitted, g, origin, grey_prev);
     for (h, v) in family.iter_mut().enumerate() {
-        *v += r0 * driftwatch::families::relax_weight(c.relax_h, h, c.step_ns);
+        *v += r0 * driftwatch_core::families::relax_weight(c.relax_h, h, c.step_ns);
     }
     let p: Vec<(f64, &str)> = family
         .iter()
@@ -787,12 +788,12 @@ fn predict_family(
         }
     }
     drop(out);
-    let rms = driftwatch::families::rms;
+    let rms = driftwatch_core::families::rms;
     let (cover68, cover95) = match &c.bands {
         Some(b) => b.coverage(&errors),
         None => {
             let e: Vec<(usize, f64)> = errors.iter().map(|&(_, e)| (0, e)).collect();
-            let flat = driftwatch::families::Bands {
+            let flat = driftwatch_core::families::Bands {
                 edges: Vec::new(),
                 b68: vec![c.band68],
                 b95: vec![c.band95],
@@ -838,7 +839,7 @@ fn truth_of(path: &std::path::Path) -> Result<Vec<(i64, std::collections::BTreeM
     for m in r
         .raw
         .iter()
-        .filter(|m| m.topic == driftwatch::recording::TOPIC_TRUTH)
+        .filter(|m| m.topic == driftwatch_core::recording::TOPIC_TRUTH)
     {
         let Ok(v) = serde_json::from_slice::<serde_json::Value>(&m.data) else {
             continue;
@@ -940,7 +941,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
             s.z_rms,
             100.0 * s.within_1_sigma,
             100.0 * s.within_2_sigma,
-            u = driftwatch::compensation::unit(&s.channel)
+            u = driftwatch_machine::compensation::unit(&s.channel)
         );
     }
     // Where the families' CV chose the grey box and the updates stop, its CV band by
@@ -1022,12 +1023,13 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     }
     let truth = truth_of(&a.recording)?;
     if let Some((_, reference)) = truth.first() {
-        let t = driftwatch::thermal_model::truth_scores(&steps, &events, &truth, reference, from);
+        let t =
+            driftwatch_core::thermal_model::truth_scores(&steps, &events, &truth, reference, from);
         eprintln!(
             "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
         );
         for s in &t {
-            let unit = driftwatch::compensation::unit(&s.channel);
+            let unit = driftwatch_machine::compensation::unit(&s.channel);
             eprintln!(
                 "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
                 s.channel,

@@ -9,18 +9,18 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
-use driftwatch::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch::config::{LinkConfig, ServiceConfig};
-use driftwatch::daemon::{MachineRuntime, Settings};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::link::{MachineLink, Simulated};
-use driftwatch::nc_push::nc_push;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recorder::Recorder;
-use driftwatch::recording::{MachineInfo, MachineStateKind};
-use driftwatch::scenario::Scenario;
-use driftwatch::store::Store;
-use driftwatch::webhook::Notifier;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::{MachineInfo, MachineStateKind};
+use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch_service::config::{LinkConfig, ServiceConfig};
+use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::link::{MachineLink, Simulated};
+use driftwatch_service::nc_push::nc_push;
+use driftwatch_service::recorder::Recorder;
+use driftwatch_service::store::Store;
+use driftwatch_service::webhook::Notifier;
+use driftwatch_sim::scenario::Scenario;
 
 pub struct Options {
     pub config: Option<PathBuf>,
@@ -243,6 +243,32 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `driftwatch healthcheck`: one GET of a running service's health endpoint.
+pub async fn healthcheck(url: &str, timeout_s: f64) -> Result<ExitCode> {
+    anyhow::ensure!(
+        timeout_s.is_finite() && timeout_s > 0.0,
+        "--timeout-s must be > 0"
+    );
+    let client = reqwest::Client::builder()
+        .timeout(Duration::from_secs_f64(timeout_s))
+        .build()
+        .context("building the HTTP client")?;
+    match client.get(url).send().await {
+        Ok(r) if r.status().is_success() => {
+            println!("{url}: {}", r.status());
+            Ok(ExitCode::SUCCESS)
+        }
+        Ok(r) => {
+            eprintln!("{url}: {}", r.status());
+            Ok(ExitCode::FAILURE)
+        }
+        Err(e) => {
+            eprintln!("{url}: {e}");
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
 async fn shutdown_signal() {
     #[cfg(unix)]
     {
@@ -270,9 +296,9 @@ async fn shutdown_signal() {
 fn initial_model(
     path: &std::path::Path,
     k: &Kinematics,
-) -> Result<driftwatch::thermal_model::ThermalModel> {
+) -> Result<driftwatch_core::thermal_model::ThermalModel> {
     let text = std::fs::read_to_string(path).context("reading the file")?;
-    let model = driftwatch::thermal_model::ThermalModel::from_json(&text)?;
+    let model = driftwatch_core::thermal_model::ThermalModel::from_json(&text)?;
     let names = k.identify_names();
     let foreign: Vec<&str> = model
         .channels

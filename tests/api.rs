@@ -11,16 +11,16 @@ use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
 
-use driftwatch::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch::config::Role;
-use driftwatch::daemon::{MachineRuntime, Settings};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::link::Simulated;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recorder::Recorder;
-use driftwatch::recording::MachineInfo;
-use driftwatch::scenario::Scenario;
-use driftwatch::store::Store;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::MachineInfo;
+use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch_service::config::Role;
+use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::link::Simulated;
+use driftwatch_service::recorder::Recorder;
+use driftwatch_service::store::Store;
+use driftwatch_sim::scenario::Scenario;
 
 const MIN: i64 = 60_000_000_000;
 
@@ -646,7 +646,7 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
 
     // Diagnoses: the newest `keep` stay, numbers are never given again.
     for i in 0..5 {
-        let d = driftwatch::store::NewDiagnosis {
+        let d = driftwatch_service::store::NewDiagnosis {
             machine: "m1",
             requested_ns: t0 + i,
             requested_by: "test",

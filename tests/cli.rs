@@ -4,8 +4,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use driftwatch::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
-use driftwatch::recording::{self as rec, CycleResultMsg, ResultStatus};
+use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
+use driftwatch_core::recording::{self as rec, CycleResultMsg, ResultStatus};
 use serde_json::Value;
 
 fn bin() -> Command {
@@ -871,7 +871,7 @@ fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model
     assert_eq!(j["channels"].as_array().unwrap().len(), 1);
     assert_eq!(j["channels"][0]["periodic"]["driver"], "t4_C");
     // The new model version is a thermal model the service can load.
-    let m = driftwatch::thermal_model::ThermalModel::from_json(
+    let m = driftwatch_core::thermal_model::ThermalModel::from_json(
         &std::fs::read_to_string(dir.join("model.json")).unwrap(),
     )
     .unwrap();

@@ -1,15 +1,15 @@
 //! Acceptance tests of the core library: conventions, identification, statistics,
 //! cross-check, identifiability, in-cycle drift and the patent experiment.
 
-use driftwatch::cycle::CycleChecks;
-use driftwatch::experiment;
-use driftwatch::geometry::Vec3;
-use driftwatch::identify::{Identifier, Observation, SolveError, SolveOptions, identify};
-use driftwatch::kinematics::{Kinematics, MachineState};
-use driftwatch::measurement::Axis;
-use driftwatch::patent_relations;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::scenario::Scenario;
+use driftwatch_core::cycle::CycleChecks;
+use driftwatch_core::geometry::Vec3;
+use driftwatch_core::identify::{Identifier, Observation, SolveError, SolveOptions, identify};
+use driftwatch_core::kinematics::{Kinematics, MachineState};
+use driftwatch_core::measurement::Axis;
+use driftwatch_core::patent_relations;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_sim::experiment;
+use driftwatch_sim::scenario::Scenario;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -324,7 +324,7 @@ fn patent_experiment_reproduces_the_published_drift() {
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
     let mut checks = CycleChecks::new(&k);
-    checks.expected = Some(driftwatch::cycle::plan_measurements(&p));
+    checks.expected = Some(driftwatch_core::cycle::plan_measurements(&p));
     let ex = experiment::run(&scn, &k, &p, &checks, 210.0).unwrap();
     let s = &ex.summary;
     println!("{s:?}");
@@ -388,7 +388,7 @@ mod properties {
 }
 
 /// Readings of the first cycle of the warm-up scenario, noise-free, with `edit` applied.
-fn first_cycle(edit: impl Fn(&mut Scenario)) -> Vec<driftwatch::recording::DetectionMsg> {
+fn first_cycle(edit: impl Fn(&mut Scenario)) -> Vec<driftwatch_core::recording::DetectionMsg> {
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.0;
     scn.cycles.every_min = None;
@@ -396,7 +396,7 @@ fn first_cycle(edit: impl Fn(&mut Scenario)) -> Vec<driftwatch::recording::Detec
     edit(&mut scn);
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+    let sim = driftwatch_sim::simulator::simulate(&scn, &k, &p).unwrap();
     sim.cycles[0]
         .detections
         .iter()
@@ -404,7 +404,7 @@ fn first_cycle(edit: impl Fn(&mut Scenario)) -> Vec<driftwatch::recording::Detec
         .collect()
 }
 
-fn reading(d: &driftwatch::recording::DetectionMsg) -> f64 {
+fn reading(d: &driftwatch_core::recording::DetectionMsg) -> f64 {
     match d.axis {
         Axis::X => d.x_mm,
         Axis::Y => d.y_mm,
@@ -414,18 +414,19 @@ fn reading(d: &driftwatch::recording::DetectionMsg) -> f64 {
 
 #[test]
 fn simulator_effects_switch_on_with_their_signatures() {
-    use driftwatch::thermal::{Channel, LagTerm};
+    use driftwatch_core::thermal::{Channel, LagTerm};
     let base = first_cycle(|_| {});
-    let shift = |edit: &dyn Fn(&mut Scenario)| -> Vec<(driftwatch::recording::DetectionMsg, f64)> {
-        first_cycle(edit)
-            .into_iter()
-            .zip(&base)
-            .map(|(d, b)| {
-                let s = (reading(&d) - reading(b)) * 1e3;
-                (d, s)
-            })
-            .collect()
-    };
+    let shift =
+        |edit: &dyn Fn(&mut Scenario)| -> Vec<(driftwatch_core::recording::DetectionMsg, f64)> {
+            first_cycle(edit)
+                .into_iter()
+                .zip(&base)
+                .map(|(d, b)| {
+                    let s = (reading(&d) - reading(b)) * 1e3;
+                    (d, s)
+                })
+                .collect()
+        };
     // Skip latency: every reading moves feed * latency along its motion (100 mm/min, 2 ms).
     for (d, s) in shift(&|s| s.skip.latency_ms = 2.0) {
         let expect = f64::from(d.direction) * 100.0 / 60.0 * 2e-3 * 1e3;
@@ -497,7 +498,7 @@ fn simulator_effects_switch_on_with_their_signatures() {
     assert!(
         failed
             .iter()
-            .all(|d| d.status == Some(driftwatch::recording::DetectionStatus::NoTrip))
+            .all(|d| d.status == Some(driftwatch_core::recording::DetectionStatus::NoTrip))
     );
 }
 
@@ -517,7 +518,8 @@ fn huber_weighting_limits_the_pull_of_an_outlier() {
     let mut opts = SolveOptions::new(0.5);
     opts.huber_k = Some(1.5);
     let robust = identify(&k, &obs, &opts).unwrap();
-    let err = |s: &driftwatch::identify::Solution| (s.error("EA0C").unwrap().value - 60.0).abs();
+    let err =
+        |s: &driftwatch_core::identify::Solution| (s.error("EA0C").unwrap().value - 60.0).abs();
     println!(
         "EA0C error: plain {:.2} urad, Huber {:.2} urad; outlier weight {:.3}",
         err(&plain),
@@ -537,7 +539,7 @@ fn the_simulator_is_deterministic_for_a_seed() {
         scn.seed = seed;
         let k = Kinematics::load(&scn.machine).unwrap();
         let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-        let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+        let sim = driftwatch_sim::simulator::simulate(&scn, &k, &p).unwrap();
         sim.cycles
             .iter()
             .flat_map(|c| {
@@ -556,7 +558,7 @@ fn the_simulator_is_deterministic_for_a_seed() {
 
 #[test]
 fn rotary_backlash_and_indexing_errors_act_through_the_axis_angle() {
-    use driftwatch::thermal::Channel;
+    use driftwatch_core::thermal::Channel;
     let k = Kinematics::load("table_bc").unwrap();
     let b_zero = k.rotary[0].error_names[4].clone();
     let readings = |edit: &dyn Fn(&mut Scenario)| -> Vec<f64> {
@@ -610,7 +612,7 @@ fn rotary_backlash_and_indexing_errors_act_through_the_axis_angle() {
 /// The warm-up scenario without noise or thermal drift: only the given constant errors, and
 /// cycles at the given minutes.
 fn constant_errors(errors: &[(&str, f64)], cycles_at_min: Vec<f64>) -> Scenario {
-    use driftwatch::thermal::Channel;
+    use driftwatch_core::thermal::Channel;
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.0;
     scn.cycles.every_min = None;
@@ -637,11 +639,11 @@ fn the_nominal_design_predicts_readings_of_small_errors_linearly() {
     let scn = constant_errors(&truth, vec![1.0]);
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(&scn, &k, &p).unwrap();
+    let sim = driftwatch_sim::simulator::simulate(&scn, &k, &p).unwrap();
     let obs: Vec<Observation> = sim.cycles[0]
         .detections
         .iter()
-        .map(|d| driftwatch::cycle::observation(&k, d.t_ns, &d.msg))
+        .map(|d| driftwatch_core::cycle::observation(&k, d.t_ns, &d.msg))
         .collect();
     let id = Identifier::new(&k, &obs, &SolveOptions::new(0.5)).unwrap();
     let design = id.nominal_design(&obs).unwrap();
@@ -710,7 +712,7 @@ fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
     assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == 1));
     assert!(rows.rows.iter().any(|r| r.rotary_sense[0] == -1));
     assert!(
-        driftwatch::diagnosis::detection_rows(
+        driftwatch_diagnosis::cycles::detection_rows(
             &Kinematics::load("table_bc").unwrap(),
             &[],
             &SolveOptions::new(0.5)
@@ -723,18 +725,19 @@ fn detection_rows_carry_deviation_sensitivity_and_the_event_fields() {
 fn simulated_rows(
     scn: &Scenario,
 ) -> (
-    driftwatch::simulator::Simulation,
-    driftwatch::diagnosis::Rows,
+    driftwatch_sim::simulator::Simulation,
+    driftwatch_diagnosis::cycles::Rows,
 ) {
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(scn, &k, &p).unwrap();
+    let sim = driftwatch_sim::simulator::simulate(scn, &k, &p).unwrap();
     let dets: Vec<_> = sim
         .cycles
         .iter()
         .flat_map(|c| c.detections.clone())
         .collect();
-    let rows = driftwatch::diagnosis::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
+    let rows =
+        driftwatch_diagnosis::cycles::detection_rows(&k, &dets, &SolveOptions::new(0.5)).unwrap();
     (sim, rows)
 }
 
@@ -743,8 +746,8 @@ fn simulated_rows(
 fn drifting_rows(
     backlash_urad: f64,
 ) -> (
-    driftwatch::diagnosis::Rows,
-    Vec<driftwatch::thermal_model::Event>,
+    driftwatch_diagnosis::cycles::Rows,
+    Vec<driftwatch_core::thermal_model::Event>,
 ) {
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.5;
@@ -756,7 +759,7 @@ fn drifting_rows(
     let spindle = sim
         .spindle
         .iter()
-        .map(|m| driftwatch::thermal_model::Event::Spindle {
+        .map(|m| driftwatch_core::thermal_model::Event::Spindle {
             t_ns: m.t_ns,
             rpm: m.msg.rpm,
         })
@@ -768,7 +771,8 @@ fn drifting_rows(
 fn the_baseline_fits_clean_drifting_data_to_the_noise() {
     // Each detection at its own time.
     let (rows, spindle) = drifting_rows(0.0);
-    let b = driftwatch::diagnosis::fit_baseline(&rows, &spindle, &Default::default(), 0.5).unwrap();
+    let b = driftwatch_diagnosis::cycles::fit_baseline(&rows, &spindle, &Default::default(), 0.5)
+        .unwrap();
     println!(
         "{} readings, {} columns, chi2/dof {:.3} ({} dof)",
         rows.rows.len(),
@@ -779,7 +783,8 @@ fn the_baseline_fits_clean_drifting_data_to_the_noise() {
     assert!(b.dof > 50, "{} dof", b.dof);
     assert!(b.chi2_dof <= 1.2 && b.chi2_dof > 0.7, "{}", b.chi2_dof);
     // Without the spindle log the drift is left in the residuals.
-    let flat = driftwatch::diagnosis::fit_baseline(&rows, &[], &Default::default(), 0.5).unwrap();
+    let flat =
+        driftwatch_diagnosis::cycles::fit_baseline(&rows, &[], &Default::default(), 0.5).unwrap();
     assert!(flat.chi2_dof > 5.0, "{}", flat.chi2_dof);
 }
 
@@ -792,15 +797,16 @@ fn a_backlash_below_the_noise_of_one_reading_is_located_at_its_poses() {
     let run = |backlash: f64| {
         let (rows, spindle) = drifting_rows(backlash);
         let b =
-            driftwatch::diagnosis::fit_baseline(&rows, &spindle, &Default::default(), 0.5).unwrap();
-        let found = driftwatch::diagnosis::locate(&rows, &b.residual_um, 0.5, 4.0);
+            driftwatch_diagnosis::cycles::fit_baseline(&rows, &spindle, &Default::default(), 0.5)
+                .unwrap();
+        let found = driftwatch_diagnosis::cycles::locate(&rows, &b.residual_um, 0.5, 4.0);
         (b.chi2_dof, found)
     };
     let (clean_chi, clean) = run(0.0);
     assert!(clean.is_empty(), "{clean:?}");
     let (chi, found) = run(20.0);
     println!("chi2/dof {clean_chi:.3} clean, {chi:.3} with backlash; {found:#?}");
-    let poses: Vec<&driftwatch::diagnosis::Mismatch> =
+    let poses: Vec<&driftwatch_diagnosis::cycles::Mismatch> =
         found.iter().filter(|m| m.by == "pose").collect();
     assert!(poses.len() >= 2, "{found:?}");
     for m in &poses {

@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use driftwatch::recording::mcap_io::{ReadOptions, read_file};
-use driftwatch::store::Store;
+use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
+use driftwatch_service::store::Store;
 
 const MACHINE: &str = "sim-1";
 /// Steps of the default `patent` plan: one detection each.

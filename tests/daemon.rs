@@ -4,16 +4,16 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use driftwatch::daemon::{MachineRuntime, Settings};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::link::{LinkError, LinkEvent, MachineLink, Simulated};
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recorder::Recorder;
-use driftwatch::recording::mcap_io::{ReadOptions, read_file};
-use driftwatch::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
-use driftwatch::scenario::Scenario;
-use driftwatch::store::Store;
-use driftwatch::thermal_model::Prediction;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
+use driftwatch_core::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
+use driftwatch_core::thermal_model::Prediction;
+use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::link::{LinkError, LinkEvent, MachineLink, Simulated};
+use driftwatch_service::recorder::Recorder;
+use driftwatch_service::store::Store;
+use driftwatch_sim::scenario::Scenario;
 
 const MIN: i64 = 60_000_000_000;
 
@@ -84,9 +84,10 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     .await
     .unwrap();
     let (hook_url, hook_seen) = hook_receiver().await;
-    let hook: driftwatch::webhook::WebhookConfig =
+    let hook: driftwatch_service::webhook::WebhookConfig =
         toml::from_str(&format!("url = \"{hook_url}\"")).unwrap();
-    let (notifier, deliveries) = driftwatch::webhook::Notifier::start(vec![(hook, None)]).unwrap();
+    let (notifier, deliveries) =
+        driftwatch_service::webhook::Notifier::start(vec![(hook, None)]).unwrap();
     rt.set_notifier(notifier);
     // 31 h: a production day, the night, the next morning's start.
     let end = t0 + 31 * 60 * MIN;
@@ -222,7 +223,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     let samples = store.samples("sim-1", t0, end).await.unwrap();
     let mut per_sensor: std::collections::BTreeMap<String, Vec<(i64, f64)>> = Default::default();
     for s in &samples {
-        if let driftwatch::store::Sample::Temperature {
+        if let driftwatch_service::store::Sample::Temperature {
             t_ns,
             sensor,
             celsius,
@@ -235,7 +236,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         }
     }
     assert!(!per_sensor.is_empty());
-    let beat = driftwatch::daemon::TEMPERATURE_HEARTBEAT_MIN;
+    let beat = driftwatch_service::daemon::TEMPERATURE_HEARTBEAT_MIN;
     for (sensor, rows) in &per_sensor {
         assert!(
             rows[0].0 <= t0 / MIN + 1,
@@ -253,11 +254,9 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
             assert!(w[1].1 != w[0].1 || gap == beat, "{sensor}: {w:?}");
         }
     }
-    assert!(
-        samples
-            .iter()
-            .any(|s| matches!(s, driftwatch::store::Sample::Spindle { rpm, .. } if *rpm > 0.0))
-    );
+    assert!(samples.iter().any(
+        |s| matches!(s, driftwatch_service::store::Sample::Spindle { rpm, .. } if *rpm > 0.0)
+    ));
     assert_eq!(store.integrity_check().await.unwrap(), "ok");
 }
 
@@ -295,16 +294,16 @@ impl MachineLink for IdleMachine {
             return Vec::new();
         }
         vec![
-            LinkEvent::State(driftwatch::recording::Timed {
+            LinkEvent::State(driftwatch_core::recording::Timed {
                 t_ns: now_ns,
-                msg: driftwatch::recording::StateMsg {
+                msg: driftwatch_core::recording::StateMsg {
                     state: MachineStateKind::Idle,
                     program: None,
                 },
             }),
-            LinkEvent::Spindle(driftwatch::recording::Timed {
+            LinkEvent::Spindle(driftwatch_core::recording::Timed {
                 t_ns: now_ns,
-                msg: driftwatch::recording::SpindleMsg { rpm: 0.0 },
+                msg: driftwatch_core::recording::SpindleMsg { rpm: 0.0 },
             }),
         ]
     }

@@ -4,15 +4,15 @@
 
 use std::collections::BTreeMap;
 
-use driftwatch::diagnosis::{
+use driftwatch_core::identify::SolveOptions;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::thermal::Channel;
+use driftwatch_core::thermal_model::ModelInput;
+use driftwatch_diagnosis::cycles::{
     DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose, screen_outliers,
 };
-use driftwatch::identify::SolveOptions;
-use driftwatch::kinematics::Kinematics;
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::scenario::{FeedChange, Scenario};
-use driftwatch::thermal::Channel;
-use driftwatch::thermal_model::ModelInput;
+use driftwatch_sim::scenario::{FeedChange, Scenario};
 
 /// Three production days (the two-shift program of `ambient_swing` each day), a cycle every
 /// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), no thermal truth (each case
@@ -49,7 +49,7 @@ fn channel(toml_text: &str) -> Channel {
 fn record(scn: &Scenario, strip_spins: bool) -> Inputs {
     let k = Kinematics::load(&scn.machine).unwrap();
     let p = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
-    let sim = driftwatch::simulator::simulate(scn, &k, &p).unwrap();
+    let sim = driftwatch_sim::simulator::simulate(scn, &k, &p).unwrap();
     let mut rec = sim.recording();
     if strip_spins {
         let windows: Vec<(i64, i64)> = sim
@@ -390,7 +390,7 @@ fn check(case: &Case, seed: u64) -> Result<String, String> {
             }
         }
         Expect::Found => {
-            let hit: Vec<&driftwatch::diagnosis::Accepted> = d
+            let hit: Vec<&driftwatch_diagnosis::cycles::Accepted> = d
                 .accepted
                 .iter()
                 .filter(|a| {
@@ -608,7 +608,7 @@ fn screening(from: u64) -> ((usize, usize), (usize, usize, usize)) {
         let mut scn = three_days(seed);
         scn.noise.outlier_rate = 0.02;
         scn.noise.outlier_um = [5.0, 30.0];
-        scn.noise.outlier_sense = driftwatch::scenario::OutlierSense::Early;
+        scn.noise.outlier_sense = driftwatch_sim::scenario::OutlierSense::Early;
         let inputs = record(&scn, false);
         let truth = injected_outliers(&scn, &inputs);
         let d = diagnose_inputs(&scn, &inputs);
@@ -701,7 +701,7 @@ fn confounded_cases() -> Vec<Confounded> {
         Confounded {
             name: "skip latency step at one feed (+2.4 ms from day 2, 10:00)",
             setup: |s| {
-                s.skip.changes = vec![driftwatch::scenario::LatencyChange {
+                s.skip.changes = vec![driftwatch_sim::scenario::LatencyChange {
                     at_min: 1440.0 + 240.0,
                     latency_ms: 2.4,
                 }];
@@ -736,7 +736,7 @@ fn confounded_cases() -> Vec<Confounded> {
         Confounded {
             name: "20-min periodic tool-tip disturbance (sz, 1 um), outside the library",
             setup: |s| {
-                s.truth.periodic = vec![driftwatch::scenario::PeriodicTerm {
+                s.truth.periodic = vec![driftwatch_sim::scenario::PeriodicTerm {
                     channel: "sz".into(),
                     amplitude: 1.0,
                     period_min: 20.0,

@@ -3,13 +3,13 @@
 //! temperatures. Trained on 0-40 h, held out 40-46.3 h. Figures:
 //! `cargo test --release --test displacement -- --nocapture`.
 
-use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
-use driftwatch::diagnosis_calibration::{null_trial, power_trial, worsening_terms};
-use driftwatch::displacement_diagnosis::{
+use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
+use driftwatch_core::thermal_model::{Event, ModelInput, events_from};
+use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
+use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
-use driftwatch::surrogates::Null;
-use driftwatch::thermal_model::{Event, ModelInput, events_from};
+use driftwatch_diagnosis::surrogates::Null;
 
 const H: i64 = 3_600_000_000_000;
 
@@ -53,7 +53,7 @@ fn diagnosis() -> DisplacementDiagnosis {
 fn channel<'a>(
     d: &'a DisplacementDiagnosis,
     name: &str,
-) -> &'a driftwatch::displacement_diagnosis::ChannelDiagnosis {
+) -> &'a driftwatch_diagnosis::displacement::ChannelDiagnosis {
     d.channels.iter().find(|c| c.channel == name).unwrap()
 }
 

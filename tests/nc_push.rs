@@ -12,17 +12,17 @@ use http_body_util::BodyExt;
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
-use driftwatch::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch::config::Role;
-use driftwatch::daemon::{MachineRuntime, Settings};
-use driftwatch::kinematics::Kinematics;
-use driftwatch::nc_push::{ClockTolerance, CycleOrder, nc_push};
-use driftwatch::plan::{Plan, PlanConfig};
-use driftwatch::recorder::Recorder;
-use driftwatch::recording::{DetectionStatus, MachineInfo};
-use driftwatch::scenario::Scenario;
-use driftwatch::simulator::VirtualMachine;
-use driftwatch::store::Store;
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::{DetectionStatus, MachineInfo};
+use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
+use driftwatch_service::config::Role;
+use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::nc_push::{ClockTolerance, CycleOrder, nc_push};
+use driftwatch_service::recorder::Recorder;
+use driftwatch_service::store::Store;
+use driftwatch_sim::scenario::Scenario;
+use driftwatch_sim::simulator::VirtualMachine;
 
 const MIN: i64 = 60_000_000_000;
 

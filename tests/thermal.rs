@@ -3,8 +3,8 @@
 //! No accuracy goal yet: the figures are printed (`cargo test --test thermal -- --nocapture`)
 //! and the assertions check what must hold whatever the numbers.
 
-use driftwatch::csv_import::{CsvOptions, RowTime, import_csv};
-use driftwatch::thermal_model::{
+use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
+use driftwatch_core::thermal_model::{
     Event, HoldoutScore, ModelConfig, TemperatureInput, events_from, fit, replay,
 };
 
@@ -157,14 +157,14 @@ fn the_replay_is_causal() {
         }
     }
     let (b, _, _) = replay(&m, &changed, 600_000_000_000, i64::MAX, i64::MAX);
-    let before = |s: &[driftwatch::thermal_model::ReplayStep]| -> Vec<f64> {
+    let before = |s: &[driftwatch_core::thermal_model::ReplayStep]| -> Vec<f64> {
         s.iter()
             .filter(|x| x.t_ns <= 30 * H)
             .flat_map(|x| x.predictions.iter().map(|p| p.value))
             .collect()
     };
     assert_eq!(before(&a), before(&b));
-    let after = |s: &[driftwatch::thermal_model::ReplayStep]| -> f64 {
+    let after = |s: &[driftwatch_core::thermal_model::ReplayStep]| -> f64 {
         s.iter()
             .filter(|x| x.t_ns > 31 * H)
             .flat_map(|x| x.predictions.iter().map(|p| p.value))
@@ -178,7 +178,7 @@ fn the_replay_is_causal() {
 /// never the fit's last reading (which is later), and persistence is scored the same way.
 #[test]
 fn within_the_fit_the_last_measured_value_is_the_last_reading_so_far() {
-    use driftwatch::thermal_model::Served;
+    use driftwatch_core::thermal_model::Served;
     let ev = events();
     let m = fit(&spindle_only(), &ev, Some(40 * H)).unwrap();
     let (steps, _, guards) = replay(&m, &ev, 600_000_000_000, 40 * H, 30 * H);
@@ -217,7 +217,7 @@ fn within_the_fit_the_last_measured_value_is_the_last_reading_so_far() {
 
 #[test]
 fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
-    use driftwatch::strategies::{BENCH_SCENARIOS, bench_scenario};
+    use driftwatch_sim::strategies::{BENCH_SCENARIOS, bench_scenario};
     for (name, _) in BENCH_SCENARIOS {
         let sc = bench_scenario(name, &Default::default(), true).unwrap();
         let c = &sc.adaptive;
@@ -259,7 +259,7 @@ const CHANNELS: [&str; 5] = ["ch1_um", "ch2_um", "ch3_um", "ch4_um", "ch5_um"];
 /// Figures: `cargo run --release -- bench thermal`.
 #[test]
 fn on_fl_thermal_the_chosen_family_beats_persistence_on_every_channel() {
-    use driftwatch::families::{Family, compete, grey_box_config, grid};
+    use driftwatch_core::families::{Family, compete, grey_box_config, grid};
     let ev = fl_thermal(true, &CHANNELS);
     for ch in CHANNELS {
         let g = grid(&ev, ch, 300_000_000_000).unwrap();
@@ -309,9 +309,9 @@ fn on_fl_thermal_the_chosen_family_beats_persistence_on_every_channel() {
 /// and beat persistence and every baseline. Figures: `cargo run --release -- bench thermal`.
 #[test]
 fn on_a_simulated_two_shift_run_the_chosen_family_reaches_the_sensor_noise() {
-    use driftwatch::families::{Family, compete, grey_box_config, grid};
+    use driftwatch_core::families::{Family, compete, grey_box_config, grid};
     let sigma = 0.5;
-    let ev = driftwatch::strategies::sensor_view("two_shift", 3, sigma).unwrap();
+    let ev = driftwatch_sim::strategies::sensor_view("two_shift", 3, sigma).unwrap();
     let t0 = ev[0].t_ns();
     assert!(
         ev.iter()

@@ -7,8 +7,8 @@ use axum::Router;
 use axum::extract::State;
 use axum::http::{HeaderMap, StatusCode};
 use axum::routing::post;
-use driftwatch::alerts::{AlertEvent, EventKind, Severity};
-use driftwatch::webhook::{Notifier, WebhookConfig};
+use driftwatch_machine::alerts::{AlertEvent, EventKind, Severity};
+use driftwatch_service::webhook::{Notifier, WebhookConfig};
 
 #[derive(Default)]
 struct Receiver {
@@ -152,7 +152,7 @@ async fn severity_below_the_minimum_is_not_sent_and_a_dead_receiver_is_given_up(
 
 #[test]
 fn the_documented_example_in_the_default_configuration_parses() {
-    let text = driftwatch::config::DEFAULT_CONFIG;
+    let text = driftwatch_service::config::DEFAULT_CONFIG;
     let block: String = text
         .lines()
         .skip_while(|l| !l.starts_with("# [[webhooks]]"))
@@ -161,11 +161,11 @@ fn the_documented_example_in_the_default_configuration_parses() {
         .join("\n");
     assert!(block.contains("max_attempts"), "{block}");
     let with = format!("{text}\n{block}\n");
-    let cfg = driftwatch::config::ServiceConfig::from_toml(&with, "t").unwrap();
+    let cfg = driftwatch_service::config::ServiceConfig::from_toml(&with, "t").unwrap();
     assert_eq!(cfg.webhooks.len(), 1);
     assert_eq!(cfg.webhooks[0].max_attempts, 8);
     let bad = with.replace("http://127.0.0.1:9000", "https://127.0.0.1:9000");
-    let e = driftwatch::config::ServiceConfig::from_toml(&bad, "t")
+    let e = driftwatch_service::config::ServiceConfig::from_toml(&bad, "t")
         .unwrap_err()
         .to_string();
     assert!(e.contains("https"), "{e}");

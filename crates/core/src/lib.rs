@@ -1,0 +1,25 @@
+//! driftwatch's functional core: units and time, geometry, kinematics, the tool-setter
+//! measurement model, cycle plans, identification, cycle checks, the contract's recording types
+//! and MCAP I/O, thermal lags, the thermal model and its competing families, statistics.
+//!
+//! Pure code: no async runtime, no database, no network, no clock, no globals; deterministic for
+//! a given seed. The only I/O is `recording::mcap_io` (reading and writing MCAP files) and the
+//! loading of TOML descriptions by name or path (`source`). The theory is in docs/physics.md.
+
+pub mod csv_import;
+pub mod cycle;
+pub mod families;
+pub mod geometry;
+pub mod identify;
+pub mod kinematics;
+pub mod measurement;
+pub mod patent_relations;
+pub mod plan;
+pub mod prediction_plot;
+pub mod recording;
+pub mod series;
+pub mod source;
+pub mod stats;
+pub mod thermal;
+pub mod thermal_model;
+pub mod units;

@@ -1,0 +1,618 @@
+//! Measurement cycle plans: poses and approaches, their order, and the expansion into the full
+//! list of moves with an estimate of machine time.
+//!
+//! The default order is time-symmetric: the B = 0 poses forward, the tilted poses in the
+//! middle, then every approach again in reverse (a palindrome: the last tilted pose is probed
+//! twice in a row). Every reading then has its mean time at the centre of the cycle, so a drift
+//! that is linear over the cycle cancels in every estimate (docs/physics.md 5.2).
+//! `as_listed` keeps the patent's sequential order.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::geometry::{Vec3, wrap_deg};
+use crate::identify::Observation;
+use crate::kinematics::{Kinematics, MAX_ROTARY, MachineState};
+use crate::measurement::{Approach, Axis, NoTrip, Travel, latched};
+
+pub const BUILTIN_PLANS: &[(&str, &str)] = &[
+    ("patent", include_str!("../../../config/plans/patent.toml")),
+    (
+        "patent_sequential",
+        include_str!("../../../config/plans/patent_sequential.toml"),
+    ),
+];
+
+#[derive(Debug, Error)]
+pub enum PlanError {
+    #[error(transparent)]
+    Source(#[from] crate::source::SourceError),
+    #[error("plan {origin} is not valid TOML for a plan: {message}")]
+    Parse { origin: String, message: String },
+    #[error("plan '{plan}': {message}")]
+    Invalid { plan: String, message: String },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Order {
+    #[default]
+    TimeSymmetric,
+    AsListed,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PoseConfig {
+    pub b_deg: f64,
+    pub c_deg: f64,
+    /// `"z"` (vertical, -z), `"lateral"` (across the beam from outside, along x or y),
+    /// or an explicit `"x+"`, `"x-"`, `"y+"`, `"y-"` (axis and direction of motion).
+    pub approaches: Vec<String>,
+    /// Touches of each approach in a row.
+    #[serde(default = "one")]
+    pub repeats: u32,
+}
+
+fn one() -> u32 {
+    1
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlanConfig {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    #[serde(default)]
+    pub order: Order,
+    /// Probing feed, mm/min.
+    pub feed_mm_min: f64,
+    /// Spindle speed during the cycle, min^-1 (the patent measures at machining speed).
+    pub spindle_rpm: f64,
+    /// Distance from the approach start to the nominal trip, mm.
+    pub clearance_mm: f64,
+    /// Travel beyond the nominal trip before the approach ends as `no_trip`, mm.
+    pub overtravel_mm: f64,
+    /// Depth of the tool end below the beam on lateral approaches, mm.
+    pub lateral_depth_mm: f64,
+    /// Air blast and settle time before each approach, s.
+    pub dwell_s: f64,
+    pub poses: Vec<PoseConfig>,
+}
+
+impl PlanConfig {
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, PlanError> {
+        toml::from_str(text).map_err(|e| PlanError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })
+    }
+
+    pub fn load(name_or_path: &str) -> Result<Self, PlanError> {
+        let text = crate::source::builtin_or_file("plan", name_or_path, BUILTIN_PLANS)?;
+        Self::from_toml(&text, name_or_path)
+    }
+}
+
+/// One approach of a cycle, ready to run.
+#[derive(Debug, Clone)]
+pub struct Step {
+    pub label: String,
+    pub b_deg: f64,
+    pub c_deg: f64,
+    pub angles: [f64; MAX_ROTARY],
+    pub approach: Approach,
+    /// Commanded start position of the approach, mm.
+    pub start: Vec3,
+    /// The nominal latched value of the moving coordinate, mm.
+    pub expected: f64,
+    pub max_travel_mm: f64,
+    /// Time from the cycle start to the start of this approach, s.
+    pub t_start_s: f64,
+}
+
+impl Step {
+    pub fn travel(&self) -> Travel {
+        Travel {
+            start: self.start[self.approach.axis.index()],
+            max_mm: self.max_travel_mm,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MoveKind {
+    Rapid,
+    Rotary,
+    Dwell,
+    Probe,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Move {
+    pub kind: MoveKind,
+    pub t_start_s: f64,
+    pub duration_s: f64,
+    /// Position (mm) and angles (deg) at the end of the move.
+    pub to: [f64; 3],
+    pub angles_deg: [f64; MAX_ROTARY],
+    pub step: Option<usize>,
+    pub note: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct Plan {
+    pub name: String,
+    pub description: String,
+    pub config: PlanConfig,
+    pub steps: Vec<Step>,
+    pub moves: Vec<Move>,
+    pub machine_time_s: f64,
+}
+
+struct ApproachSpec {
+    axis: Axis,
+    direction: Option<i8>,
+}
+
+fn parse_approach(s: &str) -> Option<ApproachSpec> {
+    let (axis, direction) = match s {
+        "z" => (Axis::Z, Some(-1)),
+        "lateral" => (Axis::X, None),
+        "x+" => (Axis::X, Some(1)),
+        "x-" => (Axis::X, Some(-1)),
+        "y+" => (Axis::Y, Some(1)),
+        "y-" => (Axis::Y, Some(-1)),
+        _ => return None,
+    };
+    Some(ApproachSpec { axis, direction })
+}
+
+fn pose_label(b: f64, c: f64) -> String {
+    format!("B{}C{}", fmt_angle(b), fmt_angle(c))
+}
+
+fn fmt_angle(a: f64) -> String {
+    if a.fract() == 0.0 {
+        format!("{}", a as i64)
+    } else {
+        format!("{a}")
+    }
+}
+
+/// Whether a pose tilts any axis but the innermost (the "tilted" poses of the patent).
+fn is_tilted(angles: &[f64], n_axes: usize) -> bool {
+    angles[..n_axes.saturating_sub(1)]
+        .iter()
+        .any(|a| wrap_deg(*a).abs() > 1e-9)
+}
+
+impl Plan {
+    pub fn build(k: &Kinematics, cfg: &PlanConfig) -> Result<Plan, PlanError> {
+        let invalid = |message: String| PlanError::Invalid {
+            plan: cfg.name.clone(),
+            message,
+        };
+        let positive = [
+            ("feed_mm_min", cfg.feed_mm_min),
+            ("clearance_mm", cfg.clearance_mm),
+            ("overtravel_mm", cfg.overtravel_mm),
+            ("lateral_depth_mm", cfg.lateral_depth_mm),
+        ];
+        for (name, v) in positive {
+            if !crate::units::positive(v) {
+                return Err(invalid(format!("{name} must be a positive number")));
+            }
+        }
+        if !(cfg.dwell_s >= 0.0 && cfg.spindle_rpm >= 0.0) {
+            return Err(invalid("dwell_s and spindle_rpm must be >= 0".into()));
+        }
+        if cfg.spindle_rpm > k.config.limits.spindle_max_rpm {
+            return Err(invalid(format!(
+                "spindle_rpm {} is above the spindle_max_rpm {} of machine '{}'",
+                cfg.spindle_rpm, k.config.limits.spindle_max_rpm, k.name
+            )));
+        }
+        if cfg.poses.is_empty() {
+            return Err(invalid("has no poses".into()));
+        }
+        let nominal = k.nominal_state();
+        // Steps of each pose, in listed order.
+        let mut per_pose: Vec<(bool, Vec<Step>)> = Vec::new();
+        for pose in &cfg.poses {
+            let angles = k.angles_from_fields(pose.b_deg, pose.c_deg);
+            for (i, ax) in k.rotary.iter().enumerate() {
+                if angles[i] < ax.travel_deg[0] || angles[i] > ax.travel_deg[1] {
+                    return Err(invalid(format!(
+                        "pose {} is outside the travel of axis {}",
+                        pose_label(pose.b_deg, pose.c_deg),
+                        ax.name
+                    )));
+                }
+            }
+            let (p, e) = k.beam_in_machine(&nominal, &angles);
+            let mut steps = Vec::new();
+            for spec_text in &pose.approaches {
+                let spec = parse_approach(spec_text).ok_or_else(|| {
+                    invalid(format!(
+                        "approach '{spec_text}' is not one of z, lateral, x+, x-, y+, y-"
+                    ))
+                })?;
+                let label_pose = pose_label(pose.b_deg, pose.c_deg);
+                let (axis, direction, held) = if spec.axis == Axis::Z {
+                    // Tool axis over the probed point of the beam.
+                    (Axis::Z, -1, Vec3::new(p.x, p.y, 0.0))
+                } else {
+                    // Horizontal normal of the beam, pointing away from the machine origin.
+                    let mut n = Vec3::z().cross(&e);
+                    if n.norm() < 1e-9 {
+                        return Err(invalid(format!(
+                            "pose {label_pose}: the beam is vertical; no lateral approach"
+                        )));
+                    }
+                    n /= n.norm();
+                    if n.dot(&Vec3::new(p.x, p.y, 0.0)) < 0.0 {
+                        n = -n;
+                    }
+                    let (axis, direction) = match spec.direction {
+                        Some(d) => (spec.axis, d),
+                        None if n.x.abs() > 1.0 - 1e-9 => (Axis::X, -(n.x.signum() as i8)),
+                        None if n.y.abs() > 1.0 - 1e-9 => (Axis::Y, -(n.y.signum() as i8)),
+                        None => {
+                            return Err(invalid(format!(
+                                "pose {label_pose}: the beam is not parallel to a linear axis; \
+                                 give the lateral approach explicitly (x+, x-, y+, y-)"
+                            )));
+                        }
+                    };
+                    let depth = p.z - cfg.lateral_depth_mm;
+                    (axis, direction, Vec3::new(p.x, p.y, depth))
+                };
+                let approach = Approach {
+                    axis,
+                    direction,
+                    feed_mm_min: cfg.feed_mm_min,
+                };
+                let expected = latched(k, &nominal, &angles, &approach, &held, None)
+                    .map_err(|e: NoTrip| invalid(format!("pose {label_pose}, {spec_text}: {e}")))?;
+                let mut start = held;
+                start[axis.index()] = expected - f64::from(direction) * cfg.clearance_mm;
+                for rep in 0..pose.repeats.max(1) {
+                    let mut label = format!("{label_pose}/{}", axis.name());
+                    if pose.repeats > 1 {
+                        label.push_str(&format!(".{}", rep + 1));
+                    }
+                    steps.push(Step {
+                        label,
+                        b_deg: pose.b_deg,
+                        c_deg: pose.c_deg,
+                        angles,
+                        approach,
+                        start,
+                        expected,
+                        max_travel_mm: cfg.clearance_mm + cfg.overtravel_mm,
+                        t_start_s: 0.0,
+                    });
+                }
+            }
+            per_pose.push((is_tilted(&angles, k.rotary.len()), steps));
+        }
+        let mut steps: Vec<Step> = Vec::new();
+        match cfg.order {
+            Order::AsListed => {
+                for (_, s) in &per_pose {
+                    steps.extend(s.iter().cloned());
+                }
+            }
+            Order::TimeSymmetric => {
+                let forward: Vec<&Step> = per_pose
+                    .iter()
+                    .filter(|(t, _)| !t)
+                    .chain(per_pose.iter().filter(|(t, _)| *t))
+                    .flat_map(|(_, s)| s.iter())
+                    .collect();
+                for (pass, seq) in [
+                    (1, forward.clone()),
+                    (2, forward.into_iter().rev().collect()),
+                ] {
+                    for s in seq {
+                        let mut s = s.clone();
+                        s.label.push_str(&format!("#{pass}"));
+                        steps.push(s);
+                    }
+                }
+            }
+        }
+        let mut plan = Plan {
+            name: cfg.name.clone(),
+            description: cfg.description.clone(),
+            config: cfg.clone(),
+            steps,
+            moves: Vec::new(),
+            machine_time_s: 0.0,
+        };
+        plan.expand_moves(k);
+        Ok(plan)
+    }
+
+    /// Moves and times: retract to the safe Z before any rotary move, rapid to the approach
+    /// start (over the beam, then down), dwell, probe to the nominal trip, back to the start.
+    fn expand_moves(&mut self, k: &Kinematics) {
+        let rapid = k.motion.rapid_mm_min / 60.0;
+        let feed = self.config.feed_mm_min / 60.0;
+        let mut t = 0.0;
+        let mut pos = Vec3::new(0.0, 0.0, k.motion.safe_z_mm);
+        let mut angles = [0.0; MAX_ROTARY];
+        let mut moves = Vec::new();
+        let push = |moves: &mut Vec<Move>,
+                    t: &mut f64,
+                    kind: MoveKind,
+                    d: f64,
+                    to: Vec3,
+                    a: [f64; MAX_ROTARY],
+                    step: Option<usize>,
+                    note: String| {
+            moves.push(Move {
+                kind,
+                t_start_s: *t,
+                duration_s: d,
+                to: [to.x, to.y, to.z],
+                angles_deg: a,
+                step,
+                note,
+            });
+            *t += d;
+        };
+        for (i, step) in self.steps.iter_mut().enumerate() {
+            let same_pose = angles
+                .iter()
+                .zip(step.angles.iter())
+                .all(|(a, b)| (wrap_deg(a - b)).abs() < 1e-9);
+            if !same_pose {
+                if pos.z < k.motion.safe_z_mm {
+                    let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
+                    let d = (k.motion.safe_z_mm - pos.z) / rapid;
+                    push(
+                        &mut moves,
+                        &mut t,
+                        MoveKind::Rapid,
+                        d,
+                        to,
+                        angles,
+                        None,
+                        "retract to safe Z".into(),
+                    );
+                    pos = to;
+                }
+                let dur = k
+                    .rotary
+                    .iter()
+                    .enumerate()
+                    .map(|(j, ax)| {
+                        wrap_deg(step.angles[j] - angles[j]).abs() / (ax.speed_deg_min / 60.0)
+                    })
+                    .fold(0.0, f64::max);
+                push(
+                    &mut moves,
+                    &mut t,
+                    MoveKind::Rotary,
+                    dur + k.motion.clamp_s,
+                    pos,
+                    step.angles,
+                    None,
+                    "unclamp, index, clamp".into(),
+                );
+                angles = step.angles;
+            }
+            // Over the start at a height clear of the beam, then down to the start.
+            let clear_z = step.start.z.max(step.expected + self.config.clearance_mm) + 5.0;
+            let clear_z = if same_pose {
+                clear_z
+            } else {
+                pos.z.max(clear_z)
+            };
+            if pos.z < clear_z {
+                let to = Vec3::new(pos.x, pos.y, clear_z);
+                push(
+                    &mut moves,
+                    &mut t,
+                    MoveKind::Rapid,
+                    (clear_z - pos.z) / rapid,
+                    to,
+                    angles,
+                    None,
+                    "up clear of the setter".into(),
+                );
+                pos = to;
+            }
+            let over = Vec3::new(step.start.x, step.start.y, pos.z);
+            let dxy = (over - pos).norm();
+            if dxy > 0.0 {
+                push(
+                    &mut moves,
+                    &mut t,
+                    MoveKind::Rapid,
+                    dxy / rapid,
+                    over,
+                    angles,
+                    None,
+                    "to the approach".into(),
+                );
+            }
+            let dz = (pos.z - step.start.z).abs();
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rapid,
+                dz / rapid,
+                step.start,
+                angles,
+                None,
+                "down to the start".into(),
+            );
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Dwell,
+                self.config.dwell_s,
+                step.start,
+                angles,
+                Some(i),
+                "air blast, settle".into(),
+            );
+            step.t_start_s = t;
+            let probe_len = self.config.clearance_mm;
+            let mut end = step.start;
+            end[step.approach.axis.index()] = step.expected;
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Probe,
+                probe_len / feed,
+                end,
+                angles,
+                Some(i),
+                step.label.clone(),
+            );
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rapid,
+                probe_len / rapid,
+                step.start,
+                angles,
+                Some(i),
+                "back off".into(),
+            );
+            pos = step.start;
+        }
+        let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
+        push(
+            &mut moves,
+            &mut t,
+            MoveKind::Rapid,
+            (k.motion.safe_z_mm - pos.z).max(0.0) / rapid,
+            to,
+            angles,
+            None,
+            "retract to safe Z".into(),
+        );
+        if angles.iter().any(|a| wrap_deg(*a).abs() > 1e-9) {
+            let dur = k
+                .rotary
+                .iter()
+                .enumerate()
+                .map(|(j, ax)| wrap_deg(angles[j]).abs() / (ax.speed_deg_min / 60.0))
+                .fold(0.0, f64::max);
+            push(
+                &mut moves,
+                &mut t,
+                MoveKind::Rotary,
+                dur + k.motion.clamp_s,
+                to,
+                [0.0; MAX_ROTARY],
+                None,
+                "back to the zero pose".into(),
+            );
+        }
+        self.moves = moves;
+        self.machine_time_s = t;
+    }
+
+    /// The observations a machine in `state` gives for this plan, without noise, each at its
+    /// approach's start time (a template for the solver, a noise-free test cycle).
+    pub fn observations(
+        &self,
+        k: &Kinematics,
+        state: &MachineState,
+    ) -> Result<Vec<Observation>, PlanError> {
+        self.steps
+            .iter()
+            .map(|s| {
+                let v = latched(k, state, &s.angles, &s.approach, &s.start, None).map_err(|e| {
+                    PlanError::Invalid {
+                        plan: self.name.clone(),
+                        message: format!("step {}: {e}", s.label),
+                    }
+                })?;
+                let mut position = s.start;
+                position[s.approach.axis.index()] = v;
+                Ok(Observation {
+                    label: s.label.clone(),
+                    angles: s.angles,
+                    approach: s.approach,
+                    position,
+                    t_ns: (s.t_start_s * 1e9) as i64,
+                })
+            })
+            .collect()
+    }
+
+    pub fn step_index(&self, label: &str) -> Option<usize> {
+        self.steps.iter().position(|s| s.label == label)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patent_plan_expands_symmetrically() {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let cfg = PlanConfig::load("patent").unwrap();
+        let plan = Plan::build(&k, &cfg).unwrap();
+        assert_eq!(plan.steps.len(), 24);
+        let first: Vec<_> = plan.steps[..12].iter().map(|s| s.label.clone()).collect();
+        let last: Vec<_> = plan.steps[12..]
+            .iter()
+            .rev()
+            .map(|s| s.label.replace("#2", "#1"))
+            .collect();
+        assert_eq!(first, last);
+        // The tilted poses sit in the middle.
+        assert!(plan.steps[8..16].iter().all(|s| s.b_deg != 0.0));
+        // Patent approach directions: C = 0 from -Y moving +Y; B = -90 from +X moving -X.
+        let y1 = &plan.steps[1];
+        assert_eq!((y1.approach.axis, y1.approach.direction), (Axis::Y, 1));
+        let x5 = plan
+            .steps
+            .iter()
+            .find(|s| s.label.starts_with("B-90C-270/x"))
+            .unwrap();
+        assert_eq!((x5.approach.axis, x5.approach.direction), (Axis::X, -1));
+        assert!((x5.expected - 75.0).abs() < 1e-9);
+        // Approach times increase, and their mean is the middle of the probing.
+        assert!(
+            plan.steps
+                .windows(2)
+                .all(|w| w[1].t_start_s > w[0].t_start_s)
+        );
+    }
+
+    #[test]
+    fn sequential_plan_keeps_the_listed_order() {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let plan = Plan::build(&k, &PlanConfig::load("patent_sequential").unwrap()).unwrap();
+        let labels: Vec<_> = plan.steps.iter().map(|s| s.label.as_str()).collect();
+        assert_eq!(
+            labels,
+            [
+                "B0C0/z",
+                "B0C0/y",
+                "B0C-90/z",
+                "B0C-90/x",
+                "B0C-180/z",
+                "B0C-180/y",
+                "B0C-270/z",
+                "B0C-270/x",
+                "B-90C-270/z",
+                "B-90C-270/x",
+                "B90C-90/z",
+                "B90C-90/x"
+            ]
+        );
+    }
+}

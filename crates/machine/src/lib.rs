@@ -1,0 +1,10 @@
+//! The decisions of one machine, without I/O: its thermal phase from the stream of spindle
+//! speeds and NC states, when the next measurement cycle is due, the validation of a cycle
+//! result and the compensation sets built from it, the thermal model as a machine keeps it, and
+//! alerts. Times come in as arguments; nothing here awaits, sleeps or touches storage.
+
+pub mod alerts;
+pub mod compensation;
+pub mod live_model;
+pub mod phase;
+pub mod scheduler;

@@ -1,0 +1,655 @@
+//! The thermal model as one machine's loop keeps it: the input history until there are
+//! enough validated cycles to fit, then a [`Predictor`] fed with every spindle change,
+//! temperature sample and validated cycle. It answers what the errors are now, how certain
+//! that is, and whether a cycle is needed for certainty. Pure: the loop does the I/O.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::Arc;
+
+use serde::Serialize;
+
+use crate::compensation::PredictionPolicy;
+use crate::compensation::TABLE_BC_ERRORS;
+use crate::scheduler::Uncertain;
+use driftwatch_core::thermal_model::{
+    Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
+};
+
+/// How far the rows' lag states trail the inputs: longer than any cycle, so that a cycle's
+/// reference time is never behind them when its result arrives.
+pub const HOLD_BACK_NS: i64 = 3_600_000_000_000;
+
+/// What the API shows of the model.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelView {
+    /// `waiting` (not enough cycles yet), `initial` (a model fitted elsewhere, until the
+    /// machine's own fit), `fitted`, or `disabled`.
+    pub status: String,
+    pub message: String,
+    pub validated_cycles: usize,
+    pub model: Option<Arc<ThermalModel>>,
+    /// Observations the online filter has taken since the fit.
+    pub updates_since_fit: usize,
+    /// What each error serves (the model, or its fallback: the last measured value or no
+    /// change) and why: its held-out scores, the band's factor and the offset walk.
+    pub served: Vec<GuardSummary>,
+    /// Why the model's predictions are not served until it predicts a cycle within its
+    /// band again (none: it is trusted).
+    pub suspect: Option<String>,
+}
+
+#[derive(Debug, Clone)]
+pub struct LiveModel {
+    policy: PredictionPolicy,
+    /// Lag states of every input since the first one (`None` before any input), held back
+    /// by the inputs in `pending`, so that a cycle's row is taken at its reference time (the
+    /// middle of its probing), which the loop learns only at its end. The predictor runs
+    /// its own copy up to now.
+    lagged: Option<Features>,
+    pending: VecDeque<Event>,
+    /// References of the temperature inputs when a model fitted elsewhere gave them.
+    t_ref_c: BTreeMap<String, f64>,
+    /// Validated observations of the last `history_days` with their design rows: the fits
+    /// need nothing else, so a refit costs the rows, not a replay of the inputs.
+    rows: BTreeMap<String, Vec<Obs>>,
+    /// A model fitted elsewhere, served until the machine's own first fit.
+    initial: Option<Arc<ThermalModel>>,
+    ok_cycles: usize,
+    cycles_since_fit: usize,
+    predictor: Option<Predictor>,
+    updates: usize,
+    message: String,
+    /// Why the model may not serve until it predicts a cycle within its band.
+    suspect: Option<String>,
+}
+
+impl LiveModel {
+    pub fn new(policy: PredictionPolicy) -> Self {
+        let message = if policy.enabled {
+            format!("waiting for {} validated cycles", policy.min_cycles)
+        } else {
+            "disabled in the configuration".into()
+        };
+        LiveModel {
+            policy,
+            lagged: None,
+            pending: VecDeque::new(),
+            t_ref_c: BTreeMap::new(),
+            rows: BTreeMap::new(),
+            initial: None,
+            ok_cycles: 0,
+            cycles_since_fit: 0,
+            predictor: None,
+            updates: 0,
+            message,
+            suspect: None,
+        }
+    }
+
+    /// Start from a model fitted elsewhere (`driftwatch fit` on an earlier day of the same
+    /// machine): it predicts from the first input on, and its configuration and temperature
+    /// references replace the policy's model for the machine's own fits later.
+    pub fn with_initial(mut policy: PredictionPolicy, model: Arc<ThermalModel>) -> Self {
+        policy.model = model.config.clone();
+        let mut m = LiveModel::new(policy);
+        if m.policy.enabled {
+            m.t_ref_c = model.t_ref_c.clone();
+            m.message = format!(
+                "started from a model fitted on {:.1} h of earlier data; the machine's own fit after {} validated cycles",
+                (model.to_ns - model.from_ns) as f64 / 3.6e12,
+                m.policy.min_cycles
+            );
+            m.initial = Some(model);
+        }
+        m
+    }
+
+    pub fn policy(&self) -> &PredictionPolicy {
+        &self.policy
+    }
+
+    fn start_at(&mut self, t_ns: i64) {
+        if self.lagged.is_none() {
+            self.lagged = Some(Features::new(&self.policy.model, &self.t_ref_c, t_ns));
+            if let Some(model) = &self.initial {
+                self.predictor = Some(Predictor::resume(
+                    model.clone(),
+                    Features::new(&self.policy.model, &self.t_ref_c, t_ns),
+                    t_ns,
+                ));
+            }
+        }
+    }
+
+    /// The lag states of now: the held-back ones with the pending inputs applied.
+    fn features_now(&self) -> Option<Features> {
+        let mut f = self.lagged.clone()?;
+        for e in &self.pending {
+            f.apply(e);
+        }
+        Some(f)
+    }
+
+    /// Apply the held-back inputs up to `t_ns` to the lagged states.
+    fn catch_up(&mut self, t_ns: i64) {
+        let Some(lagged) = &mut self.lagged else {
+            return;
+        };
+        while self.pending.front().is_some_and(|e| e.t_ns() <= t_ns) {
+            if let Some(e) = self.pending.pop_front() {
+                lagged.apply(&e);
+            }
+        }
+        lagged.advance_to(t_ns);
+    }
+
+    /// A spindle change or a temperature sample, in time order.
+    pub fn input(&mut self, e: Event) {
+        if !self.policy.enabled {
+            return;
+        }
+        let t = e.t_ns();
+        self.start_at(t);
+        if let Some(p) = &mut self.predictor {
+            p.apply(&e);
+        }
+        self.pending.push_back(e);
+        self.catch_up(t - HOLD_BACK_NS);
+    }
+
+    /// A validated cycle's errors and uncertainties at its reference time `t_ns` (at most
+    /// [`HOLD_BACK_NS`] ago). Returns a note when this observation made a fit (or the fit
+    /// failed and says why).
+    pub fn observe(
+        &mut self,
+        t_ns: i64,
+        errors: &BTreeMap<String, f64>,
+        sigma: &BTreeMap<String, f64>,
+    ) -> Option<String> {
+        if !self.policy.enabled {
+            return None;
+        }
+        // The state before, to come back to if the update leaves the model unable to predict.
+        let before = self.clone();
+        self.take(t_ns, errors, sigma);
+        let due = match (&self.predictor, &self.initial) {
+            (Some(_), None) => self.cycles_since_fit >= self.policy.refit_every_cycles,
+            _ => self.ok_cycles >= self.policy.min_cycles,
+        };
+        let note = due.then(|| self.fit(t_ns));
+        if let Some(bad) = self.unhealthy(t_ns) {
+            *self = before;
+            self.message = format!(
+                "the update with the cycle at {t_ns} ns was rolled back: it left {bad}; the model \
+                 goes on from its state before"
+            );
+            return Some(self.message.clone());
+        }
+        note
+    }
+
+    /// What is wrong with the model's predictions at `t_ns`, if anything: a value or band
+    /// that is not a finite number (a sigma of 0 included: nothing is that certain).
+    fn unhealthy(&self, t_ns: i64) -> Option<String> {
+        let mut p = self.predictor.clone()?;
+        p.predict(t_ns)
+            .into_iter()
+            .find(|x| !(x.value.is_finite() && driftwatch_core::units::positive(x.sigma)))
+            .map(|x| format!("{} predicted as {} +- {}", x.channel, x.value, x.sigma))
+    }
+
+    /// Whether predictions may be served: a reason when the model is suspect.
+    pub fn suspect(&self) -> Option<&str> {
+        self.suspect.as_deref()
+    }
+
+    /// Check predictions against the latest measurement before they are served (see
+    /// [`crate::compensation::inconsistent`]); on disagreement the model becomes suspect
+    /// and the reasons are returned.
+    pub fn check_consistency(
+        &mut self,
+        predicted: &BTreeMap<String, (f64, f64)>,
+        measured: &crate::compensation::CompensationSet,
+        measured_t_ns: i64,
+        t_ns: i64,
+        limits: &crate::compensation::ValidationLimits,
+    ) -> Result<(), String> {
+        let k = self.policy.consistency_sigmas;
+        let reasons =
+            crate::compensation::inconsistent(predicted, measured, measured_t_ns, t_ns, k, limits);
+        if reasons.is_empty() {
+            return Ok(());
+        }
+        let why = reasons.join("; ");
+        self.suspect = Some(why.clone());
+        Err(why)
+    }
+
+    /// Judge the model on a validated cycle before it learns from it: its prediction for
+    /// now must lie within `consistency_sigmas` of the measurement (plus the drift the rate
+    /// limits allow since the cycle's reference time). A suspect model that passes is trusted
+    /// again; one that fails becomes suspect. Returns a note when the verdict changed.
+    pub fn judge(
+        &mut self,
+        measured: &crate::compensation::CompensationSet,
+        measured_t_ns: i64,
+        now_ns: i64,
+        limits: &crate::compensation::ValidationLimits,
+    ) -> Option<String> {
+        let preds = self.predict(now_ns)?;
+        let values: BTreeMap<String, (f64, f64)> = preds
+            .iter()
+            .filter(|p| measured.errors.contains_key(&p.channel))
+            .map(|p| (p.channel.clone(), (p.value, p.sigma)))
+            .collect();
+        let was = self.suspect.take();
+        match self.check_consistency(&values, measured, measured_t_ns, now_ns, limits) {
+            Ok(()) => was.map(|_| {
+                "it predicted the cycle within its band again: its predictions are served again"
+                    .to_string()
+            }),
+            Err(why) => {
+                (was.is_none()).then(|| format!("suspect, its predictions not served: {why}"))
+            }
+        }
+    }
+
+    /// Record a validated cycle: its rows, and the filter's correction.
+    fn take(&mut self, t_ns: i64, errors: &BTreeMap<String, f64>, sigma: &BTreeMap<String, f64>) {
+        self.ok_cycles += 1;
+        self.cycles_since_fit += 1;
+        self.start_at(t_ns);
+        self.catch_up(t_ns);
+        let Some(row) = self.lagged.as_ref().map(Features::row) else {
+            return;
+        };
+        let keep_from = t_ns - (self.policy.history_days * 86_400e9) as i64;
+        for (name, v) in errors.iter().filter(|(_, v)| v.is_finite()) {
+            let sigma = sigma.get(name).copied();
+            if let Some(p) = &mut self.predictor
+                && p.observe_row(name, t_ns, *v, sigma, &row)
+            {
+                self.updates += 1;
+            }
+            let rows = self.rows.entry(name.clone()).or_default();
+            rows.push(Obs {
+                t_ns,
+                row: row.clone(),
+                y: *v,
+                sigma: sigma.filter(|s| driftwatch_core::units::positive(*s)),
+            });
+            let old = rows.partition_point(|o| o.t_ns < keep_from);
+            rows.drain(..old);
+        }
+    }
+
+    /// Bring back the state a running service had: the stored inputs and validated cycle
+    /// results of the history window, in time order (inputs before observations at the same
+    /// time), then one fit. Returns the fit's note, if one was made.
+    pub fn restore(&mut self, events: &[Event]) -> Option<String> {
+        if !self.policy.enabled {
+            return None;
+        }
+        let mut i = 0;
+        while i < events.len() {
+            match &events[i] {
+                Event::Observation { t_ns, .. } => {
+                    // One cycle: every observation at this time.
+                    let t = *t_ns;
+                    let (mut errors, mut sigma) = (BTreeMap::new(), BTreeMap::new());
+                    while let Some(Event::Observation {
+                        t_ns,
+                        channel,
+                        value,
+                        sigma: s,
+                    }) = events.get(i)
+                        && *t_ns == t
+                    {
+                        errors.insert(channel.clone(), *value);
+                        if let Some(s) = s {
+                            sigma.insert(channel.clone(), *s);
+                        }
+                        i += 1;
+                    }
+                    self.take(t, &errors, &sigma);
+                }
+                e => {
+                    self.input(e.clone());
+                    i += 1;
+                }
+            }
+        }
+        let t = events.last()?.t_ns();
+        (self.ok_cycles >= self.policy.min_cycles).then(|| self.fit(t))
+    }
+
+    fn fit(&mut self, t_ns: i64) -> String {
+        self.cycles_since_fit = 0;
+        let Some(features) = self.features_now() else {
+            return "no inputs yet".into();
+        };
+        let per = &self.rows;
+        let span = (
+            per.values()
+                .filter_map(|v| v.first())
+                .map(|o| o.t_ns)
+                .min()
+                .unwrap_or(t_ns),
+            per.values()
+                .filter_map(|v| v.last())
+                .map(|o| o.t_ns)
+                .max()
+                .unwrap_or(t_ns),
+        );
+        match fit_rows(&self.policy.model, features.t_ref_c(), span, per) {
+            Ok(model) => {
+                let worst = model
+                    .channels
+                    .iter()
+                    .map(|c| format!("{} {:.2}", c.name, c.rms_um))
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                let cycles = per.get("EZ0B").map_or(0, Vec::len);
+                let missing = features.unseen_sensors();
+                self.message = format!(
+                    "fitted on {cycles} validated cycles over {:.1} h; residual rms {worst}{}",
+                    (model.to_ns - model.from_ns) as f64 / 3.6e12,
+                    if missing.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; not logged, left out: {}", missing.join(", "))
+                    }
+                );
+                // The posterior holds every kept observation: the filter goes on from it
+                // with the lag states of now, and takes no observation twice.
+                self.predictor = Some(Predictor::resume(Arc::new(model), features, span.1));
+                self.initial = None;
+                self.updates = 0;
+                self.message.clone()
+            }
+            Err(e) => {
+                self.message = format!("fit failed, tried again at the next cycle: {e}");
+                self.message.clone()
+            }
+        }
+    }
+
+    /// Every predicted error at `t_ns` (the loop's now), once fitted.
+    pub fn predict(&mut self, t_ns: i64) -> Option<Vec<Prediction>> {
+        self.predictor.as_mut().map(|p| p.predict(t_ns))
+    }
+
+    /// The first error whose prediction is less certain than the policy's cycle limit.
+    pub fn uncertain(&self, predictions: &[Prediction], t_ns: i64) -> Option<Uncertain> {
+        predictions
+            .iter()
+            .filter(|p| TABLE_BC_ERRORS.contains(&p.channel.as_str()))
+            .find(|p| {
+                let limit = if crate::compensation::unit(&p.channel) == "urad" {
+                    self.policy.cycle_above_sigma_urad
+                } else {
+                    self.policy.cycle_above_sigma_um
+                };
+                p.sigma > limit
+            })
+            .map(|p| Uncertain {
+                since_ns: t_ns,
+                error: p.channel.clone(),
+                sigma: p.sigma,
+            })
+    }
+
+    /// The errors served from a fallback instead of the model, for a served set's reason
+    /// (empty when every error is the model's).
+    pub fn fallback_note(predictions: &[Prediction]) -> String {
+        let held: Vec<String> = predictions
+            .iter()
+            .filter(|p| p.source != Served::Model)
+            .map(|p| format!("{} {}", p.channel, p.source.as_str().replace('_', " ")))
+            .collect();
+        if held.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; served instead of the model (it did worse on held-out cycles): {}",
+                held.join(", ")
+            )
+        }
+    }
+
+    pub fn is_fitted(&self) -> bool {
+        self.predictor.is_some()
+    }
+
+    /// A copy of the running predictor (for `GET /prediction?at=`).
+    pub fn snapshot(&self) -> Option<Predictor> {
+        self.predictor.clone()
+    }
+
+    pub fn view(&self) -> ModelView {
+        ModelView {
+            status: if !self.policy.enabled {
+                "disabled".into()
+            } else if self.predictor.is_some() && self.initial.is_some() {
+                "initial".into()
+            } else if self.predictor.is_some() {
+                "fitted".into()
+            } else {
+                "waiting".into()
+            },
+            message: self.message.clone(),
+            validated_cycles: self.ok_cycles,
+            model: self.predictor.as_ref().map(|p| p.model.clone()),
+            updates_since_fit: self.updates,
+            served: self
+                .predictor
+                .as_ref()
+                .map(Predictor::guards)
+                .unwrap_or_default(),
+            suspect: self.suspect.clone(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: i64 = 60_000_000_000;
+
+    #[test]
+    fn it_waits_for_cycles_fits_and_then_asks_for_a_cycle_when_uncertain() {
+        let mut policy = PredictionPolicy {
+            min_cycles: 4,
+            ..Default::default()
+        };
+        policy
+            .model
+            .temperatures
+            .push(driftwatch_core::thermal_model::TemperatureInput {
+                sensor: "ambient".into(),
+                taus_min: vec![0.0],
+            });
+        let mut m = LiveModel::new(policy);
+        assert_eq!(m.view().status, "waiting");
+        m.input(Event::Spindle {
+            t_ns: 0,
+            rpm: 20000.0,
+        });
+        let mut note = None;
+        for i in 0..6 {
+            let t = (i * 30 + 5) * MIN;
+            // A 12-min lag of 40 um seen in every error.
+            let v = 40.0 * (1.0 - (-(t as f64) / 60e9 / 12.0).exp());
+            let errors: BTreeMap<String, f64> =
+                TABLE_BC_ERRORS.iter().map(|n| (n.to_string(), v)).collect();
+            let sigma = TABLE_BC_ERRORS
+                .iter()
+                .map(|n| (n.to_string(), 0.3))
+                .collect();
+            if let Some(n) = m.observe(t, &errors, &sigma) {
+                note = Some((i, n));
+            }
+        }
+        let (i, note) = note.expect("a fit");
+        assert_eq!(i, 3, "{note}");
+        assert!(note.contains("fitted on 4"), "{note}");
+        assert!(note.contains("not logged, left out: ambient"), "{note}");
+        let v = m.view();
+        assert_eq!((v.status.as_str(), v.updates_since_fit), ("fitted", 12));
+        // Six cycles after the first fit, it is fitted again on the whole history.
+        for i in 6..10 {
+            let t = (i * 30 + 5) * MIN;
+            let errors: BTreeMap<String, f64> = TABLE_BC_ERRORS
+                .iter()
+                .map(|n| (n.to_string(), 40.0))
+                .collect();
+            let sigma = TABLE_BC_ERRORS
+                .iter()
+                .map(|n| (n.to_string(), 0.3))
+                .collect();
+            let refit = m.observe(t, &errors, &sigma);
+            assert_eq!(refit.is_some(), i == 9, "cycle {i}: {refit:?}");
+        }
+        assert_eq!(m.view().updates_since_fit, 0);
+        let p = m.predict(180 * MIN).unwrap();
+        let ez = p.iter().find(|p| p.channel == "EZ0B").unwrap();
+        assert!((ez.value - 40.0).abs() < 1.0, "{ez:?}");
+        assert!(m.uncertain(&p, 180 * MIN).is_none(), "{p:?}");
+        // Ten hours without a cycle: the offset walk passes the 3-um limit.
+        let p = m.predict(780 * MIN).unwrap();
+        let u = m.uncertain(&p, 780 * MIN).expect("uncertain after 10 h");
+        assert!(u.sigma > 3.0);
+    }
+
+    #[test]
+    fn a_model_fitted_elsewhere_predicts_from_the_first_input_until_the_own_fit() {
+        // The earlier day: a 12-min lag of 40 um in EZ0B, seen every 30 min.
+        let lag = |t: i64| 40.0 * (1.0 - (-(t as f64) / 60e9 / 12.0).exp());
+        let mut earlier = vec![Event::Spindle {
+            t_ns: 0,
+            rpm: 20000.0,
+        }];
+        for i in 0..8 {
+            let t = (i * 30 + 5) * MIN;
+            earlier.push(Event::Observation {
+                t_ns: t,
+                channel: "EZ0B".into(),
+                value: lag(t),
+                sigma: Some(0.3),
+            });
+        }
+        let model =
+            driftwatch_core::thermal_model::fit(&Default::default(), &earlier, None).unwrap();
+        let policy = PredictionPolicy {
+            min_cycles: 3,
+            ..Default::default()
+        };
+        let mut m = LiveModel::with_initial(policy, Arc::new(model));
+        assert!(m.predict(0).is_none(), "nothing before the first input");
+        // Today starts a day later, with the spindle on.
+        let day = 1440 * MIN;
+        m.input(Event::Spindle {
+            t_ns: day,
+            rpm: 20000.0,
+        });
+        assert_eq!(m.view().status, "initial");
+        let p = m.predict(day + 20 * MIN).unwrap();
+        assert!((p[0].value - lag(20 * MIN)).abs() < 1.0, "{p:?}");
+        let one = |v: f64| BTreeMap::from([("EZ0B".to_string(), v)]);
+        for i in 0..3 {
+            let t = (i * 30 + 25) * MIN;
+            let note = m.observe(day + t, &one(lag(t)), &one(0.3));
+            assert_eq!(note.is_some(), i == 2, "cycle {i}: {note:?}");
+        }
+        assert_eq!(m.view().status, "fitted");
+        let p = m.predict(day + 120 * MIN).unwrap();
+        assert!((p[0].value - lag(120 * MIN)).abs() < 1.0, "{p:?}");
+    }
+
+    #[test]
+    fn disabled_does_nothing() {
+        let mut m = LiveModel::new(PredictionPolicy {
+            enabled: false,
+            ..Default::default()
+        });
+        m.input(Event::Spindle { t_ns: 0, rpm: 1.0 });
+        assert!(m.observe(0, &BTreeMap::new(), &BTreeMap::new()).is_none());
+        assert!(m.predict(0).is_none());
+        assert_eq!(m.view().status, "disabled");
+    }
+
+    /// A model fitted on a 40 um plateau, for judging and health checks.
+    fn plateau() -> LiveModel {
+        let mut m = LiveModel::new(PredictionPolicy {
+            min_cycles: 4,
+            ..Default::default()
+        });
+        m.input(Event::Spindle {
+            t_ns: 0,
+            rpm: 20000.0,
+        });
+        for i in 0..6 {
+            let t = (i * 30 + 5) * MIN;
+            m.observe(t, &all(40.0), &all(0.3));
+        }
+        assert_eq!(m.view().status, "fitted");
+        m
+    }
+
+    fn all(v: f64) -> BTreeMap<String, f64> {
+        TABLE_BC_ERRORS.iter().map(|n| (n.to_string(), v)).collect()
+    }
+
+    fn set(v: f64, t: i64) -> crate::compensation::CompensationSet {
+        crate::compensation::CompensationSet {
+            version: 1,
+            valid_from_ns: t,
+            source: crate::compensation::Source::Measured,
+            cycle: Some(7),
+            offsets: BTreeMap::new(),
+            errors: all(v),
+            sigma: all(0.3),
+            reason: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_model_that_misses_a_cycle_is_suspect_until_it_predicts_one_within_its_band() {
+        let limits = crate::compensation::ValidationLimits::default();
+        let mut m = plateau();
+        let t = 200 * MIN;
+        assert_eq!(m.judge(&set(40.0, t), t, t, &limits), None);
+        assert!(m.suspect().is_none());
+        // The cycle measured 140 um: the model said 40; suspect, and says why.
+        let note = m.judge(&set(140.0, t), t, t, &limits).unwrap();
+        assert!(
+            note.contains("suspect") && note.contains("EZ0B predicted 40"),
+            "{note}"
+        );
+        assert!(m.view().suspect.is_some());
+        // Still missing: no new note, still suspect.
+        assert_eq!(m.judge(&set(140.0, t), t, t, &limits), None);
+        assert!(m.suspect().is_some());
+        // It predicts the next cycle within its band: trusted again.
+        let note = m.judge(&set(40.2, t), t, t, &limits).unwrap();
+        assert!(note.contains("served again"), "{note}");
+        assert!(m.suspect().is_none());
+    }
+
+    #[test]
+    fn an_update_that_leaves_the_model_unable_to_predict_is_rolled_back() {
+        let mut m = plateau();
+        let t = 200 * MIN;
+        let before = m.predict(t).unwrap();
+        // Finite, but beyond anything the filter's arithmetic survives.
+        let note = m.observe(t, &all(f64::MAX), &all(1e-300)).unwrap();
+        assert!(note.contains("rolled back"), "{note}");
+        let after = m.predict(t).unwrap();
+        assert_eq!(after, before);
+        assert_eq!(m.view().validated_cycles, 6);
+        // The next good cycle is taken as usual.
+        assert!(m.observe(t + 30 * MIN, &all(40.0), &all(0.3)).is_none());
+        assert_eq!(m.view().validated_cycles, 7);
+    }
+}

@@ -1,0 +1,368 @@
+//! The service's configuration: one TOML file (the shipped default, `config/default.toml`,
+//! documents every key). Each part is owned by the module it configures.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use driftwatch_machine::alerts::{Rule, default_rules};
+use driftwatch_machine::compensation::ValidationLimits;
+use driftwatch_machine::phase::PhaseConfig;
+use driftwatch_machine::scheduler::SchedulePolicy;
+
+pub const DEFAULT_CONFIG: &str = include_str!("../../../config/default.toml");
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read configuration {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("configuration {origin}: {message}")]
+    Parse { origin: String, message: String },
+    #[error("configuration {origin}: {message}")]
+    Invalid { origin: String, message: String },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    Read,
+    Write,
+    Admin,
+}
+
+impl Role {
+    pub fn allows(self, needed: Role) -> bool {
+        matches!(
+            (self, needed),
+            (Role::Admin, _) | (Role::Write, Role::Read | Role::Write) | (Role::Read, Role::Read)
+        )
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Token {
+    /// Who holds it (for the log; the token itself is never logged).
+    pub name: String,
+    /// The bearer token, or `env:VAR` to read it from an environment variable.
+    pub token: String,
+    pub role: Role,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HttpConfig {
+    pub listen: SocketAddr,
+    /// Whether reads need no token (dashboards and NCs on a trusted network).
+    pub anonymous_read: bool,
+    #[serde(default)]
+    pub tokens: Vec<Token>,
+    /// Diagnoses kept per machine: the oldest beyond are deleted as new ones are stored.
+    #[serde(default = "default_diagnoses_kept")]
+    pub diagnoses_kept: i64,
+}
+
+fn default_diagnoses_kept() -> i64 {
+    200
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
+pub enum LinkConfig {
+    /// The truth simulator's virtual machine running a scenario's day program.
+    Simulated { scenario: String },
+    /// A real NC (or its gateway) posting events and polling for cycle orders over HTTP.
+    NcPush {
+        /// How far ahead of the service clock an event may be stamped, s.
+        #[serde(default = "default_max_ahead_s")]
+        max_ahead_s: f64,
+        /// How far behind it (a gateway's buffer after an outage), s.
+        #[serde(default = "default_max_behind_s")]
+        max_behind_s: f64,
+    },
+}
+
+fn default_max_ahead_s() -> f64 {
+    60.0
+}
+
+fn default_max_behind_s() -> f64 {
+    86_400.0
+}
+
+impl LinkConfig {
+    /// The clock tolerance of an `nc_push` link (none for the simulator, which is the clock).
+    pub fn clock_tolerance(&self) -> Option<crate::nc_push::ClockTolerance> {
+        match self {
+            LinkConfig::NcPush {
+                max_ahead_s,
+                max_behind_s,
+            } => Some(crate::nc_push::ClockTolerance {
+                ahead_ns: (max_ahead_s * 1e9) as i64,
+                behind_ns: (max_behind_s * 1e9) as i64,
+            }),
+            LinkConfig::Simulated { .. } => None,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineConfigEntry {
+    pub id: String,
+    /// Built-in machine name or path to a machine TOML.
+    pub machine: String,
+    /// Built-in plan name or path to a plan TOML.
+    pub plan: String,
+    pub link: LinkConfig,
+    /// A thermal model fitted by `driftwatch fit` (e.g. on an earlier day of this machine):
+    /// predictions start from it at once instead of after `thermal.min_cycles` cycles.
+    #[serde(default)]
+    pub thermal_model: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// Where the database and the recordings go.
+    pub data_dir: PathBuf,
+    /// Simulated seconds per wall second (1 for real machines).
+    pub time_scale: f64,
+    /// Largest MCAP file before a new one is started, MiB.
+    pub max_file_mib: u64,
+    pub http: HttpConfig,
+    pub machines: Vec<MachineConfigEntry>,
+    #[serde(default)]
+    pub phase: PhaseConfig,
+    #[serde(default)]
+    pub schedule: SchedulePolicy,
+    #[serde(default)]
+    pub validation: ValidationLimits,
+    #[serde(default)]
+    pub thermal: driftwatch_machine::compensation::PredictionPolicy,
+    #[serde(default = "default_rules")]
+    pub alerts: Vec<Rule>,
+    /// Where alert events are POSTed.
+    #[serde(default)]
+    pub webhooks: Vec<crate::webhook::WebhookConfig>,
+}
+
+impl ServiceConfig {
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        let cfg: ServiceConfig = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        cfg.validate(origin)?;
+        Ok(cfg)
+    }
+
+    /// The shipped default, or a file.
+    pub fn load(path: Option<&std::path::Path>) -> Result<Self, ConfigError> {
+        match path {
+            None => Self::from_toml(DEFAULT_CONFIG, "config/default.toml (built in)"),
+            Some(p) => {
+                let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read {
+                    path: p.display().to_string(),
+                    source,
+                })?;
+                Self::from_toml(&text, &p.display().to_string())
+            }
+        }
+    }
+
+    /// Every check of a loaded configuration; run again after command-line overrides, so that
+    /// no option bypasses one.
+    pub fn validate(&self, origin: &str) -> Result<(), ConfigError> {
+        let bad = |m: String| {
+            Err(ConfigError::Invalid {
+                origin: origin.to_string(),
+                message: m,
+            })
+        };
+        if !driftwatch_core::units::positive(self.time_scale) {
+            return bad(format!("time_scale must be > 0, not {}", self.time_scale));
+        }
+        if self.machines.is_empty() {
+            return bad("no machines configured".into());
+        }
+        if self.http.diagnoses_kept < 1 {
+            return bad(format!(
+                "http.diagnoses_kept must be at least 1, not {}",
+                self.http.diagnoses_kept
+            ));
+        }
+        let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();
+        ids.sort_unstable();
+        if ids.windows(2).any(|w| w[0] == w[1]) {
+            return bad("machine ids must be unique".into());
+        }
+        if let Some(m) = self.machines.iter().find(|m| {
+            m.id.is_empty()
+                || !m
+                    .id
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        }) {
+            return bad(format!(
+                "machine id '{}' may hold only letters, digits, '-' and '_'",
+                m.id
+            ));
+        }
+        for m in &self.machines {
+            if let LinkConfig::NcPush {
+                max_ahead_s,
+                max_behind_s,
+            } = m.link
+                && !(driftwatch_core::units::positive(max_ahead_s)
+                    && driftwatch_core::units::positive(max_behind_s)
+                    && max_ahead_s <= 86_400.0
+                    && max_behind_s <= 30.0 * 86_400.0)
+            {
+                return bad(format!(
+                    "machine '{}': max_ahead_s ({max_ahead_s}) must be in (0, 86400] and max_behind_s ({max_behind_s}) in (0, 2592000]",
+                    m.id
+                ));
+            }
+        }
+        if self
+            .machines
+            .iter()
+            .any(|m| matches!(m.link, LinkConfig::NcPush { .. }))
+            && self.time_scale != 1.0
+        {
+            return bad(format!(
+                "time_scale is {}: a real NC (nc_push) runs on the wall clock, time_scale = 1.0",
+                self.time_scale
+            ));
+        }
+        if let Err(e) = self.phase.validate() {
+            return bad(e.to_string());
+        }
+        if let Err(e) = self.schedule.validate() {
+            return bad(e.to_string());
+        }
+        if let Err(e) = driftwatch_machine::alerts::validate_rules(&self.alerts) {
+            return bad(e.to_string());
+        }
+        if let Err(e) = self.thermal.validate() {
+            return bad(e);
+        }
+        if let Err(e) = self.thermal.validate() {
+            return bad(e);
+        }
+        for w in &self.webhooks {
+            if let Err(e) = w.validate() {
+                return bad(e);
+            }
+        }
+        for t in &self.http.tokens {
+            if t.token.trim().is_empty() {
+                return bad(format!("token of '{}' is empty", t.name));
+            }
+        }
+        Ok(())
+    }
+
+    /// The webhooks with their `env:` tokens resolved; a webhook whose variable is not set
+    /// is sent without a token and named in the second list.
+    pub fn resolved_webhooks(
+        &self,
+    ) -> (
+        Vec<(crate::webhook::WebhookConfig, Option<String>)>,
+        Vec<String>,
+    ) {
+        let mut out = Vec::new();
+        let mut missing = Vec::new();
+        for w in &self.webhooks {
+            let token = match w.token.as_deref().map(|t| (t, t.strip_prefix("env:"))) {
+                None => None,
+                Some((_, Some(var))) => match std::env::var(var) {
+                    Ok(v) if !v.trim().is_empty() => Some(v),
+                    _ => {
+                        missing.push(format!(
+                            "webhook {} goes without a token: {var} is not set",
+                            w.url
+                        ));
+                        None
+                    }
+                },
+                Some((t, None)) => Some(t.to_string()),
+            };
+            out.push((w.clone(), token));
+        }
+        (out, missing)
+    }
+
+    /// The tokens with `env:` references resolved; a token whose variable is not set is
+    /// left out (that holder cannot write) and named in the second list.
+    pub fn resolved_tokens(&self) -> (Vec<(String, String, Role)>, Vec<String>) {
+        let mut ok = Vec::new();
+        let mut disabled = Vec::new();
+        for t in &self.http.tokens {
+            match t.token.strip_prefix("env:") {
+                Some(var) => match std::env::var(var) {
+                    Ok(v) if !v.trim().is_empty() => ok.push((t.name.clone(), v, t.role)),
+                    _ => disabled.push(format!("token of '{}' is off: {var} is not set", t.name)),
+                },
+                None => ok.push((t.name.clone(), t.token.clone(), t.role)),
+            }
+        }
+        (ok, disabled)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_default_parses_and_runs_one_simulated_machine() {
+        let c = ServiceConfig::load(None).unwrap();
+        assert_eq!(c.machines.len(), 1);
+        assert_eq!(c.http.listen.to_string(), "127.0.0.1:8080");
+        assert_eq!(c.time_scale, 60.0);
+        assert!(
+            matches!(&c.machines[0].link, LinkConfig::Simulated { scenario } if scenario == "two_shift")
+        );
+    }
+
+    #[test]
+    fn bad_configurations_are_named() {
+        let text = DEFAULT_CONFIG.replace("time_scale = 60.0", "time_scale = 0.0");
+        let e = ServiceConfig::from_toml(&text, "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("time_scale"), "{e}");
+        let text = DEFAULT_CONFIG.replace("data_dir", "data_folder");
+        assert!(ServiceConfig::from_toml(&text, "t").is_err());
+    }
+
+    #[test]
+    fn the_deployment_example_parses() {
+        let text = include_str!("../../../deploy/nc_push.example.toml");
+        let c = ServiceConfig::from_toml(text, "deploy/nc_push.example.toml").unwrap();
+        assert!(matches!(c.machines[0].link, LinkConfig::NcPush { .. }));
+        assert!(!c.http.anonymous_read);
+        assert_eq!(c.webhooks.len(), 1);
+        // A real NC with a sped-up clock is refused.
+        let fast = text.replace("time_scale = 1.0", "time_scale = 60.0");
+        let e = ServiceConfig::from_toml(&fast, "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nc_push"), "{e}");
+    }
+
+    #[test]
+    fn roles_nest() {
+        assert!(Role::Admin.allows(Role::Write));
+        assert!(Role::Write.allows(Role::Read));
+        assert!(!Role::Read.allows(Role::Write));
+        assert!(!Role::Write.allows(Role::Admin));
+    }
+}

@@ -1,0 +1,13 @@
+//! The service shell around the core: machine links (simulated, or a real NC posting to its
+//! door), the loop of each machine, SQLite storage, MCAP recorders, the HTTP API, webhook
+//! delivery and the configuration. The only crate with an async runtime, a database and a
+//! network.
+
+pub mod api;
+pub mod config;
+pub mod daemon;
+pub mod link;
+pub mod nc_push;
+pub mod recorder;
+pub mod store;
+pub mod webhook;
