@@ -10,7 +10,7 @@
 use std::collections::BTreeSet;
 use std::fs::{self, File};
 use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpStream};
 use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -41,22 +41,24 @@ impl Drop for Service {
     }
 }
 
-fn free_port() -> SocketAddr {
-    let l = TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap()
+/// The address `serve` says it listens on ("driftwatch serving ... on http://ADDR (...").
+fn served_addr(log: &str) -> Option<SocketAddr> {
+    let line = log.lines().find(|l| l.starts_with("driftwatch serving"))?;
+    let rest = line.split_once("http://")?.1;
+    rest.split_whitespace().next()?.parse().ok()
 }
 
 impl Service {
-    /// Start `serve` on `data` at `time_scale` and wait (bounded) until its API answers.
+    /// Start `serve` on `data` at `time_scale` on a port the system picks (no race for a free
+    /// port), read the address it prints, and wait (bounded) until its API answers.
     fn start(data: &Path, time_scale: f64, log: PathBuf) -> Service {
-        let addr = free_port();
         let out = File::create(&log).unwrap();
         let child = Command::new(env!("CARGO_BIN_EXE_driftwatch"))
             .arg("serve")
             .arg("--time-scale")
             .arg(time_scale.to_string())
             .arg("--listen")
-            .arg(addr.to_string())
+            .arg("127.0.0.1:0")
             .arg("--data-dir")
             .arg(data)
             .stdin(Stdio::null())
@@ -64,13 +66,25 @@ impl Service {
             .stderr(out)
             .spawn()
             .unwrap();
-        let mut s = Service { child, addr, log };
+        let unbound: SocketAddr = ([127, 0, 0, 1], 0).into();
+        let mut s = Service {
+            child,
+            addr: unbound,
+            log,
+        };
         let deadline = Instant::now() + Duration::from_secs(30);
         loop {
             if let Some(status) = s.child.try_wait().unwrap() {
                 panic!("serve exited at start ({status}):\n{}", s.log_text());
             }
-            if get(addr, "/api/v1/machines").is_some_and(|(code, _)| code == 200) {
+            if s.addr == unbound
+                && let Some(a) = served_addr(&s.log_text())
+            {
+                s.addr = a;
+            }
+            if s.addr != unbound
+                && get(s.addr, "/api/v1/machines").is_some_and(|(code, _)| code == 200)
+            {
                 return s;
             }
             assert!(

@@ -23,7 +23,6 @@ import os
 import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -31,16 +30,10 @@ import time
 import urllib.error
 import urllib.request
 
+from served import wait_served
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 TOKEN = "harness-token"
-
-
-def free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def parse(text):
@@ -69,17 +62,19 @@ def call(base, method, path, body=None, token=None, timeout=2.0):
 
 class Service:
     def __init__(self, binary, data, log, config=None, scale=None):
-        self.port = free_port()
-        self.base = f"http://127.0.0.1:{self.port}"
-        args = [binary, "serve", "--listen", f"127.0.0.1:{self.port}", "--data-dir", data]
+        args = [binary, "serve", "--listen", "127.0.0.1:0", "--data-dir", data]
         if config:
             args += ["--config", config]
         if scale:
             args += ["--time-scale", str(scale), "--until", "100000"]
         env = dict(os.environ, RUST_LOG="warn", DRIFTWATCH_NC_TOKEN=TOKEN,
                    DRIFTWATCH_OPERATOR_TOKEN=TOKEN)
+        offset = os.path.getsize(log) if os.path.exists(log) else 0
         self.log = open(log, "ab")
         self.proc = subprocess.Popen(args, stdout=self.log, stderr=self.log, env=env)
+        self.base = wait_served(self.proc, log, offset)
+        if self.base is None:
+            raise RuntimeError(f"serve did not say where it listens within 30 s; see {log}")
         deadline = time.time() + 30
         while time.time() < deadline:
             if self.proc.poll() is not None:

@@ -30,12 +30,13 @@ import os
 import secrets
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
+
+from served import wait_served
 
 CONFIG = """\
 [dictionaries.machines]
@@ -70,12 +71,6 @@ def map_query(ctx, query):
 """
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def http(method: str, url: str, token: str | None = None, body: bytes | None = None) -> int:
     req = urllib.request.Request(url, data=body, method=method)
     if token:
@@ -91,23 +86,23 @@ def http(method: str, url: str, token: str | None = None, body: bytes | None = N
 
 def start(binary: str, outdir: str, token: str) -> tuple[subprocess.Popen, str]:
     env = dict(os.environ, DRIFTWATCH_OPERATOR_TOKEN=token)
-    log = open(os.path.join(outdir, "service.log"), "ab")
-    for _ in range(5):
-        port = free_port()
-        proc = subprocess.Popen(
-            [binary, "serve", "--time-scale", "600", "--until", "100000",
-             "--data-dir", os.path.join(outdir, "data"), "--listen", f"127.0.0.1:{port}"],
-            env=env, stdout=log, stderr=subprocess.STDOUT)
-        base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                if http("GET", base + "/healthz") == 200:
-                    return proc, base
-            except OSError:
-                pass
-            time.sleep(0.2)
-        stop(proc)
+    path = os.path.join(outdir, "service.log")
+    offset = os.path.getsize(path) if os.path.exists(path) else 0
+    log = open(path, "ab")
+    proc = subprocess.Popen(
+        [binary, "serve", "--time-scale", "600", "--until", "100000",
+         "--data-dir", os.path.join(outdir, "data"), "--listen", "127.0.0.1:0"],
+        env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = wait_served(proc, path, offset)
+    deadline = time.monotonic() + 30
+    while base and time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if http("GET", base + "/healthz") == 200:
+                return proc, base
+        except OSError:
+            pass
+        time.sleep(0.2)
+    stop(proc)
     sys.exit("schemathesis: the service did not answer /healthz (see service.log)")
 
 

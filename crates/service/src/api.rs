@@ -512,10 +512,13 @@ fn summary(v: &MachineView) -> serde_json::Value {
         "schedule": v.schedule,
         "next_due_ns": v.next_due_ns,
         "compensation_version": v.compensation.as_ref().map(|c| c.version),
+        "clock_ns": v.clock_ns,
+        "faults": v.faults,
+        "fault": v.fault,
     })
 }
 
-#[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, compensation version")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, compensation version, the clock at its loop's last step, its loop's failed steps and the last failure while it lasts")), security((), ("bearer" = [])))]
 async fn machines(State(st): State<Shared>) -> Json<serde_json::Value> {
     Json(json!(
         st.machines
@@ -1241,6 +1244,12 @@ async fn metrics(State(st): State<Shared>) -> Response {
         "counter",
         "Time spent validating and solving cycles.",
         per(&|v| v.solve_seconds_sum),
+    );
+    metric(
+        "driftwatch_machine_faults_total",
+        "counter",
+        "Steps of a machine loop that failed (a store or recorder error) and were tried again.",
+        per(&|v| v.faults as f64),
     );
     metric(
         "driftwatch_compensation_version",

@@ -72,6 +72,12 @@ pub struct MachineView {
     pub cycles_rejected: u64,
     pub cycles_abandoned: u64,
     pub solve_seconds_sum: f64,
+    /// The service clock at the loop's last completed step, ns.
+    pub clock_ns: Option<i64>,
+    /// Steps that failed (a store or recorder error) and were tried again, and the last
+    /// failure while it lasts.
+    pub faults: u64,
+    pub fault: Option<String>,
 }
 
 /// A compensation set ready to send: its version and its JSON.
@@ -770,7 +776,7 @@ impl MachineRuntime {
     /// Store the detections a cycle received, when it ends (finished, timed out or shut
     /// down): two commits per cycle instead of one per step. A crash during a cycle loses its
     /// detections from the database only; the cycle is abandoned at restart either way.
-    async fn store_detections(&self, open: &OpenCycle) -> Result<(), DaemonError> {
+    async fn store_detections(&mut self, open: &OpenCycle) -> Result<(), DaemonError> {
         let rows: Vec<DetectionRow> = open
             .detections
             .iter()
@@ -910,7 +916,7 @@ impl MachineRuntime {
     }
 
     async fn file_closed(
-        &self,
+        &mut self,
         f: &crate::recorder::ClosedFile,
         now_ns: i64,
     ) -> Result<(), DaemonError> {

@@ -4,8 +4,10 @@
 //! network.
 
 pub mod api;
+pub mod clock;
 pub mod config;
 pub mod daemon;
+pub mod launch;
 pub mod link;
 pub mod nc_push;
 pub mod recorder;

@@ -121,6 +121,20 @@ impl Simulated {
         self.vm.start_ns()
     }
 
+    /// Bring the virtual machine to `t_ns` as if it had run its program unobserved (no
+    /// measurement cycles), and say nothing of that time: the next poll reports the spindle
+    /// and state of `t_ns` as news. A restarted service resumes here rather than replay a day
+    /// its store has seen.
+    pub fn resume_at(&mut self, t_ns: i64) {
+        if t_ns <= self.to_ns(self.now_s) {
+            return;
+        }
+        let _ = self.poll(t_ns);
+        self.pending.clear();
+        self.last_rpm = f64::NAN;
+        self.last_state = None;
+    }
+
     fn to_ns(&self, t_s: f64) -> i64 {
         self.vm.start_ns() + (t_s * 1e9).round() as i64
     }

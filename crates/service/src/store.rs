@@ -934,6 +934,24 @@ impl Store {
         Ok(id)
     }
 
+    /// The latest time stored of a machine (samples, cycles, compensation sets, alert events),
+    /// ns: where a restarted simulated machine resumes.
+    pub async fn latest_time(&self, machine: &str) -> Result<Option<i64>, StoreError> {
+        let t: Option<i64> = sqlx::query_scalar(
+            "SELECT MAX(t) FROM (
+                SELECT MAX(t_ns) AS t FROM spindle_samples WHERE machine_id = $1
+                UNION ALL SELECT MAX(t_ns) FROM temperature_samples WHERE machine_id = $1
+                UNION ALL SELECT MAX(COALESCE(finished_ns, started_ns)) FROM cycles WHERE machine_id = $1
+                UNION ALL SELECT MAX(valid_from_ns) FROM compensation_sets WHERE machine_id = $1
+                UNION ALL SELECT MAX(t_ns) FROM alert_events WHERE machine_id = $1
+            )",
+        )
+        .bind(machine)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(t)
+    }
+
     /// The time of the machine's last stored detection.
     pub async fn last_detection_ns(&self, machine: &str) -> Result<Option<i64>, StoreError> {
         Ok(

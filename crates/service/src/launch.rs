@@ -1,0 +1,430 @@
+//! The one seam that starts the service: `launch(config, listener, shutdown)` wires the
+//! configured machines, the store, the recorders, the webhooks and the HTTP API, runs each
+//! machine's loop in its own task on the service clock, and returns a handle to wait on.
+//! `driftwatch serve` and the integration tests start the service through it, so that a test
+//! runs what a user runs (on a listener bound to port 0 that it keeps: no port race).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use thiserror::Error;
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tracing::{error, info, warn};
+
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::{MachineInfo, MachineStateKind};
+use driftwatch_core::thermal_model::ThermalModel;
+use driftwatch_core::units::{NS_PER_MIN, NS_PER_S, min_to_ns};
+use driftwatch_sim::scenario::Scenario;
+
+use crate::api::{ApiState, Auth, MachineHandle, router};
+use crate::clock::{ManualClock, ServiceClock};
+use crate::config::{LinkConfig, ServiceConfig};
+use crate::daemon::{DaemonError, MachineRuntime, MachineView, Settings};
+use crate::link::{MachineLink, Simulated};
+use crate::nc_push::nc_push;
+use crate::recorder::Recorder;
+use crate::store::Store;
+use crate::webhook::Notifier;
+
+#[derive(Debug, Error)]
+pub enum LaunchError {
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
+    #[error("machine '{machine}': {message}")]
+    Machine { machine: String, message: String },
+    #[error("creating the data directory {path}: {source}")]
+    DataDir {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
+    #[error(transparent)]
+    Daemon(#[from] DaemonError),
+    #[error("webhooks: {0}")]
+    Webhooks(String),
+    #[error("the listener: {0}")]
+    Listener(std::io::Error),
+}
+
+/// Which clock the machines run on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ClockKind {
+    /// The wall clock sped up by the configuration's `time_scale`.
+    Configured,
+    /// A clock that moves only when the [`ManualClock`] in [`Service::manual_clock`] moves it.
+    Manual,
+}
+
+/// How to launch, beyond the configuration.
+#[derive(Debug, Clone)]
+pub struct LaunchOptions {
+    pub clock: ClockKind,
+    /// Stop by itself after this much machine time, min.
+    pub until_min: Option<f64>,
+}
+
+impl Default for LaunchOptions {
+    fn default() -> Self {
+        LaunchOptions {
+            clock: ClockKind::Configured,
+            until_min: None,
+        }
+    }
+}
+
+/// The running service.
+pub struct Service {
+    /// Where the API listens.
+    pub addr: std::net::SocketAddr,
+    /// Machine time the clock started at.
+    pub t0_ns: i64,
+    pub clock: ServiceClock,
+    /// Set for [`ClockKind::Manual`].
+    pub manual_clock: Option<ManualClock>,
+    /// Each machine's view (what the API shows of it).
+    pub views: BTreeMap<String, Arc<std::sync::Mutex<MachineView>>>,
+    shutdown: CancellationToken,
+    server: JoinHandle<std::io::Result<()>>,
+    machines: Vec<JoinHandle<()>>,
+    deliveries: Vec<JoinHandle<()>>,
+    store: Store,
+}
+
+/// Launch the service with its configured clock, until `shutdown` is cancelled.
+pub async fn launch(
+    cfg: ServiceConfig,
+    listener: TcpListener,
+    shutdown: CancellationToken,
+) -> Result<Service, LaunchError> {
+    launch_with(cfg, listener, shutdown, LaunchOptions::default()).await
+}
+
+/// A machine ready to run: its loop and what the API holds of it.
+struct Wired {
+    runtime: MachineRuntime,
+    handle: MachineHandle,
+}
+
+/// Launch the service: open the store, build every machine's loop, serve the API on
+/// `listener`, and run the loops until `shutdown` is cancelled (or `until_min` has passed).
+pub async fn launch_with(
+    cfg: ServiceConfig,
+    listener: TcpListener,
+    shutdown: CancellationToken,
+    opts: LaunchOptions,
+) -> Result<Service, LaunchError> {
+    cfg.validate("the configuration")?;
+    std::fs::create_dir_all(&cfg.data_dir).map_err(|source| LaunchError::DataDir {
+        path: cfg.data_dir.clone(),
+        source,
+    })?;
+    let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;
+    let (links, t0) = links(&cfg, &store).await?;
+    let (clock, manual_clock) = match opts.clock {
+        ClockKind::Configured => (ServiceClock::scaled(t0, cfg.time_scale), None),
+        ClockKind::Manual => {
+            let (c, m) = ServiceClock::manual(t0);
+            (c, Some(m))
+        }
+    };
+    let (hooks, missing) = cfg.resolved_webhooks();
+    for m in &missing {
+        warn!("{m}");
+    }
+    let (notifier, deliveries) = Notifier::start(hooks).map_err(LaunchError::Webhooks)?;
+    let mut wired = Vec::new();
+    for (id, k, plan, link, settings, nc) in links {
+        let info = MachineInfo {
+            machine_id: id.clone(),
+            kinematics: k.name.clone(),
+            software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
+        };
+        let recorder = Recorder::new(&cfg.data_dir.join("mcap"), info, cfg.max_file_mib << 20)
+            .map_err(|e| LaunchError::Machine {
+                machine: id.clone(),
+                message: e.to_string(),
+            })?;
+        let mut runtime =
+            MachineRuntime::new(&id, k, plan, link, &settings, store.clone(), recorder, t0).await?;
+        runtime.set_notifier(notifier.clone());
+        let handle = MachineHandle {
+            view: runtime.view.clone(),
+            inbox: runtime.inbox.clone(),
+            nc,
+            kinematics: Some(Arc::new(runtime.kinematics().clone())),
+        };
+        wired.push(Wired { runtime, handle });
+    }
+    let (tokens, disabled) = cfg.resolved_tokens();
+    for d in &disabled {
+        warn!("{d}");
+    }
+    let handles: BTreeMap<String, MachineHandle> = wired
+        .iter()
+        .map(|w| (w.runtime.id.clone(), w.handle.clone()))
+        .collect();
+    let views = handles
+        .iter()
+        .map(|(id, h)| (id.clone(), h.view.clone()))
+        .collect();
+    let mut state = ApiState::new(
+        handles,
+        store.clone(),
+        Auth {
+            tokens,
+            anonymous_read: cfg.http.anonymous_read,
+        },
+    );
+    state.webhooks = notifier.stats.clone();
+    state.diagnoses_kept = cfg.http.diagnoses_kept;
+    // The loops hold the only senders from here: the deliveries end when the loops do.
+    drop(notifier);
+    let addr = listener.local_addr().map_err(LaunchError::Listener)?;
+    let server = {
+        let stop = shutdown.clone();
+        let app = router(Arc::new(state));
+        tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(stop.cancelled_owned())
+                .await
+        })
+    };
+    let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
+    let machines = wired
+        .into_iter()
+        .map(|w| tokio::spawn(run_machine(w.runtime, clock.clone(), end, shutdown.clone())))
+        .collect();
+    Ok(Service {
+        addr,
+        t0_ns: t0,
+        clock,
+        manual_clock,
+        views,
+        shutdown,
+        server,
+        machines,
+        deliveries,
+        store,
+    })
+}
+
+type Linked = (
+    String,
+    Kinematics,
+    Plan,
+    Box<dyn MachineLink>,
+    Settings,
+    Option<crate::nc_push::NcPushHandle>,
+);
+
+/// A machine's link before the clock's start is known.
+enum Pending {
+    Simulated(Box<Simulated>),
+    Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
+}
+
+/// Every configured machine's link, and the machine time the clock starts at.
+///
+/// Simulated machines start just before their first power-on, so that a newcomer sees the
+/// morning's warm-up at once; with a store that already holds a later time (a restart), the
+/// clock resumes there and the simulated machines are brought to it without events, so that
+/// a restart does not replay a day the store has seen. With a real NC the clock is the wall
+/// clock and simulated machines beside it are moved to start now.
+async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64), LaunchError> {
+    let settings = Settings::from_config(cfg);
+    let real = cfg
+        .machines
+        .iter()
+        .any(|m| matches!(m.link, LinkConfig::NcPush { .. }));
+    let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
+    let mut pending = Vec::new();
+    let mut t0 = i64::MAX;
+    let mut resume = i64::MIN;
+    for m in &cfg.machines {
+        let fail = |message: String| LaunchError::Machine {
+            machine: m.id.clone(),
+            message,
+        };
+        let k = Kinematics::load(&m.machine).map_err(|e| fail(e.to_string()))?;
+        let plan_cfg = PlanConfig::load(&m.plan).map_err(|e| fail(e.to_string()))?;
+        let plan = Plan::build(&k, &plan_cfg).map_err(|e| fail(e.to_string()))?;
+        let mut settings = settings.clone();
+        if let Some(path) = &m.thermal_model {
+            let model = initial_model(path, &k)
+                .map_err(|e| fail(format!("thermal_model {}: {e}", path.display())))?;
+            settings.initial_model = Some(Arc::new(model));
+        }
+        let link = match &m.link {
+            LinkConfig::Simulated { scenario } => {
+                let mut scn = Scenario::load(scenario).map_err(|e| fail(e.to_string()))?;
+                scn.machine_id = m.id.clone();
+                let first_on_min = scn
+                    .spindle
+                    .iter()
+                    .find(|s| s.state != MachineStateKind::Off)
+                    .map_or(0.0, |s| s.at_min);
+                let lead_ns = min_to_ns((first_on_min - 5.0).max(0.0));
+                if real {
+                    scn.start_utc =
+                        chrono::DateTime::from_timestamp_nanos(wall_now - lead_ns).to_rfc3339();
+                }
+                let link = Simulated::new(k.clone(), plan.clone(), scn)
+                    .map_err(|e| fail(e.to_string()))?;
+                t0 = t0.min(link.start_ns() + lead_ns);
+                if let Some(t) = store.latest_time(&m.id).await? {
+                    resume = resume.max(t);
+                }
+                Pending::Simulated(Box::new(link))
+            }
+            LinkConfig::NcPush { .. } => {
+                let tolerance = m.link.clock_tolerance().unwrap_or_default();
+                let (link, handle) = nc_push(plan.clone(), k.config.limits, tolerance);
+                t0 = t0.min(wall_now);
+                Pending::Nc(Box::new(link), handle)
+            }
+        };
+        pending.push((m.id.clone(), k, plan, settings, link));
+    }
+    if t0 == i64::MAX {
+        t0 = wall_now;
+    }
+    if !real && resume >= t0 {
+        // A whole second past the last stored time, so that nothing lands on it twice.
+        let at = (resume / NS_PER_S + 1) * NS_PER_S;
+        info!(
+            "the store's latest time lies {:.1} min after the simulated start: resuming there",
+            (at - t0) as f64 / NS_PER_MIN as f64
+        );
+        t0 = at;
+    }
+    let linked = pending
+        .into_iter()
+        .map(|(id, k, plan, settings, link)| match link {
+            Pending::Simulated(mut sim) => {
+                sim.resume_at(t0);
+                (id, k, plan, sim as Box<dyn MachineLink>, settings, None)
+            }
+            Pending::Nc(link, handle) => (id, k, plan, link, settings, Some(handle)),
+        })
+        .collect();
+    Ok((linked, t0))
+}
+
+/// The loops look at their inboxes (operator requests, acknowledgements) at least this often.
+const INBOX_WALL: Duration = Duration::from_millis(200);
+/// A failing loop waits this much machine time before it tries again, doubling up to
+/// [`MAX_RETRY_NS`].
+const FIRST_RETRY_NS: i64 = NS_PER_S;
+const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
+
+/// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
+/// recorder that cannot write) is logged, counted in its view (and so in `/metrics`) and
+/// tried again with a doubling wait, and never stops the other machines or the API.
+async fn run_machine(
+    mut rt: MachineRuntime,
+    clock: ServiceClock,
+    end: Option<i64>,
+    shutdown: CancellationToken,
+) {
+    let mut retry_ns = FIRST_RETRY_NS;
+    loop {
+        let now = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+        let wake = match rt.step(now).await {
+            Ok(wake) => {
+                retry_ns = FIRST_RETRY_NS;
+                if let Ok(mut v) = rt.view.lock() {
+                    v.clock_ns = Some(now);
+                    v.fault = None;
+                }
+                wake
+            }
+            Err(e) => {
+                error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
+                if let Ok(mut v) = rt.view.lock() {
+                    v.faults += 1;
+                    v.fault = Some(e.to_string());
+                }
+                let at = now.saturating_add(retry_ns);
+                retry_ns = (retry_ns * 2).min(MAX_RETRY_NS);
+                at
+            }
+        };
+        if end.is_some_and(|e| now >= e) || shutdown.is_cancelled() {
+            break;
+        }
+        tokio::select! {
+            _ = clock.sleep_until(wake, INBOX_WALL) => {}
+            _ = shutdown.cancelled() => {}
+        }
+    }
+    let now = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+    if let Err(e) = rt.shutdown(now).await {
+        error!(machine = %rt.id, error = %e, "the machine loop could not close its recordings cleanly");
+    }
+}
+
+impl Service {
+    /// Stop everything: the API, then the loops.
+    pub fn stop(&self) {
+        self.shutdown.cancel();
+    }
+
+    /// Wait for the loops to end (on shutdown, or at `until_min`), then for the API to close
+    /// its connections, the store to close, and queued webhook deliveries (up to a grace).
+    pub async fn wait(self) {
+        for m in self.machines {
+            if let Err(e) = m.await {
+                error!(error = %e, "a machine loop panicked");
+            }
+        }
+        // With `until_min`, the loops end by themselves: the API goes with them.
+        self.shutdown.cancel();
+        match self.server.await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => error!(error = %e, "the HTTP server failed"),
+            Err(e) => error!(error = %e, "the HTTP server panicked"),
+        }
+        self.store.close().await;
+        let grace = tokio::time::sleep(Duration::from_secs(10));
+        tokio::pin!(grace);
+        for d in self.deliveries {
+            tokio::select! {
+                _ = d => {}
+                _ = &mut grace => {
+                    warn!("webhook deliveries still pending at shutdown were given up (the events are stored)");
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// A model file to start a machine's predictions from: readable, and only of errors the
+/// machine has.
+fn initial_model(path: &Path, k: &Kinematics) -> Result<ThermalModel, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("reading the file: {e}"))?;
+    let model = ThermalModel::from_json(&text).map_err(|e| e.to_string())?;
+    let names = k.identify_names();
+    let foreign: Vec<&str> = model
+        .channels
+        .iter()
+        .map(|c| c.name.as_str())
+        .filter(|n| !names.iter().any(|m| m == n))
+        .collect();
+    if foreign.is_empty() {
+        Ok(model)
+    } else {
+        Err(format!(
+            "the model has channels this machine ({}) does not: {}",
+            k.name,
+            foreign.join(", ")
+        ))
+    }
+}
