@@ -1,102 +1,32 @@
 //! The HTTP API over a machine loop run on simulated time: the NC's compensation endpoint with
 //! ETag and 304, operator requests and their authorisation, errors as JSON.
 
-use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::sync::Arc;
+mod common;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
-use http_body_util::BodyExt;
 use serde_json::Value;
-use tower::ServiceExt;
 
-use driftwatch_core::kinematics::Kinematics;
-use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_core::recording::MachineInfo;
-use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch_service::config::Role;
-use driftwatch_service::daemon::{MachineRuntime, Settings};
-use driftwatch_service::link::Simulated;
-use driftwatch_service::recorder::Recorder;
-use driftwatch_service::store::Store;
-use driftwatch_sim::scenario::Scenario;
+use common::{MIN, TestService, config, launch_test, scratch};
+use driftwatch_service::config::LinkConfig;
 
-const MIN: i64 = 60_000_000_000;
-
-async fn runtime(name: &str) -> (MachineRuntime, i64, Store) {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("api-{name}"));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    let scn = Scenario::load("patent").unwrap();
-    let k = Kinematics::load(&scn.machine).unwrap();
-    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-    let link = Simulated::new(k.clone(), plan.clone(), scn).unwrap();
-    let t0 = link.start_ns();
-    let store = Store::open(&d.join("db.sqlite")).await.unwrap();
-    let info = MachineInfo {
-        machine_id: "m1".into(),
-        kinematics: k.name.clone(),
-        software: "test".into(),
+/// The patent's simulated day as machine `m1` on the service's shipped settings, with a read
+/// and a write token; reads without a token when `anonymous_read`.
+async fn service(name: &str, anonymous_read: bool) -> TestService {
+    let mut cfg = config(&scratch(&format!("api-{name}")));
+    cfg.http.anonymous_read = anonymous_read;
+    let m = &mut cfg.machines[0];
+    m.id = "m1".into();
+    m.machine = "table_bc".into();
+    m.plan = "patent".into();
+    m.link = LinkConfig::Simulated {
+        scenario: "patent".into(),
     };
-    let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
-    let settings = Settings::default();
-    let rt = MachineRuntime::new(
-        "m1",
-        k,
-        plan,
-        Box::new(link),
-        &settings,
-        store.clone(),
-        rec,
-        t0,
-    )
-    .await
-    .unwrap();
-    (rt, t0, store)
+    launch_test(cfg, None).await
 }
 
-async fn run_to(rt: &mut MachineRuntime, from: i64, to: i64) {
-    let mut now = from;
-    while now < to {
-        now = rt.step(now).await.unwrap().min(to).max(now + 1);
-    }
-}
-
-fn app(rt: &MachineRuntime, store: Store, anonymous_read: bool) -> axum::Router {
-    let mut machines = BTreeMap::new();
-    machines.insert(
-        "m1".to_string(),
-        MachineHandle {
-            view: rt.view.clone(),
-            inbox: rt.inbox.clone(),
-            nc: None,
-            kinematics: Some(Arc::new(rt.kinematics().clone())),
-        },
-    );
-    router(Arc::new(ApiState::new(
-        machines,
-        store,
-        Auth {
-            tokens: vec![
-                ("dashboard".into(), "read-token".into(), Role::Read),
-                ("operator".into(), "write-token".into(), Role::Write),
-            ],
-            anonymous_read,
-        },
-    )))
-}
-
-async fn call(
-    app: &axum::Router,
-    req: Request<Body>,
-) -> (StatusCode, axum::http::HeaderMap, Value) {
-    let r = app.clone().oneshot(req).await.unwrap();
-    let status = r.status();
-    let headers = r.headers().clone();
-    let bytes = r.into_body().collect().await.unwrap().to_bytes();
-    let body = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
-    (status, headers, body)
+async fn call(app: &TestService, req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Value) {
+    app.call(req).await
 }
 
 fn get(uri: &str) -> Request<Body> {
@@ -113,12 +43,12 @@ fn read(uri: &str) -> Request<Body> {
 
 #[tokio::test]
 async fn the_nc_reads_the_last_validated_set_with_etag_and_304() {
-    let (mut rt, t0, store) = runtime("etag").await;
-    let app = app(&rt, store, true);
+    let app = service("etag", true).await;
+    let t0 = app.t0();
     let (s, _, body) = call(&app, get("/api/v1/machines/m1/compensation")).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
     assert_eq!(body["code"], "no_compensation");
-    run_to(&mut rt, t0, t0 + 45 * MIN).await;
+    app.run_to(t0 + 45 * MIN).await;
     let (s, h, body) = call(&app, get("/api/v1/machines/m1/compensation")).await;
     assert_eq!(s, StatusCode::OK);
     let v1 = body["version"].as_u64().unwrap();
@@ -131,7 +61,7 @@ async fn the_nc_reads_the_last_validated_set_with_etag_and_304() {
         .unwrap();
     let (s, _, _) = call(&app, req).await;
     assert_eq!(s, StatusCode::NOT_MODIFIED);
-    run_to(&mut rt, t0 + 45 * MIN, t0 + 100 * MIN).await;
+    app.run_to(t0 + 100 * MIN).await;
     let req = Request::get("/api/v1/machines/m1/compensation")
         .header(header::IF_NONE_MATCH, &etag)
         .body(Body::empty())
@@ -155,9 +85,9 @@ async fn the_nc_reads_the_last_validated_set_with_etag_and_304() {
 
 #[tokio::test]
 async fn write_endpoints_need_a_write_token() {
-    let (mut rt, t0, store) = runtime("auth").await;
-    run_to(&mut rt, t0, t0 + 5 * MIN).await;
-    let app = app(&rt, store.clone(), true);
+    let app = service("auth", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 5 * MIN).await;
     let post = |token: Option<&str>| {
         let mut b = Request::post("/api/v1/machines/m1/cycles");
         if let Some(t) = token {
@@ -177,9 +107,9 @@ async fn write_endpoints_need_a_write_token() {
     assert_eq!(s, StatusCode::ACCEPTED);
     assert_eq!(body["by"], "operator");
     // The request reaches the loop: a cycle starts at the next idle moment.
-    let before = store.cycles("m1", 100, None).await.unwrap().len();
-    run_to(&mut rt, t0 + 5 * MIN, t0 + 8 * MIN).await;
-    let after = store.cycles("m1", 100, None).await.unwrap();
+    let before = app.store().cycles("m1", 100, None).await.unwrap().len();
+    app.run_to(t0 + 8 * MIN).await;
+    let after = app.store().cycles("m1", 100, None).await.unwrap();
     assert_eq!(after.len(), before + 1);
     assert!(
         after[0].trigger.contains("operator"),
@@ -187,7 +117,7 @@ async fn write_endpoints_need_a_write_token() {
         after[0].trigger
     );
     // Reads need a token when anonymous reads are off.
-    let closed = app_closed(&rt, store);
+    let closed = service("auth-closed", false).await;
     let (s, _, _) = call(&closed, get("/api/v1/machines")).await;
     assert_eq!(s, StatusCode::UNAUTHORIZED);
     let req = Request::get("/api/v1/machines")
@@ -198,15 +128,11 @@ async fn write_endpoints_need_a_write_token() {
     assert_eq!(s, StatusCode::OK);
 }
 
-fn app_closed(rt: &MachineRuntime, store: Store) -> axum::Router {
-    app(rt, store, false)
-}
-
 #[tokio::test]
 async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
-    let (mut rt, t0, store) = runtime("alerts").await;
-    run_to(&mut rt, t0, t0 + 100 * MIN).await;
-    let app = app(&rt, store, true);
+    let app = service("alerts", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 100 * MIN).await;
     let (s, _, body) = call(&app, get("/api/v1/machines/m1/alerts")).await;
     assert_eq!(s, StatusCode::OK);
     let open = body["open"].as_array().unwrap();
@@ -242,7 +168,7 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
         call(&app, ack(id, Some("write-token"))).await.0,
         StatusCode::ACCEPTED
     );
-    run_to(&mut rt, t0 + 100 * MIN, t0 + 101 * MIN).await;
+    app.run_to(t0 + 101 * MIN).await;
     let (_, _, body) = call(&app, read("/api/v1/machines/m1/alerts")).await;
     let ez = body["open"]
         .as_array()
@@ -252,9 +178,7 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
         .unwrap()
         .clone();
     assert_eq!(ez["acknowledged"]["by"], "operator", "{ez}");
-    let r = app.clone().oneshot(get("/metrics")).await.unwrap();
-    let text =
-        String::from_utf8(r.into_body().collect().await.unwrap().to_bytes().to_vec()).unwrap();
+    let (_, text) = app.text("/metrics").await;
     let ok_line = text
         .lines()
         .find(|l| l.starts_with("driftwatch_cycles_total{machine=\"m1\",status=\"ok\"}"))
@@ -275,10 +199,49 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
     assert!(text.contains("driftwatch_webhook_events_total{outcome=\"delivered\"} 0"));
 }
 
+/// The OpenAPI document is pinned: a change to the API shows in `docs/openapi.json` (rewrite
+/// it with `UPDATE_SNAPSHOTS=1 cargo test --test api`) and is reviewed there. Every answer of
+/// every operation has a schema, except those without a body (204, 304).
+#[test]
+fn the_openapi_document_matches_its_snapshot_and_every_answer_has_a_schema() {
+    use utoipa::OpenApi as _;
+    let doc = serde_json::to_value(driftwatch_service::api::ApiDoc::openapi()).unwrap();
+    let mut answers = 0;
+    for (path, item) in doc["paths"].as_object().unwrap() {
+        for (method, op) in item.as_object().unwrap() {
+            for (status, response) in op["responses"].as_object().unwrap() {
+                answers += 1;
+                let content = response["content"].as_object();
+                if status == "204" || status == "304" {
+                    assert!(content.is_none(), "{method} {path} {status} has a body");
+                    continue;
+                }
+                let schemas = content
+                    .into_iter()
+                    .flatten()
+                    .filter(|(_, c)| c["schema"].is_object())
+                    .count();
+                assert!(schemas > 0, "{method} {path} {status}: no response schema");
+            }
+        }
+    }
+    assert!(answers > 100, "{answers} answers");
+    let text = serde_json::to_string_pretty(&doc).unwrap() + "\n";
+    let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/openapi.json");
+    if std::env::var_os("UPDATE_SNAPSHOTS").is_some() {
+        std::fs::write(&file, &text).unwrap();
+    }
+    let pinned = std::fs::read_to_string(&file).unwrap_or_default();
+    assert!(
+        pinned == text,
+        "the API's OpenAPI document differs from docs/openapi.json: review the change and \
+         rewrite it with UPDATE_SNAPSHOTS=1 cargo test --test api"
+    );
+}
+
 #[tokio::test]
 async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
-    let (rt, _, store) = runtime("openapi").await;
-    let app = app(&rt, store, true);
+    let app = service("openapi", true).await;
     let (s, _, doc) = call(&app, get("/api/v1/openapi.json")).await;
     assert_eq!(s, StatusCode::OK);
     let paths = doc["paths"].as_object().unwrap();
@@ -318,15 +281,15 @@ async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
             }
         }
     }
-    let r = app.clone().oneshot(get("/api/v1/docs/")).await.unwrap();
-    assert_eq!(r.status(), StatusCode::OK);
+    let (status, _) = app.text("/api/v1/docs/").await;
+    assert_eq!(status, StatusCode::OK);
 }
 
 #[tokio::test]
 async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
-    let (mut rt, t0, store) = runtime("series").await;
-    run_to(&mut rt, t0, t0 + 240 * MIN).await;
-    let app = app(&rt, store, true);
+    let app = service("series", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 240 * MIN).await;
     let (s, _, all) = call(&app, get("/api/v1/machines/m1/errors?source=measured")).await;
     assert_eq!(s, StatusCode::OK);
     let all = all.as_array().unwrap().clone();
@@ -404,9 +367,9 @@ async fn the_error_series_is_windowed_and_bucketed_for_dashboards() {
 
 #[tokio::test]
 async fn the_model_and_its_predictions_are_served() {
-    let (mut rt, t0, store) = runtime("model").await;
-    let app = app(&rt, store.clone(), true);
-    run_to(&mut rt, t0, t0 + 20 * MIN).await;
+    let app = service("model", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 20 * MIN).await;
     let (s, _, body) = call(&app, get("/api/v1/machines/m1/model")).await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(body["status"], "waiting", "{body}");
@@ -416,7 +379,7 @@ async fn the_model_and_its_predictions_are_served() {
         (StatusCode::NOT_FOUND, Some("no_model"))
     );
     // The patent day: a cycle every 30 min, so six validated cycles by about 150 min.
-    run_to(&mut rt, t0 + 20 * MIN, t0 + 200 * MIN).await;
+    app.run_to(t0 + 200 * MIN).await;
     let (_, _, body) = call(&app, get("/api/v1/machines/m1/model")).await;
     assert_eq!(body["status"], "fitted", "{body}");
     let channels = body["model"]["channels"].as_array().unwrap();
@@ -458,7 +421,7 @@ async fn the_model_and_its_predictions_are_served() {
         (StatusCode::BAD_REQUEST, Some("before_last_input"))
     );
     // Predicted sets are served between cycles, with their source.
-    let sets = store.compensation_versions("m1").await.unwrap();
+    let sets = app.store().compensation_versions("m1").await.unwrap();
     assert!(sets.iter().any(|s| s.1 == "predicted"), "{sets:?}");
     let (_, _, comp) = call(&app, get("/api/v1/machines/m1/compensation")).await;
     assert!(
@@ -469,10 +432,9 @@ async fn the_model_and_its_predictions_are_served() {
 
 #[tokio::test]
 async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
-    let (mut rt, t0, store) = runtime("diagnosis").await;
-    run_to(&mut rt, t0, t0 + 300 * MIN).await;
-    let store_for_busy = store.clone();
-    let app = app(&rt, store, true);
+    let app = service("diagnosis", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 300 * MIN).await;
     let post = |token: &str, body: &str| {
         Request::post("/api/v1/machines/m1/diagnoses")
             .header(header::AUTHORIZATION, format!("Bearer {token}"))
@@ -563,24 +525,14 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
     assert_eq!(d2["readings"].as_u64().unwrap(), 24 * (cycles - 1));
 
     // One diagnosis at a time: with the slot taken, a request is told to come back.
-    let state = Arc::new(ApiState::new(
-        BTreeMap::from([(
-            "m1".to_string(),
-            MachineHandle {
-                view: rt.view.clone(),
-                inbox: rt.inbox.clone(),
-                nc: None,
-                kinematics: Some(Arc::new(rt.kinematics().clone())),
-            },
-        )]),
-        store_for_busy,
-        Auth {
-            tokens: vec![("operator".into(), "write-token".into(), Role::Write)],
-            anonymous_read: true,
-        },
-    ));
-    let _held = state.diagnosis_slots.clone().try_acquire_owned().unwrap();
-    let (s, _, body) = call(&router(state.clone()), post("write-token", "{}")).await;
+    let _held = app
+        .svc
+        .api
+        .diagnosis_slots
+        .clone()
+        .try_acquire_owned()
+        .unwrap();
+    let (s, _, body) = call(&app, post("write-token", "{}")).await;
     assert_eq!(
         (s, body["code"].as_str()),
         (StatusCode::TOO_MANY_REQUESTS, Some("diagnosis_busy"))
@@ -591,9 +543,9 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
 /// the next one named in a Link header or `next_before`), and the stored diagnoses are capped.
 #[tokio::test]
 async fn lists_are_paged_and_stored_diagnoses_are_capped() {
-    let (mut rt, t0, store) = runtime("paging").await;
-    run_to(&mut rt, t0, t0 + 300 * MIN).await;
-    let app = app(&rt, store.clone(), true);
+    let app = service("paging", true).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 300 * MIN).await;
     let (_, _, all) = call(&app, get("/api/v1/machines/m1/cycles?limit=1000")).await;
     let all: Vec<i64> = all
         .as_array()
@@ -656,7 +608,7 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
             summary: "test",
             result: None,
         };
-        assert_eq!(store.add_diagnosis(&d, 3).await.unwrap(), i + 1);
+        assert_eq!(app.store().add_diagnosis(&d, 3).await.unwrap(), i + 1);
     }
     let (_, h, list) = call(&app, get("/api/v1/machines/m1/diagnoses?limit=2")).await;
     let ids: Vec<i64> = list
@@ -678,10 +630,11 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
 /// idempotent acknowledgement.
 #[tokio::test]
 async fn errors_are_json_names_are_for_readers_and_an_ack_is_idempotent() {
-    let (mut rt, t0, store) = runtime("conformance").await;
-    run_to(&mut rt, t0, t0 + 100 * MIN).await;
-    let closed = app(&rt, store.clone(), false);
-    let open = app(&rt, store, true);
+    let open = service("conformance", true).await;
+    let t0 = open.t0();
+    open.run_to(t0 + 100 * MIN).await;
+    // The same service with anonymous reads off.
+    let closed = service("conformance-closed", false).await;
     let with = |uri: &str, auth: &str| {
         Request::get(uri)
             .header(header::AUTHORIZATION, auth)
@@ -777,7 +730,7 @@ async fn errors_are_json_names_are_for_readers_and_an_ack_is_idempotent() {
         call(&open, ack("write-token")).await.0,
         StatusCode::ACCEPTED
     );
-    run_to(&mut rt, t0 + 100 * MIN, t0 + 101 * MIN).await;
+    open.run_to(t0 + 101 * MIN).await;
     let (s, _, again) = call(&open, ack("write-token")).await;
     assert_eq!(
         (s, again["already"].as_bool()),

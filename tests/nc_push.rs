@@ -2,32 +2,23 @@
 //! the truth simulator), posts its events, polls for cycle orders and runs them; the service
 //! loop runs on simulated time.
 
-use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::sync::Arc;
+mod common;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
-use http_body_util::BodyExt;
 use serde_json::{Value, json};
-use tower::ServiceExt;
 
+use common::{MIN, TestService, launch_test, scratch};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_core::recording::{DetectionStatus, MachineInfo};
-use driftwatch_service::api::{ApiState, Auth, MachineHandle, router};
-use driftwatch_service::config::Role;
-use driftwatch_service::daemon::{MachineRuntime, Settings};
-use driftwatch_service::nc_push::{ClockTolerance, CycleOrder, nc_push};
-use driftwatch_service::recorder::Recorder;
-use driftwatch_service::store::Store;
+use driftwatch_core::recording::DetectionStatus;
+use driftwatch_service::config::{Role, ServiceConfig, Token};
+use driftwatch_service::nc_push::CycleOrder;
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::VirtualMachine;
 
-const MIN: i64 = 60_000_000_000;
-
 async fn send(
-    app: &axum::Router,
+    app: &TestService,
     method: &str,
     uri: &str,
     token: Option<&str>,
@@ -44,64 +35,45 @@ async fn send(
             .unwrap(),
         None => b.body(Body::empty()).unwrap(),
     };
-    let r = app.clone().oneshot(req).await.unwrap();
-    let s = r.status();
-    let bytes = r.into_body().collect().await.unwrap().to_bytes();
-    (s, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+    let (s, _, v) = app.call(req).await;
+    (s, v)
+}
+
+/// The shipped configuration with one machine `nc1` on the `nc_push` link, the NC's write
+/// token and a reader's.
+fn nc_config(dir: &std::path::Path) -> ServiceConfig {
+    let mut cfg = common::config(dir);
+    // A real NC runs on the wall clock (the test moves a manual one).
+    cfg.time_scale = 1.0;
+    cfg.http.tokens = vec![
+        Token {
+            name: "nc".into(),
+            token: "nc-token".into(),
+            role: Role::Write,
+        },
+        Token {
+            name: "dash".into(),
+            token: "read-token".into(),
+            role: Role::Read,
+        },
+    ];
+    let m = &mut cfg.machines[0];
+    m.id = "nc1".into();
+    m.machine = "table_bc".into();
+    m.plan = "patent".into();
+    m.link = toml::from_str(r#"kind = "nc_push""#).unwrap();
+    cfg
 }
 
 #[tokio::test]
 async fn a_test_nc_drives_the_service_through_nc_push() {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("nc-push");
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
     let scn = Scenario::load("patent").unwrap();
     let k = Kinematics::load(&scn.machine).unwrap();
     let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-    let (link, handle) = nc_push(plan.clone(), k.config.limits, ClockTolerance::default());
     let mut vm = VirtualMachine::new(&k, &scn).unwrap();
     let t0 = vm.start_ns();
-    let store = Store::open(&d.join("db.sqlite")).await.unwrap();
-    let info = MachineInfo {
-        machine_id: "nc1".into(),
-        kinematics: k.name.clone(),
-        software: "test".into(),
-    };
-    let rec = Recorder::new(&d.join("mcap"), info, 1 << 30).unwrap();
-    let settings = Settings::default();
-    let mut rt = MachineRuntime::new(
-        "nc1",
-        k.clone(),
-        plan.clone(),
-        Box::new(link),
-        &settings,
-        store.clone(),
-        rec,
-        t0,
-    )
-    .await
-    .unwrap();
-    let mut machines = BTreeMap::new();
-    machines.insert(
-        "nc1".to_string(),
-        MachineHandle {
-            view: rt.view.clone(),
-            inbox: rt.inbox.clone(),
-            nc: Some(handle),
-            kinematics: None,
-        },
-    );
-    let app = router(Arc::new(ApiState::new(
-        machines,
-        store.clone(),
-        Auth {
-            tokens: vec![
-                ("nc".into(), "nc-token".into(), Role::Write),
-                ("dash".into(), "read-token".into(), Role::Read),
-            ],
-            anonymous_read: true,
-        },
-    )));
+    // The service clock starts where the test's NC does.
+    let app = launch_test(nc_config(&scratch("nc-push")), Some(t0)).await;
     let events = "/api/v1/machines/nc1/nc/events";
     let request = "/api/v1/machines/nc1/nc/request";
 
@@ -132,7 +104,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         "POST",
         events,
         Some("nc-token"),
-        Some(json!({"events": [{"topic": "/nope", "t_ns": 1, "msg": {}}]})),
+        Some(json!({"events": [{"topic": "/nope", "t_ns": t0, "msg": {}}]})),
     )
     .await;
     assert_eq!(s, StatusCode::BAD_REQUEST);
@@ -169,7 +141,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         )
         .await;
         assert_eq!(s, StatusCode::ACCEPTED);
-        rt.step(now).await.unwrap();
+        app.run_to(now).await;
         let (s, order) = send(&app, "GET", request, Some("nc-token"), None).await;
         if s == StatusCode::OK {
             let order: CycleOrder = serde_json::from_value(order).unwrap();
@@ -199,7 +171,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
             .await;
             assert_eq!(s, StatusCode::ACCEPTED, "{body}");
             now = end;
-            rt.step(now).await.unwrap();
+            app.run_to(now).await;
             let (s, comp) =
                 send(&app, "GET", "/api/v1/machines/nc1/compensation", None, None).await;
             if s == StatusCode::OK {
@@ -208,7 +180,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         }
         now += MIN;
     }
-    let cycles = store.cycles("nc1", 100, None).await.unwrap();
+    let cycles = app.store().cycles("nc1", 100, None).await.unwrap();
     println!("{orders} orders; versions after each cycle: {versions:?}");
     for c in cycles.iter().rev() {
         println!(
@@ -250,28 +222,15 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
             .contains("ahead of the service clock"),
         "{body}"
     );
-    let metrics = app
-        .clone()
-        .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
-        .await
-        .unwrap();
-    let text = String::from_utf8(
-        metrics
-            .into_body()
-            .collect()
-            .await
-            .unwrap()
-            .to_bytes()
-            .to_vec(),
-    )
-    .unwrap();
+    let (_, text) = app.text("/metrics").await;
     assert!(
         text.contains("driftwatch_nc_events_refused_clock_skew_total{machine=\"nc1\"} 1"),
         "{text}"
     );
     // ... and a clock_skew alert is raised for the machine at the loop's next step, naming the
     // skew; it resolves after 10 min of machine time without a refusal.
-    rt.step(now).await.unwrap();
+    // A step at the same time (1 ns later: the loop steps when the clock moves).
+    app.run_to(now + 1).await;
     let alerts = "/api/v1/machines/nc1/alerts";
     let (_, a) = send(&app, "GET", alerts, Some("read-token"), None).await;
     let open = a["open"].as_array().unwrap();
@@ -286,7 +245,7 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
         "{skew}"
     );
     for m in 1..=10 {
-        rt.step(now + m * MIN).await.unwrap();
+        app.run_to(now + m * MIN).await;
     }
     let (_, a) = send(&app, "GET", alerts, Some("read-token"), None).await;
     assert!(

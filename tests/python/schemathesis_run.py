@@ -54,6 +54,8 @@ values = [1, 2, 3]
 # in order) and a prediction `at` before the model's last input (400 before_last_input: it
 # depends on the service's state; times are moved to 2033-2065, which also asks the model
 # decades ahead).
+UNSTATABLE = ("bad_window", "before_last_input")
+
 HOOKS = """\
 import schemathesis
 
@@ -162,6 +164,13 @@ def tally(report: str, stats: dict) -> None:
                 if c.get("status") != "failure":
                     continue
                 f = (c.get("failure_info") or {}).get("failure") or {}
+                resp = ((inter.get(case_id) or {}).get("response")) or {}
+                # The two refusals OpenAPI cannot state (see HOOKS): phases that bypass the
+                # hooks still send them, and the API is right to refuse them.
+                if c["name"] == "positive_data_acceptance" and any(
+                        f'"code":"{code}"' in body_text(resp) for code in UNSTATABLE):
+                    stats["unstatable"] += 1
+                    continue
                 key = (f.get("operation") or rec.get("label"), c["name"], f.get("title"))
                 if key in stats["failures"]:
                     continue
@@ -190,7 +199,7 @@ def main() -> int:
         f.write(HOOKS)
     token = secrets.token_hex(16)
     proc, base = start(os.path.abspath(a.binary), outdir, token)
-    stats = {"requests": 0, "5xx": 0, "failures": {}}
+    stats = {"requests": 0, "5xx": 0, "failures": {}, "unstatable": 0}
     try:
         time.sleep(5)
         http("POST", base + "/api/v1/machines/sim-1/diagnoses", token, b"{}")
@@ -207,7 +216,8 @@ def main() -> int:
     detail = ", ".join(f"{k}: {v}" for k, v in sorted(per_check.items()))
     nf = len(stats["failures"])
     print(f"schemathesis: {stats['requests']} requests, {stats['5xx']} 5xx, {nf} failures"
-          + (f" ({detail})" if detail else ""))
+          + (f" ({detail})" if detail else "")
+          + f"; {stats['unstatable']} refusals of reversed windows or past times (not failures)")
     return 1 if stats["5xx"] or nf else 0
 
 

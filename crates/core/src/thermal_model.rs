@@ -35,6 +35,7 @@ pub enum ModelError {
 /// A temperature input and its lags.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct TemperatureInput {
     pub sensor: String,
     /// Time constants, min; 0 is the temperature itself without lag.
@@ -526,6 +527,7 @@ impl ChannelFit {
 /// Where a served value comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub enum Served {
     /// The thermal model, corrected by every observation.
     #[default]
@@ -597,6 +599,7 @@ const FALLBACK_T: f64 = 1.645;
 
 /// A channel's guard as the views and reports show it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct GuardSummary {
     pub channel: String,
     pub unit: String,
@@ -1330,6 +1333,7 @@ fn held_temperature_columns(
 
 /// A prediction of one channel: what is served, and the model's own value.
 #[derive(Debug, Clone, PartialEq, Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Prediction {
     pub channel: String,
     /// The served value: the model's, or its fallback when the model did worse on the

@@ -465,6 +465,7 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
 /// Where a set's values come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub enum Source {
     /// Identified in a measurement cycle.
     Measured,
@@ -474,6 +475,7 @@ pub enum Source {
 
 /// One version of the compensation served to the NC.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct CompensationSet {
     /// 1 for the first set, then one more for each set.
     pub version: u64,

@@ -33,6 +33,7 @@ pub enum PhaseError {
 /// The machine's thermal phase.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub enum Phase {
     /// The NC is off.
     Off,
@@ -97,6 +98,7 @@ impl PhaseConfig {
 
 /// The phase at one instant, with what it was derived from.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct PhaseInfo {
     pub phase: Phase,
     /// When the event that drives this phase happened: the spindle start for `WarmUp` and

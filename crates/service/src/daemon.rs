@@ -74,10 +74,12 @@ pub struct MachineView {
     pub solve_seconds_sum: f64,
     /// The service clock at the loop's last completed step, ns.
     pub clock_ns: Option<i64>,
-    /// Steps that failed (a store or recorder error) and were tried again, and the last
-    /// failure while it lasts.
+    /// Steps that failed (a store or recorder error) and were tried again.
     pub faults: u64,
-    pub fault: Option<String>,
+    /// Whether the last step failed.
+    pub failing: bool,
+    /// The last failure: service-clock time (ns) and what went wrong.
+    pub last_fault: Option<(i64, String)>,
 }
 
 /// A compensation set ready to send: its version and its JSON.

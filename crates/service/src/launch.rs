@@ -68,6 +68,8 @@ pub struct LaunchOptions {
     pub clock: ClockKind,
     /// Stop by itself after this much machine time, min.
     pub until_min: Option<f64>,
+    /// Start the clock here instead (a test that plays a real NC from a simulated start).
+    pub start_ns: Option<i64>,
 }
 
 impl Default for LaunchOptions {
@@ -75,6 +77,7 @@ impl Default for LaunchOptions {
         LaunchOptions {
             clock: ClockKind::Configured,
             until_min: None,
+            start_ns: None,
         }
     }
 }
@@ -90,6 +93,8 @@ pub struct Service {
     pub manual_clock: Option<ManualClock>,
     /// Each machine's view (what the API shows of it).
     pub views: BTreeMap<String, Arc<std::sync::Mutex<MachineView>>>,
+    /// What the API serves from (its diagnosis slots, its webhooks' counters).
+    pub api: Arc<ApiState>,
     shutdown: CancellationToken,
     server: JoinHandle<std::io::Result<()>>,
     machines: Vec<JoinHandle<()>>,
@@ -127,6 +132,7 @@ pub async fn launch_with(
     })?;
     let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;
     let (links, t0) = links(&cfg, &store).await?;
+    let t0 = opts.start_ns.unwrap_or(t0);
     let (clock, manual_clock) = match opts.clock {
         ClockKind::Configured => (ServiceClock::scaled(t0, cfg.time_scale), None),
         ClockKind::Manual => {
@@ -187,9 +193,10 @@ pub async fn launch_with(
     // The loops hold the only senders from here: the deliveries end when the loops do.
     drop(notifier);
     let addr = listener.local_addr().map_err(LaunchError::Listener)?;
+    let api = Arc::new(state);
     let server = {
         let stop = shutdown.clone();
-        let app = router(Arc::new(state));
+        let app = router(api.clone());
         tokio::spawn(async move {
             axum::serve(listener, app)
                 .with_graceful_shutdown(stop.cancelled_owned())
@@ -199,7 +206,15 @@ pub async fn launch_with(
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
     let machines = wired
         .into_iter()
-        .map(|w| tokio::spawn(run_machine(w.runtime, clock.clone(), end, shutdown.clone())))
+        .map(|w| {
+            tokio::spawn(run_machine(
+                w.runtime,
+                clock.clone(),
+                t0,
+                end,
+                shutdown.clone(),
+            ))
+        })
         .collect();
     Ok(Service {
         addr,
@@ -207,6 +222,7 @@ pub async fn launch_with(
         clock,
         manual_clock,
         views,
+        api,
         shutdown,
         server,
         machines,
@@ -330,18 +346,27 @@ const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
 async fn run_machine(
     mut rt: MachineRuntime,
     clock: ServiceClock,
+    start_ns: i64,
     end: Option<i64>,
     shutdown: CancellationToken,
 ) {
     let mut retry_ns = FIRST_RETRY_NS;
+    let mut last = i64::MIN;
+    // The first step is at the clock's start, however far the clock has gone since.
+    let mut wake = start_ns;
     loop {
-        let now = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
-        let wake = match rt.step(now).await {
+        let target = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+        // Step at each time the loop asked to be called, up to the clock: a clock that jumped
+        // ahead (a manual clock, a machine that slept) is caught up with as if it had run,
+        // not in one stride that would start every due cycle late.
+        let now = target.min(wake.max(last.saturating_add(1)));
+        last = now;
+        wake = match rt.step(now).await {
             Ok(wake) => {
                 retry_ns = FIRST_RETRY_NS;
                 if let Ok(mut v) = rt.view.lock() {
                     v.clock_ns = Some(now);
-                    v.fault = None;
+                    v.failing = false;
                 }
                 wake
             }
@@ -349,7 +374,8 @@ async fn run_machine(
                 error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
                 if let Ok(mut v) = rt.view.lock() {
                     v.faults += 1;
-                    v.fault = Some(e.to_string());
+                    v.failing = true;
+                    v.last_fault = Some((now, e.to_string()));
                 }
                 let at = now.saturating_add(retry_ns);
                 retry_ns = (retry_ns * 2).min(MAX_RETRY_NS);
@@ -359,18 +385,27 @@ async fn run_machine(
         if end.is_some_and(|e| now >= e) || shutdown.is_cancelled() {
             break;
         }
+        if now < target {
+            continue;
+        }
         tokio::select! {
             _ = clock.sleep_until(wake, INBOX_WALL) => {}
             _ = shutdown.cancelled() => {}
         }
     }
-    let now = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+    let now = end
+        .map_or(clock.now_ns(), |e| clock.now_ns().min(e))
+        .max(last);
     if let Err(e) = rt.shutdown(now).await {
         error!(machine = %rt.id, error = %e, "the machine loop could not close its recordings cleanly");
     }
 }
 
 impl Service {
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+
     /// Stop everything: the API, then the loops.
     pub fn stop(&self) {
         self.shutdown.cancel();

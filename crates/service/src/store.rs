@@ -51,16 +51,53 @@ async fn insert_set(
 }
 
 /// A diagnosis run's columns 0-6 (id .. summary) as JSON.
-fn diagnosis_row(r: &sqlx::sqlite::SqliteRow) -> Result<Value, StoreError> {
-    Ok(serde_json::json!({
-        "id": r.try_get::<i64, _>(0)?,
-        "requested_ns": r.try_get::<i64, _>(1)?,
-        "requested_by": r.try_get::<String, _>(2)?,
-        "from_ns": r.try_get::<i64, _>(3)?,
-        "to_ns": r.try_get::<i64, _>(4)?,
-        "status": r.try_get::<String, _>(5)?,
-        "summary": r.try_get::<String, _>(6)?,
-    }))
+/// A diagnosis run as stored, without its result.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct DiagnosisRow {
+    pub id: i64,
+    pub requested_ns: i64,
+    /// The token holder who asked.
+    pub requested_by: String,
+    pub from_ns: i64,
+    pub to_ns: i64,
+    /// `done` or `failed`.
+    pub status: String,
+    pub summary: String,
+}
+
+/// A diagnosis run with its result (the `diagnosis.json` layout; none when it failed).
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct StoredDiagnosis {
+    #[serde(flatten)]
+    pub row: DiagnosisRow,
+    #[schema(value_type = Option<Object>)]
+    pub result: Option<Value>,
+}
+
+/// An alert event as stored.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct AlertEventRow {
+    pub alert: i64,
+    pub seq: i64,
+    pub t_ns: i64,
+    /// `raised`, `updated`, `resolved` or `acknowledged`.
+    pub kind: String,
+    pub rule: String,
+    pub severity: String,
+    pub message: String,
+    pub value: Option<f64>,
+}
+
+fn diagnosis_row(r: &sqlx::sqlite::SqliteRow) -> Result<DiagnosisRow, StoreError> {
+    Ok(DiagnosisRow {
+        id: r.try_get(0)?,
+        requested_ns: r.try_get(1)?,
+        requested_by: r.try_get(2)?,
+        from_ns: r.try_get(3)?,
+        to_ns: r.try_get(4)?,
+        status: r.try_get(5)?,
+        summary: r.try_get(6)?,
+    })
 }
 
 fn cycle_row(r: &sqlx::sqlite::SqliteRow) -> Result<CycleRow, StoreError> {
@@ -105,7 +142,7 @@ impl<'a> NewCompensation<'a> {
 }
 
 /// A cycle as stored.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct CycleRow {
     pub cycle: i64,
     pub started_ns: i64,
@@ -705,7 +742,7 @@ impl Store {
         machine: &str,
         limit: i64,
         before: Option<(i64, i64, i64)>,
-    ) -> Result<Vec<Value>, StoreError> {
+    ) -> Result<Vec<AlertEventRow>, StoreError> {
         let (t, a, q) = before.unwrap_or((i64::MAX, i64::MAX, i64::MAX));
         let rows = sqlx::query(
             "SELECT alert_id, seq, t_ns, kind, rule, severity, message, value FROM alert_events
@@ -721,16 +758,16 @@ impl Store {
         .await?;
         rows.iter()
             .map(|r| {
-                Ok(serde_json::json!({
-                    "alert": r.try_get::<i64, _>(0)?,
-                    "seq": r.try_get::<i64, _>(1)?,
-                    "t_ns": r.try_get::<i64, _>(2)?,
-                    "kind": r.try_get::<String, _>(3)?,
-                    "rule": r.try_get::<String, _>(4)?,
-                    "severity": r.try_get::<String, _>(5)?,
-                    "message": r.try_get::<String, _>(6)?,
-                    "value": r.try_get::<Option<f64>, _>(7)?,
-                }))
+                Ok(AlertEventRow {
+                    alert: r.try_get(0)?,
+                    seq: r.try_get(1)?,
+                    t_ns: r.try_get(2)?,
+                    kind: r.try_get(3)?,
+                    rule: r.try_get(4)?,
+                    severity: r.try_get(5)?,
+                    message: r.try_get(6)?,
+                    value: r.try_get(7)?,
+                })
             })
             .collect()
     }
@@ -969,7 +1006,7 @@ impl Store {
         machine: &str,
         limit: i64,
         before: Option<i64>,
-    ) -> Result<Vec<Value>, StoreError> {
+    ) -> Result<Vec<DiagnosisRow>, StoreError> {
         let rows = sqlx::query(
             "SELECT id, requested_ns, requested_by, from_ns, to_ns, status, summary FROM diagnoses
              WHERE machine_id = $1 AND id < $3 ORDER BY id DESC LIMIT $2",
@@ -983,7 +1020,11 @@ impl Store {
     }
 
     /// One diagnosis run with its result.
-    pub async fn diagnosis(&self, machine: &str, id: i64) -> Result<Option<Value>, StoreError> {
+    pub async fn diagnosis(
+        &self,
+        machine: &str,
+        id: i64,
+    ) -> Result<Option<StoredDiagnosis>, StoreError> {
         let row = sqlx::query(
             "SELECT id, requested_ns, requested_by, from_ns, to_ns, status, summary, result FROM diagnoses
              WHERE machine_id = $1 AND id = $2",
@@ -994,12 +1035,12 @@ impl Store {
         .await?;
         let Some(r) = row else { return Ok(None) };
         let result: Option<String> = r.try_get(7)?;
-        let mut v = diagnosis_row(&r)?;
-        v["result"] = result
-            .map(|t| serde_json::from_str::<Value>(&t))
-            .transpose()?
-            .unwrap_or(Value::Null);
-        Ok(Some(v))
+        Ok(Some(StoredDiagnosis {
+            row: diagnosis_row(&r)?,
+            result: result
+                .map(|t| serde_json::from_str::<Value>(&t))
+                .transpose()?,
+        }))
     }
 
     /// (path, status) of every MCAP file of a machine, oldest first.

@@ -1,0 +1,257 @@
+//! The HTTP API (axum, JSON under `/api/v1`): one router per resource (machines, cycles,
+//! diagnoses, alerts, the NC door, metrics), bearer tokens with roles (`auth`), one error type
+//! (`error`). Reads may be anonymous by configuration. Shell code: it reads what the machine
+//! loops publish and the store, and never blocks on a running solve.
+
+mod alerts;
+mod auth;
+mod cycles;
+mod diagnoses;
+mod error;
+mod machines;
+mod metrics;
+mod nc;
+
+pub use auth::Caller;
+use auth::for_caller;
+pub use diagnoses::DiagnosisRequest;
+pub use error::{ApiError, ErrorBody, ErrorCode};
+pub use metrics::RequestLatency;
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use axum::Json;
+use axum::Router;
+use axum::http::header;
+use axum::middleware;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{MethodRouter, get};
+use serde::Deserialize;
+
+use crate::config::Role;
+use crate::daemon::{Inbox, MachineView};
+use crate::nc_push::{EventBatch, NcPushHandle};
+use crate::store::Store;
+use crate::webhook::WebhookStats;
+
+#[derive(Clone)]
+pub struct MachineHandle {
+    pub view: Arc<Mutex<MachineView>>,
+    pub inbox: Arc<Mutex<Inbox>>,
+    /// Set for machines on the `nc_push` link.
+    pub nc: Option<NcPushHandle>,
+    /// The machine's kinematics, for diagnoses of its stored data.
+    pub kinematics: Option<Arc<driftwatch_core::kinematics::Kinematics>>,
+}
+
+pub struct Auth {
+    /// (holder, token, role)
+    pub tokens: Vec<(String, String, Role)>,
+    pub anonymous_read: bool,
+}
+
+pub struct ApiState {
+    pub machines: BTreeMap<String, MachineHandle>,
+    pub store: Store,
+    pub auth: Auth,
+    pub latency: RequestLatency,
+    pub webhooks: Arc<WebhookStats>,
+    /// Diagnoses that may run at once (each takes a core for seconds).
+    pub diagnosis_slots: Arc<tokio::sync::Semaphore>,
+    /// Diagnoses kept per machine (`http.diagnoses_kept`).
+    pub diagnoses_kept: i64,
+}
+
+impl ApiState {
+    pub fn new(machines: BTreeMap<String, MachineHandle>, store: Store, auth: Auth) -> Self {
+        ApiState {
+            machines,
+            store,
+            auth,
+            latency: RequestLatency::default(),
+            webhooks: Arc::default(),
+            diagnosis_slots: Arc::new(tokio::sync::Semaphore::new(1)),
+            diagnoses_kept: 200,
+        }
+    }
+}
+
+type Shared = Arc<ApiState>;
+
+/// The OpenAPI document of the API, generated from the handlers.
+#[derive(utoipa::OpenApi)]
+#[openapi(
+    info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
+    paths(machines::healthz, machines::ready, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis),
+    components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
+    modifiers(&BearerAuth, &StandardErrors)
+)]
+pub struct ApiDoc;
+
+/// The error answers every operation may give besides its own, so that the document lists
+/// every status a path returns; and every error answer's body, the JSON error
+/// [`ErrorBody`] `{"code", "message"}`.
+struct StandardErrors;
+
+impl utoipa::Modify for StandardErrors {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::{Content, Ref, RefOr, ResponseBuilder};
+        for (path, item) in openapi.paths.paths.iter_mut() {
+            let machine = path.contains("{id}");
+            for (op, write) in [(&mut item.get, false), (&mut item.post, true)] {
+                let Some(op) = op.as_mut() else { continue };
+                let body = op.request_body.is_some();
+                let mut add = |code: &str, text: &str| {
+                    op.responses
+                        .responses
+                        .entry(code.to_string())
+                        .or_insert_with(|| {
+                            RefOr::T(ResponseBuilder::new().description(text).build())
+                        });
+                };
+                add(
+                    "400",
+                    "a path or query parameter that does not parse (bad_request, bad_query), or a bad body",
+                );
+                add(
+                    "401",
+                    "no token where one is needed (token_required: a write, or any read with anonymous_read = false), or a token not known (bad_token)",
+                );
+                add("500", "the database could not answer (storage)");
+                if machine {
+                    add("404", "no such machine (unknown_machine)");
+                }
+                if write {
+                    add("403", "the token may only read (role)");
+                }
+                if body {
+                    add("413", "the body is larger than 2 MB (body_too_large)");
+                    add("415", "the body is not application/json");
+                    add("422", "the body is JSON but not the request's shape");
+                }
+                for (status, response) in op.responses.responses.iter_mut() {
+                    let error = status.starts_with('4') || status.starts_with('5');
+                    if let (true, RefOr::T(r)) = (error, response)
+                        && r.content.is_empty()
+                    {
+                        r.content.insert(
+                            "application/json".into(),
+                            Content::new(Some(Ref::from_schema_name("ErrorBody"))).into(),
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
+/// A route's methods behind authentication.
+type Guard = dyn Fn(MethodRouter<Shared>) -> MethodRouter<Shared>;
+
+pub fn router(state: Shared) -> Router {
+    // Authentication on each route's methods (route_layer), so that a method a path does
+    // not have is 405 before any token is asked for.
+    let auth = middleware::from_fn_with_state(state.clone(), auth::authenticate);
+    let guard = move |m: MethodRouter<Shared>| m.route_layer(auth.clone());
+    let api = Router::new()
+        .merge(machines::routes(&guard))
+        .merge(cycles::routes(&guard))
+        .merge(alerts::routes(&guard))
+        .merge(diagnoses::routes(&guard))
+        .merge(nc::routes(&guard))
+        .with_state(state.clone());
+    use utoipa::OpenApi as _;
+    Router::new()
+        .merge(
+            utoipa_swagger_ui::SwaggerUi::new("/api/v1/docs")
+                .url("/api/v1/openapi.json", ApiDoc::openapi()),
+        )
+        .nest("/api/v1", api)
+        // They name the machines: readers only (anonymous ones when anonymous_read allows).
+        // /healthz says no more than that the process answers.
+        .merge(
+            Router::new()
+                .route("/readyz", guard(get(machines::ready)))
+                .route("/metrics", guard(get(metrics::metrics)))
+                .with_state(state.clone()),
+        )
+        .route("/healthz", get(machines::healthz))
+        .route_layer(middleware::from_fn_with_state(
+            state.clone(),
+            metrics::timed,
+        ))
+        .with_state(state)
+        .fallback(|| async { ApiError::new(ErrorCode::NotFound, "no such endpoint") })
+        .layer(middleware::from_fn(error::json_errors))
+}
+
+pub(super) fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle, ApiError> {
+    st.machines
+        .get(id)
+        .ok_or_else(|| ApiError::new(ErrorCode::UnknownMachine, format!("no machine '{id}'")))
+}
+
+pub(super) fn view(h: &MachineHandle) -> MachineView {
+    h.view.lock().map(|v| v.clone()).unwrap_or_default()
+}
+
+#[derive(Deserialize)]
+pub(super) struct Page {
+    limit: Option<i64>,
+    before: Option<String>,
+}
+
+/// Most rows one page of a list may hold.
+const MAX_PAGE: i64 = 1000;
+
+impl Page {
+    fn limit(&self) -> i64 {
+        self.limit.unwrap_or(100).clamp(1, MAX_PAGE)
+    }
+
+    /// `before` as a number (cycles, diagnoses).
+    fn before_number(&self) -> Result<Option<i64>, ApiError> {
+        self.before
+            .as_deref()
+            .map(|b| {
+                b.parse().map_err(|_| {
+                    ApiError::new(ErrorCode::BadQuery, format!("before={b} is not a number"))
+                })
+            })
+            .transpose()
+    }
+}
+
+/// A page of a newest-first list, with an RFC 8288 `Link: <...>; rel="next"` header when it
+/// is full (there may be more before its last row).
+pub(super) fn paged<T: serde::Serialize>(
+    rows: Vec<T>,
+    limit: i64,
+    next: impl Fn(&T) -> Option<String>,
+    path: &str,
+) -> Response {
+    let more = rows.len() as i64 == limit;
+    let link = more
+        .then(|| rows.last().and_then(&next))
+        .flatten()
+        .map(|cursor| format!("<{path}?limit={limit}&before={cursor}>; rel=\"next\""));
+    let mut r = Json(rows).into_response();
+    if let Some(l) = link.and_then(|l| header::HeaderValue::from_str(&l).ok()) {
+        r.headers_mut().insert(header::LINK, l);
+    }
+    r
+}

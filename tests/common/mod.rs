@@ -1,0 +1,151 @@
+//! The service for integration tests, started the way `driftwatch serve` starts it: through
+//! `launch`, on a listener bound to port 0 that the test keeps, on a manual clock that the test
+//! moves (hours of a plant day in seconds; nothing sleeps on the wall clock to pass).
+
+// Each test binary uses a part of this module.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::http::{HeaderMap, Request, StatusCode};
+use http_body_util::BodyExt;
+use serde_json::Value;
+use tokio_util::sync::CancellationToken;
+
+use driftwatch_service::config::{Role, ServiceConfig, Token};
+use driftwatch_service::launch::{ClockKind, LaunchOptions, Service, launch_with};
+use driftwatch_service::store::Store;
+
+pub const MIN: i64 = driftwatch_core::units::NS_PER_MIN;
+
+/// An empty scratch directory under the test target's temporary directory.
+pub fn scratch(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The shipped default configuration with its data in `dir`, and literal tokens: `read-token`
+/// (dashboard, read), `write-token` (operator, write).
+pub fn config(dir: &std::path::Path) -> ServiceConfig {
+    let mut cfg = ServiceConfig::load(None).unwrap();
+    cfg.data_dir = dir.to_path_buf();
+    cfg.http.tokens = vec![
+        Token {
+            name: "dashboard".into(),
+            token: "read-token".into(),
+            role: Role::Read,
+        },
+        Token {
+            name: "operator".into(),
+            token: "write-token".into(),
+            role: Role::Write,
+        },
+    ];
+    cfg
+}
+
+pub struct TestService {
+    pub svc: Service,
+    client: reqwest::Client,
+}
+
+/// Launch `cfg` on a manual clock (at `start_ns`, or where the service would start).
+pub async fn launch_test(cfg: ServiceConfig, start_ns: Option<i64>) -> TestService {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let opts = LaunchOptions {
+        clock: ClockKind::Manual,
+        start_ns,
+        ..Default::default()
+    };
+    let svc = launch_with(cfg, listener, CancellationToken::new(), opts)
+        .await
+        .unwrap();
+    TestService {
+        svc,
+        client: reqwest::Client::new(),
+    }
+}
+
+impl TestService {
+    pub fn t0(&self) -> i64 {
+        self.svc.t0_ns
+    }
+
+    pub fn store(&self) -> &Store {
+        self.svc.store()
+    }
+
+    /// Move the clock to `t_ns` and wait (bounded) until every machine has stepped to it.
+    pub async fn run_to(&self, t_ns: i64) {
+        let ids: Vec<&str> = self.svc.views.keys().map(String::as_str).collect();
+        self.run_to_for(t_ns, &ids).await;
+    }
+
+    /// Move the clock to `t_ns` and wait (bounded) until the machines `moving` have stepped
+    /// to it.
+    pub async fn run_to_for(&self, t_ns: i64, moving: &[&str]) {
+        self.svc.manual_clock.as_ref().unwrap().set(t_ns);
+        let reached = async {
+            loop {
+                let done = moving.iter().all(|id| {
+                    self.svc.views[*id]
+                        .lock()
+                        .unwrap()
+                        .clock_ns
+                        .is_some_and(|t| t >= t_ns)
+                });
+                if done {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(120), reached)
+            .await
+            .unwrap_or_else(|_| panic!("the machines {moving:?} did not reach the clock's time"));
+    }
+
+    /// Send `req` to the running service over HTTP: status, headers and the body as JSON
+    /// (`Null` when it is not JSON).
+    pub async fn call(&self, req: Request<Body>) -> (StatusCode, HeaderMap, Value) {
+        let (parts, body) = req.into_parts();
+        let bytes = body.collect().await.unwrap().to_bytes();
+        let url = format!("http://{}{}", self.svc.addr, parts.uri);
+        let r = self
+            .client
+            .request(parts.method, url)
+            .headers(parts.headers)
+            .body(bytes)
+            .send()
+            .await
+            .unwrap();
+        let status = r.status();
+        let headers = r.headers().clone();
+        let bytes = r.bytes().await.unwrap();
+        let body = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        (status, headers, body)
+    }
+
+    /// The body as text (for `/metrics`).
+    pub async fn text(&self, path: &str) -> (StatusCode, String) {
+        let r = self
+            .client
+            .get(format!("http://{}{path}", self.svc.addr))
+            .send()
+            .await
+            .unwrap();
+        (r.status(), r.text().await.unwrap())
+    }
+
+    /// Stop the service and wait (bounded) for it.
+    pub async fn stop(self) {
+        self.svc.stop();
+        tokio::time::timeout(Duration::from_secs(60), self.svc.wait())
+            .await
+            .expect("the service stops");
+    }
+}
