@@ -18,7 +18,7 @@ use driftwatch_service::config::ServiceConfig;
 use driftwatch_service::daemon::{MachineRuntime, Settings};
 use driftwatch_service::link::Simulated;
 use driftwatch_service::recorder::Recorder;
-use driftwatch_service::store::Store;
+use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
 fn size_of(p: &Path) -> u64 {
@@ -79,7 +79,10 @@ pub async fn year(days: f64, dir: PathBuf, prediction: bool) -> Result<ExitCode>
     let cycles = store.cycles("sim-1", i64::MAX, None).await?;
     let sets = store.compensation_versions("sim-1").await?.len();
     store.close().await;
-    let ok = cycles.iter().filter(|c| c.status == "ok").count();
+    let ok = cycles
+        .iter()
+        .filter(|c| c.status == CycleStatus::Ok)
+        .count();
     let db = size_of(&dir.join("driftwatch.db")) + size_of(&dir.join("driftwatch.db-wal"));
     let mcap = size_of(&dir.join("mcap"));
     println!(

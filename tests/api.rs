@@ -604,7 +604,7 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
             requested_by: "test",
             from_ns: 0,
             to_ns: 1,
-            status: "failed",
+            status: driftwatch_service::store::DiagnosisStatus::Failed,
             summary: "test",
             result: None,
         };

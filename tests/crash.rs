@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
-use driftwatch_service::store::Store;
+use driftwatch_service::store::{CycleStatus, FileStatus, Store};
 
 const MACHINE: &str = "sim-1";
 /// Steps of the default `patent` plan: one detection each.
@@ -304,12 +304,12 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
             open_detections,
             closed: cycles
                 .iter()
-                .filter(|c| c.status == "ok" || c.status == "rejected")
+                .filter(|c| matches!(c.status, CycleStatus::Ok | CycleStatus::Rejected))
                 .map(|c| c.cycle)
                 .collect(),
             ok: cycles
                 .iter()
-                .filter(|c| c.status == "ok")
+                .filter(|c| c.status == CycleStatus::Ok)
                 .map(|c| c.cycle)
                 .collect(),
             version,
@@ -421,14 +421,18 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
         let status = |n: i64| {
             rows.iter()
                 .find(|r| r.cycle == n)
-                .map(|r| r.status.clone())
-                .unwrap_or_else(|| "missing".into())
+                .map(|r| r.status)
+                .ok_or("missing")
         };
         for n in &ok_before {
-            assert_eq!(status(*n), "ok", "cycle {n} reported ok before the kill");
+            assert_eq!(
+                status(*n),
+                Ok(CycleStatus::Ok),
+                "cycle {n} reported ok before the kill"
+            );
         }
         let abandoned = rows.iter().find(|r| r.cycle == open_cycle).unwrap();
-        assert_eq!(abandoned.status, "abandoned");
+        assert_eq!(abandoned.status, CycleStatus::Abandoned);
         assert!(abandoned.reason.is_some());
         let latest = store.latest_compensation(MACHINE).await.unwrap().unwrap();
         assert_eq!(latest.version, served, "{latest:?}");
@@ -437,11 +441,14 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
         assert!(
             files.iter().any(
                 |(p, s)| Path::new(p).file_name() == Some(recovered_name.as_ref())
-                    && s == "recovered"
+                    && *s == FileStatus::Recovered
             ),
             "{files:?}"
         );
-        assert!(files.iter().all(|(_, s)| s != "open"), "{files:?}");
+        assert!(
+            files.iter().all(|(_, s)| *s != FileStatus::Open),
+            "{files:?}"
+        );
         store.close().await;
     });
 }

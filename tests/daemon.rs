@@ -12,7 +12,7 @@ use driftwatch_core::thermal_model::Prediction;
 use driftwatch_service::daemon::{MachineRuntime, Settings};
 use driftwatch_service::link::{LinkError, LinkEvent, MachineLink, Simulated};
 use driftwatch_service::recorder::Recorder;
-use driftwatch_service::store::Store;
+use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
 const MIN: i64 = 60_000_000_000;
@@ -154,7 +154,10 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     // Every cycle is in SQLite and in MCAP.
     assert_eq!(
         results.len(),
-        cycles.iter().filter(|c| c.status != "abandoned").count()
+        cycles
+            .iter()
+            .filter(|c| c.status != CycleStatus::Abandoned)
+            .count()
     );
     assert_eq!(dets, 24 * cycles.len());
     // The tampered cycle is rejected with its reason, and the compensation did not move.
@@ -166,7 +169,10 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         bad.reason
     );
     // Versions only go up, one per validated cycle.
-    let ok = cycles.iter().filter(|c| c.status == "ok").count() as u64;
+    let ok = cycles
+        .iter()
+        .filter(|c| c.status == CycleStatus::Ok)
+        .count() as u64;
     assert!(versions.windows(2).all(|w| w[1] > w[0]));
     // One measured set per validated cycle; between cycles, once the model is fitted,
     // predicted sets; every version once, in order.

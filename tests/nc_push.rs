@@ -14,6 +14,7 @@ use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::recording::DetectionStatus;
 use driftwatch_service::config::{Role, ServiceConfig, Token};
 use driftwatch_service::nc_push::CycleOrder;
+use driftwatch_service::store::CycleStatus;
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::VirtualMachine;
 
@@ -191,13 +192,13 @@ async fn a_test_nc_drives_the_service_through_nc_push() {
     assert!(orders >= 4, "{orders}");
     assert_eq!(cycles.len(), orders);
     let two = cycles.iter().find(|c| c.cycle == 2).unwrap();
-    assert_eq!(two.status, "rejected");
+    assert_eq!(two.status, CycleStatus::Rejected);
     assert!(two.reason.as_ref().unwrap().contains("no_trip"));
     assert!(
         cycles
             .iter()
             .filter(|c| c.cycle != 2)
-            .all(|c| c.status == "ok")
+            .all(|c| c.status == CycleStatus::Ok)
     );
     // The rejected cycle left the served set as it was; every other one moved it up by one.
     let v = |c: i64| versions.iter().find(|(n, _)| *n == c).map(|(_, v)| *v);

@@ -65,10 +65,17 @@ pub struct HttpConfig {
     /// Diagnoses kept per machine: the oldest beyond are deleted as new ones are stored.
     #[serde(default = "default_diagnoses_kept")]
     pub diagnoses_kept: i64,
+    /// A request not answered within this is answered 503 `timeout`, s.
+    #[serde(default = "default_request_timeout_s")]
+    pub request_timeout_s: f64,
 }
 
 fn default_diagnoses_kept() -> i64 {
     200
+}
+
+fn default_request_timeout_s() -> f64 {
+    120.0
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -195,6 +202,12 @@ impl ServiceConfig {
             return bad(format!(
                 "http.diagnoses_kept must be at least 1, not {}",
                 self.http.diagnoses_kept
+            ));
+        }
+        if !(1.0..=3600.0).contains(&self.http.request_timeout_s) {
+            return bad(format!(
+                "http.request_timeout_s must be from 1 to 3600 s, not {}",
+                self.http.request_timeout_s
             ));
         }
         let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();

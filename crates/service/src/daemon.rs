@@ -13,7 +13,9 @@ use tracing::{info, warn};
 
 use crate::link::{LinkEvent, MachineLink};
 use crate::recorder::{Recorder, RecorderError};
-use crate::store::{DetectionRow, Sample, Store, StoreError};
+use crate::store::{
+    AlertEventKind, DetectionRow, FileStatus, NewAlertEvent, Sample, Store, StoreError,
+};
 use driftwatch_core::cycle::{CycleChecks, process_cycle};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
@@ -275,7 +277,7 @@ impl MachineRuntime {
                     &f.partial.display().to_string(),
                     &f.path.display().to_string(),
                     now_ns,
-                    "recovered",
+                    FileStatus::Recovered,
                     f.messages as i64,
                 )
                 .await?;
@@ -418,13 +420,15 @@ impl MachineRuntime {
                     self.store
                         .add_alert_event(
                             &self.id,
-                            id as i64,
-                            now_ns,
-                            "acknowledged",
-                            "",
-                            "",
-                            &format!("acknowledged by {by}"),
-                            None,
+                            &NewAlertEvent {
+                                alert: id as i64,
+                                t_ns: now_ns,
+                                kind: AlertEventKind::Acknowledged,
+                                rule: "",
+                                severity: None,
+                                message: &format!("acknowledged by {by}"),
+                                value: None,
+                            },
                         )
                         .await?;
                 }
@@ -880,13 +884,15 @@ impl MachineRuntime {
             self.store
                 .add_alert_event(
                     &self.id,
-                    ev.id as i64,
-                    ev.t_ns,
-                    &format!("{:?}", ev.kind).to_lowercase(),
-                    &ev.rule,
-                    &format!("{:?}", ev.severity).to_lowercase(),
-                    &ev.message,
-                    Some(ev.value),
+                    &NewAlertEvent {
+                        alert: ev.id as i64,
+                        t_ns: ev.t_ns,
+                        kind: ev.kind.into(),
+                        rule: &ev.rule,
+                        severity: Some(ev.severity.into()),
+                        message: &ev.message,
+                        value: Some(ev.value),
+                    },
                 )
                 .await?;
             self.notifier.notify(&self.id, &ev);
@@ -928,7 +934,7 @@ impl MachineRuntime {
                 &f.partial.display().to_string(),
                 &f.path.display().to_string(),
                 now_ns,
-                "closed",
+                FileStatus::Closed,
                 f.messages as i64,
             )
             .await?;

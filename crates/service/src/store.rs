@@ -16,6 +16,138 @@ use sqlx::sqlite::{
 use thiserror::Error;
 
 use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
+use driftwatch_machine::alerts::{EventKind, Severity};
+
+/// A cycle's state in the `cycles` table (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum CycleStatus {
+    /// Started, no result yet (or left by a crash until the restart abandons it).
+    Open,
+    /// Solved and validated.
+    Ok,
+    /// Closed with a result that failed validation.
+    Rejected,
+    /// Closed without a result (a crash, a stop, a timeout).
+    Abandoned,
+}
+
+impl std::fmt::Display for CycleStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            CycleStatus::Open => "open",
+            CycleStatus::Ok => "ok",
+            CycleStatus::Rejected => "rejected",
+            CycleStatus::Abandoned => "abandoned",
+        })
+    }
+}
+
+impl From<ResultStatus> for CycleStatus {
+    fn from(s: ResultStatus) -> Self {
+        match s {
+            ResultStatus::Ok => CycleStatus::Ok,
+            ResultStatus::Rejected => CycleStatus::Rejected,
+        }
+    }
+}
+
+/// How a diagnosis run ended (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum DiagnosisStatus {
+    Done,
+    Failed,
+}
+
+/// An MCAP file's state in the `mcap_files` table (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum FileStatus {
+    /// Being written (`.partial`).
+    Open,
+    /// Finished and renamed.
+    Closed,
+    /// Rescued up to its last flush after a crash.
+    Recovered,
+}
+
+/// What happened to an alert (stored as its lowercase name): the engine's events and the
+/// operator's acknowledgement.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum AlertEventKind {
+    Raised,
+    Updated,
+    Resolved,
+    Acknowledged,
+}
+
+impl From<EventKind> for AlertEventKind {
+    fn from(k: EventKind) -> Self {
+        match k {
+            EventKind::Raised => AlertEventKind::Raised,
+            EventKind::Updated => AlertEventKind::Updated,
+            EventKind::Resolved => AlertEventKind::Resolved,
+        }
+    }
+}
+
+/// An alert's severity as stored (the engine's [`Severity`], lowercase; an acknowledgement
+/// has none and stores the empty string, as rows written before this type did).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum AlertSeverity {
+    Warning,
+    Critical,
+}
+
+impl AlertSeverity {
+    fn column(s: Option<AlertSeverity>) -> &'static str {
+        match s {
+            None => "",
+            Some(AlertSeverity::Warning) => "warning",
+            Some(AlertSeverity::Critical) => "critical",
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Option<AlertSeverity>, StoreError> {
+        match s {
+            "" => Ok(None),
+            "warning" => Ok(Some(AlertSeverity::Warning)),
+            "critical" => Ok(Some(AlertSeverity::Critical)),
+            other => Err(StoreError::Corrupt(format!(
+                "alert severity '{other}' is none of warning, critical"
+            ))),
+        }
+    }
+}
+
+/// An alert event to store.
+#[derive(Debug, Clone)]
+pub struct NewAlertEvent<'a> {
+    pub alert: i64,
+    pub t_ns: i64,
+    pub kind: AlertEventKind,
+    pub rule: &'a str,
+    /// None for an acknowledgement.
+    pub severity: Option<AlertSeverity>,
+    pub message: &'a str,
+    pub value: Option<f64>,
+}
+
+impl From<Severity> for AlertSeverity {
+    fn from(s: Severity) -> Self {
+        match s {
+            Severity::Warning => AlertSeverity::Warning,
+            Severity::Critical => AlertSeverity::Critical,
+        }
+    }
+}
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -27,6 +159,8 @@ pub enum StoreError {
     Sql(#[from] sqlx::Error),
     #[error("stored JSON: {0}")]
     Json(#[from] serde_json::Error),
+    #[error("stored value: {0}")]
+    Corrupt(String),
 }
 
 async fn insert_set(
@@ -60,8 +194,7 @@ pub struct DiagnosisRow {
     pub requested_by: String,
     pub from_ns: i64,
     pub to_ns: i64,
-    /// `done` or `failed`.
-    pub status: String,
+    pub status: DiagnosisStatus,
     pub summary: String,
 }
 
@@ -80,10 +213,10 @@ pub struct AlertEventRow {
     pub alert: i64,
     pub seq: i64,
     pub t_ns: i64,
-    /// `raised`, `updated`, `resolved` or `acknowledged`.
-    pub kind: String,
+    pub kind: AlertEventKind,
     pub rule: String,
-    pub severity: String,
+    /// None for an acknowledgement.
+    pub severity: Option<AlertSeverity>,
     pub message: String,
     pub value: Option<f64>,
 }
@@ -148,7 +281,7 @@ pub struct CycleRow {
     pub started_ns: i64,
     pub trigger: String,
     pub attempt: i64,
-    pub status: String,
+    pub status: CycleStatus,
     pub finished_ns: Option<i64>,
     pub reason: Option<String>,
 }
@@ -170,7 +303,7 @@ pub struct NewDiagnosis<'a> {
     pub requested_by: &'a str,
     pub from_ns: i64,
     pub to_ns: i64,
-    pub status: &'a str,
+    pub status: DiagnosisStatus,
     pub summary: &'a str,
     pub result: Option<&'a str>,
 }
@@ -287,13 +420,14 @@ impl Store {
     ) -> Result<(), StoreError> {
         sqlx::query(
             "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status)
-             VALUES ($1, $2, $3, $4, $5, 'open')",
+             VALUES ($1, $2, $3, $4, $5, $6)",
         )
         .bind(machine)
         .bind(cycle)
         .bind(started_ns)
         .bind(trigger)
         .bind(attempt)
+        .bind(CycleStatus::Open)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -349,10 +483,7 @@ impl Store {
         finished_ns: i64,
         compensation: Option<&NewCompensation<'_>>,
     ) -> Result<(), StoreError> {
-        let status = match result.status {
-            ResultStatus::Ok => "ok",
-            ResultStatus::Rejected => "rejected",
-        };
+        let status = CycleStatus::from(result.status);
         let payload = serde_json::to_string(result)?;
         let mut tx = self.pool.begin().await?;
         sqlx::query(
@@ -421,10 +552,11 @@ impl Store {
     ) -> Result<(Option<i64>, Option<i64>), StoreError> {
         let row = sqlx::query(
             "SELECT MAX(started_ns),
-                    MAX(CASE WHEN status = 'ok' THEN finished_ns END)
+                    MAX(CASE WHEN status = $2 THEN finished_ns END)
              FROM cycles WHERE machine_id = $1",
         )
         .bind(machine)
+        .bind(CycleStatus::Ok)
         .fetch_one(&self.pool)
         .await?;
         Ok((row.try_get(0)?, row.try_get(1)?))
@@ -438,13 +570,15 @@ impl Store {
         reason: &str,
     ) -> Result<(), StoreError> {
         sqlx::query(
-            "UPDATE cycles SET status = 'abandoned', finished_ns = $3, reason = $4
-             WHERE machine_id = $1 AND cycle = $2 AND status = 'open'",
+            "UPDATE cycles SET status = $5, finished_ns = $3, reason = $4
+             WHERE machine_id = $1 AND cycle = $2 AND status = $6",
         )
         .bind(machine)
         .bind(cycle)
         .bind(now_ns)
         .bind(reason)
+        .bind(CycleStatus::Abandoned)
+        .bind(CycleStatus::Open)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -453,9 +587,10 @@ impl Store {
     /// Cycles still open (left by a crash), oldest first.
     pub async fn open_cycles(&self, machine: &str) -> Result<Vec<i64>, StoreError> {
         let rows = sqlx::query(
-            "SELECT cycle FROM cycles WHERE machine_id = $1 AND status = 'open' ORDER BY cycle",
+            "SELECT cycle FROM cycles WHERE machine_id = $1 AND status = $2 ORDER BY cycle",
         )
         .bind(machine)
+        .bind(CycleStatus::Open)
         .fetch_all(&self.pool)
         .await?;
         rows.iter().map(|r| Ok(r.try_get::<i64, _>(0)?)).collect()
@@ -546,12 +681,13 @@ impl Store {
             let rows = sqlx::query(
                 "SELECT v.t_ns, v.cycle, v.name, v.value, v.sigma FROM result_values v
                  JOIN results r ON r.machine_id = v.machine_id AND r.cycle = v.cycle
-                 WHERE v.machine_id = $1 AND v.t_ns >= $2 AND v.t_ns <= $3 AND r.status = 'ok'
+                 WHERE v.machine_id = $1 AND v.t_ns >= $2 AND v.t_ns <= $3 AND r.status = $4
                  ORDER BY v.t_ns, v.name",
             )
             .bind(machine)
             .bind(from_ns)
             .bind(to_ns)
+            .bind(CycleStatus::Ok)
             .fetch_all(&self.pool)
             .await?;
             for r in &rows {
@@ -704,17 +840,10 @@ impl Store {
         }))
     }
 
-    #[allow(clippy::too_many_arguments)]
     pub async fn add_alert_event(
         &self,
         machine: &str,
-        alert_id: i64,
-        t_ns: i64,
-        kind: &str,
-        rule: &str,
-        severity: &str,
-        message: &str,
-        value: Option<f64>,
+        ev: &NewAlertEvent<'_>,
     ) -> Result<(), StoreError> {
         sqlx::query(
             "INSERT INTO alert_events (machine_id, alert_id, seq, t_ns, kind, rule, severity, message, value)
@@ -722,13 +851,13 @@ impl Store {
                      $3, $4, $5, $6, $7, $8)",
         )
         .bind(machine)
-        .bind(alert_id)
-        .bind(t_ns)
-        .bind(kind)
-        .bind(rule)
-        .bind(severity)
-        .bind(message)
-        .bind(value)
+        .bind(ev.alert)
+        .bind(ev.t_ns)
+        .bind(ev.kind)
+        .bind(ev.rule)
+        .bind(AlertSeverity::column(ev.severity))
+        .bind(ev.message)
+        .bind(ev.value)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -764,7 +893,7 @@ impl Store {
                     t_ns: r.try_get(2)?,
                     kind: r.try_get(3)?,
                     rule: r.try_get(4)?,
-                    severity: r.try_get(5)?,
+                    severity: AlertSeverity::of_column(r.try_get::<&str, _>(5)?)?,
                     message: r.try_get(6)?,
                     value: r.try_get(7)?,
                 })
@@ -873,12 +1002,13 @@ impl Store {
         opened_ns: i64,
     ) -> Result<(), StoreError> {
         sqlx::query(
-            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, 'open')
-             ON CONFLICT (path) DO UPDATE SET status = 'open', closed_ns = NULL",
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
+             ON CONFLICT (path) DO UPDATE SET status = $4, closed_ns = NULL",
         )
         .bind(machine)
         .bind(path)
         .bind(opened_ns)
+        .bind(FileStatus::Open)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -886,24 +1016,24 @@ impl Store {
 
     /// Mark a file written as `partial` closed under `path` (`closed`), or rescued from a
     /// crash (`recovered`).
-    #[allow(clippy::too_many_arguments)]
     pub async fn mcap_file_closed(
         &self,
         machine: &str,
         partial: &str,
         path: &str,
         closed_ns: i64,
-        status: &str,
+        status: FileStatus,
         messages: i64,
     ) -> Result<(), StoreError> {
         let mut tx = self.pool.begin().await?;
         sqlx::query(
-            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, 'open')
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
              ON CONFLICT (path) DO NOTHING",
         )
         .bind(machine)
         .bind(partial)
         .bind(closed_ns)
+        .bind(FileStatus::Open)
         .execute(&mut *tx)
         .await?;
         sqlx::query(
@@ -1044,7 +1174,7 @@ impl Store {
     }
 
     /// (path, status) of every MCAP file of a machine, oldest first.
-    pub async fn mcap_files(&self, machine: &str) -> Result<Vec<(String, String)>, StoreError> {
+    pub async fn mcap_files(&self, machine: &str) -> Result<Vec<(String, FileStatus)>, StoreError> {
         let rows = sqlx::query(
             "SELECT path, status FROM mcap_files WHERE machine_id = $1 ORDER BY opened_ns",
         )
@@ -1141,7 +1271,7 @@ mod tests {
         assert_eq!(series.len(), 2);
         assert!(series.iter().all(|s| s.cycle == 1));
         let cycles = store.cycles("m1", 10, None).await.unwrap();
-        assert_eq!(cycles[0].status, "rejected");
+        assert_eq!(cycles[0].status, CycleStatus::Rejected);
         assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
         assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);
         assert_eq!(store.integrity_check().await.unwrap(), "ok");
@@ -1257,26 +1387,30 @@ mod tests {
             store
                 .add_alert_event(
                     "m1",
-                    1,
-                    5,
-                    "raised",
-                    "threshold:EZ0B",
-                    "warning",
-                    "EZ0B high",
-                    Some(31.0),
+                    &NewAlertEvent {
+                        alert: 1,
+                        t_ns: 5,
+                        kind: AlertEventKind::Raised,
+                        rule: "threshold:EZ0B",
+                        severity: Some(AlertSeverity::Warning),
+                        message: "EZ0B high",
+                        value: Some(31.0),
+                    },
                 )
                 .await
                 .unwrap();
             store
                 .add_alert_event(
                     "m1",
-                    1,
-                    6,
-                    "resolved",
-                    "threshold:EZ0B",
-                    "warning",
-                    "EZ0B back",
-                    Some(20.0),
+                    &NewAlertEvent {
+                        alert: 1,
+                        t_ns: 6,
+                        kind: AlertEventKind::Resolved,
+                        rule: "threshold:EZ0B",
+                        severity: Some(AlertSeverity::Warning),
+                        message: "EZ0B back",
+                        value: Some(20.0),
+                    },
                 )
                 .await
                 .unwrap();
@@ -1300,7 +1434,7 @@ mod tests {
         assert!(store.samples("m1", 61, 100).await.unwrap().is_empty());
         assert_eq!(
             store.mcap_files("m1").await.unwrap(),
-            vec![("m1/2026-03-02.mcap.partial".to_string(), "open".to_string())]
+            vec![("m1/2026-03-02.mcap.partial".to_string(), FileStatus::Open)]
         );
         store
             .mcap_file_closed(
@@ -1308,14 +1442,14 @@ mod tests {
                 "m1/2026-03-02.mcap.partial",
                 "m1/2026-03-02.mcap",
                 9,
-                "recovered",
+                FileStatus::Recovered,
                 42,
             )
             .await
             .unwrap();
         assert_eq!(
             store.mcap_files("m1").await.unwrap(),
-            vec![("m1/2026-03-02.mcap".to_string(), "recovered".to_string())]
+            vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
         );
         assert_eq!(store.integrity_check().await.unwrap(), "ok");
     }

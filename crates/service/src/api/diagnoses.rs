@@ -11,7 +11,7 @@ use serde::Serialize;
 use serde_json::json;
 
 use super::{ApiError, Caller, ErrorCode, Guard, Page, Shared, for_caller, handle, paged};
-use crate::store::{DiagnosisRow, StoredDiagnosis};
+use crate::store::{DiagnosisRow, DiagnosisStatus, StoredDiagnosis};
 
 /// The stored window a diagnosis runs on (by default the three days up to the last
 /// detection).
@@ -31,7 +31,7 @@ pub struct DiagnosisRequest {
 pub struct DiagnosisCreated {
     pub id: i64,
     /// `done` (a failed run is answered 422 and stored with its reason).
-    pub status: String,
+    pub status: DiagnosisStatus,
     pub summary: String,
     /// The result in the `diagnosis.json` layout (docs/diagnosis.md).
     #[schema(value_type = Option<Object>)]
@@ -149,7 +149,7 @@ pub(super) async fn request_diagnosis(
             .map_err(|e| ApiError::new(ErrorCode::DiagnosisPanicked, e.to_string()))?;
     let (status, summary, result) = match &run {
         Ok((d, opts)) => (
-            "done",
+            DiagnosisStatus::Done,
             format!(
                 "{} readings in {} cycles over {:.1} h; baseline chi2/dof {:.3}; held-out RMS {:.3} -> {:.3} um; accepted: {}",
                 d.readings,
@@ -177,7 +177,11 @@ pub(super) async fn request_diagnosis(
                 "diagnosis": d,
             })),
         ),
-        Err(e) => ("failed", format!("the diagnosis failed: {e}"), None),
+        Err(e) => (
+            DiagnosisStatus::Failed,
+            format!("the diagnosis failed: {e}"),
+            None,
+        ),
     };
     let text = result.as_ref().map(|r| r.to_string());
     let n = st
@@ -197,7 +201,7 @@ pub(super) async fn request_diagnosis(
         )
         .await?;
     tracing::info!(machine = %id, by = %caller.name, diagnosis = n, "{summary}");
-    if status == "failed" {
+    if status == DiagnosisStatus::Failed {
         return Err(ApiError::new(
             ErrorCode::DiagnosisFailed,
             format!("diagnosis {n}: {summary}"),
@@ -211,7 +215,7 @@ pub(super) async fn request_diagnosis(
         )],
         Json(DiagnosisCreated {
             id: n,
-            status: status.to_string(),
+            status,
             summary,
             result,
         }),

@@ -50,6 +50,8 @@ pub enum ErrorCode {
     ClockSkew,
     /// Too many NC events wait for the loop.
     Busy,
+    /// The request was not answered within `http.request_timeout_s`.
+    Timeout,
     /// The database could not answer.
     Storage,
     /// Any other failure the framework answered.
@@ -73,7 +75,7 @@ impl ErrorCode {
             Role => StatusCode::FORBIDDEN,
             NoKinematics | NotNcPush => StatusCode::CONFLICT,
             DiagnosisBusy => StatusCode::TOO_MANY_REQUESTS,
-            Busy => StatusCode::SERVICE_UNAVAILABLE,
+            Busy | Timeout => StatusCode::SERVICE_UNAVAILABLE,
             DiagnosisPanicked | Storage | Error => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -161,6 +163,8 @@ pub(super) async fn json_errors(req: Request, next: Next) -> Response {
         StatusCode::PAYLOAD_TOO_LARGE => ErrorCode::BodyTooLarge,
         StatusCode::UNSUPPORTED_MEDIA_TYPE => ErrorCode::UnsupportedMediaType,
         StatusCode::UNPROCESSABLE_ENTITY => ErrorCode::BadBody,
+        // The only 503 without a JSON body: the timeout layer's.
+        StatusCode::SERVICE_UNAVAILABLE => ErrorCode::Timeout,
         _ => ErrorCode::Error,
     };
     let message = if text.is_empty() {

@@ -16,7 +16,7 @@ pub use auth::Caller;
 use auth::for_caller;
 pub use diagnoses::DiagnosisRequest;
 pub use error::{ApiError, ErrorBody, ErrorCode};
-pub use metrics::RequestLatency;
+pub use metrics::Metrics;
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -55,12 +55,14 @@ pub struct ApiState {
     pub machines: BTreeMap<String, MachineHandle>,
     pub store: Store,
     pub auth: Auth,
-    pub latency: RequestLatency,
+    pub metrics: Metrics,
     pub webhooks: Arc<WebhookStats>,
     /// Diagnoses that may run at once (each takes a core for seconds).
     pub diagnosis_slots: Arc<tokio::sync::Semaphore>,
     /// Diagnoses kept per machine (`http.diagnoses_kept`).
     pub diagnoses_kept: i64,
+    /// A request not answered by then is answered 503 (`http.request_timeout_s`).
+    pub request_timeout: std::time::Duration,
 }
 
 impl ApiState {
@@ -69,10 +71,11 @@ impl ApiState {
             machines,
             store,
             auth,
-            latency: RequestLatency::default(),
+            metrics: Metrics::default(),
             webhooks: Arc::default(),
             diagnosis_slots: Arc::new(tokio::sync::Semaphore::new(1)),
             diagnoses_kept: 200,
+            request_timeout: std::time::Duration::from_secs(120),
         }
     }
 }
@@ -119,6 +122,10 @@ impl utoipa::Modify for StandardErrors {
                     "no token where one is needed (token_required: a write, or any read with anonymous_read = false), or a token not known (bad_token)",
                 );
                 add("500", "the database could not answer (storage)");
+                add(
+                    "503",
+                    "not answered within http.request_timeout_s (timeout)",
+                );
                 if machine {
                     add("404", "no such machine (unknown_machine)");
                 }
@@ -162,9 +169,13 @@ impl utoipa::Modify for BearerAuth {
 /// A route's methods behind authentication.
 type Guard = dyn Fn(MethodRouter<Shared>) -> MethodRouter<Shared>;
 
+/// Largest request body taken, bytes (a batch of NC events is the largest body sent).
+pub const MAX_BODY_BYTES: usize = 2 * 1024 * 1024;
+
 pub fn router(state: Shared) -> Router {
     // Authentication on each route's methods (route_layer), so that a method a path does
     // not have is 405 before any token is asked for.
+    let timeout = state.request_timeout;
     let auth = middleware::from_fn_with_state(state.clone(), auth::authenticate);
     let guard = move |m: MethodRouter<Shared>| m.route_layer(auth.clone());
     let api = Router::new()
@@ -175,7 +186,7 @@ pub fn router(state: Shared) -> Router {
         .merge(nc::routes(&guard))
         .with_state(state.clone());
     use utoipa::OpenApi as _;
-    Router::new()
+    let app = Router::new()
         .merge(
             utoipa_swagger_ui::SwaggerUi::new("/api/v1/docs")
                 .url("/api/v1/openapi.json", ApiDoc::openapi()),
@@ -195,8 +206,22 @@ pub fn router(state: Shared) -> Router {
             metrics::timed,
         ))
         .with_state(state)
-        .fallback(|| async { ApiError::new(ErrorCode::NotFound, "no such endpoint") })
-        .layer(middleware::from_fn(error::json_errors))
+        .fallback(|| async { ApiError::new(ErrorCode::NotFound, "no such endpoint") });
+    edges(app, timeout)
+}
+
+/// The layers every answer passes: the body limit and the timeout inside `json_errors`, so
+/// that their refusals (413, 503) are the API's JSON error too, and request tracing outside.
+fn edges(app: Router, timeout: std::time::Duration) -> Router {
+    app.layer(tower_http::limit::RequestBodyLimitLayer::new(
+        MAX_BODY_BYTES,
+    ))
+    .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+        axum::http::StatusCode::SERVICE_UNAVAILABLE,
+        timeout,
+    ))
+    .layer(middleware::from_fn(error::json_errors))
+    .layer(tower_http::trace::TraceLayer::new_for_http())
 }
 
 pub(super) fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle, ApiError> {
@@ -254,4 +279,53 @@ pub(super) fn paged<T: serde::Serialize>(
         r.headers_mut().insert(header::LINK, l);
     }
     r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::body::Body;
+    use axum::http::{Request, StatusCode};
+    use http_body_util::BodyExt;
+    use std::time::Duration;
+    use tower::ServiceExt;
+
+    async fn answer(app: Router, req: Request<Body>) -> (StatusCode, serde_json::Value) {
+        let res = app.oneshot(req).await.unwrap();
+        let status = res.status();
+        let bytes = res.into_body().collect().await.unwrap().to_bytes();
+        (status, serde_json::from_slice(&bytes).unwrap_or_default())
+    }
+
+    // The clock is tokio's paused one: the hour-long handler is timed out without waiting.
+    #[tokio::test(start_paused = true)]
+    async fn a_request_not_answered_in_time_gets_the_json_timeout_error() {
+        let slow = Router::new().route(
+            "/slow",
+            get(|| async {
+                tokio::time::sleep(Duration::from_secs(3600)).await;
+                "late"
+            }),
+        );
+        let req = Request::get("/slow").body(Body::empty()).unwrap();
+        let (status, body) = answer(edges(slow, Duration::from_secs(2)), req).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(body["code"], "timeout", "{body}");
+    }
+
+    #[tokio::test]
+    async fn a_body_over_the_limit_gets_the_json_error_before_the_handler_reads_it() {
+        let echo = Router::new().route("/echo", axum::routing::post(|b: String| async { b }));
+        let big = "x".repeat(MAX_BODY_BYTES + 1);
+        let req = Request::post("/echo").body(Body::from(big)).unwrap();
+        let (status, body) = answer(edges(echo.clone(), Duration::from_secs(2)), req).await;
+        assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
+        assert_eq!(body["code"], "body_too_large", "{body}");
+        let req = Request::post("/echo").body(Body::from("small")).unwrap();
+        let res = edges(echo, Duration::from_secs(2))
+            .oneshot(req)
+            .await
+            .unwrap();
+        assert_eq!(res.status(), StatusCode::OK);
+    }
 }
