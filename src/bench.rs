@@ -5,6 +5,7 @@
 //!   endpoint served by the same server in the same run, while the machine loop keeps
 //!   solving and writing.
 
+use driftwatch_core::units;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -66,7 +67,7 @@ async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store
 
 pub async fn year(days: f64, dir: PathBuf, prediction: bool) -> Result<ExitCode> {
     let (mut rt, store, t0) = pipeline(&dir, prediction).await?;
-    let end = t0 + (days * 86_400e9) as i64;
+    let end = t0 + units::h_to_ns(days * 24.0);
     let wall = Instant::now();
     let mut now = t0;
     let mut steps = 0u64;
@@ -171,10 +172,7 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
     // Run the morning until the first validated set exists.
     let mut now = t0;
     while rt.served().is_none() {
-        anyhow::ensure!(
-            now < t0 + 12 * 3_600_000_000_000,
-            "no validated set by noon"
-        );
+        anyhow::ensure!(now < t0 + 12 * units::NS_PER_H, "no validated set by noon");
         now = rt.step(now).await?.max(now + 1);
     }
     let version0 = rt.served().map_or(0, |c| c.version);
@@ -864,11 +862,11 @@ fn thermal_set(
     json: bool,
 ) -> (Vec<serde_json::Value>, Vec<String>) {
     use driftwatch_core::families::{Family, compete, grid};
-    let step_ns = (step_min * 60e9) as i64;
+    let step_ns = units::min_to_ns(step_min);
     let train_end_ns = set
         .events
         .first()
-        .map_or(0, |e| e.t_ns() + (set.train_h * 3600e9) as i64);
+        .map_or(0, |e| e.t_ns() + units::h_to_ns(set.train_h));
     let mut rows = Vec::new();
     let mut fails = Vec::new();
     for ch in &set.channels {
@@ -1020,7 +1018,7 @@ fn served_holdout(
         why = format!(
             "{}, the grey box from {:.2} h where {} leaves its fit range",
             chosen.family,
-            g.t_ns[k] as f64 / 3.6e12,
+            units::ns_to_h(g.t_ns[k]),
             g.names[j]
         );
     }

@@ -1,6 +1,7 @@
 //! `driftwatch diagnose`: the diagnosis of recordings, written as `diagnosis.json` and
 //! `report.html`.
 
+use driftwatch_core::units;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -279,7 +280,7 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
             .iter()
             .find(|e| matches!(e, Event::Observation { .. }))
             .map_or(0, |e| e.t_ns());
-        opts.holdout_from_ns = Some(t0 + (h * 3.6e12) as i64);
+        opts.holdout_from_ns = Some(t0 + units::h_to_ns(h));
     }
     let d = diagnose_displacements(&events, &channels, &opts).context("displacement diagnosis")?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

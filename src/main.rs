@@ -706,7 +706,10 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
         s.cycles
     );
     let csv = out_dir.join("patent_experiment.csv");
-    std::fs::write(&csv, ex.csv()).with_context(|| format!("writing {}", csv.display()))?;
+    let file =
+        std::fs::File::create(&csv).with_context(|| format!("creating {}", csv.display()))?;
+    ex.write_csv(std::io::BufWriter::new(file))
+        .with_context(|| format!("writing {}", csv.display()))?;
     let svg = out_dir.join("patent_experiment.svg");
     let plot = ex
         .svg("patent experiment: identified (2 sigma) vs truth")

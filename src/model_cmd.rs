@@ -1,5 +1,6 @@
 //! `driftwatch import csv`, `fit` and `predict`: the thermal model on recordings.
 
+use driftwatch_core::units;
 use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -395,7 +396,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         std::fs::create_dir_all(dir)?;
     }
     // The families compete on each displacement channel, on the fit data only.
-    let step_ns = (a.step_min * 60e9) as i64;
+    let step_ns = units::min_to_ns(a.step_min);
     let train_end = until.unwrap_or(i64::MAX);
     let mut families = Vec::new();
     for ch in displacement_channels(&events) {
@@ -416,7 +417,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     println!(
         "model of {} channel(s) fitted on {:.2} h of data -> {}",
         model.channels.len(),
-        (model.to_ns - model.from_ns) as f64 / 3.6e12,
+        units::ns_to_h(model.to_ns - model.from_ns),
         a.out.display()
     );
     println!(
@@ -579,7 +580,7 @@ fn print_steps(
                 writeln!(
                     out,
                     "{:>10.3} {:<12} {:>10.3} {:>8.3} {}",
-                    (s.t_ns - t0) as f64 / 3.6e12,
+                    units::ns_to_h(s.t_ns - t0),
                     x.channel,
                     x.value,
                     x.sigma,
@@ -601,7 +602,7 @@ fn write_plot(
     t0: i64,
     boundary_h: Option<f64>,
 ) -> Result<()> {
-    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+    let h = |t: i64| units::ns_to_h(t - t0);
     for e in events.iter().filter(|e| e.t_ns() >= from) {
         if let Event::Observation {
             channel,
@@ -668,7 +669,7 @@ fn family_runs(
                 "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
                 c.channel,
                 c.family,
-                (g.t_ns[k] - t0) as f64 / 3.6e12,
+                units::ns_to_h(g.t_ns[k] - t0),
                 g.names[j],
                 c.ranges[j][0],
                 c.ranges[j][1],
@@ -754,7 +755,7 @@ fn predict_family(
         errors.push((i, v - y));
         persistence.push(g.y[origin - 1] - y);
         if g.t_ns[k] >= from {
-            series.push(((g.t_ns[k] - t0) as f64 / 3.6e12, *v, b68));
+            series.push((units::ns_to_h(g.t_ns[k] - t0), *v, b68));
         }
         // Rows at the requested step (the family runs on its own grid).
         if g.t_ns[k] < next_row {
@@ -779,7 +780,7 @@ fn predict_family(
             writeln!(
                 out,
                 "{:>10.3} {:<12} {:>10.3} {:>8.3} predicted ({by}; measured {:.3})",
-                (g.t_ns[k] - t0) as f64 / 3.6e12,
+                units::ns_to_h(g.t_ns[k] - t0),
                 c.channel,
                 v,
                 b68,
@@ -812,9 +813,9 @@ fn predict_family(
         } else {
             ""
         },
-        (g.t_ns[origin.min(g.len() - 1)] - t0) as f64 / 3.6e12,
+        units::ns_to_h(g.t_ns[origin.min(g.len() - 1)] - t0),
         errors.len(),
-        c.step_ns as f64 / 60e9,
+        units::ns_to_min(c.step_ns),
         rms(&errors),
         rms(&persistence),
         errors.iter().fold(0.0f64, |m, e| m.max(e.abs())),
@@ -986,7 +987,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         eprintln!("at the end: {g}\n  {}", g.reason);
     }
     // One panel per channel: the grey box's served values, or the family's.
-    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+    let h = |t: i64| units::ns_to_h(t - t0);
     let mut panels: std::collections::BTreeMap<String, Panel> = Default::default();
     for s in steps.iter().filter(|s| s.t_ns >= from) {
         for p in &s.predictions {

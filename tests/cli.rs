@@ -353,8 +353,15 @@ fn experiment_and_plan_commands_report_their_figures() {
     ] {
         assert!(dir.join(f).exists(), "{f}");
     }
-    let csv = std::fs::read_to_string(dir.join("patent_experiment.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 16);
+    // A CSV any reader takes: a header naming each error's value, sigma and truth, and one
+    // record of as many fields per cycle.
+    let mut csv = csv::Reader::from_path(dir.join("patent_experiment.csv")).unwrap();
+    let header = csv.headers().unwrap().clone();
+    assert_eq!(&header[0], "cycle");
+    assert!(header.iter().any(|h| h == "EZ0B_truth"), "{header:?}");
+    let records: Vec<csv::StringRecord> = csv.records().map(|r| r.unwrap()).collect();
+    assert_eq!(records.len(), 15);
+    assert!(records.iter().all(|r| r.len() == header.len()));
     let svg = std::fs::read_to_string(dir.join("patent_experiment.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("EZ0B"));
     let (ok, out, err) = run(&[

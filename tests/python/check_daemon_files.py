@@ -8,7 +8,8 @@ DIR mode reads every `*.mcap` in DIR (the closed files, including those recovere
 crash) with CRC validation and checks: each file is finished (has a summary); every channel
 uses message encoding json and a jsonschema object schema; the files together hold the
 contract topics (not with --short: a run stopped before its first cycle has none of the
-cycle topics); log times never go back within a channel of a file; every message is JSON;
+cycle topics); log times never go back within a channel of a file; every message is JSON
+and valid against its channel's schema (the `jsonschema` package);
 every /cycle/result is unique and its cycle's /probe/detection messages are in the files (as
 many as its n_detections); every ok result has the six table_bc errors. Prints one line
 "daemon recordings check of DIR: ok (N files, M messages)" or the problems; exits 1 on problems.
@@ -23,6 +24,7 @@ import json
 import os
 import sys
 
+from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
@@ -61,8 +63,10 @@ def check_file(path, problems, topics, detections, results):
                     problems.append(f"{name} {ch.topic}: schema type {kind!r}, not 'object'")
         last = {}
         out_of_order = collections.Counter()
+        validators = {}
+        invalid = collections.Counter()
         # File order, not log-time order: a reader that sorts would hide a writer going back.
-        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
             n += 1
             topic = channel.topic
             if message.log_time < last.get(topic, 0):
@@ -73,10 +77,16 @@ def check_file(path, problems, topics, detections, results):
             except ValueError as e:
                 problems.append(f"{name} {topic} at {message.log_time}: not JSON ({e})")
                 continue
+            if schema.id not in validators:
+                validators[schema.id] = Draft202012Validator(json.loads(schema.data))
+            if not validators[schema.id].is_valid(body):
+                invalid[topic] += 1
             if topic == "/probe/detection":
                 detections[body.get("cycle")] += 1
             elif topic == "/cycle/result":
                 results.append((name, body))
+        for topic, count in sorted(invalid.items()):
+            problems.append(f"{name} {topic}: {count} messages break the channel's schema")
         for topic, count in sorted(out_of_order.items()):
             problems.append(f"{name} {topic}: log time goes back {count} times")
         counts = summary.statistics.channel_message_counts if summary.statistics else {}

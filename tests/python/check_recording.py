@@ -1,11 +1,13 @@
 """Read a driftwatch recording with the `mcap` Python package (an independent reader) and
-check it against the recording contract: topics, encodings, schemas and message counts.
+check it against the recording contract: topics, encodings, schemas and message counts, and
+every message against the JSON Schema its channel publishes (the `jsonschema` package).
 
 usage: python3 check_recording.py FILE.mcap CYCLES STEPS_PER_CYCLE
 """
 import json
 import sys
 
+from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 
 CONTRACT = ["/machine/info", "/machine/state", "/spindle", "/temperature",
@@ -37,14 +39,22 @@ def main() -> int:
         if by_topic.get("/cycle/result") != cycles:
             failures.append(f"/cycle/result: {by_topic.get('/cycle/result')} messages")
         last = {}
-        for _schema, channel, message in reader.iter_messages():
+        validators = {}
+        invalid = {}
+        for schema, channel, message in reader.iter_messages():
             body = json.loads(message.data)
+            if schema.id not in validators:
+                validators[schema.id] = Draft202012Validator(json.loads(schema.data))
+            for e in validators[schema.id].iter_errors(body):
+                invalid.setdefault(channel.topic, []).append(e.message)
             if message.log_time < last.get(channel.topic, 0):
                 failures.append(f"{channel.topic}: log times out of order")
             last[channel.topic] = message.log_time
             if channel.topic == "/cycle/result" and body["status"] == "ok":
                 if set(body["errors"]) != {"EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"}:
                     failures.append(f"cycle {body['cycle']}: error names {sorted(body['errors'])}")
+    for topic, errors in invalid.items():
+        failures.append(f"{topic}: {len(errors)} schema violations, first: {errors[0]}")
     for f in failures:
         print("FAIL", f)
     verdict = "ok" if not failures else f"{len(failures)} problems"

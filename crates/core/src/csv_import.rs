@@ -260,6 +260,7 @@ pub fn split_columns(args: &[String]) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::units;
 
     fn opts() -> CsvOptions {
         CsvOptions {
@@ -375,7 +376,7 @@ mod tests {
         assert_eq!(r.temperatures[0].msg.celsius, 20.5);
         assert_eq!(r.displacements[1].msg.um, 2.5);
         assert_eq!(r.spindle.last().unwrap().msg.rpm, 8000.0);
-        assert_eq!(r.temperatures[1].t_ns, 60_000_000_000);
+        assert_eq!(r.temperatures[1].t_ns, units::NS_PER_MIN);
         // Read as the default (comma, decimal point) the cells are not numbers.
         assert!(import_csv(text, &o).is_err());
         // A decimal comma with a comma delimiter is ambiguous, and refused.

@@ -13,6 +13,7 @@
 //!
 //! Pure: plain data in and out, no I/O.
 
+use crate::units;
 use nalgebra::{DMatrix, DVector};
 
 use crate::thermal_model::{self, Event, ModelConfig};
@@ -470,7 +471,7 @@ pub const RELAX_H: [f64; 4] = [1.0, 4.0, 16.0, 64.0];
 /// prediction is one step after the last reading).
 pub fn relax_weight(relax_h: Option<f64>, horizon: usize, step_ns: i64) -> f64 {
     relax_h.map_or(0.0, |tau| {
-        (-((horizon + 1) as f64) * step_ns as f64 / (tau * 3.6e12)).exp()
+        (-((horizon + 1) as f64) * step_ns as f64 / (tau * units::NS_PER_H as f64)).exp()
     })
 }
 
@@ -649,7 +650,7 @@ impl Bands {
     pub fn from_errors(errors: &[CvError], step_ns: i64) -> Bands {
         let edges: Vec<usize> = BAND_EDGES_H
             .iter()
-            .map(|h| (h * 3.6e12 / step_ns.max(1) as f64).round() as usize)
+            .map(|h| (h * units::NS_PER_H as f64 / step_ns.max(1) as f64).round() as usize)
             .collect();
         let pooled: Vec<f64> = errors.iter().map(|c| c.e).collect();
         let (mut b68, mut b95) = (Vec::new(), Vec::new());
@@ -1170,7 +1171,7 @@ pub fn choose(
 mod tests {
     use super::*;
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
 
     /// A first-order plant driven by one temperature, another temperature that is noise,
     /// sampled every minute.

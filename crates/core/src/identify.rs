@@ -6,6 +6,7 @@
 //!
 //! Parameters are in um, urad and um/min; the model works in mm and rad.
 
+use crate::units;
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 use thiserror::Error;
@@ -357,7 +358,7 @@ impl<'a> Identifier<'a> {
             if let Param::Nuisance(Nuisance::DriftRate(a)) = param {
                 for (r, o) in obs.iter().enumerate() {
                     j[(r, c)] = if o.approach.axis == *a {
-                        -((o.t_ns - t_ref) as f64) / 60e9
+                        -units::ns_to_min(o.t_ns - t_ref)
                     } else {
                         0.0
                     };
@@ -415,7 +416,7 @@ impl<'a> Identifier<'a> {
                     label: o.label.clone(),
                     reason,
                 })?;
-            let dt_min = (o.t_ns - t_ref) as f64 / 60e9;
+            let dt_min = units::ns_to_min(o.t_ns - t_ref);
             for (param, val) in self.params.iter().zip(p) {
                 if let Param::Nuisance(Nuisance::DriftRate(a)) = param
                     && *a == o.approach.axis

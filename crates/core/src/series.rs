@@ -121,8 +121,9 @@ pub fn downsample(samples: &[ErrorSample], every_ns: i64) -> Vec<ErrorBucket> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::units;
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
 
     fn s(t_min: i64, name: &str, value: f64, sigma: f64) -> ErrorSample {
         ErrorSample {
@@ -177,7 +178,7 @@ mod tests {
         assert!((ez.sigma - (0.2f64).sqrt()).abs() < 1e-12);
         assert_eq!((ez.min, ez.max, ez.last_cycle), (10.0, 13.0, 20));
         // One sample per bucket gives the sample back.
-        let one = downsample(&samples, 60_000_000_000 / 60);
+        let one = downsample(&samples, units::NS_PER_MIN / 60);
         assert_eq!(one.len(), samples.len());
         assert!(one.iter().all(|r| r.n == 1));
     }

@@ -1862,10 +1862,11 @@ pub fn truth_scores(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::units;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
 
     /// A patent-like day: 20000 min^-1 for 210 min, 30 min stop, restart; observations of a
     /// two-lag channel every `every` min with noise `sd`.

@@ -869,8 +869,9 @@ fn chi2(c: &CycleInput, factor: f64) -> Option<Observation> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use driftwatch_core::units;
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
     const T0: i64 = 1_700_000_000_000_000_000;
 
     fn ok(cycle: i64, errors: &[(&str, f64)]) -> Input {
@@ -1428,11 +1429,14 @@ mod tests {
             (1, EventKind::Raised, 3600.0)
         );
         // More refusals in the episode: no new event; the largest skew is kept.
-        assert!(e.evaluate(&look(T0 + 60e9 as i64, 1, -90.0), T0).is_empty());
+        assert!(
+            e.evaluate(&look(T0 + units::NS_PER_MIN, 1, -90.0), T0)
+                .is_empty()
+        );
         assert_eq!(e.open_alerts()[0].value, 3600.0);
         // Quiet, but not yet 10 min since the last refusal.
         assert!(e.evaluate(&look(T0 + 600e9 as i64, 0, 0.0), T0).is_empty());
-        let ev = e.evaluate(&look(T0 + 660e9 as i64, 0, 0.0), T0);
+        let ev = e.evaluate(&look(T0 + 11 * units::NS_PER_MIN, 0, 0.0), T0);
         assert_eq!(ev[0].kind, EventKind::Resolved);
         assert!(e.open_alerts().is_empty());
         // Cycle inputs leave it alone, and it leaves the cycle rules alone.

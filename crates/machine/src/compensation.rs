@@ -30,6 +30,7 @@
 //! the tool-tip drift is already folded into `EX0B`, `EY0C` and `EZ0B`, and that is what the NC
 //! must compensate, since it positions the tool, not the spindle nose.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
@@ -212,7 +213,7 @@ pub fn validate(
                     } else {
                         limit.max_rate_um_per_min
                     };
-                    let minutes = ((result.t_ns - prev.valid_from_ns) as f64 / 60e9).max(0.0);
+                    let minutes = (units::ns_to_min(result.t_ns - prev.valid_from_ns)).max(0.0);
                     if let Some(base) = max_step {
                         let max = base + rate * minutes;
                         if !within(step, max) {
@@ -310,7 +311,7 @@ fn ramped(
     to: &CompensationSet,
     limits: &ValidationLimits,
 ) -> CompensationSet {
-    let minutes = ((to.valid_from_ns - from.valid_from_ns) as f64 / 60e9).max(0.0);
+    let minutes = (units::ns_to_min(to.valid_from_ns - from.valid_from_ns)).max(0.0);
     let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
     let step_urad = limits.max_step_urad + limits.max_rate_urad_per_min * minutes;
     let errors = ramp(from, &to.errors, step_um, step_urad);
@@ -789,7 +790,7 @@ pub fn inconsistent(
     k: f64,
     limits: &ValidationLimits,
 ) -> Vec<String> {
-    let minutes = ((t_ns - measured_t_ns) as f64 / 60e9).abs();
+    let minutes = (units::ns_to_min(t_ns - measured_t_ns)).abs();
     let mut reasons = Vec::new();
     for (n, &(v, s)) in predicted {
         let (Some(&m), Some(&sm)) = (measured.errors.get(n), measured.sigma.get(n)) else {
@@ -954,7 +955,7 @@ mod tests {
             &predictions(90.0, 1.0),
             &limits,
             &policy,
-            60_000_000_000,
+            units::NS_PER_MIN,
             "m",
         )
         .unwrap();
@@ -1084,7 +1085,7 @@ mod tests {
             "{why:?}"
         );
         // Twelve minutes later the same value is within the 4 um/min the limits allow.
-        let later = t_m + 12 * 60_000_000_000;
+        let later = t_m + 12 * units::NS_PER_MIN;
         assert!(inconsistent(&pred, &measured, t_m, later, 5.0, &limits).is_empty());
         // NaN disagrees.
         pred.insert("EA0C".into(), (f64::NAN, 1.0));
@@ -1101,7 +1102,7 @@ mod tests {
         far.source = Source::Predicted;
         far.valid_from_ns = T0 + 1_800_000_000_000 + 11_000_000_000;
         far.errors.insert("EZ0B".into(), 100.0);
-        let closed = far.valid_from_ns + 60_000_000_000;
+        let closed = far.valid_from_ns + units::NS_PER_MIN;
         let mut next = clean(2);
         next.t_ns = closed - 30_000_000_000;
         let (r, a) = admit(next.clone(), Some(&far), Some(&measured), &limits, closed);
@@ -1353,14 +1354,14 @@ mod tests {
         // after it (limit 290 um).
         let mut r2 = clean(2);
         set_error(&mut r2, "EZ0B", 130.0);
-        r2.t_ns = s1.valid_from_ns + 5 * 60_000_000_000;
+        r2.t_ns = s1.valid_from_ns + 5 * units::NS_PER_MIN;
         let v = validate(&r2, Some(&s1), &limits);
         assert!(
             !v.ok && v.reasons[0].contains("limit 70.0 um (50.0 um + 4.0 um/min over 5 min)"),
             "{:?}",
             v.reasons
         );
-        r2.t_ns = s1.valid_from_ns + 60 * 60_000_000_000;
+        r2.t_ns = s1.valid_from_ns + 60 * units::NS_PER_MIN;
         assert!(validate(&r2, Some(&s1), &limits).ok);
     }
 

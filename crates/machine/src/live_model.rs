@@ -3,6 +3,7 @@
 //! temperature sample and validated cycle. It answers what the errors are now, how certain
 //! that is, and whether a cycle is needed for certainty. Pure: the loop does the I/O.
 
+use driftwatch_core::units;
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 
@@ -17,7 +18,7 @@ use driftwatch_core::thermal_model::{
 
 /// How far the rows' lag states trail the inputs: longer than any cycle, so that a cycle's
 /// reference time is never behind them when its result arrives.
-pub const HOLD_BACK_NS: i64 = 3_600_000_000_000;
+pub const HOLD_BACK_NS: i64 = units::NS_PER_H;
 
 /// What the API shows of the model.
 #[derive(Debug, Clone, Serialize)]
@@ -96,7 +97,7 @@ impl LiveModel {
             m.t_ref_c = model.t_ref_c.clone();
             m.message = format!(
                 "started from a model fitted on {:.1} h of earlier data; the machine's own fit after {} validated cycles",
-                (model.to_ns - model.from_ns) as f64 / 3.6e12,
+                units::ns_to_h(model.to_ns - model.from_ns),
                 m.policy.min_cycles
             );
             m.initial = Some(model);
@@ -263,7 +264,7 @@ impl LiveModel {
         let Some(row) = self.lagged.as_ref().map(Features::row) else {
             return;
         };
-        let keep_from = t_ns - (self.policy.history_days * 86_400e9) as i64;
+        let keep_from = t_ns - units::h_to_ns(self.policy.history_days * 24.0);
         for (name, v) in errors.iter().filter(|(_, v)| v.is_finite()) {
             let sigma = sigma.get(name).copied();
             if let Some(p) = &mut self.predictor
@@ -353,7 +354,7 @@ impl LiveModel {
                 let missing = features.unseen_sensors();
                 self.message = format!(
                     "fitted on {cycles} validated cycles over {:.1} h; residual rms {worst}{}",
-                    (model.to_ns - model.from_ns) as f64 / 3.6e12,
+                    units::ns_to_h(model.to_ns - model.from_ns),
                     if missing.is_empty() {
                         String::new()
                     } else {
@@ -455,7 +456,7 @@ impl LiveModel {
 mod tests {
     use super::*;
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
 
     #[test]
     fn it_waits_for_cycles_fits_and_then_asks_for_a_cycle_when_uncertain() {
@@ -480,7 +481,7 @@ mod tests {
         for i in 0..6 {
             let t = (i * 30 + 5) * MIN;
             // A 12-min lag of 40 um seen in every error.
-            let v = 40.0 * (1.0 - (-(t as f64) / 60e9 / 12.0).exp());
+            let v = 40.0 * (1.0 - (-units::ns_to_min(t) / 12.0).exp());
             let errors: BTreeMap<String, f64> =
                 TABLE_BC_ERRORS.iter().map(|n| (n.to_string(), v)).collect();
             let sigma = TABLE_BC_ERRORS
@@ -525,7 +526,7 @@ mod tests {
     #[test]
     fn a_model_fitted_elsewhere_predicts_from_the_first_input_until_the_own_fit() {
         // The earlier day: a 12-min lag of 40 um in EZ0B, seen every 30 min.
-        let lag = |t: i64| 40.0 * (1.0 - (-(t as f64) / 60e9 / 12.0).exp());
+        let lag = |t: i64| 40.0 * (1.0 - (-units::ns_to_min(t) / 12.0).exp());
         let mut earlier = vec![Event::Spindle {
             t_ns: 0,
             rpm: 20000.0,

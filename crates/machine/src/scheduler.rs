@@ -452,6 +452,7 @@ mod tests {
     use super::*;
     use crate::phase::{PhaseConfig, PhaseTracker};
     use MachineStateKind::{Alarm, Cutting, Idle, Measuring, Off};
+    use driftwatch_core::units;
 
     const T0: i64 = 1_772_431_200_000_000_000; // 2026-03-02T06:00:00Z
     const STEP_NS: i64 = 30_000_000_000;
@@ -461,7 +462,7 @@ mod tests {
     }
 
     fn minutes(t_ns: i64) -> f64 {
-        (t_ns - T0) as f64 / 60e9
+        units::ns_to_min(t_ns - T0)
     }
 
     #[derive(Debug, Clone)]

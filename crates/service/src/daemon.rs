@@ -5,6 +5,7 @@
 //! Time comes from the caller (`step(now)`), so a simulated day runs in seconds in tests and
 //! at any time scale live. This is shell code around the pure core.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
@@ -188,7 +189,7 @@ pub struct MachineRuntime {
 }
 
 /// Machine time the per-minute samples are held before they are written together.
-const SAMPLE_BATCH_NS: i64 = 10 * 60_000_000_000;
+const SAMPLE_BATCH_NS: i64 = 10 * units::NS_PER_MIN;
 
 /// A temperature sample is stored at least this often (minutes), and whenever it changes.
 pub const TEMPERATURE_HEARTBEAT_MIN: i64 = 10;
@@ -202,7 +203,7 @@ struct SensorLog {
 }
 
 fn minute(t_ns: i64) -> i64 {
-    t_ns.div_euclid(60_000_000_000)
+    t_ns.div_euclid(units::NS_PER_MIN)
 }
 
 /// The stored spindle and temperature samples and validated cycle results in a window, as
@@ -298,7 +299,7 @@ impl MachineRuntime {
         if last_start.is_some_and(|t| t <= now_ns) {
             // The thermal model comes back from the stored inputs and results of its window.
             if thermal.policy().enabled {
-                let from = now_ns - (thermal.policy().history_days * 86_400e9) as i64;
+                let from = now_ns - units::h_to_ns(thermal.policy().history_days * 24.0);
                 let events = stored_events(&store, id, from, now_ns).await?;
                 if let Some(note) = thermal.restore(&events) {
                     info!(
@@ -507,7 +508,7 @@ impl MachineRuntime {
             v.schedule = schedule;
             v.next_due_ns = next_due;
         }
-        let mut wake = now_ns + 60_000_000_000;
+        let mut wake = now_ns + units::NS_PER_MIN;
         let refresh = self
             .thermal
             .is_fitted()

@@ -356,6 +356,7 @@ impl MachineLink for Simulated {
 mod tests {
     use super::*;
     use driftwatch_core::plan::PlanConfig;
+    use driftwatch_core::units;
 
     fn link() -> Simulated {
         let scn = Scenario::load("patent").unwrap();
@@ -368,12 +369,12 @@ mod tests {
     fn a_requested_cycle_yields_every_step_then_done() {
         let mut l = link();
         let t0 = l.start_ns();
-        let ev = l.poll(t0 + 60_000_000_000);
+        let ev = l.poll(t0 + units::NS_PER_MIN);
         assert!(
             ev.iter()
                 .any(|e| matches!(e, LinkEvent::Spindle(s) if s.msg.rpm == 20000.0))
         );
-        l.request_cycle(1, t0 + 60_000_000_000).unwrap();
+        l.request_cycle(1, t0 + units::NS_PER_MIN).unwrap();
         assert_eq!(
             l.request_cycle(2, t0 + 61_000_000_000),
             Err(LinkError::Busy(1))

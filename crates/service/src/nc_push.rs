@@ -18,6 +18,7 @@
 //!    number (the order's step labels are a suggestion; an approach that did not trip may be
 //!    retried at once, as the next approach, and the retry replaces it).
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
@@ -91,8 +92,8 @@ pub struct ClockTolerance {
 impl Default for ClockTolerance {
     fn default() -> Self {
         ClockTolerance {
-            ahead_ns: 60_000_000_000,
-            behind_ns: 24 * 3_600_000_000_000,
+            ahead_ns: units::NS_PER_MIN,
+            behind_ns: 24 * units::NS_PER_H,
         }
     }
 }
@@ -615,7 +616,7 @@ mod tests {
     #[test]
     fn an_event_stamped_beyond_the_clock_tolerance_is_refused_and_a_late_state_does_not_win() {
         let (mut link, h, _) = setup();
-        let hour = 3_600_000_000_000;
+        let hour = units::NS_PER_H;
         let now = 1_800_000_000 * 1_000_000_000;
         let post = |t_ns: i64, state: &str| {
             h.post(&EventBatch {

@@ -2,6 +2,7 @@
 //! written as `NAME.mcap.partial`, flushed after every cycle, renamed when closed. Partial files
 //! left by a crash are recovered at start: their complete chunks are copied into a closed file.
 
+use driftwatch_core::units;
 use std::fs;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -180,7 +181,7 @@ impl Recorder {
         clock_ns: i64,
         msg: &T,
     ) -> Result<Rotation, RecorderError> {
-        let day_number = clock_ns.div_euclid(86_400_000_000_000);
+        let day_number = clock_ns.div_euclid(units::NS_PER_DAY);
         let mut rotation = Rotation::default();
         let rotate = match &self.open {
             Some(f) => f.day_number != day_number || f.bytes_hint >= self.max_bytes,
@@ -227,7 +228,7 @@ impl Recorder {
                 source,
             })?;
         self.open = Some(OpenFile {
-            day_number: t_ns.div_euclid(86_400_000_000_000),
+            day_number: t_ns.div_euclid(units::NS_PER_DAY),
             partial,
             writer,
             messages: 1,
@@ -311,13 +312,13 @@ mod tests {
         }
     }
 
-    const DAY: i64 = 86_400_000_000_000;
+    const DAY: i64 = units::NS_PER_DAY;
 
     #[test]
     fn one_file_per_day_renamed_when_closed() {
         let d = dir("days");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
-        let t0 = 20_000 * DAY + 3_600_000_000_000;
+        let t0 = 20_000 * DAY + units::NS_PER_H;
         r.write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 1000.0 })
             .unwrap();
         assert!(
@@ -349,7 +350,7 @@ mod tests {
     fn files_follow_the_service_clock_not_the_stamps() {
         let d = dir("clock");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
-        let now = 20_000 * DAY + 3_600_000_000_000;
+        let now = 20_000 * DAY + units::NS_PER_H;
         // A gateway's bad stamps: the epoch and the end of i64 nanoseconds.
         for t in [now, 0, i64::MAX - 1, now + 1] {
             let rot = r

@@ -2,6 +2,7 @@
 //! truth-free, and set the identified errors next to the truth at each cycle's reference
 //! time. Returns tables and an SVG plot as strings; writing them is the caller's business.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
@@ -69,7 +70,7 @@ pub fn run(
         }
         rows.push(Row {
             cycle: o.cycle,
-            t_min: (o.t_ref_ns - start) as f64 / 60e9,
+            t_min: units::ns_to_min(o.t_ref_ns - start),
             ok: o.is_ok(),
             reason: o.reason.clone(),
             values,
@@ -78,7 +79,7 @@ pub fn run(
     let starts: Vec<f64> = simulation
         .cycles
         .iter()
-        .map(|c| (c.start_ns - start) as f64 / 60e9)
+        .map(|c| units::ns_to_min(c.start_ns - start))
         .collect();
     let nearest = |t: f64| {
         starts
@@ -124,34 +125,37 @@ impl Experiment {
             .unwrap_or_default()
     }
 
-    /// One line per cycle: identified, sigma and truth of each error.
-    pub fn csv(&self) -> String {
+    /// One record per cycle, written to `out`: identified, sigma and truth of each error, and
+    /// the reason a cycle was rejected (quoted by the csv crate where it needs to be).
+    pub fn write_csv<W: std::io::Write>(&self, out: W) -> Result<(), csv::Error> {
         let names = self.names();
-        let mut out = String::from("cycle,t_min,status");
+        let mut w = csv::Writer::from_writer(out);
+        let mut header = vec!["cycle".to_string(), "t_min".into(), "status".into()];
         for n in &names {
-            let _ = write!(out, ",{n},{n}_sigma,{n}_truth");
+            header.extend([n.clone(), format!("{n}_sigma"), format!("{n}_truth")]);
         }
-        out.push_str(",reason\n");
+        header.push("reason".into());
+        w.write_record(&header)?;
         for r in &self.rows {
-            let _ = write!(
-                out,
-                "{},{:.3},{}",
-                r.cycle,
-                r.t_min,
-                if r.ok { "ok" } else { "rejected" }
-            );
+            let status = if r.ok { "ok" } else { "rejected" };
+            let mut rec = vec![
+                r.cycle.to_string(),
+                format!("{:.3}", r.t_min),
+                status.into(),
+            ];
             for n in &names {
                 match r.values.get(n) {
                     Some((v, s, t)) => {
-                        let _ = write!(out, ",{v:.4},{s:.4},{t:.4}");
+                        rec.extend([format!("{v:.4}"), format!("{s:.4}"), format!("{t:.4}")])
                     }
-                    None => out.push_str(",,,"),
+                    None => rec.extend([String::new(), String::new(), String::new()]),
                 }
             }
-            let reason = r.reason.clone().unwrap_or_default().replace('"', "'");
-            let _ = writeln!(out, ",\"{reason}\"");
+            rec.push(r.reason.clone().unwrap_or_default());
+            w.write_record(&rec)?;
         }
-        out
+        w.flush()?;
+        Ok(())
     }
 
     /// A table for people.
@@ -227,7 +231,7 @@ impl Experiment {
                     .simulation
                     .truth
                     .last()
-                    .map(|t| (t.t_ns - start) as f64 / 60e9)
+                    .map(|t| units::ns_to_min(t.t_ns - start))
                     .unwrap_or(1.0);
                 let mut chart = ChartBuilder::on(panel)
                     .margin(10)
@@ -249,7 +253,7 @@ impl Experiment {
                         .filter_map(|t| {
                             t.apparent
                                 .get(*n)
-                                .map(|v| ((t.t_ns - start) as f64 / 60e9, *v))
+                                .map(|v| (units::ns_to_min(t.t_ns - start), *v))
                         })
                         .collect();
                     chart

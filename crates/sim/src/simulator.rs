@@ -4,6 +4,7 @@
 //! time in exact geometry, with noise, outliers and failed approaches. Deterministic for a
 //! given seed; no I/O.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use rand::{Rng, SeedableRng};
@@ -467,7 +468,7 @@ fn ambient_at(a: &crate::scenario::AmbientConfig, t_ns: i64) -> f64 {
     if a.amplitude_k == 0.0 {
         return a.mean_c;
     }
-    let hours = (t_ns.rem_euclid(86_400_000_000_000)) as f64 / 3.6e12;
+    let hours = units::ns_to_h(t_ns.rem_euclid(units::NS_PER_DAY));
     a.mean_c + a.amplitude_k * (2.0 * std::f64::consts::PI * (hours - a.peak_h) / a.period_h).cos()
 }
 

@@ -9,6 +9,7 @@
 //! service's own `live_model`, rebuilt from an earlier day as the store would hold it, fed
 //! each validated cycle once its last detection is in. Pure code.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use serde::Serialize;
@@ -25,7 +26,7 @@ use driftwatch_machine::live_model::LiveModel;
 use driftwatch_machine::phase::{PhaseConfig, PhaseTracker};
 use driftwatch_machine::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 
-const MIN: i64 = 60_000_000_000;
+const MIN: i64 = units::NS_PER_MIN;
 
 /// Cycle start times (min from the scenario start) that the service's scheduler would choose
 /// for the scenario's program: its policy, its phase tracking, idle windows only.

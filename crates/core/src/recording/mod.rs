@@ -4,6 +4,7 @@
 
 use std::collections::BTreeMap;
 
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -22,14 +23,14 @@ pub const TOPIC_COMPENSATION: &str = "/compensation";
 /// The simulator's ground truth (a project topic; readers of the contract ignore it).
 pub const TOPIC_TRUTH: &str = "/sim/truth";
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct MachineInfo {
     pub machine_id: String,
     pub kinematics: String,
     pub software: String,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub enum MachineStateKind {
@@ -40,30 +41,30 @@ pub enum MachineStateKind {
     Alarm,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct StateMsg {
     pub state: MachineStateKind,
     pub program: Option<String>,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct SpindleMsg {
     pub rpm: f64,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TemperatureMsg {
     pub sensor: String,
     pub celsius: f64,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct DisplacementMsg {
     pub sensor: String,
     pub um: f64,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum DetectionStatus {
     Ok,
@@ -71,7 +72,7 @@ pub enum DetectionStatus {
     Aborted,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct DetectionMsg {
     pub cycle: i64,
     pub step: String,
@@ -95,7 +96,7 @@ impl DetectionMsg {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum ResultStatus {
     Ok,
@@ -104,7 +105,7 @@ pub enum ResultStatus {
 
 /// `/cycle/result`. `errors` and `sigma` are null when a rejected cycle has no solution. The
 /// fields after `residual_rms_um` are this project's additions.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct CycleResultMsg {
     pub cycle: i64,
     pub t_ns: i64,
@@ -344,7 +345,9 @@ pub fn schema(topic: &str) -> (String, Value) {
                     "errors": map, "sigma": map, "residual_rms_um": {"type": ["number", "null"]},
                     "chi2": num, "dof": {"type": "integer"}, "n_detections": {"type": "integer"},
                     "nuisance": {"type": "object", "additionalProperties": num},
-                    "redundancy_um": {"type": "array", "items": num}
+                    "redundancy_um": {"type": "array", "items": num},
+                    "chi2_point": num,
+                    "notes": {"type": "array", "items": {"type": "string"}}
                 }),
                 &[
                     "cycle",
@@ -398,6 +401,79 @@ mod tests {
         assert!(e.message.contains("feed_mm_min"), "{}", e.message);
         let e = parse_detection(b"{not json").unwrap_err();
         assert!(e.message.contains("not valid JSON"));
+    }
+
+    /// The schema a recording publishes for each contract topic (hand-written, as the
+    /// contract spells it) agrees with the struct the topic's messages are read into (its
+    /// schema derived by schemars): the same properties, every field the struct needs required,
+    /// and the same values for each enumerated field.
+    #[test]
+    fn each_published_schema_agrees_with_its_struct() {
+        fn derived<T: JsonSchema>() -> Value {
+            serde_json::to_value(schemars::schema_for!(T)).unwrap()
+        }
+        fn keys(v: &Value) -> std::collections::BTreeSet<String> {
+            v.as_object()
+                .into_iter()
+                .flatten()
+                .map(|(k, _)| k.clone())
+                .collect()
+        }
+        fn strings(v: &Value) -> std::collections::BTreeSet<String> {
+            v.as_array()
+                .into_iter()
+                .flatten()
+                .map(|x| x.to_string())
+                .collect()
+        }
+        // The enumerated values a derived property allows, following its $ref, also inside
+        // the `anyOf` with null that schemars writes for an Option.
+        fn enum_of(d: &Value, prop: &Value) -> Option<std::collections::BTreeSet<String>> {
+            let alternatives =
+                std::iter::once(prop).chain(prop["anyOf"].as_array().into_iter().flatten());
+            let mut out = std::collections::BTreeSet::new();
+            for alt in alternatives {
+                let target = match alt["$ref"].as_str() {
+                    Some(r) => d.pointer(r.trim_start_matches('#'))?,
+                    None => alt,
+                };
+                out.extend(strings(&target["enum"]));
+            }
+            (!out.is_empty()).then_some(out)
+        }
+        let topics = [
+            (TOPIC_INFO, derived::<MachineInfo>()),
+            (TOPIC_STATE, derived::<StateMsg>()),
+            (TOPIC_SPINDLE, derived::<SpindleMsg>()),
+            (TOPIC_TEMPERATURE, derived::<TemperatureMsg>()),
+            (TOPIC_DISPLACEMENT, derived::<DisplacementMsg>()),
+            (TOPIC_DETECTION, derived::<DetectionMsg>()),
+            (TOPIC_RESULT, derived::<CycleResultMsg>()),
+        ];
+        for (topic, d) in topics {
+            let (_, published) = schema(topic);
+            assert_eq!(
+                keys(&published["properties"]),
+                keys(&d["properties"]),
+                "{topic}: the published properties differ from the struct's"
+            );
+            let required = strings(&published["required"]);
+            for field in strings(&d["required"]) {
+                assert!(
+                    required.contains(&field),
+                    "{topic}: the struct needs {field}, the published schema does not require it"
+                );
+            }
+            for (name, p) in d["properties"].as_object().unwrap() {
+                if let Some(values) = enum_of(&d, p) {
+                    assert_eq!(
+                        strings(&published["properties"][name]["enum"]),
+                        values,
+                        "{topic}.{name}: the published values differ from the struct's"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

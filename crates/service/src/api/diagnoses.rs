@@ -6,6 +6,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
+use driftwatch_core::units;
 use serde::Deserialize;
 use serde::Serialize;
 use serde_json::json;
@@ -39,12 +40,12 @@ pub struct DiagnosisCreated {
 }
 
 /// Spindle and temperature history read before the window, so the thermal lags start warm.
-const DIAGNOSIS_LEAD_NS: i64 = 24 * 3_600_000_000_000;
+const DIAGNOSIS_LEAD_NS: i64 = 24 * units::NS_PER_H;
 
 /// The default window, and the longest one a request may ask for.
-const DIAGNOSIS_DEFAULT_NS: i64 = 3 * 24 * 3_600_000_000_000;
+const DIAGNOSIS_DEFAULT_NS: i64 = 3 * 24 * units::NS_PER_H;
 
-const DIAGNOSIS_MAX_NS: i64 = 31 * 24 * 3_600_000_000_000;
+const DIAGNOSIS_MAX_NS: i64 = 31 * 24 * units::NS_PER_H;
 
 /// Run the diagnosis on the stored detections, spindle and temperature series of a window;
 /// the result (or why it failed) is stored and returned.
