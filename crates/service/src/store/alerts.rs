@@ -1,0 +1,159 @@
+//! The alert log: every event of every alert, and acknowledgements.
+
+use serde::Serialize;
+use sqlx::Row;
+
+use driftwatch_machine::alerts::{EventKind, Severity};
+
+use super::{Store, StoreError};
+
+/// What happened to an alert (stored as its lowercase name): the engine's events and the
+/// operator's acknowledgement.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum AlertEventKind {
+    Raised,
+    Updated,
+    Resolved,
+    Acknowledged,
+}
+
+impl From<EventKind> for AlertEventKind {
+    fn from(k: EventKind) -> Self {
+        match k {
+            EventKind::Raised => AlertEventKind::Raised,
+            EventKind::Updated => AlertEventKind::Updated,
+            EventKind::Resolved => AlertEventKind::Resolved,
+        }
+    }
+}
+
+/// An alert's severity as stored (the engine's [`Severity`], lowercase; an acknowledgement
+/// has none and stores the empty string, as rows written before this type did).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum AlertSeverity {
+    Warning,
+    Critical,
+}
+
+impl AlertSeverity {
+    fn column(s: Option<AlertSeverity>) -> &'static str {
+        match s {
+            None => "",
+            Some(AlertSeverity::Warning) => "warning",
+            Some(AlertSeverity::Critical) => "critical",
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Option<AlertSeverity>, StoreError> {
+        match s {
+            "" => Ok(None),
+            "warning" => Ok(Some(AlertSeverity::Warning)),
+            "critical" => Ok(Some(AlertSeverity::Critical)),
+            other => Err(StoreError::Corrupt(format!(
+                "alert severity '{other}' is none of warning, critical"
+            ))),
+        }
+    }
+}
+
+/// An alert event to store.
+#[derive(Debug, Clone)]
+pub struct NewAlertEvent<'a> {
+    pub alert: i64,
+    pub t_ns: i64,
+    pub kind: AlertEventKind,
+    pub rule: &'a str,
+    /// None for an acknowledgement.
+    pub severity: Option<AlertSeverity>,
+    pub message: &'a str,
+    pub value: Option<f64>,
+}
+
+impl From<Severity> for AlertSeverity {
+    fn from(s: Severity) -> Self {
+        match s {
+            Severity::Warning => AlertSeverity::Warning,
+            Severity::Critical => AlertSeverity::Critical,
+        }
+    }
+}
+
+/// An alert event as stored.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct AlertEventRow {
+    pub alert: i64,
+    pub seq: i64,
+    pub t_ns: i64,
+    pub kind: AlertEventKind,
+    pub rule: String,
+    /// None for an acknowledgement.
+    pub severity: Option<AlertSeverity>,
+    pub message: String,
+    pub value: Option<f64>,
+}
+
+impl Store {
+    pub async fn add_alert_event(
+        &self,
+        machine: &str,
+        ev: &NewAlertEvent<'_>,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO alert_events (machine_id, alert_id, seq, t_ns, kind, rule, severity, message, value)
+             VALUES ($1, $2, (SELECT COALESCE(MAX(seq), 0) + 1 FROM alert_events WHERE machine_id = $1 AND alert_id = $2),
+                     $3, $4, $5, $6, $7, $8)",
+        )
+        .bind(machine)
+        .bind(ev.alert)
+        .bind(ev.t_ns)
+        .bind(ev.kind)
+        .bind(ev.rule)
+        .bind(AlertSeverity::column(ev.severity))
+        .bind(ev.message)
+        .bind(ev.value)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Alert events of a machine, newest first.
+    /// A machine's alert events, newest first: at most `limit`, before the cursor `(t_ns,
+    /// alert, seq)` of the last event of the previous page if given.
+    pub async fn alert_events(
+        &self,
+        machine: &str,
+        limit: i64,
+        before: Option<(i64, i64, i64)>,
+    ) -> Result<Vec<AlertEventRow>, StoreError> {
+        let (t, a, q) = before.unwrap_or((i64::MAX, i64::MAX, i64::MAX));
+        let rows = sqlx::query(
+            "SELECT alert_id, seq, t_ns, kind, rule, severity, message, value FROM alert_events
+             WHERE machine_id = $1 AND (t_ns, alert_id, seq) < ($3, $4, $5)
+             ORDER BY t_ns DESC, alert_id DESC, seq DESC LIMIT $2",
+        )
+        .bind(machine)
+        .bind(limit)
+        .bind(t)
+        .bind(a)
+        .bind(q)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(AlertEventRow {
+                    alert: r.try_get(0)?,
+                    seq: r.try_get(1)?,
+                    t_ns: r.try_get(2)?,
+                    kind: r.try_get(3)?,
+                    rule: r.try_get(4)?,
+                    severity: AlertSeverity::of_column(r.try_get::<&str, _>(5)?)?,
+                    message: r.try_get(6)?,
+                    value: r.try_get(7)?,
+                })
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,89 @@
+//! The MCAP files of each machine and their states.
+
+use serde::Serialize;
+use sqlx::Row;
+
+use super::{Store, StoreError};
+
+/// An MCAP file's state in the `mcap_files` table (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(rename_all = "lowercase")]
+pub enum FileStatus {
+    /// Being written (`.partial`).
+    Open,
+    /// Finished and renamed.
+    Closed,
+    /// Rescued up to its last flush after a crash.
+    Recovered,
+}
+
+impl Store {
+    pub async fn mcap_file_opened(
+        &self,
+        machine: &str,
+        path: &str,
+        opened_ns: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
+             ON CONFLICT (path) DO UPDATE SET status = $4, closed_ns = NULL",
+        )
+        .bind(machine)
+        .bind(path)
+        .bind(opened_ns)
+        .bind(FileStatus::Open)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Mark a file written as `partial` closed under `path` (`closed`), or rescued from a
+    /// crash (`recovered`).
+    pub async fn mcap_file_closed(
+        &self,
+        machine: &str,
+        partial: &str,
+        path: &str,
+        closed_ns: i64,
+        status: FileStatus,
+        messages: i64,
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(
+            "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
+             ON CONFLICT (path) DO NOTHING",
+        )
+        .bind(machine)
+        .bind(partial)
+        .bind(closed_ns)
+        .bind(FileStatus::Open)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE mcap_files SET path = $2, closed_ns = $3, status = $4, messages = $5 WHERE path = $1",
+        )
+        .bind(partial)
+        .bind(path)
+        .bind(closed_ns)
+        .bind(status)
+        .bind(messages)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// (path, status) of every MCAP file of a machine, oldest first.
+    pub async fn mcap_files(&self, machine: &str) -> Result<Vec<(String, FileStatus)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT path, status FROM mcap_files WHERE machine_id = $1 ORDER BY opened_ns",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+            .collect()
+    }
+}

@@ -1,0 +1,401 @@
+//! Storage of the service: SQLite through sqlx, schema in `migrations/` (embedded, applied at
+//! open), WAL with synchronous NORMAL, foreign keys on. Runtime queries in portable SQL.
+//! Shell code, with `recorder` and `recording::mcap_io` the only modules that touch files.
+
+mod alerts;
+mod cycles;
+mod diagnoses;
+mod files;
+mod samples;
+mod sets;
+
+pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
+pub use cycles::{CycleRow, CycleStatus, DetectionRow};
+pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis};
+pub use files::FileStatus;
+pub use samples::Sample;
+pub use sets::NewCompensation;
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Duration;
+
+use sqlx::Row;
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+};
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error("cannot open database {path}: {source}")]
+    Open { path: String, source: sqlx::Error },
+    #[error("cannot apply the database migrations: {0}")]
+    Migrate(#[from] sqlx::migrate::MigrateError),
+    #[error("database: {0}")]
+    Sql(#[from] sqlx::Error),
+    #[error("stored JSON: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("stored value: {0}")]
+    Corrupt(String),
+}
+
+pub use driftwatch_core::series::ErrorSample;
+
+#[derive(Clone)]
+pub struct Store {
+    pool: SqlitePool,
+}
+
+impl Store {
+    /// Open (creating if needed) the database file and apply the migrations.
+    pub async fn open(path: &Path) -> Result<Self, StoreError> {
+        let url = format!("sqlite://{}", path.display());
+        let opts = SqliteConnectOptions::from_str(&url)
+            .map_err(|source| StoreError::Open {
+                path: path.display().to_string(),
+                source,
+            })?
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            // NORMAL in WAL mode never corrupts and keeps every commit through a process crash;
+            // only a power loss can take the last commits.
+            .synchronous(SqliteSynchronous::Normal)
+            .foreign_keys(true)
+            .busy_timeout(Duration::from_secs(5));
+        let pool = SqlitePoolOptions::new()
+            .max_connections(4)
+            .connect_with(opts)
+            .await
+            .map_err(|source| StoreError::Open {
+                path: path.display().to_string(),
+                source,
+            })?;
+        sqlx::migrate!("../../migrations").run(&pool).await?;
+        Ok(Store { pool })
+    }
+
+    /// `PRAGMA integrity_check`: "ok" for a sound database.
+    pub async fn integrity_check(&self) -> Result<String, StoreError> {
+        let row = sqlx::query("PRAGMA integrity_check")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<String, _>(0)?)
+    }
+
+    pub async fn journal_mode(&self) -> Result<String, StoreError> {
+        let row = sqlx::query("PRAGMA journal_mode")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<String, _>(0)?)
+    }
+
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    pub async fn ensure_machine(
+        &self,
+        id: &str,
+        kinematics: &str,
+        now_ns: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO machines (id, kinematics, created_ns) VALUES ($1, $2, $3)
+             ON CONFLICT (id) DO UPDATE SET kinematics = excluded.kinematics",
+        )
+        .bind(id)
+        .bind(kinematics)
+        .bind(now_ns)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The latest time stored of a machine (samples, cycles, compensation sets, alert events),
+    /// ns: where a restarted simulated machine resumes.
+    pub async fn latest_time(&self, machine: &str) -> Result<Option<i64>, StoreError> {
+        let t: Option<i64> = sqlx::query_scalar(
+            "SELECT MAX(t) FROM (
+                SELECT MAX(t_ns) AS t FROM spindle_samples WHERE machine_id = $1
+                UNION ALL SELECT MAX(t_ns) FROM temperature_samples WHERE machine_id = $1
+                UNION ALL SELECT MAX(COALESCE(finished_ns, started_ns)) FROM cycles WHERE machine_id = $1
+                UNION ALL SELECT MAX(valid_from_ns) FROM compensation_sets WHERE machine_id = $1
+                UNION ALL SELECT MAX(t_ns) FROM alert_events WHERE machine_id = $1
+            )",
+        )
+        .bind(machine)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(t)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
+    use std::collections::BTreeMap;
+
+    fn temp_db(name: &str) -> std::path::PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("driftwatch-store-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join("driftwatch.db")
+    }
+
+    fn result(cycle: i64, ok: bool) -> CycleResultMsg {
+        let errors: BTreeMap<String, f64> =
+            [("EZ0B".to_string(), 12.5), ("EX0B".to_string(), 3.0)].into();
+        let sigma: BTreeMap<String, f64> =
+            [("EZ0B".to_string(), 0.2), ("EX0B".to_string(), 0.25)].into();
+        CycleResultMsg {
+            cycle,
+            t_ns: 1_000 + cycle,
+            status: if ok {
+                ResultStatus::Ok
+            } else {
+                ResultStatus::Rejected
+            },
+            reason: (!ok).then(|| "missing steps".to_string()),
+            errors: ok.then_some(errors),
+            sigma: ok.then_some(sigma),
+            residual_rms_um: ok.then_some(0.4),
+            chi2: ok.then_some(4.2),
+            dof: ok.then_some(4),
+            n_detections: Some(12),
+            nuisance: None,
+            redundancy_um: None,
+            chi2_point: None,
+            notes: None,
+        }
+    }
+
+    #[tokio::test]
+    async fn a_cycle_round_trips_with_its_detections_result_and_series() {
+        let store = Store::open(&temp_db("cycle")).await.unwrap();
+        assert_eq!(store.journal_mode().await.unwrap(), "wal");
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 1);
+        store.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
+        store
+            .add_detections(
+                "m1",
+                1,
+                &[DetectionRow {
+                    t_ns: 11,
+                    step: "B0C0/z",
+                    payload: r#"{"step":"B0C0/z"}"#.into(),
+                }],
+            )
+            .await
+            .unwrap();
+        assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
+        store.close_cycle("m1", &result(1, true), 20).await.unwrap();
+        assert!(store.open_cycles("m1").await.unwrap().is_empty());
+        assert_eq!(
+            store.result("m1", 1).await.unwrap().unwrap(),
+            result(1, true)
+        );
+        let d = store.detections("m1", 1).await.unwrap();
+        assert_eq!(d[0].1["step"], "B0C0/z");
+        store
+            .open_cycle("m1", 2, 30, "after stop", 1)
+            .await
+            .unwrap();
+        store
+            .close_cycle("m1", &result(2, false), 40)
+            .await
+            .unwrap();
+        // Only validated values make the series.
+        let series = store
+            .error_series("m1", 0, i64::MAX, true, true)
+            .await
+            .unwrap();
+        assert_eq!(series.len(), 2);
+        assert!(series.iter().all(|s| s.cycle == 1));
+        let cycles = store.cycles("m1", 10, None).await.unwrap();
+        assert_eq!(cycles[0].status, CycleStatus::Rejected);
+        assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
+        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);
+        assert_eq!(store.integrity_check().await.unwrap(), "ok");
+    }
+
+    #[tokio::test]
+    async fn foreign_keys_and_versions_are_enforced() {
+        let store = Store::open(&temp_db("fk")).await.unwrap();
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        // A detection of a cycle that was never opened is refused.
+        let row = DetectionRow {
+            t_ns: 1,
+            step: "x",
+            payload: "{}".into(),
+        };
+        assert!(store.add_detections("m1", 9, &[row]).await.is_err());
+        let v = || r#"{"errors": {"EZ0B": 1.0}, "sigma": {"EZ0B": 0.5}}"#.to_string();
+        store
+            .insert_compensation(
+                "m1",
+                &NewCompensation {
+                    version: 1,
+                    valid_from_ns: 5,
+                    source: "measured",
+                    cycle: Some(1),
+                    reason: "cycle 1",
+                    values: v(),
+                },
+            )
+            .await
+            .unwrap();
+        assert!(
+            store
+                .insert_compensation(
+                    "m1",
+                    &NewCompensation {
+                        version: 1,
+                        valid_from_ns: 6,
+                        source: "measured",
+                        cycle: Some(2),
+                        reason: "again",
+                        values: v()
+                    }
+                )
+                .await
+                .is_err()
+        );
+        store
+            .insert_compensation(
+                "m1",
+                &NewCompensation {
+                    version: 2,
+                    valid_from_ns: 7,
+                    source: "measured",
+                    cycle: Some(2),
+                    reason: "cycle 2",
+                    values: v(),
+                },
+            )
+            .await
+            .unwrap();
+        let latest = store.latest_compensation("m1").await.unwrap().unwrap();
+        assert_eq!(
+            (latest.version, latest.errors["EZ0B"], latest.sigma["EZ0B"]),
+            (2, 1.0, 0.5)
+        );
+        assert_eq!(latest.offsets["B_pivot_z_um"], 1.0);
+        assert!(
+            store
+                .insert_compensation(
+                    "m1",
+                    &NewCompensation {
+                        version: 3,
+                        valid_from_ns: 8,
+                        source: "guessed",
+                        cycle: None,
+                        reason: "bad source",
+                        values: v()
+                    }
+                )
+                .await
+                .is_err()
+        );
+    }
+
+    #[tokio::test]
+    async fn data_survives_reopening() {
+        let path = temp_db("reopen");
+        {
+            let store = Store::open(&path).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            let rows = [
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 20000.0,
+                },
+                Sample::Temperature {
+                    t_ns: 60,
+                    sensor: "ambient".into(),
+                    celsius: 20.5,
+                },
+                // A repeated time replaces the value rather than failing the batch.
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 18000.0,
+                },
+            ];
+            store.add_samples("m1", &rows).await.unwrap();
+            store
+                .mcap_file_opened("m1", "m1/2026-03-02.mcap.partial", 1)
+                .await
+                .unwrap();
+            store
+                .add_alert_event(
+                    "m1",
+                    &NewAlertEvent {
+                        alert: 1,
+                        t_ns: 5,
+                        kind: AlertEventKind::Raised,
+                        rule: "threshold:EZ0B",
+                        severity: Some(AlertSeverity::Warning),
+                        message: "EZ0B high",
+                        value: Some(31.0),
+                    },
+                )
+                .await
+                .unwrap();
+            store
+                .add_alert_event(
+                    "m1",
+                    &NewAlertEvent {
+                        alert: 1,
+                        t_ns: 6,
+                        kind: AlertEventKind::Resolved,
+                        rule: "threshold:EZ0B",
+                        severity: Some(AlertSeverity::Warning),
+                        message: "EZ0B back",
+                        value: Some(20.0),
+                    },
+                )
+                .await
+                .unwrap();
+            store.close().await;
+        }
+        let store = Store::open(&path).await.unwrap();
+        assert_eq!(
+            store.samples("m1", 0, 100).await.unwrap(),
+            vec![
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 18000.0
+                },
+                Sample::Temperature {
+                    t_ns: 60,
+                    sensor: "ambient".into(),
+                    celsius: 20.5
+                }
+            ]
+        );
+        assert!(store.samples("m1", 61, 100).await.unwrap().is_empty());
+        assert_eq!(
+            store.mcap_files("m1").await.unwrap(),
+            vec![("m1/2026-03-02.mcap.partial".to_string(), FileStatus::Open)]
+        );
+        store
+            .mcap_file_closed(
+                "m1",
+                "m1/2026-03-02.mcap.partial",
+                "m1/2026-03-02.mcap",
+                9,
+                FileStatus::Recovered,
+                42,
+            )
+            .await
+            .unwrap();
+        assert_eq!(
+            store.mcap_files("m1").await.unwrap(),
+            vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
+        );
+        assert_eq!(store.integrity_check().await.unwrap(), "ok");
+    }
+}
