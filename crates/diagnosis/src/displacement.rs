@@ -22,6 +22,7 @@ use serde::Serialize;
 use crate::cycles::DIAGNOSIS_TAUS_MIN;
 use crate::effects::TEMPERATURE_TAUS_MIN;
 use crate::lsq::lsq;
+use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
 use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
 #[derive(Debug, thiserror::Error)]
@@ -1502,153 +1503,38 @@ fn select(
     channel: &str,
     opts: &DisplacementOptions,
 ) -> Selection {
-    // Forward selection on the whitened model.
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut accepted = Vec::new();
-    let mut refused = Vec::new();
     let n_w = design.train.len() - design.ar_max;
-    let ln_n = (n_w as f64).ln();
-    let mut candidates_tested = 0;
-    let mut surrogate_bars = Vec::new();
-    while chosen.len() < opts.max_terms {
-        let m = design.matrix(&chosen, base_cols);
-        let (phi, mw, yw, sse0) = design.whitened(&m);
-        let mut scored: Vec<(f64, usize)> = (0..cands.len())
-            .filter(|j| Some(*j) != k0 && !chosen.contains(j))
-            .filter_map(|j| {
-                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
-                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
-                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
-                let f = lsq(&full, &yw);
-                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
-            })
-            .collect();
-        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
-        if chosen.is_empty() {
-            candidates_tested = scored.len();
-        }
-        // The bar: the fixed delta-BIC, and what the best of these candidates reaches on
-        // phase-randomised copies (only worth computing when the best real one passes the
-        // fixed bar).
-        let passes_fixed = scored.first().is_some_and(|s| s.0 >= opts.min_delta_bic);
-        let bar = if opts.surrogates > 0 && passes_fixed {
-            let cols: Vec<usize> = scored.iter().map(|s| s.1).collect();
-            let seed = opts.seed
-                ^ channel.bytes().fold(chosen.len() as u64, |h, b| {
-                    h.wrapping_mul(31).wrapping_add(b as u64)
-                });
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-            let b = design.surrogate_bar(&mw, &yw, &phi, &cols, opts.surrogates, &mut rng);
-            surrogate_bars.push(b);
-            b.max(opts.min_delta_bic)
-        } else {
-            opts.min_delta_bic
-        };
-        let mut took = None;
-        for &(db, j) in scored.iter().take(10) {
-            if db < bar {
-                if db >= opts.min_delta_bic {
-                    refused.push(RefusedTerm {
-                        effect: cands[j].effect,
-                        term: cands[j].term.clone(),
-                        delta_bic: db,
-                        t: f64::NAN,
-                        blocks_improved: 0,
-                        reason: format!(
-                            "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
-                            scored.len(),
-                            opts.surrogates
-                        ),
-                    });
-                }
-                break;
-            }
-            let Judged {
-                value,
-                sd,
-                t,
-                wins,
-                reason,
-            } = judge(
-                design,
-                &cands[j],
-                base_cols,
-                &[&chosen[..], &[j]].concat(),
-                &m,
-                &phi,
-                opts,
-            );
-            match reason {
-                Some(reason) => refused.push(RefusedTerm {
-                    effect: cands[j].effect,
-                    term: cands[j].term.clone(),
-                    delta_bic: db,
-                    t,
-                    blocks_improved: wins,
-                    reason,
-                }),
-                None => {
-                    took = Some((j, db, t, value, sd, wins));
-                    break;
-                }
-            }
-        }
-        let Some((j, db, t, value, sd, wins)) = took else {
-            break;
-        };
-        let ambiguous_with: Vec<String> = scored
-            .iter()
-            .filter(|(s, k)| *k != j && db - s < 10.0)
-            .take(4)
-            .map(|(_, k)| cands[*k].term.clone())
-            .collect();
-        chosen.push(j);
-        let cand = &cands[j];
-        accepted.push(Term {
-            effect: cand.effect,
-            term: cand.term.clone(),
-            unit: cand.unit,
-            value,
-            sigma: sd,
-            delta_bic: db,
-            t,
-            blocks_improved: wins,
-            heldout_before_um: f64::NAN,
-            heldout_after_um: f64::NAN,
-            ambiguous_with,
-            input: cand.input.clone(),
-            // Written once the whole channel is known.
-            statement: String::new(),
-        });
-    }
-
-    // Backward pruning: drop a term the others have made redundant.
-    loop {
-        let (phi, _, _, sse) = design.whitened(&design.matrix(&chosen, base_cols));
-        let weakest = (0..chosen.len())
-            .map(|k| {
-                let mut rest = chosen.clone();
-                rest.remove(k);
-                let (mw, yw) = design.whiten(&design.matrix(&rest, base_cols), &phi);
-                (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0));
-        match weakest {
-            Some((db, k)) if db < opts.min_delta_bic => {
-                chosen.remove(k);
-                let t = accepted.remove(k);
-                refused.push(RefusedTerm {
-                    effect: t.effect,
-                    term: t.term,
-                    delta_bic: db,
-                    t: t.t,
-                    blocks_improved: t.blocks_improved,
-                    reason: "pruned: the later terms make it redundant".into(),
-                });
-            }
-            _ => break,
-        }
-    }
+    let mut scoring = DisplacementScoring {
+        design,
+        cands,
+        base_cols,
+        k0,
+        channel,
+        opts,
+        n_w,
+        ln_n: (n_w as f64).ln(),
+        m: DMatrix::zeros(0, 0),
+        phi: Vec::new(),
+        scored: Vec::new(),
+        bar: opts.min_delta_bic,
+        accepted: Vec::new(),
+        refused: Vec::new(),
+        candidates_tested: 0,
+        surrogate_bars: Vec::new(),
+    };
+    let rules = Rules {
+        max_terms: opts.max_terms,
+        tries: 10,
+        min_worth: opts.min_delta_bic,
+    };
+    let mut chosen = stepwise(&mut scoring, &rules);
+    let DisplacementScoring {
+        mut accepted,
+        mut refused,
+        candidates_tested,
+        surrogate_bars,
+        ..
+    } = scoring;
     if opts.heldout_veto {
         veto(design, base_cols, &mut chosen, &mut accepted, &mut refused);
     }
@@ -1664,6 +1550,184 @@ fn select(
         refused,
         candidates_tested,
         surrogate_bars,
+    }
+}
+
+/// The displacement search's scoring for [`stepwise`], on the training rows whitened by the
+/// AR model of the current model's residuals: a candidate ranks by delta-BIC (`n ln(SSE0 /
+/// SSE) - ln n`) and must reach the fixed bar and what phase-randomised candidates reach by
+/// chance, then pass [`judge`]; a chosen term is worth the delta-BIC of dropping it.
+struct DisplacementScoring<'d> {
+    design: &'d Design<'d>,
+    cands: &'d [Candidate],
+    base_cols: &'d [Vec<f64>],
+    k0: Option<usize>,
+    channel: &'d str,
+    opts: &'d DisplacementOptions,
+    /// Whitened training rows, and `ln` of them.
+    n_w: usize,
+    ln_n: f64,
+    /// The current forward step: its model, AR coefficients, ranking and bar.
+    m: DMatrix<f64>,
+    phi: Vec<f64>,
+    scored: Vec<(f64, usize)>,
+    bar: f64,
+    accepted: Vec<Term>,
+    refused: Vec<RefusedTerm>,
+    candidates_tested: usize,
+    surrogate_bars: Vec<f64>,
+}
+
+impl DisplacementScoring<'_> {
+    /// The bar of a forward step after `chosen` over the ranking `scored` (model `mw`,
+    /// readings `yw`, whitened): the fixed delta-BIC, and what the best of these candidates
+    /// reaches on phase-randomised copies (only worth computing when the best real one
+    /// passes the fixed bar).
+    fn bar(&mut self, chosen: &[usize], mw: &DMatrix<f64>, yw: &DVector<f64>) -> f64 {
+        let opts = self.opts;
+        let passes_fixed = self
+            .scored
+            .first()
+            .is_some_and(|s| s.0 >= opts.min_delta_bic);
+        if opts.surrogates == 0 || !passes_fixed {
+            return opts.min_delta_bic;
+        }
+        let cols: Vec<usize> = self.scored.iter().map(|s| s.1).collect();
+        let seed = opts.seed
+            ^ self.channel.bytes().fold(chosen.len() as u64, |h, b| {
+                h.wrapping_mul(31).wrapping_add(b as u64)
+            });
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let b = self
+            .design
+            .surrogate_bar(mw, yw, &self.phi, &cols, opts.surrogates, &mut rng);
+        self.surrogate_bars.push(b);
+        b.max(opts.min_delta_bic)
+    }
+}
+
+impl Scoring for DisplacementScoring<'_> {
+    fn rank(&mut self, chosen: &[usize]) -> Vec<(usize, f64)> {
+        let design = self.design;
+        let (n_w, ln_n) = (self.n_w, self.ln_n);
+        self.m = design.matrix(chosen, self.base_cols);
+        let (phi, mw, yw, sse0) = design.whitened(&self.m);
+        let mut scored: Vec<(f64, usize)> = (0..self.cands.len())
+            .filter(|j| Some(*j) != self.k0 && !chosen.contains(j))
+            .filter_map(|j| {
+                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
+                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
+                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
+                let f = lsq(&full, &yw);
+                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
+            })
+            .collect();
+        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+        if chosen.is_empty() {
+            self.candidates_tested = scored.len();
+        }
+        self.phi = phi;
+        self.scored = scored;
+        self.bar = self.bar(chosen, &mw, &yw);
+        self.scored.iter().map(|&(db, j)| (j, db)).collect()
+    }
+
+    fn judge(&mut self, chosen: &[usize], j: usize, db: f64) -> Verdict {
+        let (cands, opts, bar) = (self.cands, self.opts, self.bar);
+        if db < bar {
+            if db >= opts.min_delta_bic {
+                self.refused.push(RefusedTerm {
+                    effect: cands[j].effect,
+                    term: cands[j].term.clone(),
+                    delta_bic: db,
+                    t: f64::NAN,
+                    blocks_improved: 0,
+                    reason: format!(
+                        "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
+                        self.scored.len(),
+                        opts.surrogates
+                    ),
+                });
+            }
+            return Verdict::Stop;
+        }
+        let Judged {
+            value,
+            sd,
+            t,
+            wins,
+            reason,
+        } = judge(
+            self.design,
+            &cands[j],
+            self.base_cols,
+            &[chosen, &[j]].concat(),
+            &self.m,
+            &self.phi,
+            opts,
+        );
+        if let Some(reason) = reason {
+            self.refused.push(RefusedTerm {
+                effect: cands[j].effect,
+                term: cands[j].term.clone(),
+                delta_bic: db,
+                t,
+                blocks_improved: wins,
+                reason,
+            });
+            return Verdict::Refuse;
+        }
+        let ambiguous_with: Vec<String> = self
+            .scored
+            .iter()
+            .filter(|(s, k)| *k != j && db - s < 10.0)
+            .take(4)
+            .map(|(_, k)| cands[*k].term.clone())
+            .collect();
+        let cand = &cands[j];
+        self.accepted.push(Term {
+            effect: cand.effect,
+            term: cand.term.clone(),
+            unit: cand.unit,
+            value,
+            sigma: sd,
+            delta_bic: db,
+            t,
+            blocks_improved: wins,
+            heldout_before_um: f64::NAN,
+            heldout_after_um: f64::NAN,
+            ambiguous_with,
+            input: cand.input.clone(),
+            // Written once the whole channel is known.
+            statement: String::new(),
+        });
+        Verdict::Take
+    }
+
+    /// Backward pruning: a term the others have made redundant is worth little.
+    fn worth(&mut self, chosen: &[usize]) -> Vec<f64> {
+        let design = self.design;
+        let (phi, _, _, sse) = design.whitened(&design.matrix(chosen, self.base_cols));
+        (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.to_vec();
+                rest.remove(k);
+                let (mw, yw) = design.whiten(&design.matrix(&rest, self.base_cols), &phi);
+                self.n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - self.ln_n
+            })
+            .collect()
+    }
+
+    fn pruned(&mut self, _chosen: &[usize], pos: usize, db: f64) {
+        let t = self.accepted.remove(pos);
+        self.refused.push(RefusedTerm {
+            effect: t.effect,
+            term: t.term,
+            delta_bic: db,
+            t: t.t,
+            blocks_improved: t.blocks_improved,
+            reason: "pruned: the later terms make it redundant".into(),
+        });
     }
 }
 

@@ -23,6 +23,8 @@ pub(crate) enum Verdict {
     Take,
     /// It fails a rule; the next-ranked one is tried.
     Refuse,
+    /// It fails a rule that the lower-ranked ones fail too; the step ends without a term.
+    Stop,
 }
 
 /// The stopping rules.
@@ -50,6 +52,7 @@ pub(crate) fn stepwise(s: &mut impl Scoring, rules: &Rules) -> Vec<usize> {
                     break;
                 }
                 Verdict::Refuse => {}
+                Verdict::Stop => break,
             }
         }
         match took {
