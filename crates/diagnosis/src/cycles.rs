@@ -3,7 +3,7 @@
 //! effect library (`effects`), ambiguity groups, what cannot be identified and what stays
 //! unexplained.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use serde::Serialize;
 
@@ -11,7 +11,7 @@ use driftwatch_core::identify::SolveOptions;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::recording::{DetectionMsg, Timed};
 
-use crate::lsq::{basis, beyond, hstack, lsq, residual_of, scan};
+use crate::lsq::{basis, lsq, residual_of, scan};
 pub use crate::rows::{
     DetectionRow, DiagnosisError, Rows, SIGMA_UM_RANGE, SIGNATURES, detection_rows,
 };
@@ -135,6 +135,9 @@ pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Ve
 use crate::effects::{Candidate, Drivers};
 use driftwatch_core::thermal_model::{Event, ModelConfig, ModelInput};
 use nalgebra::{DMatrix, DVector};
+
+mod search;
+use search::Search;
 
 /// The baseline's spindle pole basis, min.
 pub const DIAGNOSIS_TAUS_MIN: [f64; 10] =
@@ -964,1043 +967,88 @@ pub fn diagnose(
         return Err(DiagnosisError::NoDetections);
     }
     let sensors = driftwatch_core::thermal_model::sensors_of(temperatures);
-    let sigma = opts.sigma_um;
-    let mut rows = rows.clone();
-    let redundancy = redundancy(&rows, sigma);
-
+    let redundancy = redundancy(rows, opts.sigma_um);
     // Outliers against a robust baseline, removed once.
-    let mut outliers = Vec::new();
-    {
-        let flagged = screen_outliers(&rows, spindle, &opts.model, sigma, opts.outlier_sigma);
-        let mut keep = Vec::with_capacity(rows.rows.len());
-        let mut next = flagged.iter().peekable();
-        for (i, r) in rows.rows.iter().enumerate() {
-            match next.peek() {
-                Some((j, e)) if *j == i => {
-                    outliers.push(Outlier {
-                        t_ns: r.t_ns,
-                        cycle: r.cycle,
-                        step: r.step.clone(),
-                        residual_um: *e,
-                    });
-                    next.next();
-                }
-                _ => keep.push(r.clone()),
-            }
-        }
-        rows.rows = keep;
-    }
-    let n = rows.rows.len();
-    let drivers = Drivers::new(&rows, spindle, temperatures, &opts.model);
-    let times: Vec<i64> = rows.rows.iter().map(|r| r.t_ns).collect();
-    let blocks = blocks(&times);
-    let block_of: Vec<usize> = times
-        .iter()
-        .map(|t| {
-            blocks
-                .iter()
-                .position(|(a, b)| t >= a && t < b)
-                .unwrap_or(blocks.len() - 1)
-        })
-        .collect();
-    let nb = blocks.len();
-    let split = |b: usize| -> (Vec<usize>, Vec<usize>) { (0..n).partition(|i| block_of[*i] != b) };
-    let (train_last, test_last) = split(nb - 1);
-
-    // The baseline design, whitened.
-    let basis_len = 1 + drivers.spindle.len();
-    let base = baseline_matrix(&rows, &drivers.spindle, sigma);
-    let y = DVector::from_iterator(n, rows.rows.iter().map(|r| r.deviation_um / sigma));
-    let figures = |m: &DMatrix<f64>| -> (FitFigures, DVector<f64>, DVector<f64>) {
-        let f = lsq(m, &y);
-        let r = &y - m * &f.beta;
-        let dof = n.saturating_sub(f.rank).max(1);
-        let pred = heldout_prediction(m, &y, &train_last);
-        let rms = |idx: &[usize], v: &DVector<f64>| {
-            (idx.iter().map(|i| v[*i].powi(2)).sum::<f64>() / idx.len().max(1) as f64).sqrt()
-                * sigma
-        };
-        let ho = &y - &pred;
-        let (train_um, heldout_um) = (rms(&train_last, &r), rms(&test_last, &ho));
-        (
-            FitFigures {
-                parameters: f.rank,
-                chi2_dof: f.chi2 / dof as f64,
-                dof,
-                rms_train_um: train_um,
-                rms_heldout_um: heldout_um,
-                heldout_extrapolates: heldout_um > 5.0 * train_um && heldout_um > 5.0 * sigma,
-            },
-            r,
-            pred,
-        )
-    };
-    let (baseline_fig, base_resid, base_pred) = figures(&base);
-
-    // Where the baseline misses.
-    let resid_um: Vec<f64> = base_resid.iter().map(|v| v * sigma).collect();
-    let phase = phases(&rows, spindle);
-    let mut located = locate(&rows, &resid_um, sigma, 4.0);
-    group_means(
-        "phase",
-        phase.iter().map(|p| p.to_string()),
-        &resid_um,
-        sigma,
-        4.0,
-        &mut located,
-    );
-    group_means(
-        "feed",
-        rows.rows
-            .iter()
-            .map(|r| format!("{} mm/min", r.feed_mm_min)),
-        &resid_um,
-        sigma,
-        4.0,
-        &mut located,
-    );
-    group_means(
-        "spindle speed",
-        rows.rows
-            .iter()
-            .map(|r| format!("{} min^-1", r.spindle_rpm)),
-        &resid_um,
-        sigma,
-        4.0,
-        &mut located,
-    );
-    located.sort_by(|a, b| b.t.abs().total_cmp(&a.t.abs()));
-
+    let (rows, outliers) = search::without_outliers(rows, spindle, opts);
+    let mut s = Search::new(rows, spindle, temperatures, opts);
+    // The baseline, and where it misses.
+    let baseline = s.figures(&s.base);
+    let resid_um: Vec<f64> = baseline.resid.iter().map(|v| v * opts.sigma_um).collect();
+    let phase = phases(&s.rows, spindle);
+    let located = s.locate(&resid_um, &phase);
     // The library, whitened, and what the baseline cannot tell apart from it.
-    let q0 = basis(&base);
-    let mut cands: Vec<Candidate> =
-        crate::effects::candidates(&rows, &drivers, opts.model.n_ref_rpm);
-    if !drivers.missing_spins.is_empty() {
-        // The switch to a spindle log with the cycles' spins: the baseline's own response to
-        // the heat the log lacks, scaled by one parameter.
-        let f = lsq(&base, &y);
-        let col: Vec<f64> = (0..n)
-            .map(|i| {
-                let r = &rows.rows[i];
-                (0..rows.params.len())
-                    .map(|j| {
-                        r.sensitivity[j]
-                            * drivers
-                                .missing_spins
-                                .iter()
-                                .enumerate()
-                                .map(|(b, g)| f.beta[j * basis_len + 1 + b] * g[i])
-                                .sum::<f64>()
-                    })
-                    .sum()
-            })
-            .collect();
-        cands.push(Candidate {
-            effect: "measurement_heating",
-            term: "baseline response x cycle spins missing from the spindle log".into(),
-            unit: "1".into(),
-            columns: vec![col],
-            signature: "all".into(),
-            shape_kind: crate::effects::ShapeKind::MissingSpins,
-            shape: drivers.missing_spins.clone(),
-            profiled: 0,
-            step_ns: None,
-        });
-    }
-    // Steps at a time located by likelihood (a change at an unknown time), one candidate per
-    // signature that can jump, at its best time against the baseline.
-    {
-        cands.extend(step_candidates(&rows, &q0, &base_resid, sigma));
-    }
-    let xs: Vec<DMatrix<f64>> = cands
-        .iter()
-        .map(|c| DMatrix::from_fn(n, c.columns.len(), |i, j| c.columns[j][i] / sigma))
-        .collect();
-    let mut structural = vec![false; cands.len()];
-    let mut drivers_t = Vec::new();
-    let mut free_of = vec![0.0; cands.len()];
-    for (i, x) in xs.iter().enumerate() {
-        let (d, free) = scan(&q0, &base_resid, x);
-        free_of[i] = free;
-        structural[i] = free < opts.structural_tol || x.norm() == 0.0;
-        if !structural[i] {
-            drivers_t.push((format!("{}: {}", cands[i].effect, cands[i].term), d.sqrt()));
-        }
-    }
-    drivers_t.sort_by(|a, b| b.1.total_cmp(&a.1));
-    drivers_t.truncate(10);
-    // sigma sqrt((10 + ln n) / (n ms (1 - R^2))) with the columns already in sigma units;
-    // where |t| >= min_t binds harder (small n), its bar instead.
-    let bar = (opts.min_delta_bic + (n as f64).ln()).max(opts.min_t * opts.min_t);
-    let thresholds: Vec<Threshold> = cands
-        .iter()
-        .zip(&xs)
-        .zip(&free_of)
-        .filter(|((c, x), free)| c.columns.len() == 1 && x.norm() > 0.0 && **free > 0.0)
-        .map(|((c, x), free)| Threshold {
-            effect: c.effect,
-            term: c.term.clone(),
-            unit: c.unit.clone(),
-            amplitude: (bar / (x.norm_squared() * free)).sqrt(),
-        })
-        .collect();
-    let two_days = drivers.span_h >= 48.0;
-    let mut not_tested = Vec::new();
-    let allowed: Vec<bool> = cands
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let slow = crate::effects::effect(c.effect).is_some_and(|e| e.slow)
-                || c.term.contains("Fourier");
-            if slow && !two_days && !structural[i] {
-                not_tested.push(format!("{}: {}", c.effect, c.term));
-            }
-            !structural[i] && (two_days || !slow)
-        })
-        .collect();
-
-    let mut not_identifiable = Vec::new();
-    for e in crate::effects::EFFECTS {
-        // Only what this recording can test (slow terms need two days).
-        // A step is a change, not a level: whether the level is identifiable is asked of the
-        // other shapes.
-        let mut of: Vec<usize> = (0..cands.len())
-            .filter(|i| {
-                cands[*i].effect == e.id
-                    && cands[*i].shape_kind != crate::effects::ShapeKind::Step
-                    && (allowed[*i] || structural[*i])
-            })
-            .collect();
-        if of.is_empty() || of.iter().any(|i| free_of[*i] >= opts.practical_tol) {
-            continue;
-        }
-        // Describe it by its strongest signature.
-        of.sort_by(|a, b| xs[*b].norm().total_cmp(&xs[*a].norm()));
-        let most_free = of.iter().map(|i| free_of[*i]).fold(0.0, f64::max);
-        let first = &cands[of[0]];
-        let sig_col = |c: &Candidate| -> Vec<f64> {
-            rows.signature(&c.signature)
-                .map(|j| rows.rows.iter().map(|r| r.signature[j]).collect())
-                .or_else(|| {
-                    rows.param(&c.signature)
-                        .map(|j| rows.rows.iter().map(|r| r.sensitivity[j]).collect())
-                })
-                .unwrap_or_default()
-        };
-        // The combination of design parameters that makes up its signature.
-        let s = sig_col(first);
-        let sn = s.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let (mut best, mut best_cos) = (String::new(), 0.0);
-        if sn > 0.0 {
-            let a = DMatrix::from_fn(rows.rows.len(), rows.params.len(), |i, j| {
-                rows.rows[i].sensitivity[j]
-            });
-            let f = lsq(&a, &DVector::from_column_slice(&s));
-            let fitted = &a * &f.beta;
-            best_cos = (fitted.dot(&DVector::from_column_slice(&s))
-                / (fitted.norm() * sn).max(1e-300))
-            .abs();
-            let mut parts: Vec<(f64, String)> = rows
-                .params
-                .iter()
-                .enumerate()
-                .map(|(j, name)| (f.beta[j] * a.column(j).norm() / sn, name.clone()))
-                .filter(|(w, _)| w.abs() > 0.1)
-                .collect();
-            parts.sort_by(|x, y| y.0.abs().total_cmp(&x.0.abs()));
-            best = parts
-                .iter()
-                .map(|(_, n)| {
-                    let j = rows.param(n).unwrap_or(0);
-                    format!("{:+.3} {n}", f.beta[j])
-                })
-                .collect::<Vec<_>>()
-                .join(" ");
-        }
-        let reason = if sn == 0.0 {
-            "no reading of this plan is sensitive to it".to_string()
-        } else if most_free >= opts.structural_tol {
-            format!(
-                "in practice: at most {:.1} % of any of its time shapes lies outside the baseline; its signature is {best} (cos {best_cos:.3})",
-                100.0 * most_free
-            )
-        } else {
-            format!(
-                "every time shape of it lies in the baseline: per unit, its signature is {best} (cos {best_cos:.3})"
-            )
-        };
-        not_identifiable.push(NotIdentifiable {
-            effect: e.id.into(),
-            label: e.label.into(),
-            confounded_with: best,
-            cos: best_cos,
-            reason,
-            split_by: e.split_by.into(),
-        });
-    }
-    // Forward selection and backward pruning over a baseline (the baseline, or the baseline
-    // with a periodic discrepancy the library has no shape for).
-    let ln_n = (n as f64).ln();
-    // A candidate's BIC penalty: its columns and its profiled (located) parameters.
-    let k_of = |i: usize| (xs[i].ncols() + cands[i].profiled) as f64 * ln_n;
-    let model_with = |base: &DMatrix<f64>, chosen: &[usize]| -> DMatrix<f64> {
-        let cols: Vec<&DMatrix<f64>> = chosen.iter().map(|i| &xs[*i]).collect();
-        hstack(base, &cols)
-    };
-    let search = |base: &DMatrix<f64>| -> (Vec<usize>, Vec<Refused>, BTreeMap<usize, usize>) {
-        let model_of = |chosen: &[usize]| model_with(base, chosen);
-        let mut chosen: Vec<usize> = Vec::new();
-        let mut refused: Vec<Refused> = Vec::new();
-        let mut blocks_better: BTreeMap<usize, usize> = BTreeMap::new();
-        while chosen.len() < opts.max_terms {
-            let m = model_of(&chosen);
-            let q = basis(&m);
-            let e = residual_of(&m, &y);
-            let mut ranked: Vec<(usize, f64)> = (0..cands.len())
-                .filter(|i| allowed[*i] && !chosen.contains(i))
-                .map(|i| {
-                    let (d, _) = scan(&q, &e, &xs[i]);
-                    (i, d - k_of(i))
-                })
-                .filter(|(_, b)| *b >= opts.min_delta_bic)
-                .collect();
-            ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
-            let mut took = None;
-            for &(i, dbic) in ranked.iter().take(5) {
-                let mut with = chosen.clone();
-                with.push(i);
-                let mw = model_of(&with);
-                let f = lsq(&mw, &y);
-                let dof = n.saturating_sub(f.rank).max(1);
-                let scale = (f.chi2 / dof as f64).max(1.0);
-                let k = xs[i].ncols();
-                let off = mw.ncols() - k;
-                let b = f.beta.rows(off, k).into_owned();
-                let c = f.cov.view((off, off), (k, k)).into_owned() * scale;
-                let t = match c.clone().cholesky() {
-                    Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
-                    None => 0.0,
-                };
-                let foot = &xs[i] * &b * sigma;
-                let peak = foot.amax();
-                let max_um =
-                    crate::effects::effect(cands[i].effect).map_or(f64::INFINITY, |e| e.max_um);
-                let mut improved = 0;
-                for blk in 0..nb {
-                    let (tr, te) = split(blk);
-                    if heldout_sse(&mw, &y, &tr, &te) < heldout_sse(&m, &y, &tr, &te) {
-                        improved += 1;
-                    }
-                }
-                let need = (opts.min_blocks_improved * nb as f64 - 1e-9).ceil() as usize;
-                let reason = if t < opts.min_t {
-                    Some(format!("|t| {t:.1} < {}", opts.min_t))
-                } else if peak > max_um {
-                    Some(format!(
-                        "footprint {peak:.1} um beyond the plausible {max_um} um"
-                    ))
-                } else if improved < need {
-                    Some(format!(
-                        "held-out fit better in {improved} of {nb} blocks (needs {need})"
-                    ))
-                } else {
-                    None
-                };
-                match reason {
-                    None => {
-                        blocks_better.insert(i, improved);
-                        took = Some(i);
-                        break;
-                    }
-                    Some(reason) => {
-                        if !refused
-                            .iter()
-                            .any(|r| r.term == cands[i].term && r.effect == cands[i].effect)
-                        {
-                            refused.push(Refused {
-                                effect: cands[i].effect.into(),
-                                term: cands[i].term.clone(),
-                                delta_bic: dbic,
-                                t,
-                                reason,
-                            });
-                        }
-                    }
-                }
-            }
-            match took {
-                Some(i) => chosen.push(i),
-                None => break,
-            }
-        }
-        // Backward pruning.
-        loop {
-            if chosen.is_empty() {
-                break;
-            }
-            let full = lsq(&model_of(&chosen), &y).chi2;
-            let weakest = chosen
-                .iter()
-                .enumerate()
-                .map(|(pos, i)| {
-                    let mut without = chosen.clone();
-                    without.remove(pos);
-                    let d = lsq(&model_of(&without), &y).chi2 - full;
-                    (pos, d - k_of(*i))
-                })
-                .min_by(|a, b| a.1.total_cmp(&b.1));
-            match weakest {
-                Some((pos, d)) if d < opts.min_delta_bic => {
-                    chosen.remove(pos);
-                }
-                Some(_) | None => break,
-            }
-        }
-
-        (chosen, refused, blocks_better)
-    };
-    let (mut chosen, mut refused, mut blocks_better) = search(&base);
-
-    // A periodic residual at a period the library has no shape for: modelled as a
-    // discrepancy (so that no library term is forced into its shape), then the search again.
-    let mut base_eff = base.clone();
-    let mut periodic = None;
-    {
-        let m = model_with(&base, &chosen);
-        if let Some((found, block)) = periodic_scan(&rows, &m, &y, sigma, opts) {
-            base_eff = hstack(&base, &[&block]);
-            (chosen, refused, blocks_better) = search(&base_eff);
-            periodic = Some((found, block.ncols()));
-        }
-    }
-    let model_of = |chosen: &[usize]| model_with(&base_eff, chosen);
-    let p0 = base_eff.ncols();
-
-    // A signature class (or the design parameters) times a time shape, whitened.
-    let class_times = |names: &[String], shape: &[Vec<f64>]| -> DMatrix<f64> {
-        let cols: Vec<Vec<f64>> = names
-            .iter()
-            .filter_map(|nm| crate::effects::signature_column(&rows, nm))
-            .collect();
-        DMatrix::from_fn(n, cols.len() * shape.len(), |i, c| {
-            let (j, g) = (c / shape.len(), c % shape.len());
-            cols[j][i] * shape[g][i] / sigma
-        })
-    };
-
-    // Terms that coincide in time with an earlier accepted effect (their footprint, beyond the
-    // baseline, lies within what the design parameters do in that effect's time shape) must
-    // be justified on held-out data (delta-chi2 summed over the blocks, each predicted from
-    // the others, of min_delta_bic or more); then they are kept but not named, else they are
-    // folded into that effect's group.
-    let mut coincident: BTreeMap<usize, GroupMember> = BTreeMap::new();
-    let mut folded: Vec<(usize, GroupMember)> = Vec::new();
-    // Candidate `c` as a member of the other's group.
-    let member =
-        |c: usize, cos: f64, dchi: f64, vv: f64, comparable: bool, reason: String| GroupMember {
-            effect: cands[c].effect.into(),
-            term: cands[c].term.clone(),
-            cos,
-            delta_chi2: dchi,
-            footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
-            parameters: xs[c].ncols() + cands[c].profiled,
-            comparable,
-            reason,
-        };
-    {
-        let qb = basis(&base_eff);
-        let mut pos = 1;
-        while pos < chosen.len() {
-            let ti = chosen[pos];
-            let m = model_of(&chosen);
-            let f = lsq(&m, &y);
-            let off = p0 + chosen[..pos].iter().map(|j| xs[*j].ncols()).sum::<usize>();
-            let ft = &xs[ti] * f.beta.rows(off, xs[ti].ncols());
-            let v = &ft - &qb * qb.tr_mul(&ft);
-            let vv = v.norm_squared();
-            let mut hit = None;
-            for &ei in &chosen[..pos] {
-                if cands[ei].effect == cands[ti].effect || vv == 0.0 {
-                    continue;
-                }
-                let xe = hstack(&class_times(&rows.params, &cands[ei].shape), &[&xs[ei]]);
-                let Some(be) = beyond(&qb, &xe, opts.structural_tol) else {
-                    continue;
-                };
-                let cos = (be.tr_mul(&v).norm_squared() / vv).sqrt();
-                if cos > opts.ambiguity_cos {
-                    hit = Some((ei, cos));
-                    break;
-                }
-            }
-            let Some((ei, cos)) = hit else {
-                pos += 1;
-                continue;
-            };
-            let without: Vec<usize> = chosen.iter().copied().filter(|j| *j != ti).collect();
-            let mo = model_of(&without);
-            let ho: f64 = (0..nb)
-                .map(|blk| {
-                    let (tr, te) = split(blk);
-                    heldout_sse(&mo, &y, &tr, &te) - heldout_sse(&m, &y, &tr, &te)
-                })
-                .sum();
-            let dchi = lsq(&mo, &y).chi2 - f.chi2;
-            if ho < opts.min_delta_bic {
-                // Not a rival to its name: the data do not justify it on its own.
-                folded.push((
-                    ei,
-                    member(
-                        ti,
-                        cos,
-                        dchi,
-                        vv,
-                        false,
-                        format!(
-                            "coincides in time with it (cos {cos:.2} with the design parameters in its time shape) and the held-out blocks gain only delta-chi2 {ho:.1} from it (under {}): not accepted on its own",
-                            opts.min_delta_bic
-                        ),
-                    ),
-                ));
-                chosen.remove(pos);
-            } else {
-                coincident.insert(
-                    ti,
-                    member(
-                        ei,
-                        cos,
-                        dchi,
-                        vv,
-                        true,
-                        format!(
-                            "it coincides in time with this accepted term (cos {cos:.2} with the design parameters in its time shape); kept because the held-out blocks gain delta-chi2 {ho:.1} from it, but it may be more of that effect"
-                        ),
-                    ),
-                );
-                pos += 1;
-            }
-        }
-    }
-
+    let q0 = basis(&s.base);
+    s.candidates(&q0, &baseline.resid);
+    let drivers = s.screen(&q0, &baseline.resid);
+    let thresholds = s.thresholds();
+    let not_tested = s.allow();
+    let not_identifiable = s.not_identifiable();
+    // Forward selection and backward pruning, again over a periodic discrepancy if one is
+    // found; then the terms that coincide in time with an earlier one.
+    let (base_eff, mut sel, periodic) = s.periodic(s.select(&s.base));
+    let coincidences = s.coincidences(&base_eff, &mut sel.chosen);
     // The final fit, each term's figures and its ambiguity group.
-    let mfin = model_of(&chosen);
-    let (final_fig, fin_resid, fin_pred) = figures(&mfin);
-    let ffin = lsq(&mfin, &y);
-    let dof = n.saturating_sub(ffin.rank).max(1);
-    let scale = (ffin.chi2 / dof as f64).max(1.0);
-    let mut accepted = Vec::new();
-    let mut footprints = Vec::new();
-    let mut off = p0;
-    for (pos, &i) in chosen.iter().enumerate() {
-        let c = &cands[i];
-        let k = xs[i].ncols();
-        let b = ffin.beta.rows(off, k).into_owned();
-        let cov = ffin.cov.view((off, off), (k, k)).into_owned() * scale;
-        off += k;
-        let foot = &xs[i] * &b * sigma;
-        let rest: Vec<usize> = chosen
-            .iter()
-            .enumerate()
-            .filter(|(p, _)| *p != pos)
-            .map(|(_, j)| *j)
-            .collect();
-        let mrest = model_of(&rest);
-        let full_chi2 = ffin.chi2;
-        let dbic = lsq(&mrest, &y).chi2 - full_chi2 - k_of(i);
-        let t = match cov.clone().cholesky() {
-            Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
-            None => 0.0,
-        };
-        let (ho_before, ho_after) = {
-            let sse = |m: &DMatrix<f64>| heldout_sse(m, &y, &train_last, &test_last);
-            let rms = |s: f64| (s / test_last.len().max(1) as f64).sqrt() * sigma;
-            (rms(sse(&mrest)), rms(sse(&mfin)))
-        };
-        // Ambiguity: other explanations of this term's footprint beyond the rest: each other
-        // candidate; each signature class in the same time shape (jointly); the classes of
-        // other effects together (a combination, up to 24 columns); the pose-shaped effects'
-        // candidates together. An alternative explains it comparably when it carries the
-        // footprint but for a relative 1e-3 (the plan cannot tell them apart, whatever the
-        // data), or when it fits as well: the lesser of what it leaves of the footprint and
-        // how much worse it fits the data, plus 2 per parameter it has beyond the term's,
-        // under min_delta_bic. Such an alternative of another effect and the term is not
-        // named.
-        let qr = basis(&mrest);
-        let chi2_rest = lsq(&mrest, &y).chi2;
-        let e_rest = residual_of(&mrest, &y);
-        let v = {
-            let f = &xs[i] * &b;
-            &f - &qr * qr.tr_mul(&f)
-        };
-        let vv = v.norm_squared();
-        let k_term = (k + c.profiled) as f64;
-        let alt = |x: &DMatrix<f64>, profiled: usize| -> Option<Alternative> {
-            let bs = beyond(&qr, x, opts.structural_tol)?;
-            let dv = bs.tr_mul(&v).norm_squared();
-            let miss = (vv - dv).max(0.0);
-            let data = chi2_rest - bs.tr_mul(&e_rest).norm_squared() - full_chi2;
-            // Two per parameter beyond the term's (Akaike's charge: does it predict the data
-            // as well, not would BIC pick it).
-            let extra = ((bs.ncols() + profiled) as f64 - k_term).max(0.0) * 2.0;
-            Some(Alternative {
-                cos: (dv / vv).sqrt(),
-                miss,
-                data,
-                parameters: bs.ncols() + profiled,
-                comparable: miss < 1e-3 * vv || miss.min(data) + extra < opts.min_delta_bic,
-            })
-        };
-        let mut group: Vec<GroupMember> = Vec::new();
-        let member = |effect: &str, term: String, a: &Alternative, why: &str| -> GroupMember {
-            GroupMember {
-                effect: effect.into(),
-                term,
-                cos: a.cos,
-                delta_chi2: a.data,
-                footprint_left_chi2: a.miss,
-                parameters: a.parameters,
-                comparable: a.comparable,
-                reason: format!(
-                    "{why}: cos {:.3} with its footprint, which it carries but for chi2 {:.1}; the data fit {} by chi2 {:.1} with it in place of the term ({} parameter{}){}",
-                    a.cos,
-                    a.miss,
-                    if a.data >= 0.0 { "worse" } else { "better" },
-                    a.data.abs(),
-                    a.parameters,
-                    if a.parameters == 1 { "" } else { "s" },
-                    if a.comparable {
-                        if a.miss < 1e-3 * vv {
-                            ": the plan cannot tell them apart"
-                        } else {
-                            ": it explains the data comparably"
-                        }
-                    } else {
-                        ""
-                    }
-                ),
-            }
-        };
-        if vv > 0.0 {
-            for (j, x) in xs.iter().enumerate() {
-                if j == i || chosen.contains(&j) || structural[j] || !allowed[j] {
-                    continue;
-                }
-                if let Some(a) = alt(x, cands[j].profiled)
-                    && (a.cos > opts.ambiguity_cos || a.comparable)
-                {
-                    group.push(member(
-                        cands[j].effect,
-                        cands[j].term.clone(),
-                        &a,
-                        "another candidate",
-                    ));
-                }
-            }
-            let mut others: Vec<(&'static str, Vec<String>, DMatrix<f64>)> = Vec::new();
-            for (cls, names) in crate::effects::signature_classes(&rows) {
-                let Some(effect) = crate::effects::class_effect(cls, c.shape_kind) else {
-                    continue;
-                };
-                if effect == c.effect {
-                    continue;
-                }
-                let x = class_times(&names, &c.shape);
-                if let Some(a) = alt(&x, c.profiled)
-                    && (a.cos > opts.ambiguity_cos || a.comparable)
-                {
-                    group.push(member(
-                        effect,
-                        format!("{} x the same time shape", names.join(", ")),
-                        &a,
-                        &format!("{} in the same time shape", names.join(", ")),
-                    ));
-                }
-                others.push((effect, names, x));
-            }
-            let alone = group.iter().any(|g| g.effect != c.effect && g.comparable);
-            let union_cols: usize = others.iter().map(|o| o.2.ncols()).sum();
-            if !alone && others.len() > 1 && union_cols <= 24 {
-                let refs: Vec<&DMatrix<f64>> = others.iter().map(|o| &o.2).collect();
-                let xu = hstack(&DMatrix::zeros(n, 0), &refs);
-                if let Some(a) = alt(&xu, c.profiled)
-                    && a.comparable
-                {
-                    // Which classes make up the combination: their share of the footprint.
-                    let xt = &xu - &qr * qr.tr_mul(&xu);
-                    let fit = lsq(&xt, &v);
-                    let all: Vec<String> = others.iter().flat_map(|o| o.1.clone()).collect();
-                    let mut col = 0;
-                    for (effect, names, x) in &others {
-                        let kc = x.ncols();
-                        let part = xt.columns(col, kc) * fit.beta.rows(col, kc);
-                        col += kc;
-                        let share = part.norm() / vv.sqrt();
-                        if share > 0.2 {
-                            group.push(member(
-                                effect,
-                                format!(
-                                    "{} x the same time shape, in combination",
-                                    names.join(", ")
-                                ),
-                                &a,
-                                &format!(
-                                    "a combination of {} in the same time shape, {} {:.0} % of it",
-                                    all.join(", "),
-                                    names.join(", "),
-                                    100.0 * share
-                                ),
-                            ));
-                        }
-                    }
-                }
-            }
-            for eff in ["c_indexing", "rotary_backlash"] {
-                if eff == c.effect {
-                    continue;
-                }
-                let of: Vec<usize> = (0..cands.len())
-                    .filter(|j| cands[*j].effect == eff && allowed[*j])
-                    .collect();
-                let x = hstack(
-                    &DMatrix::zeros(n, 0),
-                    &of.iter().map(|j| &xs[*j]).collect::<Vec<_>>(),
-                );
-                if of.len() < 2 || x.ncols() > 6 {
-                    continue;
-                }
-                if let Some(a) = alt(&x, 0)
-                    && (a.cos > opts.ambiguity_cos || a.comparable)
-                {
-                    group.push(member(
-                        eff,
-                        "all its shapes together".into(),
-                        &a,
-                        "its shapes together",
-                    ));
-                }
-            }
-        }
-        for (ei, m) in &folded {
-            if *ei == i {
-                group.push(m.clone());
-            }
-        }
-        let coincides = coincident.get(&i).cloned();
-        if let Some(m) = &coincides {
-            group.push(m.clone());
-        }
-        let named =
-            coincides.is_none() && !group.iter().any(|g| g.effect != c.effect && g.comparable);
-        group.sort_by(|a, b| {
-            b.comparable
-                .cmp(&a.comparable)
-                .then(b.cos.total_cmp(&a.cos))
-        });
-        let e = crate::effects::effect(c.effect);
-        let mut split_by: Vec<&str> = Vec::new();
-        for g in group.iter().map(|g| g.effect.as_str()).chain([c.effect]) {
-            if let Some(s) = crate::effects::effect(g).map(|e| e.split_by)
-                && !split_by.contains(&s)
-            {
-                split_by.push(s);
-            }
-        }
-        let names: Vec<String> = if k == 1 {
-            vec![c.term.clone()]
-        } else {
-            (0..k)
-                .map(|j| format!("{} [{}]", c.term, if j == 0 { "cos" } else { "sin" }))
-                .collect()
-        };
-        let parameters: Vec<Parameter> = names
-            .into_iter()
-            .enumerate()
-            .map(|(j, name)| Parameter {
-                name,
-                unit: c.unit.clone(),
-                value: b[j],
-                sigma: cov[(j, j)].max(0.0).sqrt(),
-            })
-            .collect();
-        let amplitude = (foot.norm_squared() / n as f64).sqrt();
-        let peak = foot.amax();
-        let mut other_effects: Vec<&str> = Vec::new();
-        for g in &group {
-            if g.effect != c.effect && !other_effects.contains(&g.effect.as_str()) {
-                other_effects.push(g.effect.as_str());
-            }
-        }
-        let label_of =
-            |id: &str| crate::effects::effect(id).map_or(id.to_string(), |e| e.label.to_string());
-        let head = if named {
-            e.map_or(c.effect.to_string(), |e| e.label.to_string())
-        } else {
-            let mut alts: Vec<String> = vec![label_of(c.effect)];
-            for g in &group {
-                let l = label_of(&g.effect);
-                if (g.comparable || coincides.as_ref().is_some_and(|m| m.effect == g.effect))
-                    && !alts.contains(&l)
-                {
-                    alts.push(l);
-                }
-            }
-            format!("Not named, one of: {}", alts.join(" OR "))
-        };
-        let statement = format!(
-            "{}: {} = {} ({}); it moves the readings by {:.2} um RMS, {:.2} um at most, against a reading noise of {:.2} um; held-out RMS {:.3} -> {:.3} um.{}",
-            head,
-            c.term,
-            parameters
-                .iter()
-                .map(|p| format!("{:.3} +- {:.3} {}", p.value, p.sigma, p.unit))
-                .collect::<Vec<_>>()
-                .join(", "),
-            e.map_or("", |e| e.physics),
-            amplitude,
-            peak,
-            sigma,
-            ho_before,
-            ho_after,
-            if other_effects.is_empty() {
-                String::new()
-            } else if named {
-                format!(
-                    " Footprints like it: {}, but none fits the data as well; to split them further: {}.",
-                    other_effects.join(", "),
-                    split_by.join("; ")
-                )
-            } else {
-                format!(
-                    " The plan cannot tell it from {}; to split them: {}.",
-                    other_effects.join(", "),
-                    split_by.join("; ")
-                )
-            }
-        );
-        let improved = blocks_better.get(&i).copied().unwrap_or(0);
-        footprints.push((c.term.clone(), foot.iter().copied().collect::<Vec<f64>>()));
-        accepted.push(Accepted {
-            effect: c.effect.into(),
-            label: e.map_or(c.effect, |e| e.label).into(),
-            term: c.term.clone(),
-            parameters,
-            amplitude_rms_um: amplitude,
-            peak_um: peak,
-            t,
-            delta_bic: dbic,
-            heldout_rms_before_um: ho_before,
-            heldout_rms_after_um: ho_after,
-            blocks_improved: improved,
-            blocks: nb,
-            named,
-            step_ns: c.step_ns,
-            ambiguity_group: group,
-            split_by: split_by.join("; "),
-            statement,
-            model_input: model_input(
-                &c.signature,
-                c.term.split_once(" x ").map_or("", |x| x.1),
-                &rows.locations,
-                &sensors,
-            ),
-        });
-    }
+    let fin = s.final_fit(base_eff, sel.chosen, sel.blocks_better, coincidences);
+    let (accepted, footprints) = s.accepted(&fin, &sensors);
+    let mut refused = sel.refused;
     refused.retain(|r| {
         !accepted
             .iter()
             .any(|a| a.term == r.term && a.effect == r.effect)
     });
-
-    // Per channel, before and after.
-    let mut channels = Vec::new();
-    let mut steps: Vec<String> = rows.rows.iter().map(|r| r.step.clone()).collect();
-    steps.sort();
-    steps.dedup();
-    let frac = (n.saturating_sub(ffin.rank)) as f64 / n as f64;
-    let frac0 = (n.saturating_sub(lsq(&base, &y).rank)) as f64 / n as f64;
-    let ho_b = &y - &base_pred;
-    let ho_f = &y - &fin_pred;
-    for s in &steps {
-        let idx: Vec<usize> = (0..n).filter(|i| &rows.rows[*i].step == s).collect();
-        let tr: Vec<usize> = idx
-            .iter()
-            .copied()
-            .filter(|i| block_of[*i] != nb - 1)
-            .collect();
-        let te: Vec<usize> = idx
-            .iter()
-            .copied()
-            .filter(|i| block_of[*i] == nb - 1)
-            .collect();
-        let ms = |v: &DVector<f64>, ix: &[usize]| {
-            ix.iter().map(|i| v[*i].powi(2)).sum::<f64>() / ix.len().max(1) as f64
-        };
-        channels.push(ChannelFigures {
-            channel: s.clone(),
-            n: idx.len(),
-            chi2_dof_before: ms(&base_resid, &idx) / frac0.max(1e-9),
-            chi2_dof_after: ms(&fin_resid, &idx) / frac.max(1e-9),
-            rms_train_before_um: ms(&base_resid, &tr).sqrt() * sigma,
-            rms_train_after_um: ms(&fin_resid, &tr).sqrt() * sigma,
-            rms_heldout_before_um: ms(&ho_b, &te).sqrt() * sigma,
-            rms_heldout_after_um: ms(&ho_f, &te).sqrt() * sigma,
-        });
-    }
-
-    // What stays structured.
-    let fin_um: Vec<f64> = fin_resid.iter().map(|v| v * sigma).collect();
-    let mut worst = (1.0_f64, String::new());
-    for s in &steps {
-        let mut idx: Vec<usize> = (0..n).filter(|i| &rows.rows[*i].step == s).collect();
-        idx.sort_by_key(|i| rows.rows[*i].t_ns);
-        let series: Vec<f64> = idx.iter().map(|i| fin_um[*i]).collect();
-        if let Some(lb) = driftwatch_core::stats::ljung_box(&series, 10)
-            && lb.p_value < worst.0
-        {
-            worst = (lb.p_value, s.clone());
-        }
-    }
-    // The periodic discrepancy, sized in the final fit.
-    let periodic = periodic.map(|(mut found, kb)| {
-        let pb = rows.params.len();
-        let at = base.ncols();
-        let bb = ffin.beta.rows(at, kb).into_owned();
-        let cv = ffin.cov.view((at, at), (kb, kb)).into_owned() * scale;
-        let block = base_eff.columns(at, kb).into_owned();
-        let foot = &block * &bb * sigma;
-        found.amplitude_rms_um = (foot.norm_squared() / n as f64).sqrt();
-        found.peak_um = foot.amax();
-        let mut carried: Vec<Parameter> = (0..pb)
-            .map(|j| {
-                let (c, s_) = (bb[j], bb[j + pb]);
-                let a = c.hypot(s_);
-                let var = if a > 0.0 {
-                    (c * c * cv[(j, j)] + 2.0 * c * s_ * cv[(j, j + pb)] + s_ * s_ * cv[(j + pb, j + pb)])
-                        / (a * a)
-                } else {
-                    cv[(j, j)]
-                };
-                Parameter {
-                    name: rows.params[j].clone(),
-                    unit: crate::effects::signature_unit(&rows.params[j]).into(),
-                    value: a,
-                    sigma: var.max(0.0).sqrt(),
-                }
-            })
-            .filter(|p| p.value >= 3.0 * p.sigma)
-            .collect();
-        carried.sort_by(|a, b| (b.value / b.sigma.max(1e-300)).total_cmp(&(a.value / a.sigma.max(1e-300))));
-        found.statement = format!(
-            "A periodic residual with a period of {:.1} min{} moves the readings by {:.2} um RMS ({:.2} um at most; delta-BIC {:.0}), carried by {}. No effect of the library has this time shape (its periodic shapes are the 24-h and 12-h pairs): it is modelled as a discrepancy so that no library term is forced into it, and left unexplained. Log what cycles at this period (coolant or chiller, hydraulics) to name it.",
-            found.period_min,
-            if found.aliases_min.is_empty() {
-                String::new()
-            } else {
-                format!(
-                    " (or {} min: at this cycle cadence the data cannot tell them apart)",
-                    found
-                        .aliases_min
-                        .iter()
-                        .map(|p| format!("{p:.1}"))
-                        .collect::<Vec<_>>()
-                        .join(" or ")
-                )
-            },
-            found.amplitude_rms_um,
-            found.peak_um,
-            found.delta_bic,
-            if carried.is_empty() {
-                "no single design parameter".to_string()
-            } else {
-                carried
-                    .iter()
-                    .map(|p| format!("{} ({:.2} +- {:.2} {})", p.name, p.value, p.sigma, p.unit))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            }
-        );
-        found.carried_by = carried;
-        found
-    });
-    let mut unexplained = Vec::new();
-    if final_fig.chi2_dof > 1.2 || worst.0 < 1e-3 || periodic.is_some() {
-        let mut where_ = locate(&rows, &fin_um, sigma, 4.0);
-        group_means(
-            "phase",
-            phase.iter().map(|p| p.to_string()),
-            &fin_um,
-            sigma,
-            4.0,
-            &mut where_,
-        );
-        where_.sort_by(|a, b| b.t.abs().total_cmp(&a.t.abs()));
-        where_.truncate(8);
-        let mut per_cycle: BTreeMap<i64, (i64, f64, usize)> = BTreeMap::new();
-        for (r, e) in rows.rows.iter().zip(&fin_um) {
-            let c = per_cycle.entry(r.cycle).or_insert((r.t_ns, 0.0, 0));
-            c.1 += e;
-            c.2 += 1;
-        }
-        let mut when: Vec<(i64, f64)> = per_cycle
-            .values()
-            .map(|(t, s, k)| (*t, s / *k as f64))
-            .collect();
-        when.sort_by(|a, b| b.1.abs().total_cmp(&a.1.abs()));
-        when.truncate(5);
-        let ms = fin_um.iter().map(|v| v * v).sum::<f64>() / n as f64;
-        unexplained.push(Unexplained {
-            chi2_dof: final_fig.chi2_dof,
-            ljung_box_p: worst.0,
-            channel: worst.1.clone(),
-            located: where_,
-            when,
-            discrepancy_um: match &periodic {
-                Some(p) => p
-                    .amplitude_rms_um
-                    .hypot((ms - sigma * sigma).max(0.0).sqrt()),
-                None => (ms - sigma * sigma).max(0.0).sqrt(),
-            },
-            periodic: periodic.clone(),
-        });
-    }
-
-    let heldout: Vec<bool> = block_of.iter().map(|b| *b == nb - 1).collect();
-    let mut cyc: Vec<i64> = rows.rows.iter().map(|r| r.cycle).collect();
-    cyc.sort_unstable();
-    cyc.dedup();
+    // Per channel, before and after; what stays structured.
+    let channels = s.channels(&baseline, &fin);
+    let periodic = periodic.map(|(found, kb)| s.size_periodic(&fin, found, kb));
+    let unexplained = s.unexplained(&fin, &phase, periodic);
+    let series = series(&s, &baseline, &fin, resid_um, footprints, q0);
     Ok(Diagnosis {
-        sigma_um: sigma,
-        readings: n,
-        cycles: cyc.len(),
-        span_h: drivers.span_h,
-        blocks,
+        sigma_um: opts.sigma_um,
+        readings: s.n,
+        cycles: series.cycle.iter().collect::<BTreeSet<_>>().len(),
+        span_h: s.drivers.span_h,
+        blocks: s.blocks,
         redundancy,
-        baseline: baseline_fig,
+        baseline: baseline.figures,
         outliers,
         located,
-        drivers: drivers_t,
+        drivers,
         accepted,
         refused,
         not_identifiable,
         not_tested,
         thresholds,
         unexplained,
-        final_fit: final_fig,
+        final_fit: fin.fit.figures,
         channels,
-        series: Series {
-            t_ns: times,
-            cycle: rows.rows.iter().map(|r| r.cycle).collect(),
-            step: rows.rows.iter().map(|r| r.step.clone()).collect(),
-            baseline_um: resid_um,
-            final_um: fin_um,
-            heldout_baseline_um: base_pred.iter().map(|v| v * sigma).collect(),
-            heldout_final_um: fin_pred.iter().map(|v| v * sigma).collect(),
-            heldout,
-            footprints,
-            deviation_um: rows.rows.iter().map(|r| r.deviation_um).collect(),
-            baseline_basis: q0,
-        },
+        series,
     })
+}
+
+/// The per-row series of search `s` for plots: baseline residuals `resid_um`, the final ones,
+/// the held-out predictions and the accepted terms' `footprints`, and the baseline's
+/// orthonormal basis `q0`.
+fn series(
+    s: &Search,
+    baseline: &search::Fit,
+    fin: &search::Final,
+    resid_um: Vec<f64>,
+    footprints: Vec<(String, Vec<f64>)>,
+    q0: DMatrix<f64>,
+) -> Series {
+    let (rows, sigma, nb) = (&s.rows, s.sigma, s.blocks.len());
+    Series {
+        t_ns: s.times.clone(),
+        cycle: rows.rows.iter().map(|r| r.cycle).collect(),
+        step: rows.rows.iter().map(|r| r.step.clone()).collect(),
+        baseline_um: resid_um,
+        final_um: fin.fit.resid.iter().map(|v| v * sigma).collect(),
+        heldout_baseline_um: baseline.pred.iter().map(|v| v * sigma).collect(),
+        heldout_final_um: fin.fit.pred.iter().map(|v| v * sigma).collect(),
+        heldout: s.block_of.iter().map(|b| *b == nb - 1).collect(),
+        footprints,
+        deviation_um: rows.rows.iter().map(|r| r.deviation_um).collect(),
+        baseline_basis: q0,
+    }
 }
 
 /// Run the diagnosis on already-read inputs.

@@ -22,6 +22,7 @@ use serde::Serialize;
 use crate::cycles::DIAGNOSIS_TAUS_MIN;
 use crate::effects::TEMPERATURE_TAUS_MIN;
 use crate::lsq::lsq;
+use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
 use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
 #[derive(Debug, thiserror::Error)]
@@ -1025,13 +1026,7 @@ fn diagnose_channel(
     opts: &DisplacementOptions,
 ) -> Result<ChannelDiagnosis, DisplacementError> {
     // Thinned samples.
-    let step = (opts.thin_s * 1e9) as i64;
-    let mut keep = Vec::new();
-    for (i, &t) in c.t_ns.iter().enumerate() {
-        if keep.last().is_none_or(|&k: &usize| t - c.t_ns[k] >= step) {
-            keep.push(i);
-        }
-    }
+    let keep = thinned(&c.t_ns, (opts.thin_s * 1e9) as i64);
     let pick = |v: &[f64]| -> Vec<f64> { keep.iter().map(|&i| v[i]).collect() };
     let times: Vec<i64> = keep.iter().map(|&i| c.t_ns[i]).collect();
     let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
@@ -1065,23 +1060,14 @@ fn diagnose_channel(
         blocks,
         ar_max: opts.ar_max.max(1),
     };
-    let ones = vec![1.0; keep.len()];
 
     // Baseline: one spindle mode, its time constant by the training fit (the offset alone
     // without a spindle log).
-    let mut best: Option<(f64, usize)> = None;
-    for k in (0..DIAGNOSIS_TAUS_MIN.len()).filter(|_| spins) {
-        let m = design.matrix(&[k], std::slice::from_ref(&ones));
-        let (_, f) = design.fit(&m);
-        if best.is_none_or(|b| f.rms_train_um < b.0) {
-            best = Some((f.rms_train_um, k));
-        }
-    }
-    let k0 = best.map(|b| b.1);
-    let mut base_cols = vec![ones.clone()];
-    if let Some(k) = k0 {
-        base_cols.push(cands[k].x.clone());
-    }
+    let ones = vec![1.0; keep.len()];
+    let k0 = spins.then(|| spindle_mode(&design, &ones)).flatten();
+    let base_cols: Vec<Vec<f64>> = std::iter::once(ones)
+        .chain(k0.map(|k| cands[k].x.clone()))
+        .collect();
     let m0 = design.matrix(&[], &base_cols);
     let (base_pred, baseline) = design.fit(&m0);
     let b0 = design.ols(&m0, &design.train);
@@ -1100,68 +1086,13 @@ fn diagnose_channel(
         .collect();
 
     // Locate: phases, the periodic part and its driver.
-    let mut phases: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
-    for &i in &design.train {
-        phases
-            .entry(phase_of(times[i], changes))
-            .or_default()
-            .push(resid[i]);
-    }
-    let phases: Vec<PhaseResidual> = phases
-        .into_iter()
-        .map(|(phase, v)| PhaseResidual {
-            phase,
-            n: v.len(),
-            mean_um: v.iter().sum::<f64>() / v.len() as f64,
-            rms_um: rms(v.iter().copied()),
-        })
+    let phases = phase_residuals(&design.train, &times, changes, &resid);
+    let temps_now: Vec<(String, Vec<f64>)> = sensors
+        .iter()
+        .enumerate()
+        .map(|(s, name)| (name.clone(), pick(&c.temps[s][0])))
         .collect();
-    let tt: Vec<f64> = design.train.iter().map(|&i| t_min[i]).collect();
-    let band = |v: &[f64]| -> Vec<f64> {
-        let tr: Vec<f64> = design.train.iter().map(|&i| v[i]).collect();
-        let slow = moving_average(&tt, &tr, opts.band_min.1);
-        tr.iter().zip(slow).map(|(a, b)| a - b).collect()
-    };
-    let rb = band(&resid);
-    let (period, amp) = strongest_period(&tt, &rb, opts.band_min);
-    // A line, not the noise's highest point: a logged temperature swings with it, or it
-    // stands 5 times above the band's median amplitude (white noise reaches about 4).
-    let median_amp = {
-        let mut a = Vec::new();
-        let mut p = opts.band_min.0;
-        while p <= opts.band_min.1 {
-            a.push(strongest_period(&tt, &rb, (p, p)).1);
-            p += 0.25;
-        }
-        driftwatch_core::stats::median(&a).unwrap_or(0.0)
-    };
-    // The driver: among the sensors that swing at the residual's period (within 20 %), the
-    // one whose band correlates best with it; else the best-correlated of all, unmatched.
-    let periodic = period.is_finite().then(|| {
-        let mut best: Option<(bool, f64, String, f64)> = None;
-        for (s, sensor) in sensors.iter().enumerate() {
-            let tb = band(&pick(&c.temps[s][0]));
-            let r = corr(&rb, &tb);
-            let p = strongest_period(&tt, &tb, opts.band_min).0;
-            let matched = ((p - period) / period).abs() < 0.2 && r.abs() >= 0.3;
-            if best
-                .as_ref()
-                .is_none_or(|b| (matched, r.abs()) > (b.0, b.1.abs()))
-            {
-                best = Some((matched, r, sensor.clone(), p));
-            }
-        }
-        Periodic {
-            period_min: period,
-            amplitude_um: amp,
-            band_rms_um: rms(rb.iter().copied()),
-            matched: best.as_ref().is_some_and(|b| b.0),
-            driver_r: best.as_ref().map_or(0.0, |b| b.1),
-            driver_period_min: best.as_ref().map_or(f64::NAN, |b| b.3),
-            driver: best.map(|b| b.2),
-        }
-    });
-    let periodic = periodic.filter(|p| p.matched || p.amplitude_um >= 5.0 * median_amp);
+    let periodic = periodic_of(&design.train, &t_min, &resid, &temps_now, opts);
 
     let Selection {
         chosen,
@@ -1175,76 +1106,9 @@ fn diagnose_channel(
     let final_resid: Vec<f64> = (0..keep.len())
         .map(|i| design.y[i] - final_pred[i])
         .collect();
-    let temps_now: Vec<(String, Vec<f64>)> = sensors
-        .iter()
-        .enumerate()
-        .map(|(s, name)| (name.clone(), pick(&c.temps[s][0])))
-        .collect();
-    let unexplained = locate_departure(&t_min, &final_resid, &temps_now).map(|d| Unexplained {
-        ar1: final_fit.ar1,
-        ljung_box_p: final_fit.ljung_box_p,
-        structured: final_fit.ar1.abs() > 0.5 && final_fit.ljung_box_p < 0.01,
-        from_h: t_min[d.from] / 60.0,
-        to_h: t_min[d.to] / 60.0,
-        mean_um: d.mean,
-        drivers: d.drivers,
-        onset: locate_onset(&t_min, &final_resid, &temps_now),
-    });
+    let unexplained = unexplained_of(&t_min, &final_resid, &temps_now, &final_fit);
 
-    // Transients after each speed change, on the full-rate readings (30-min smoothing).
-    let full_t: Vec<f64> = c.t_ns.iter().map(|t| (t - t0) as f64 / 6e10).collect();
-    let ys = moving_average(&full_t, &c.y, 30.0);
-    let interp = |p: &DVector<f64>| -> Vec<f64> {
-        let ts: Vec<f64> = t_min.clone();
-        let raw: Vec<f64> = full_t
-            .iter()
-            .map(|t| {
-                let k = ts.partition_point(|x| x <= t);
-                match k {
-                    0 => p[0],
-                    k if k >= ts.len() => p[ts.len() - 1],
-                    k => {
-                        let w = (t - ts[k - 1]) / (ts[k] - ts[k - 1]);
-                        p[k - 1] * (1.0 - w) + p[k] * w
-                    }
-                }
-            })
-            .collect();
-        moving_average(&full_t, &raw, 30.0)
-    };
-    let (base_full, final_full) = (interp(&base_pred), interp(&final_pred));
-    let mut transients = Vec::new();
-    for (k, &(t_change, rpm)) in changes.iter().enumerate() {
-        let from = if k == 0 { 0.0 } else { changes[k - 1].1 };
-        let end = changes.get(k + 1).map_or(i64::MAX, |c| c.0);
-        // From 15 min after the change (beyond the smoothing) to 15 min before the next,
-        // at most 4 h.
-        let a = t_change + 900_000_000_000;
-        let b = end
-            .saturating_sub(900_000_000_000)
-            .min(t_change + 4 * 3_600_000_000_000);
-        let idx: Vec<usize> = (0..c.t_ns.len())
-            .filter(|&i| c.t_ns[i] >= a && c.t_ns[i] <= b)
-            .collect();
-        if idx.len() < 10 {
-            continue;
-        }
-        let ex = |v: &[f64]| excursion(&idx.iter().map(|&i| v[i]).collect::<Vec<_>>());
-        let (e, at) = ex(&ys);
-        if e < opts.min_overshoot_um {
-            continue;
-        }
-        transients.push(Transient {
-            at_h: (t_change - t0) as f64 / 3.6e12,
-            from_rpm: from,
-            to_rpm: rpm,
-            excursion_um: e,
-            after_min: (c.t_ns[idx[at]] - t_change) as f64 / 6e10,
-            baseline_excursion_um: ex(&base_full).0,
-            final_excursion_um: ex(&final_full).0,
-        });
-    }
-
+    let transients = transients(c, t0, &t_min, changes, (&base_pred, &final_pred), opts);
     let overshoots = !transients.is_empty();
     for (t, &j) in accepted.iter_mut().zip(&chosen) {
         t.statement = statement(
@@ -1283,6 +1147,202 @@ fn diagnose_channel(
     };
     d.statements = statements_of(&d, changes, baseline_name, opts);
     Ok(d)
+}
+
+/// What the final fit (`final_fit`, residuals `final_resid` at `t_min`) leaves: where it
+/// departs from zero, with the temperatures `temps` that follow it and the onset of a late
+/// drift; none when it does not depart.
+fn unexplained_of(
+    t_min: &[f64],
+    final_resid: &[f64],
+    temps: &[(String, Vec<f64>)],
+    final_fit: &Fit,
+) -> Option<Unexplained> {
+    locate_departure(t_min, final_resid, temps).map(|d| Unexplained {
+        ar1: final_fit.ar1,
+        ljung_box_p: final_fit.ljung_box_p,
+        structured: final_fit.ar1.abs() > 0.5 && final_fit.ljung_box_p < 0.01,
+        from_h: t_min[d.from] / 60.0,
+        to_h: t_min[d.to] / 60.0,
+        mean_um: d.mean,
+        drivers: d.drivers,
+        onset: locate_onset(t_min, final_resid, temps),
+    })
+}
+
+/// The samples at times `t_ns` kept when thinned to one per `step` ns.
+fn thinned(t_ns: &[i64], step: i64) -> Vec<usize> {
+    let mut keep = Vec::new();
+    for (i, &t) in t_ns.iter().enumerate() {
+        if keep.last().is_none_or(|&k: &usize| t - t_ns[k] >= step) {
+            keep.push(i);
+        }
+    }
+    keep
+}
+
+/// The baseline's spindle mode: the pole of [`DIAGNOSIS_TAUS_MIN`] (candidate index) whose
+/// one-mode fit with the offset `ones` has the lowest training RMS.
+fn spindle_mode(design: &Design, ones: &[f64]) -> Option<usize> {
+    let mut best: Option<(f64, usize)> = None;
+    for k in 0..DIAGNOSIS_TAUS_MIN.len() {
+        let m = design.matrix(&[k], &[ones.to_vec()]);
+        let (_, f) = design.fit(&m);
+        if best.is_none_or(|b| f.rms_train_um < b.0) {
+            best = Some((f.rms_train_um, k));
+        }
+    }
+    best.map(|b| b.1)
+}
+
+/// The baseline's residuals `resid` on the training rows `train` by the phase of the
+/// spindle program (`changes`) at their times.
+fn phase_residuals(
+    train: &[usize],
+    times: &[i64],
+    changes: &[(i64, f64)],
+    resid: &[f64],
+) -> Vec<PhaseResidual> {
+    let mut phases: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
+    for &i in train {
+        phases
+            .entry(phase_of(times[i], changes))
+            .or_default()
+            .push(resid[i]);
+    }
+    phases
+        .into_iter()
+        .map(|(phase, v)| PhaseResidual {
+            phase,
+            n: v.len(),
+            mean_um: v.iter().sum::<f64>() / v.len() as f64,
+            rms_um: rms(v.iter().copied()),
+        })
+        .collect()
+}
+
+/// The periodic part of the baseline's residuals `resid` on the training rows `train`
+/// (times `t_min`) in the band `opts.band_min`, and its driver among the temperatures
+/// `temps` (each sensor's reading per row); none when it is not a line.
+fn periodic_of(
+    train: &[usize],
+    t_min: &[f64],
+    resid: &[f64],
+    temps: &[(String, Vec<f64>)],
+    opts: &DisplacementOptions,
+) -> Option<Periodic> {
+    let tt: Vec<f64> = train.iter().map(|&i| t_min[i]).collect();
+    let band = |v: &[f64]| -> Vec<f64> {
+        let tr: Vec<f64> = train.iter().map(|&i| v[i]).collect();
+        let slow = moving_average(&tt, &tr, opts.band_min.1);
+        tr.iter().zip(slow).map(|(a, b)| a - b).collect()
+    };
+    let rb = band(resid);
+    let (period, amp) = strongest_period(&tt, &rb, opts.band_min);
+    // A line, not the noise's highest point: a logged temperature swings with it, or it
+    // stands 5 times above the band's median amplitude (white noise reaches about 4).
+    let median_amp = {
+        let mut a = Vec::new();
+        let mut p = opts.band_min.0;
+        while p <= opts.band_min.1 {
+            a.push(strongest_period(&tt, &rb, (p, p)).1);
+            p += 0.25;
+        }
+        driftwatch_core::stats::median(&a).unwrap_or(0.0)
+    };
+    // The driver: among the sensors that swing at the residual's period (within 20 %), the
+    // one whose band correlates best with it; else the best-correlated of all, unmatched.
+    let periodic = period.is_finite().then(|| {
+        let mut best: Option<(bool, f64, String, f64)> = None;
+        for (sensor, temp) in temps {
+            let tb = band(temp);
+            let r = corr(&rb, &tb);
+            let p = strongest_period(&tt, &tb, opts.band_min).0;
+            let matched = ((p - period) / period).abs() < 0.2 && r.abs() >= 0.3;
+            if best
+                .as_ref()
+                .is_none_or(|b| (matched, r.abs()) > (b.0, b.1.abs()))
+            {
+                best = Some((matched, r, sensor.clone(), p));
+            }
+        }
+        Periodic {
+            period_min: period,
+            amplitude_um: amp,
+            band_rms_um: rms(rb.iter().copied()),
+            matched: best.as_ref().is_some_and(|b| b.0),
+            driver_r: best.as_ref().map_or(0.0, |b| b.1),
+            driver_period_min: best.as_ref().map_or(f64::NAN, |b| b.3),
+            driver: best.map(|b| b.2),
+        }
+    });
+    periodic.filter(|p| p.matched || p.amplitude_um >= 5.0 * median_amp)
+}
+
+/// Transients after each speed change, on the full-rate readings of `c` (30-min smoothing),
+/// with what the baseline and the final model (`preds`, on the thinned times `t_min`) make
+/// of them.
+fn transients(
+    c: &Columns,
+    t0: i64,
+    t_min: &[f64],
+    changes: &[(i64, f64)],
+    (base_pred, final_pred): (&DVector<f64>, &DVector<f64>),
+    opts: &DisplacementOptions,
+) -> Vec<Transient> {
+    let full_t: Vec<f64> = c.t_ns.iter().map(|t| (t - t0) as f64 / 6e10).collect();
+    let ys = moving_average(&full_t, &c.y, 30.0);
+    let interp = |p: &DVector<f64>| -> Vec<f64> {
+        let ts = t_min;
+        let raw: Vec<f64> = full_t
+            .iter()
+            .map(|t| {
+                let k = ts.partition_point(|x| x <= t);
+                match k {
+                    0 => p[0],
+                    k if k >= ts.len() => p[ts.len() - 1],
+                    k => {
+                        let w = (t - ts[k - 1]) / (ts[k] - ts[k - 1]);
+                        p[k - 1] * (1.0 - w) + p[k] * w
+                    }
+                }
+            })
+            .collect();
+        moving_average(&full_t, &raw, 30.0)
+    };
+    let (base_full, final_full) = (interp(base_pred), interp(final_pred));
+    let mut transients = Vec::new();
+    for (k, &(t_change, rpm)) in changes.iter().enumerate() {
+        let from = if k == 0 { 0.0 } else { changes[k - 1].1 };
+        let end = changes.get(k + 1).map_or(i64::MAX, |c| c.0);
+        // From 15 min after the change (beyond the smoothing) to 15 min before the next,
+        // at most 4 h.
+        let a = t_change + 900_000_000_000;
+        let b = end
+            .saturating_sub(900_000_000_000)
+            .min(t_change + 4 * 3_600_000_000_000);
+        let idx: Vec<usize> = (0..c.t_ns.len())
+            .filter(|&i| c.t_ns[i] >= a && c.t_ns[i] <= b)
+            .collect();
+        if idx.len() < 10 {
+            continue;
+        }
+        let ex = |v: &[f64]| excursion(&idx.iter().map(|&i| v[i]).collect::<Vec<_>>());
+        let (e, at) = ex(&ys);
+        if e < opts.min_overshoot_um {
+            continue;
+        }
+        transients.push(Transient {
+            at_h: (t_change - t0) as f64 / 3.6e12,
+            from_rpm: from,
+            to_rpm: rpm,
+            excursion_um: e,
+            after_min: (c.t_ns[idx[at]] - t_change) as f64 / 6e10,
+            baseline_excursion_um: ex(&base_full).0,
+            final_excursion_um: ex(&final_full).0,
+        });
+    }
+    transients
 }
 
 /// What the diagnosis of one channel found, in words.
@@ -1502,153 +1562,38 @@ fn select(
     channel: &str,
     opts: &DisplacementOptions,
 ) -> Selection {
-    // Forward selection on the whitened model.
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut accepted = Vec::new();
-    let mut refused = Vec::new();
     let n_w = design.train.len() - design.ar_max;
-    let ln_n = (n_w as f64).ln();
-    let mut candidates_tested = 0;
-    let mut surrogate_bars = Vec::new();
-    while chosen.len() < opts.max_terms {
-        let m = design.matrix(&chosen, base_cols);
-        let (phi, mw, yw, sse0) = design.whitened(&m);
-        let mut scored: Vec<(f64, usize)> = (0..cands.len())
-            .filter(|j| Some(*j) != k0 && !chosen.contains(j))
-            .filter_map(|j| {
-                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
-                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
-                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
-                let f = lsq(&full, &yw);
-                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
-            })
-            .collect();
-        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
-        if chosen.is_empty() {
-            candidates_tested = scored.len();
-        }
-        // The bar: the fixed delta-BIC, and what the best of these candidates reaches on
-        // phase-randomised copies (only worth computing when the best real one passes the
-        // fixed bar).
-        let passes_fixed = scored.first().is_some_and(|s| s.0 >= opts.min_delta_bic);
-        let bar = if opts.surrogates > 0 && passes_fixed {
-            let cols: Vec<usize> = scored.iter().map(|s| s.1).collect();
-            let seed = opts.seed
-                ^ channel.bytes().fold(chosen.len() as u64, |h, b| {
-                    h.wrapping_mul(31).wrapping_add(b as u64)
-                });
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-            let b = design.surrogate_bar(&mw, &yw, &phi, &cols, opts.surrogates, &mut rng);
-            surrogate_bars.push(b);
-            b.max(opts.min_delta_bic)
-        } else {
-            opts.min_delta_bic
-        };
-        let mut took = None;
-        for &(db, j) in scored.iter().take(10) {
-            if db < bar {
-                if db >= opts.min_delta_bic {
-                    refused.push(RefusedTerm {
-                        effect: cands[j].effect,
-                        term: cands[j].term.clone(),
-                        delta_bic: db,
-                        t: f64::NAN,
-                        blocks_improved: 0,
-                        reason: format!(
-                            "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
-                            scored.len(),
-                            opts.surrogates
-                        ),
-                    });
-                }
-                break;
-            }
-            let Judged {
-                value,
-                sd,
-                t,
-                wins,
-                reason,
-            } = judge(
-                design,
-                &cands[j],
-                base_cols,
-                &[&chosen[..], &[j]].concat(),
-                &m,
-                &phi,
-                opts,
-            );
-            match reason {
-                Some(reason) => refused.push(RefusedTerm {
-                    effect: cands[j].effect,
-                    term: cands[j].term.clone(),
-                    delta_bic: db,
-                    t,
-                    blocks_improved: wins,
-                    reason,
-                }),
-                None => {
-                    took = Some((j, db, t, value, sd, wins));
-                    break;
-                }
-            }
-        }
-        let Some((j, db, t, value, sd, wins)) = took else {
-            break;
-        };
-        let ambiguous_with: Vec<String> = scored
-            .iter()
-            .filter(|(s, k)| *k != j && db - s < 10.0)
-            .take(4)
-            .map(|(_, k)| cands[*k].term.clone())
-            .collect();
-        chosen.push(j);
-        let cand = &cands[j];
-        accepted.push(Term {
-            effect: cand.effect,
-            term: cand.term.clone(),
-            unit: cand.unit,
-            value,
-            sigma: sd,
-            delta_bic: db,
-            t,
-            blocks_improved: wins,
-            heldout_before_um: f64::NAN,
-            heldout_after_um: f64::NAN,
-            ambiguous_with,
-            input: cand.input.clone(),
-            // Written once the whole channel is known.
-            statement: String::new(),
-        });
-    }
-
-    // Backward pruning: drop a term the others have made redundant.
-    loop {
-        let (phi, _, _, sse) = design.whitened(&design.matrix(&chosen, base_cols));
-        let weakest = (0..chosen.len())
-            .map(|k| {
-                let mut rest = chosen.clone();
-                rest.remove(k);
-                let (mw, yw) = design.whiten(&design.matrix(&rest, base_cols), &phi);
-                (n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - ln_n, k)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0));
-        match weakest {
-            Some((db, k)) if db < opts.min_delta_bic => {
-                chosen.remove(k);
-                let t = accepted.remove(k);
-                refused.push(RefusedTerm {
-                    effect: t.effect,
-                    term: t.term,
-                    delta_bic: db,
-                    t: t.t,
-                    blocks_improved: t.blocks_improved,
-                    reason: "pruned: the later terms make it redundant".into(),
-                });
-            }
-            _ => break,
-        }
-    }
+    let mut scoring = DisplacementScoring {
+        design,
+        cands,
+        base_cols,
+        k0,
+        channel,
+        opts,
+        n_w,
+        ln_n: (n_w as f64).ln(),
+        m: DMatrix::zeros(0, 0),
+        phi: Vec::new(),
+        scored: Vec::new(),
+        bar: opts.min_delta_bic,
+        accepted: Vec::new(),
+        refused: Vec::new(),
+        candidates_tested: 0,
+        surrogate_bars: Vec::new(),
+    };
+    let rules = Rules {
+        max_terms: opts.max_terms,
+        tries: 10,
+        min_worth: opts.min_delta_bic,
+    };
+    let mut chosen = stepwise(&mut scoring, &rules);
+    let DisplacementScoring {
+        mut accepted,
+        mut refused,
+        candidates_tested,
+        surrogate_bars,
+        ..
+    } = scoring;
     if opts.heldout_veto {
         veto(design, base_cols, &mut chosen, &mut accepted, &mut refused);
     }
@@ -1664,6 +1609,184 @@ fn select(
         refused,
         candidates_tested,
         surrogate_bars,
+    }
+}
+
+/// The displacement search's scoring for [`stepwise`], on the training rows whitened by the
+/// AR model of the current model's residuals: a candidate ranks by delta-BIC (`n ln(SSE0 /
+/// SSE) - ln n`) and must reach the fixed bar and what phase-randomised candidates reach by
+/// chance, then pass [`judge`]; a chosen term is worth the delta-BIC of dropping it.
+struct DisplacementScoring<'d> {
+    design: &'d Design<'d>,
+    cands: &'d [Candidate],
+    base_cols: &'d [Vec<f64>],
+    k0: Option<usize>,
+    channel: &'d str,
+    opts: &'d DisplacementOptions,
+    /// Whitened training rows, and `ln` of them.
+    n_w: usize,
+    ln_n: f64,
+    /// The current forward step: its model, AR coefficients, ranking and bar.
+    m: DMatrix<f64>,
+    phi: Vec<f64>,
+    scored: Vec<(f64, usize)>,
+    bar: f64,
+    accepted: Vec<Term>,
+    refused: Vec<RefusedTerm>,
+    candidates_tested: usize,
+    surrogate_bars: Vec<f64>,
+}
+
+impl DisplacementScoring<'_> {
+    /// The bar of a forward step after `chosen` over the ranking `scored` (model `mw`,
+    /// readings `yw`, whitened): the fixed delta-BIC, and what the best of these candidates
+    /// reaches on phase-randomised copies (only worth computing when the best real one
+    /// passes the fixed bar).
+    fn bar(&mut self, chosen: &[usize], mw: &DMatrix<f64>, yw: &DVector<f64>) -> f64 {
+        let opts = self.opts;
+        let passes_fixed = self
+            .scored
+            .first()
+            .is_some_and(|s| s.0 >= opts.min_delta_bic);
+        if opts.surrogates == 0 || !passes_fixed {
+            return opts.min_delta_bic;
+        }
+        let cols: Vec<usize> = self.scored.iter().map(|s| s.1).collect();
+        let seed = opts.seed
+            ^ self.channel.bytes().fold(chosen.len() as u64, |h, b| {
+                h.wrapping_mul(31).wrapping_add(b as u64)
+            });
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let b = self
+            .design
+            .surrogate_bar(mw, yw, &self.phi, &cols, opts.surrogates, &mut rng);
+        self.surrogate_bars.push(b);
+        b.max(opts.min_delta_bic)
+    }
+}
+
+impl Scoring for DisplacementScoring<'_> {
+    fn rank(&mut self, chosen: &[usize]) -> Vec<(usize, f64)> {
+        let design = self.design;
+        let (n_w, ln_n) = (self.n_w, self.ln_n);
+        self.m = design.matrix(chosen, self.base_cols);
+        let (phi, mw, yw, sse0) = design.whitened(&self.m);
+        let mut scored: Vec<(f64, usize)> = (0..self.cands.len())
+            .filter(|j| Some(*j) != self.k0 && !chosen.contains(j))
+            .filter_map(|j| {
+                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
+                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
+                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
+                let f = lsq(&full, &yw);
+                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
+            })
+            .collect();
+        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+        if chosen.is_empty() {
+            self.candidates_tested = scored.len();
+        }
+        self.phi = phi;
+        self.scored = scored;
+        self.bar = self.bar(chosen, &mw, &yw);
+        self.scored.iter().map(|&(db, j)| (j, db)).collect()
+    }
+
+    fn judge(&mut self, chosen: &[usize], j: usize, db: f64) -> Verdict {
+        let (cands, opts, bar) = (self.cands, self.opts, self.bar);
+        if db < bar {
+            if db >= opts.min_delta_bic {
+                self.refused.push(RefusedTerm {
+                    effect: cands[j].effect,
+                    term: cands[j].term.clone(),
+                    delta_bic: db,
+                    t: f64::NAN,
+                    blocks_improved: 0,
+                    reason: format!(
+                        "delta-BIC {db:.1} below what the best of {} phase-randomised candidates reaches by chance here ({bar:.1}, the highest of {} replicates)",
+                        self.scored.len(),
+                        opts.surrogates
+                    ),
+                });
+            }
+            return Verdict::Stop;
+        }
+        let Judged {
+            value,
+            sd,
+            t,
+            wins,
+            reason,
+        } = judge(
+            self.design,
+            &cands[j],
+            self.base_cols,
+            &[chosen, &[j]].concat(),
+            &self.m,
+            &self.phi,
+            opts,
+        );
+        if let Some(reason) = reason {
+            self.refused.push(RefusedTerm {
+                effect: cands[j].effect,
+                term: cands[j].term.clone(),
+                delta_bic: db,
+                t,
+                blocks_improved: wins,
+                reason,
+            });
+            return Verdict::Refuse;
+        }
+        let ambiguous_with: Vec<String> = self
+            .scored
+            .iter()
+            .filter(|(s, k)| *k != j && db - s < 10.0)
+            .take(4)
+            .map(|(_, k)| cands[*k].term.clone())
+            .collect();
+        let cand = &cands[j];
+        self.accepted.push(Term {
+            effect: cand.effect,
+            term: cand.term.clone(),
+            unit: cand.unit,
+            value,
+            sigma: sd,
+            delta_bic: db,
+            t,
+            blocks_improved: wins,
+            heldout_before_um: f64::NAN,
+            heldout_after_um: f64::NAN,
+            ambiguous_with,
+            input: cand.input.clone(),
+            // Written once the whole channel is known.
+            statement: String::new(),
+        });
+        Verdict::Take
+    }
+
+    /// Backward pruning: a term the others have made redundant is worth little.
+    fn worth(&mut self, chosen: &[usize]) -> Vec<f64> {
+        let design = self.design;
+        let (phi, _, _, sse) = design.whitened(&design.matrix(chosen, self.base_cols));
+        (0..chosen.len())
+            .map(|k| {
+                let mut rest = chosen.to_vec();
+                rest.remove(k);
+                let (mw, yw) = design.whiten(&design.matrix(&rest, self.base_cols), &phi);
+                self.n_w as f64 * (lsq(&mw, &yw).chi2 / sse).ln() - self.ln_n
+            })
+            .collect()
+    }
+
+    fn pruned(&mut self, _chosen: &[usize], pos: usize, db: f64) {
+        let t = self.accepted.remove(pos);
+        self.refused.push(RefusedTerm {
+            effect: t.effect,
+            term: t.term,
+            delta_bic: db,
+            t: t.t,
+            blocks_improved: t.blocks_improved,
+            reason: "pruned: the later terms make it redundant".into(),
+        });
     }
 }
 

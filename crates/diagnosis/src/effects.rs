@@ -597,86 +597,83 @@ impl Drivers {
 /// Every candidate of the library for these rows and drivers. `n_ref_rpm` scales the speed
 /// shapes.
 pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
-    let sig = |name: &str| -> Option<Vec<f64>> {
-        if let Some(j) = rows.param(name) {
-            return Some(rows.rows.iter().map(|r| r.sensitivity[j]).collect());
-        }
-        let j = rows.signature(name)?;
-        Some(rows.rows.iter().map(|r| r.signature[j]).collect())
-    };
+    let mut out = Vec::new();
+    spindle_candidates(rows, d, n_ref_rpm, &mut out);
+    let f24 = fourier(&d.hours, 24.0);
+    let f12 = fourier(&d.hours, 12.0);
+    class_candidates(rows, d, &f24, &mut out);
+    location_candidates(rows, d, [&f24, &f12], &mut out);
+    rotary_candidates(rows, &mut out);
+    out
+}
+
+/// The candidate `signature` (column `s`) times the time shape `shape` (columns `g`).
+fn candidate(
+    effect: &'static str,
+    (signature, shape): (&str, &str),
+    unit: &str,
+    kind: ShapeKind,
+    s: &[f64],
+    g: Vec<&[f64]>,
+) -> Candidate {
     let times =
         |s: &[f64], g: &[f64]| -> Vec<f64> { s.iter().zip(g).map(|(a, b)| a * b).collect() };
+    Candidate {
+        effect,
+        term: format!("{signature} x {shape}"),
+        unit: unit.to_string(),
+        columns: g.iter().map(|g| times(s, g)).collect(),
+        signature: signature.to_string(),
+        shape_kind: kind,
+        shape: g.iter().map(|g| g.to_vec()).collect(),
+        profiled: 0,
+        step_ns: None,
+    }
+}
+
+/// A Fourier pair of period `period_h` at `hours`.
+fn fourier(hours: &[f64], period_h: f64) -> [Vec<f64>; 2] {
+    let w = std::f64::consts::TAU / period_h;
+    [
+        hours.iter().map(|h| (w * h).cos()).collect(),
+        hours.iter().map(|h| (w * h).sin()).collect(),
+    ]
+}
+
+fn spindle_lag_label(tau: f64) -> String {
+    format!("spindle lag {tau} min")
+}
+
+/// Skip latency by feed, the radius and the spindle's axial shift by speed, and the
+/// spindle's growth and drift in the baseline's spindle lags.
+fn spindle_candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64, out: &mut Vec<Candidate>) {
+    use ShapeKind::*;
+    let sig = |name: &str| signature_column(rows, name);
+    let ones = vec![1.0; rows.rows.len()];
     let speed2: Vec<f64> = rows
         .rows
         .iter()
         .map(|r| (r.spindle_rpm / n_ref_rpm).powi(2))
         .collect();
-    let fourier = |period_h: f64| -> [Vec<f64>; 2] {
-        let w = std::f64::consts::TAU / period_h;
-        [
-            d.hours.iter().map(|h| (w * h).cos()).collect(),
-            d.hours.iter().map(|h| (w * h).sin()).collect(),
-        ]
-    };
-    let mut out = Vec::new();
-    let ones = vec![1.0; rows.rows.len()];
-    let mut push = |effect: &'static str,
-                    signature: &str,
-                    shape: &str,
-                    unit: &str,
-                    kind: ShapeKind,
-                    s: &[f64],
-                    g: Vec<&[f64]>| {
-        out.push(Candidate {
-            effect,
-            term: format!("{signature} x {shape}"),
-            unit: unit.to_string(),
-            columns: g.iter().map(|g| times(s, g)).collect(),
-            signature: signature.to_string(),
-            shape_kind: kind,
-            shape: g.iter().map(|g| g.to_vec()).collect(),
-            profiled: 0,
-            step_ns: None,
-        });
-    };
-    let location = &rows.locations;
-    let unit_of = |name: &str| {
-        crate::rows::SIGNATURES
-            .iter()
-            .find(|(n, _)| *n == name)
-            .map_or(
-                if name.starts_with("angle_") {
-                    "urad"
-                } else {
-                    "um"
-                },
-                |(_, u)| *u,
-            )
-    };
-    let lag_label = |tau: f64| format!("spindle lag {tau} min");
-    use ShapeKind::*;
-
     if let Some(s) = sig("latency") {
-        push(
+        out.push(candidate(
             "skip_latency",
-            "latency",
-            "feed",
+            ("latency", "feed"),
             "ms",
             Feed,
             &s,
             vec![&ones],
-        );
+        ));
     }
     if let Some(s) = sig("radius") {
-        push(
+        out.push(candidate(
             "radius_speed",
-            "radius",
-            "(n/n_ref)^2",
+            ("radius", "(n/n_ref)^2"),
             "um",
             Speed2,
             &s,
             vec![&speed2],
-        );
+        ));
     }
     for (sname, effect) in [
         ("sz", "spindle_axial_growth"),
@@ -685,154 +682,185 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
     ] {
         if let Some(s) = sig(sname) {
             for (tau, g) in d.spindle_taus_min.iter().zip(&d.spindle) {
-                push(
+                out.push(candidate(
                     effect,
-                    sname,
-                    &lag_label(*tau),
+                    (sname, &spindle_lag_label(*tau)),
                     "um",
                     SpindleLag,
                     &s,
                     vec![g],
-                );
+                ));
             }
         }
     }
     if let Some(s) = sig("sz") {
-        push(
+        out.push(candidate(
             "speed_shift",
-            "sz",
-            "(n/n_ref)^2",
+            ("sz", "(n/n_ref)^2"),
             "um",
             Speed2,
             &s,
             vec![&speed2],
-        );
+        ));
     }
-    let f24 = fourier(24.0);
-    let f12 = fourier(12.0);
+}
+
+/// The unit of a signature class member.
+fn class_unit(name: &str) -> &'static str {
+    crate::rows::SIGNATURES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map_or(
+            if name.starts_with("angle_") {
+                "urad"
+            } else {
+                "um"
+            },
+            |(_, u)| *u,
+        )
+}
+
+/// The setter's drift, the scales' expansion and the squareness: each signature by every
+/// logged temperature, and the 24-h pair (squareness: a constant and the spindle lags).
+fn class_candidates(rows: &Rows, d: &Drivers, f24: &[Vec<f64>; 2], out: &mut Vec<Candidate>) {
+    use ShapeKind::*;
+    let ones = vec![1.0; rows.rows.len()];
     for (effect, names) in [
         ("setter_drift", &["setter_x", "setter_y", "setter_z"][..]),
         ("scale_expansion", &["kx", "ky", "kz"][..]),
         ("squareness", &["sxy", "sxz", "syz"][..]),
     ] {
         for name in names {
-            let Some(s) = sig(name) else { continue };
-            let unit = unit_of(name);
+            let Some(s) = signature_column(rows, name) else {
+                continue;
+            };
+            let unit = class_unit(name);
             for (label, g) in &d.temperatures {
-                push(
+                out.push(candidate(
                     effect,
-                    name,
-                    label,
+                    (name, label),
                     &format!("{unit}/K"),
                     Temperature,
                     &s,
                     vec![g],
-                );
+                ));
             }
             if effect == "squareness" {
-                push(effect, name, "constant", unit, Constant, &s, vec![&ones]);
+                out.push(candidate(
+                    effect,
+                    (name, "constant"),
+                    unit,
+                    Constant,
+                    &s,
+                    vec![&ones],
+                ));
                 for (tau, g) in d.spindle_taus_min.iter().zip(&d.spindle) {
-                    push(
+                    out.push(candidate(
                         effect,
-                        name,
-                        &lag_label(*tau),
+                        (name, &spindle_lag_label(*tau)),
                         unit,
                         SpindleLag,
                         &s,
                         vec![g],
-                    );
+                    ));
                 }
             } else {
-                push(
+                out.push(candidate(
                     effect,
-                    name,
-                    "24-h Fourier pair",
+                    (name, "24-h Fourier pair"),
                     unit,
                     Fourier,
                     &s,
                     vec![&f24[0], &f24[1]],
-                );
+                ));
             }
         }
     }
-    for p in location {
-        let Some(s) = sig(p) else { continue };
+}
+
+/// Every location error by the slow modes, every logged temperature, the 24-h and 12-h pairs
+/// (`[f24, f12]`) and the tilt duty's lags.
+fn location_candidates(
+    rows: &Rows,
+    d: &Drivers,
+    [f24, f12]: [&[Vec<f64>; 2]; 2],
+    out: &mut Vec<Candidate>,
+) {
+    use ShapeKind::*;
+    for p in &rows.locations {
+        let Some(s) = signature_column(rows, p) else {
+            continue;
+        };
         let unit = if p.starts_with("EA") || p.starts_with("EB") || p.starts_with("EC") {
             "urad"
         } else {
             "um"
         };
         for (tau, g) in d.slow_taus_min.iter().zip(&d.slow) {
-            push(
+            out.push(candidate(
                 "slow_mode",
-                p,
-                &lag_label(*tau),
+                (p, &spindle_lag_label(*tau)),
                 unit,
                 SpindleLag,
                 &s,
                 vec![g],
-            );
+            ));
         }
         for (label, g) in &d.temperatures {
-            push(
+            out.push(candidate(
                 "ambient",
-                p,
-                label,
+                (p, label),
                 &format!("{unit}/K"),
                 Temperature,
                 &s,
                 vec![g],
-            );
+            ));
         }
-        push(
-            "ambient",
-            p,
-            "24-h Fourier pair",
-            unit,
-            Fourier,
-            &s,
-            vec![&f24[0], &f24[1]],
-        );
-        push(
-            "ambient",
-            p,
-            "12-h Fourier pair",
-            unit,
-            Fourier,
-            &s,
-            vec![&f12[0], &f12[1]],
-        );
+        for (pair, f) in [("24-h Fourier pair", f24), ("12-h Fourier pair", f12)] {
+            out.push(candidate(
+                "ambient",
+                (p, pair),
+                unit,
+                Fourier,
+                &s,
+                vec![&f[0], &f[1]],
+            ));
+        }
         for (tau, g) in &d.tilt {
-            push(
+            out.push(candidate(
                 "b_tilt_heating",
-                p,
-                &format!("tilt duty lag {tau} min"),
+                (p, &format!("tilt duty lag {tau} min")),
                 unit,
                 Tilt,
                 &s,
                 vec![g],
-            );
+            ));
         }
     }
+}
+
+/// Each rotary axis' backlash by its approach sense, and C's indexing error in its first two
+/// harmonics.
+fn rotary_candidates(rows: &Rows, out: &mut Vec<Candidate>) {
+    use ShapeKind::*;
     for (i, name) in rows.signatures.iter().enumerate() {
         let Some(axis) = name.strip_prefix("angle_") else {
             continue;
         };
-        let s = sig(name).unwrap_or_default();
+        let s = signature_column(rows, name).unwrap_or_default();
         let sense: Vec<f64> = rows
             .rows
             .iter()
             .map(|r| f64::from(r.rotary_sense[i - crate::rows::SIGNATURES.len()]))
             .collect();
-        push(
+        out.push(candidate(
             "rotary_backlash",
-            name,
-            &format!("{axis} approach sense"),
+            (name, &format!("{axis} approach sense")),
             "urad",
             Sense,
             &s,
             vec![&sense],
-        );
+        ));
         if axis == "C" {
             for h in [1.0, 2.0] {
                 let c: Vec<f64> = rows
@@ -845,19 +873,17 @@ pub fn candidates(rows: &Rows, d: &Drivers, n_ref_rpm: f64) -> Vec<Candidate> {
                     .iter()
                     .map(|r| (h * r.c_deg.to_radians()).sin())
                     .collect();
-                push(
+                out.push(candidate(
                     "c_indexing",
-                    name,
-                    &format!("harmonic {h} of C"),
+                    (name, &format!("harmonic {h} of C")),
                     "urad",
                     Harmonic,
                     &s,
                     vec![&c, &sn],
-                );
+                ));
             }
         }
     }
-    out
 }
 
 /// The signatures that can change at one time, with their effect and unit: skip latency,

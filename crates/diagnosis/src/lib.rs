@@ -11,4 +11,5 @@ pub mod effects;
 pub mod lsq;
 pub mod report;
 pub mod rows;
+mod stepwise;
 pub mod surrogates;

@@ -66,6 +66,17 @@ fn f(v: f64) -> String {
 /// The report: what was found in words, the figures before and after, the plots.
 pub fn html(d: &Diagnosis, title: &str) -> String {
     let mut h = String::new();
+    intro(&mut h, d, title);
+    found(&mut h, d);
+    fit_tables(&mut h, d);
+    plots(&mut h, d);
+    channels_and_refused(&mut h, d);
+    h.push_str("</body></html>\n");
+    h
+}
+
+/// The page's head and what was read.
+fn intro(h: &mut String, d: &Diagnosis, title: &str) {
     h.push_str(&format!(
         "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{t}</title><style>body{{font-family:sans-serif;max-width:1000px;margin:auto}}table{{border-collapse:collapse}}td,th{{border:1px solid #bbb;padding:2px 6px;font-size:13px}}</style></head><body><h1>{t}</h1>",
         t = esc(title)
@@ -81,6 +92,10 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
             .sigma_um
             .map_or("not estimated (under 20 cycles)".into(), |s| format!("{s:.3} um"))
     ));
+}
+
+/// What was found: the accepted terms, what is not identifiable, what stays unexplained.
+fn found(h: &mut String, d: &Diagnosis) {
     h.push_str("<h2>What was found</h2>");
     if d.accepted.is_empty() {
         h.push_str("<p>No effect of the library passed the rules (delta-BIC &ge; 10, |t| &ge; 4, a better held-out fit in 2/3 of the blocks, a plausible size).</p>");
@@ -134,6 +149,10 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
             ));
         }
     }
+}
+
+/// The fit before and after, the accepted terms' figures and where the baseline misses.
+fn fit_tables(h: &mut String, d: &Diagnosis) {
     h.push_str("<h2>Fit before and after</h2><table><tr><th></th><th>parameters</th><th>chi2/dof</th><th>RMS training (um)</th><th>RMS held-out (um)</th></tr>");
     for (name, x) in [
         ("baseline", &d.baseline),
@@ -194,6 +213,10 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
         }
         h.push_str("</table>");
     }
+}
+
+/// The residuals against time, each accepted term's footprint, the per-cycle redundancy.
+fn plots(h: &mut String, d: &Diagnosis) {
     let s = &d.series;
     let t0 = s.t_ns.iter().copied().min().unwrap_or(0);
     let hours = |i: usize| (s.t_ns[i] - t0) as f64 / 3.6e12;
@@ -249,6 +272,10 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
         "chi-square",
         &[("cycles", RGBColor(90, 90, 90), r)],
     ));
+}
+
+/// Per channel before and after, the strong candidates refused, what was not tried.
+fn channels_and_refused(h: &mut String, d: &Diagnosis) {
     h.push_str("<h2>Per channel</h2><table><tr><th>channel</th><th>n</th><th>chi2/dof before / after</th><th>RMS training before / after (um)</th><th>RMS held-out before / after (um)</th></tr>");
     for c in &d.channels {
         h.push_str(&format!(
@@ -284,8 +311,6 @@ pub fn html(d: &Diagnosis, title: &str) -> String {
             d.not_tested.len()
         ));
     }
-    h.push_str("</body></html>\n");
-    h
 }
 
 /// The report of a displacement diagnosis: statements, figures per channel, each channel's
