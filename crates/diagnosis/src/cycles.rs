@@ -3,6 +3,7 @@
 //! effect library (`effects`), ambiguity groups, what cannot be identified and what stays
 //! unexplained.
 
+use driftwatch_core::units;
 use std::collections::{BTreeMap, BTreeSet};
 
 use serde::Serialize;
@@ -796,7 +797,7 @@ fn phases(rows: &Rows, spindle: &[Event]) -> Vec<&'static str> {
                 }
                 on = now_on;
             }
-            let fresh = since != i64::MIN && start - since < 36 * 60_000_000_000;
+            let fresh = since != i64::MIN && start - since < 36 * units::NS_PER_MIN;
             match (on, fresh) {
                 (true, true) => "warm-up",
                 (true, false) => "steady",
@@ -841,7 +842,7 @@ fn group_means<'a>(
 fn blocks(times: &[i64]) -> Vec<(i64, i64)> {
     let t0 = times.iter().copied().min().unwrap_or(0);
     let t1 = times.iter().copied().max().unwrap_or(0) + 1;
-    const DAY: i64 = 86_400_000_000_000;
+    const DAY: i64 = units::NS_PER_DAY;
     let mut b = Vec::new();
     if t1 - t0 >= 2 * DAY {
         let mut a = t0;
@@ -1125,7 +1126,7 @@ mod tests {
 
     fn row(cycle: i64, k: i64, deviation_um: f64) -> DetectionRow {
         DetectionRow {
-            t_ns: cycle * 3_600_000_000_000 + k * 1_000_000_000,
+            t_ns: cycle * units::NS_PER_H + k * 1_000_000_000,
             cycle,
             step: format!("z{k}"),
             b_deg: 0.0,

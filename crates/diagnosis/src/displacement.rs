@@ -13,6 +13,7 @@
 //! rolling-origin held-out prediction, and the held-out end vetoes any that worsen it
 //! (docs/physics.md 4.6.2).
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, DVector};
@@ -819,7 +820,7 @@ fn phase_of(t: i64, changes: &[(i64, f64)]) -> &'static str {
         0 => (i64::MAX, 0.0),
         _ => (t - changes[k - 1].0, changes[k - 1].1),
     };
-    let settling = since < 3_600_000_000_000;
+    let settling = since < units::NS_PER_H;
     match (rpm != 0.0, settling) {
         (true, true) => "warm-up",
         (true, false) => "steady",
@@ -858,7 +859,7 @@ pub fn diagnose_displacements(
         .holdout_from_ns
         .unwrap_or(t0 + ((t1 - t0) as f64 * 0.85) as i64);
     let changes = speed_timeline(events);
-    let h = |t: i64| (t - t0) as f64 / 3.6e12;
+    let h = |t: i64| units::ns_to_h(t - t0);
 
     let mut out = Vec::new();
     let mut not_carried = Vec::new();
@@ -1320,7 +1321,7 @@ fn transients(
         let a = t_change + 900_000_000_000;
         let b = end
             .saturating_sub(900_000_000_000)
-            .min(t_change + 4 * 3_600_000_000_000);
+            .min(t_change + 4 * units::NS_PER_H);
         let idx: Vec<usize> = (0..c.t_ns.len())
             .filter(|&i| c.t_ns[i] >= a && c.t_ns[i] <= b)
             .collect();
@@ -1333,7 +1334,7 @@ fn transients(
             continue;
         }
         transients.push(Transient {
-            at_h: (t_change - t0) as f64 / 3.6e12,
+            at_h: units::ns_to_h(t_change - t0),
             from_rpm: from,
             to_rpm: rpm,
             excursion_um: e,
@@ -1908,7 +1909,7 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Distribution, Normal};
 
-    const MIN: i64 = 60_000_000_000;
+    const MIN: i64 = units::NS_PER_MIN;
 
     /// A 40-h thermal test at one reading per minute: 4-h runs at rising speeds and 4-h
     /// stops; one 35-min spindle mode of 20 um, plus `extra(t_min, chiller)`; a chiller

@@ -5,6 +5,7 @@
 //! candidate is one such product; it predicts its footprint on every reading at once, which is
 //! what keeps a search from blaming the wrong effect.
 
+use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use serde::Serialize;
@@ -588,8 +589,8 @@ impl Drivers {
             temperatures: temps,
             missing_spins,
             tilt,
-            hours: times.iter().map(|t| (t - t0) as f64 / 3.6e12).collect(),
-            span_h: (t1 - t0) as f64 / 3.6e12,
+            hours: times.iter().map(|t| units::ns_to_h(t - t0)).collect(),
+            span_h: units::ns_to_h(t1 - t0),
         }
     }
 }

@@ -1,5 +1,6 @@
 //! The diagnosis as a self-contained HTML page with SVG plots (pure: a string out).
 
+use driftwatch_core::units;
 use plotters::prelude::*;
 
 use crate::cycles::Diagnosis;
@@ -219,7 +220,7 @@ fn fit_tables(h: &mut String, d: &Diagnosis) {
 fn plots(h: &mut String, d: &Diagnosis) {
     let s = &d.series;
     let t0 = s.t_ns.iter().copied().min().unwrap_or(0);
-    let hours = |i: usize| (s.t_ns[i] - t0) as f64 / 3.6e12;
+    let hours = |i: usize| units::ns_to_h(s.t_ns[i] - t0);
     let pts = |v: &[f64]| -> Points { (0..v.len()).map(|i| (hours(i), v[i])).collect() };
     h.push_str("<h2>Residuals against time</h2>");
     h.push_str(&scatter(
@@ -259,7 +260,7 @@ fn plots(h: &mut String, d: &Diagnosis) {
         .redundancy
         .cycles
         .iter()
-        .map(|(_, t, c)| ((t - t0) as f64 / 3.6e12, *c))
+        .map(|(_, t, c)| (units::ns_to_h(t - t0), *c))
         .collect();
     h.push_str(&format!(
         "<h2>Per-cycle redundancy chi-square ({} dof; alarms at the 0.999 quantile: {})</h2>",

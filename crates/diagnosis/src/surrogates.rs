@@ -7,6 +7,7 @@
 //!
 //! Pure and deterministic given the seed.
 
+use driftwatch_core::units;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -182,7 +183,7 @@ pub fn null_recording(
             })
             .collect();
         let dt_h = match (times.first(), times.last()) {
-            (Some(a), Some(b)) if n > 1 => (b - a) as f64 / 3.6e12 / (n - 1) as f64,
+            (Some(a), Some(b)) if n > 1 => units::ns_to_h(b - a) / (n - 1) as f64,
             _ => 1.0,
         };
         let slow = match null {
@@ -203,7 +204,7 @@ pub fn null_recording(
     let grid = temperature_grid(events, step_ns);
     // Two hours a block: longer than the lags the candidates use, so a block keeps a
     // temperature's short-range shape.
-    let block = (2.0 * 3.6e12 / step_ns.max(1) as f64).round() as usize;
+    let block = (2.0 * units::NS_PER_H as f64 / step_ns.max(1) as f64).round() as usize;
     let order = block_order(grid.first().map_or(0, |g| g.2.len()), block, &mut rng);
     let mut out: Vec<Event> = events
         .iter()
