@@ -362,8 +362,9 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
     // What the running model predicted for a minute after the end.
     let before: Vec<Prediction> = {
         let v = first.view.lock().unwrap();
-        assert_eq!(v.model.as_ref().unwrap().status, "fitted");
+        assert_eq!(v.thermal.model.as_ref().unwrap().status, "fitted");
         let mut p = v
+            .thermal
             .predictor
             .as_ref()
             .expect("a fitted model")
@@ -390,7 +391,11 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
             rt.step(now).await.unwrap();
             let (schedule, model, prediction) = {
                 let v = rt.view.lock().unwrap();
-                (v.schedule.clone(), v.model.clone(), v.prediction.clone())
+                (
+                    v.cycles.schedule.clone(),
+                    v.thermal.model.clone(),
+                    v.thermal.prediction.clone(),
+                )
             };
             rt.shutdown(now + 2).await.unwrap();
             let n = requested.lock().unwrap().len();

@@ -66,21 +66,26 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
     let one = view_of(&svc, "sim-1");
     let two = view_of(&svc, "sim-2");
     assert!(
-        one.cycles_ok >= 5,
+        one.cycles.ok >= 5,
         "sim-1 keeps cycling: {} validated cycles",
-        one.cycles_ok
+        one.cycles.ok
     );
     assert!(one.compensation.is_some(), "sim-1 serves a set");
-    assert_eq!(one.faults, 0, "sim-1 has no fault: {:?}", one.last_fault);
-    assert!(two.faults > 0, "sim-2's failed writes are counted");
+    assert_eq!(
+        one.health.faults, 0,
+        "sim-1 has no fault: {:?}",
+        one.health.last_fault
+    );
+    assert!(two.health.faults > 0, "sim-2's failed writes are counted");
     assert!(
-        two.last_fault
+        two.health
+            .last_fault
             .as_ref()
             .is_some_and(|(_, f)| f.contains("injected fault")),
         "sim-2 says why: {:?}",
-        two.last_fault
+        two.health.last_fault
     );
-    assert_eq!(two.cycles_ok, 0, "sim-2 could not store a cycle");
+    assert_eq!(two.cycles.ok, 0, "sim-2 could not store a cycle");
 
     // /metrics counts the faults by machine.
     let (code, metrics) = svc.text("/metrics").await;
@@ -106,8 +111,8 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
         svc.run_to(t_heal + k * 10 * MIN).await;
     }
     let healed = view_of(&svc, "sim-2");
-    assert!(!healed.failing, "sim-2's steps succeed again");
-    let (t_fault, _) = healed.last_fault.clone().unwrap();
+    assert!(!healed.health.failing, "sim-2's steps succeed again");
+    let (t_fault, _) = healed.health.last_fault.clone().unwrap();
     assert!(
         t_fault <= t_heal,
         "no step fails after the store heals: the last failure at {:.1} min, healed at {:.1} min",
@@ -116,7 +121,7 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
     );
     let two = healed;
     assert!(
-        two.cycles_ok >= 1,
+        two.cycles.ok >= 1,
         "sim-2 cycles again after the store heals"
     );
 

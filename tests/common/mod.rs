@@ -95,6 +95,7 @@ impl TestService {
                     self.svc.views[*id]
                         .lock()
                         .unwrap()
+                        .health
                         .clock_ns
                         .is_some_and(|t| t >= t_ns)
                 });

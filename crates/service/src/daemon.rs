@@ -40,41 +40,56 @@ pub enum DaemonError {
     Alerts { machine: String, message: String },
 }
 
-/// What the API may see of a machine, shared with the loop.
-#[derive(Debug, Clone, Default, serde::Serialize)]
+/// What the API may see of a machine, shared with the loop: one part per aggregate.
+#[derive(Debug, Clone, Default)]
 pub struct MachineView {
     pub id: String,
     pub kinematics: String,
     pub phase: Option<PhaseInfo>,
-    pub last_cycle: Option<i64>,
-    pub open_cycle: Option<i64>,
+    pub cycles: CycleView,
+    /// The set the NC reads: the last validated one.
+    pub compensation: Option<CompensationSet>,
+    /// The same set as the NC endpoint sends it, serialised once per version.
+    pub nc_body: Option<Arc<NcBody>>,
+    pub open_alerts: Vec<driftwatch_machine::alerts::Alert>,
+    pub thermal: ThermalView,
+    pub health: LoopHealth,
+}
+
+/// The machine's cycles: the last and the open one, the schedule, and the counts by outcome.
+#[derive(Debug, Clone, Default)]
+pub struct CycleView {
+    pub last: Option<i64>,
+    pub open: Option<i64>,
     /// Detections the open cycle has received so far (they are stored when it ends).
-    pub open_cycle_received: Option<usize>,
+    pub open_received: Option<usize>,
     /// Steps the plan expects per cycle.
     pub steps_per_cycle: usize,
     /// Why the scheduler waits, or why the last cycle started.
     pub schedule: String,
     pub next_due_ns: Option<i64>,
-    /// The set the NC reads: the last validated one.
-    pub compensation: Option<CompensationSet>,
-    /// The same set as the NC endpoint sends it, serialised once per version.
-    #[serde(skip)]
-    pub nc_body: Option<Arc<NcBody>>,
-    pub open_alerts: Vec<driftwatch_machine::alerts::Alert>,
-    /// The thermal model: its state, the last prediction, and a copy of the running
-    /// predictor for predictions at a later time.
+    pub ok: u64,
+    pub rejected: u64,
+    pub abandoned: u64,
+    /// Time spent validating and solving cycles, s.
+    pub solve_seconds_sum: f64,
+}
+
+/// The thermal model: its state, the last prediction, and a copy of the running predictor
+/// for predictions at a later time.
+#[derive(Debug, Clone, Default)]
+pub struct ThermalView {
     pub model: Option<driftwatch_machine::live_model::ModelView>,
     pub prediction: Vec<driftwatch_core::thermal_model::Prediction>,
     pub prediction_t_ns: Option<i64>,
     /// Why the last prediction was not served, if it was not.
     pub prediction_note: Option<String>,
-    #[serde(skip)]
     pub predictor: Option<Arc<driftwatch_core::thermal_model::Predictor>>,
-    /// Counters for `/metrics`.
-    pub cycles_ok: u64,
-    pub cycles_rejected: u64,
-    pub cycles_abandoned: u64,
-    pub solve_seconds_sum: f64,
+}
+
+/// The machine loop's own health.
+#[derive(Debug, Clone, Default)]
+pub struct LoopHealth {
     /// The service clock at the loop's last completed step, ns.
     pub clock_ns: Option<i64>,
     /// Steps that failed (a store or recorder error) and were tried again.
@@ -344,8 +359,11 @@ impl MachineRuntime {
             kinematics: k.name.clone(),
             compensation: served.clone(),
             nc_body: served.as_ref().and_then(NcBody::of),
-            last_cycle: store.last_closed_cycle(id).await?,
-            steps_per_cycle: plan.steps.len(),
+            cycles: CycleView {
+                last: store.last_closed_cycle(id).await?,
+                steps_per_cycle: plan.steps.len(),
+                ..Default::default()
+            },
             ..Default::default()
         };
         Ok(MachineRuntime {
@@ -495,7 +513,7 @@ impl MachineRuntime {
                 let _ = self.phase.on_cycle(now_ns, false);
                 self.open = None;
                 if let Ok(mut v) = self.view.lock() {
-                    v.cycles_abandoned += 1;
+                    v.cycles.abandoned += 1;
                 }
                 format!("cycle {cycle} abandoned (timeout)")
             }
@@ -503,10 +521,10 @@ impl MachineRuntime {
         if let Ok(mut v) = self.view.lock() {
             v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
             v.phase = Some(self.phase.phase(now_ns));
-            v.open_cycle = self.open.as_ref().map(|c| c.number);
-            v.open_cycle_received = self.open.as_ref().map(|c| c.detections.len());
-            v.schedule = schedule;
-            v.next_due_ns = next_due;
+            v.cycles.open = self.open.as_ref().map(|c| c.number);
+            v.cycles.open_received = self.open.as_ref().map(|c| c.detections.len());
+            v.cycles.schedule = schedule;
+            v.cycles.next_due_ns = next_due;
         }
         let mut wake = now_ns + units::NS_PER_MIN;
         let refresh = self
@@ -602,7 +620,7 @@ impl MachineRuntime {
                     });
                     let n = open.detections.len();
                     if let Ok(mut v) = self.view.lock() {
-                        v.open_cycle_received = Some(n);
+                        v.cycles.open_received = Some(n);
                     }
                 } else {
                     warn!(machine = %self.id, cycle = d.msg.cycle, "detection of a cycle that is not open: kept in the recording only");
@@ -670,7 +688,7 @@ impl MachineRuntime {
         let policy = self.thermal.policy().clone();
         let Some(preds) = self.thermal.predict(now_ns) else {
             if let Ok(mut v) = self.view.lock() {
-                v.model = Some(self.thermal.view());
+                v.thermal.model = Some(self.thermal.view());
             }
             self.last_prediction_ns = now_ns;
             return Ok(());
@@ -749,11 +767,11 @@ impl MachineRuntime {
         let model = self.thermal.view();
         let snapshot = self.thermal.snapshot().map(Arc::new);
         if let Ok(mut v) = self.view.lock() {
-            v.prediction = preds;
-            v.prediction_t_ns = Some(now_ns);
-            v.prediction_note = note;
-            v.model = Some(model);
-            v.predictor = snapshot;
+            v.thermal.prediction = preds;
+            v.thermal.prediction_t_ns = Some(now_ns);
+            v.thermal.prediction_note = note;
+            v.thermal.model = Some(model);
+            v.thermal.predictor = snapshot;
         }
         Ok(())
     }
@@ -861,18 +879,18 @@ impl MachineRuntime {
         let events = self.alerts.evaluate(&Input::from(&result), now_ns);
         self.raise(events).await?;
         if let Ok(mut v) = self.view.lock() {
-            v.last_cycle = Some(open.number);
+            v.cycles.last = Some(open.number);
             if v.compensation.as_ref().map(|c| c.version) != self.served.as_ref().map(|c| c.version)
             {
                 v.nc_body = self.served.as_ref().and_then(NcBody::of);
             }
             v.compensation = self.served.clone();
             v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
-            v.solve_seconds_sum += solve_seconds;
+            v.cycles.solve_seconds_sum += solve_seconds;
             if result.status == ResultStatus::Ok {
-                v.cycles_ok += 1;
+                v.cycles.ok += 1;
             } else {
-                v.cycles_rejected += 1;
+                v.cycles.rejected += 1;
             }
         }
         Ok(())

@@ -366,17 +366,17 @@ async fn run_machine(
             Ok(wake) => {
                 retry_ns = FIRST_RETRY_NS;
                 if let Ok(mut v) = rt.view.lock() {
-                    v.clock_ns = Some(now);
-                    v.failing = false;
+                    v.health.clock_ns = Some(now);
+                    v.health.failing = false;
                 }
                 wake
             }
             Err(e) => {
                 error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
                 if let Ok(mut v) = rt.view.lock() {
-                    v.faults += 1;
-                    v.failing = true;
-                    v.last_fault = Some((now, e.to_string()));
+                    v.health.faults += 1;
+                    v.health.failing = true;
+                    v.health.last_fault = Some((now, e.to_string()));
                 }
                 let at = now.saturating_add(retry_ns);
                 retry_ns = (retry_ns * 2).min(MAX_RETRY_NS);

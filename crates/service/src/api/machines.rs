@@ -88,19 +88,19 @@ impl MachineSummary {
             id: v.id.clone(),
             kinematics: v.kinematics.clone(),
             phase: v.phase,
-            last_cycle: v.last_cycle,
-            open_cycle: v.open_cycle,
-            open_cycle_progress: v.open_cycle.map(|_| CycleProgress {
-                received: v.open_cycle_received.unwrap_or(0),
-                expected: v.steps_per_cycle,
+            last_cycle: v.cycles.last,
+            open_cycle: v.cycles.open,
+            open_cycle_progress: v.cycles.open.map(|_| CycleProgress {
+                received: v.cycles.open_received.unwrap_or(0),
+                expected: v.cycles.steps_per_cycle,
             }),
-            schedule: v.schedule.clone(),
-            next_due_ns: v.next_due_ns,
+            schedule: v.cycles.schedule.clone(),
+            next_due_ns: v.cycles.next_due_ns,
             compensation_version: v.compensation.as_ref().map(|c| c.version),
-            clock_ns: v.clock_ns,
-            faults: v.faults,
-            failing: v.failing,
-            last_fault: v.last_fault.as_ref().map(|(t_ns, message)| Fault {
+            clock_ns: v.health.clock_ns,
+            faults: v.health.faults,
+            failing: v.health.failing,
+            last_fault: v.health.last_fault.as_ref().map(|(t_ns, message)| Fault {
                 t_ns: *t_ns,
                 message: message.clone(),
             }),
@@ -239,7 +239,7 @@ pub(super) async fn model(
         .view
         .lock()
         .ok()
-        .and_then(|v| v.model.clone());
+        .and_then(|v| v.thermal.model.clone());
     let Some(m) = m else {
         return Ok(Json(ModelResponse {
             status: "starting".into(),
@@ -331,7 +331,10 @@ pub(super) async fn prediction(
     Query(q): Query<At>,
 ) -> Result<Json<PredictionResponse>, ApiError> {
     let (snapshot, note) = match handle(&st, &id)?.view.lock() {
-        Ok(v) => (v.predictor.clone(), v.prediction_note.clone()),
+        Ok(v) => (
+            v.thermal.predictor.clone(),
+            v.thermal.prediction_note.clone(),
+        ),
         Err(_) => (None, None),
     };
     let Some(p) = snapshot else {

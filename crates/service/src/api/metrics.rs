@@ -106,15 +106,17 @@ fn record_state(st: &super::ApiState) {
     for v in &views {
         let id = v.id.clone();
         for (status, n) in [
-            ("ok", v.cycles_ok),
-            ("rejected", v.cycles_rejected),
-            ("abandoned", v.cycles_abandoned),
+            ("ok", v.cycles.ok),
+            ("rejected", v.cycles.rejected),
+            ("abandoned", v.cycles.abandoned),
         ] {
             counter!("driftwatch_cycles_total", "machine" => id.clone(), "status" => status)
                 .absolute(n);
         }
-        gauge!("driftwatch_solve_seconds_sum", "machine" => id.clone()).set(v.solve_seconds_sum);
-        counter!("driftwatch_machine_faults_total", "machine" => id.clone()).absolute(v.faults);
+        gauge!("driftwatch_solve_seconds_sum", "machine" => id.clone())
+            .set(v.cycles.solve_seconds_sum);
+        counter!("driftwatch_machine_faults_total", "machine" => id.clone())
+            .absolute(v.health.faults);
         gauge!("driftwatch_compensation_version", "machine" => id.clone())
             .set(v.compensation.as_ref().map_or(0.0, |c| c.version as f64));
         gauge!("driftwatch_open_alerts", "machine" => id).set(v.open_alerts.len() as f64);
