@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
 use thiserror::Error;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
 use crate::link::{LinkEvent, MachineLink};
 use crate::recorder::{Recorder, RecorderError};
@@ -169,7 +169,8 @@ struct OpenCycle {
 
 pub struct MachineRuntime {
     pub id: String,
-    k: Kinematics,
+    /// Shared with the blocking pool the solves run on.
+    k: Arc<Kinematics>,
     link: Box<dyn MachineLink>,
     phase: PhaseTracker,
     policy: SchedulePolicy,
@@ -368,7 +369,7 @@ impl MachineRuntime {
         };
         Ok(MachineRuntime {
             id: id.to_string(),
-            k,
+            k: Arc::new(k),
             link,
             phase,
             policy: settings.schedule.clone(),
@@ -827,9 +828,33 @@ impl MachineRuntime {
         };
         self.store_detections(&open).await?;
         let _ = self.phase.on_cycle(now_ns, false);
-        let solve_started = std::time::Instant::now();
-        let outcome = process_cycle(&self.k, open.number, &open.detections, &self.checks);
-        let solve_seconds = solve_started.elapsed().as_secs_f64();
+        // The solve takes a core for a moment: on the blocking pool, so that the async
+        // threads keep answering the API and the other machines meanwhile.
+        let (k, checks, number) = (Arc::clone(&self.k), self.checks.clone(), open.number);
+        let solved = tokio::task::spawn_blocking(move || {
+            let started = std::time::Instant::now();
+            let outcome = process_cycle(&k, number, &open.detections, &checks);
+            (outcome, started.elapsed().as_secs_f64())
+        })
+        .await;
+        let (outcome, solve_seconds) = match solved {
+            Ok(s) => s,
+            Err(e) => {
+                // A solver that panicked gives no result: the cycle is abandoned with the
+                // reason, and the scheduler retries it like any failed cycle.
+                error!(machine = %self.id, cycle = number, error = %e, "the solve failed; cycle abandoned");
+                let reason = format!("the solve failed: {e}");
+                self.store
+                    .abandon_cycle(&self.id, number, now_ns, &reason)
+                    .await?;
+                self.sched.abandoned(now_ns);
+                if let Ok(mut v) = self.view.lock() {
+                    v.cycles.abandoned += 1;
+                    v.cycles.open = None;
+                }
+                return Ok(());
+            }
+        };
         let (result, admitted) = compensation::admit(
             outcome.message(),
             self.served.as_ref(),
@@ -838,7 +863,7 @@ impl MachineRuntime {
             now_ns,
         );
         if result.status == ResultStatus::Rejected {
-            warn!(machine = %self.id, cycle = open.number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
+            warn!(machine = %self.id, cycle = number, reason = result.reason.as_deref().unwrap_or(""), "cycle rejected");
         }
         // The result and the set it makes go in one transaction, before anything is served.
         let stored = admitted
@@ -854,7 +879,7 @@ impl MachineRuntime {
                 &compensation::compensation_message(&a.nc),
             )
             .await?;
-            info!(machine = %self.id, cycle = open.number, version = a.nc.version, "compensation updated");
+            info!(machine = %self.id, cycle = number, version = a.nc.version, "compensation updated");
             // Judged on the cycle before it learns from it.
             if let Some(note) = self
                 .thermal
@@ -879,7 +904,7 @@ impl MachineRuntime {
         let events = self.alerts.evaluate(&Input::from(&result), now_ns);
         self.raise(events).await?;
         if let Ok(mut v) = self.view.lock() {
-            v.cycles.last = Some(open.number);
+            v.cycles.last = Some(number);
             if v.compensation.as_ref().map(|c| c.version) != self.served.as_ref().map(|c| c.version)
             {
                 v.nc_body = self.served.as_ref().and_then(NcBody::of);
