@@ -298,123 +298,135 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
         driftwatch_sim::strategies::REFERENCE_POSE_DEG[1]
     );
     for (name, start, sc) in &all {
-        let c = &sc.adaptive;
-        println!(
-            "\n{name}: {} min, {} cycles ({} ok); model from {start}",
-            c.minutes, c.cycles, c.cycles_ok
-        );
-        println!(
-            "  {:<9} {:>19} {:>19} {:>19} {:>9} {:>14} {:>22}",
-            "",
-            "none rms / max",
-            "last meas. rms/max",
-            "predicted rms/max",
-            "removed",
-            "served (end)",
-            "band vs truth: z rms, <1s, <2s"
-        );
-        let names: Vec<&String> = c.none.errors.keys().collect();
-        for n in names {
-            let f = |r: &driftwatch_sim::strategies::StrategyResult| {
-                let s = r.errors[n];
-                format!("{:>8.2} / {:>8.2}", s.rms, s.max)
-            };
-            let served = c
-                .served
-                .iter()
-                .find(|g| &g.channel == n)
-                .map_or("-", |g| g.source.as_str());
-            let band = c.band.get(n.as_str()).map_or("-".to_string(), |b| {
-                format!(
-                    "{:.2}, {:.0} %, {:.0} %",
-                    b.z_rms,
-                    100.0 * b.within_1_sigma,
-                    100.0 * b.within_2_sigma
-                )
-            });
-            let removed = c.removed(n);
-            println!(
-                "  {:<9} {:>19} {:>19} {:>19} {:>8.1}% {:>14} {:>22}{}",
-                n,
-                f(&c.none),
-                f(&c.last_measured),
-                f(&c.predicted),
-                100.0 * removed,
-                served,
-                band,
-                if removed < 0.0 {
-                    "  WORSE THAN NONE"
-                } else {
-                    ""
-                }
-            );
-        }
-        println!(
-            "  held-out cycles (each scored before it corrected the model), at the end of the day:"
-        );
-        for g in &c.served {
-            println!("    {g}");
-        }
-        let t = |s: driftwatch_sim::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
-        println!(
-            "  {:<9} {:>19} {:>19} {:>19}",
-            "tool tip",
-            t(c.none.tool_tip),
-            t(c.last_measured.tool_tip),
-            t(c.predicted.tool_tip)
-        );
-        println!(
-            "  thermal error RMS removed at the tool tip: last measured {:.1} %, predicted {:.1} %",
-            100.0 * (1.0 - c.last_measured.tool_tip.rms / c.none.tool_tip.rms),
-            100.0 * c.tool_tip_reduction()
-        );
-        let f = &sc.fixed;
-        let ez = |r: &driftwatch_sim::strategies::StrategyResult| {
-            r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max)
-        };
-        println!(
-            "  schedule, {} cycles each: the service's (after stops, warm-up cadence) vs a fixed cadence (idle minutes only)",
-            sc.adaptive_min.len()
-        );
-        println!(
-            "    cycles within 30 min after a stop: {} vs {}",
-            sc.adaptive_after_stops, sc.fixed_after_stops
-        );
-        for (label, ours, fixed) in [
-            ("predicted", &c.predicted, &f.predicted),
-            ("last measured", &c.last_measured, &f.last_measured),
-        ] {
-            println!(
-                "    max residual, {label}: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
-                ours.tool_tip.max,
-                ours.tool_tip.max_at_min,
-                fixed.tool_tip.max,
-                fixed.tool_tip.max_at_min,
-                ez(ours),
-                ez(fixed)
-            );
-        }
-        if c.predicted.tool_tip_cutting.max_at_min.is_nan() {
-            println!("    no cutting in this program");
-        } else {
-            println!(
-                "    max tool-tip residual while cutting: predicted {:.2} (at {} min) vs {:.2} (at {} min) um, last measured {:.2} (at {} min) vs {:.2} (at {} min) um",
-                c.predicted.tool_tip_cutting.max,
-                c.predicted.tool_tip_cutting.max_at_min,
-                f.predicted.tool_tip_cutting.max,
-                f.predicted.tool_tip_cutting.max_at_min,
-                c.last_measured.tool_tip_cutting.max,
-                c.last_measured.tool_tip_cutting.max_at_min,
-                f.last_measured.tool_tip_cutting.max,
-                f.last_measured.tool_tip_cutting.max_at_min
-            );
-        }
-        println!(
-            "    cycle times (min): service {:?}; fixed {:?}",
-            sc.adaptive_min, sc.fixed_min
-        );
+        print_scenario(name, start, sc);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One scenario of `bench compensation`: each channel's residual by strategy, the tool tip,
+/// and the service's schedule against a fixed cadence.
+fn print_scenario(name: &str, start: &str, sc: &driftwatch_sim::strategies::ScheduleComparison) {
+    let c = &sc.adaptive;
+    println!(
+        "\n{name}: {} min, {} cycles ({} ok); model from {start}",
+        c.minutes, c.cycles, c.cycles_ok
+    );
+    println!(
+        "  {:<9} {:>19} {:>19} {:>19} {:>9} {:>14} {:>22}",
+        "",
+        "none rms / max",
+        "last meas. rms/max",
+        "predicted rms/max",
+        "removed",
+        "served (end)",
+        "band vs truth: z rms, <1s, <2s"
+    );
+    let names: Vec<&String> = c.none.errors.keys().collect();
+    for n in names {
+        let f = |r: &driftwatch_sim::strategies::StrategyResult| {
+            let s = r.errors[n];
+            format!("{:>8.2} / {:>8.2}", s.rms, s.max)
+        };
+        let served = c
+            .served
+            .iter()
+            .find(|g| &g.channel == n)
+            .map_or("-", |g| g.source.as_str());
+        let band = c.band.get(n.as_str()).map_or("-".to_string(), |b| {
+            format!(
+                "{:.2}, {:.0} %, {:.0} %",
+                b.z_rms,
+                100.0 * b.within_1_sigma,
+                100.0 * b.within_2_sigma
+            )
+        });
+        let removed = c.removed(n);
+        println!(
+            "  {:<9} {:>19} {:>19} {:>19} {:>8.1}% {:>14} {:>22}{}",
+            n,
+            f(&c.none),
+            f(&c.last_measured),
+            f(&c.predicted),
+            100.0 * removed,
+            served,
+            band,
+            if removed < 0.0 {
+                "  WORSE THAN NONE"
+            } else {
+                ""
+            }
+        );
+    }
+    println!(
+        "  held-out cycles (each scored before it corrected the model), at the end of the day:"
+    );
+    for g in &c.served {
+        println!("    {g}");
+    }
+    let t = |s: driftwatch_sim::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
+    println!(
+        "  {:<9} {:>19} {:>19} {:>19}",
+        "tool tip",
+        t(c.none.tool_tip),
+        t(c.last_measured.tool_tip),
+        t(c.predicted.tool_tip)
+    );
+    println!(
+        "  thermal error RMS removed at the tool tip: last measured {:.1} %, predicted {:.1} %",
+        100.0 * (1.0 - c.last_measured.tool_tip.rms / c.none.tool_tip.rms),
+        100.0 * c.tool_tip_reduction()
+    );
+    print_schedule(sc);
+}
+
+/// The service's schedule against a fixed cadence with as many cycles.
+fn print_schedule(sc: &driftwatch_sim::strategies::ScheduleComparison) {
+    let c = &sc.adaptive;
+    let f = &sc.fixed;
+    let ez = |r: &driftwatch_sim::strategies::StrategyResult| {
+        r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max)
+    };
+    println!(
+        "  schedule, {} cycles each: the service's (after stops, warm-up cadence) vs a fixed cadence (idle minutes only)",
+        sc.adaptive_min.len()
+    );
+    println!(
+        "    cycles within 30 min after a stop: {} vs {}",
+        sc.adaptive_after_stops, sc.fixed_after_stops
+    );
+    for (label, ours, fixed) in [
+        ("predicted", &c.predicted, &f.predicted),
+        ("last measured", &c.last_measured, &f.last_measured),
+    ] {
+        println!(
+            "    max residual, {label}: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
+            ours.tool_tip.max,
+            ours.tool_tip.max_at_min,
+            fixed.tool_tip.max,
+            fixed.tool_tip.max_at_min,
+            ez(ours),
+            ez(fixed)
+        );
+    }
+    if c.predicted.tool_tip_cutting.max_at_min.is_nan() {
+        println!("    no cutting in this program");
+    } else {
+        println!(
+            "    max tool-tip residual while cutting: predicted {:.2} (at {} min) vs {:.2} (at {} min) um, last measured {:.2} (at {} min) vs {:.2} (at {} min) um",
+            c.predicted.tool_tip_cutting.max,
+            c.predicted.tool_tip_cutting.max_at_min,
+            f.predicted.tool_tip_cutting.max,
+            f.predicted.tool_tip_cutting.max_at_min,
+            c.last_measured.tool_tip_cutting.max,
+            c.last_measured.tool_tip_cutting.max_at_min,
+            f.last_measured.tool_tip_cutting.max,
+            f.last_measured.tool_tip_cutting.max_at_min
+        );
+    }
+    println!(
+        "    cycle times (min): service {:?}; fixed {:?}",
+        sc.adaptive_min, sc.fixed_min
+    );
 }
 
 /// The diagnosis on `days` production days of the ambient-swing hall (logged), a cycle every

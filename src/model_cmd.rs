@@ -310,7 +310,40 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     if let Some(m) = &a.machine {
         Kinematics::load(m).with_context(|| format!("machine '{m}'"))?;
     }
-    let force = match a.family.as_str() {
+    let force = forced_family(&a.family)?;
+    anyhow::ensure!(
+        a.step_min > 0.0 && a.step_min.is_finite(),
+        "--step-min must be > 0"
+    );
+    let (events, cfg) = fit_inputs(&a)?;
+    let t0 = events.first().map_or(0, Event::t_ns);
+    let until = a.until.as_deref().map(|u| parse_time(u, t0)).transpose()?;
+    let model = fit(&cfg, &events, until)?;
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let families = choose_families(&events, &cfg, a.step_min, until, force);
+    let file = ModelFile { model, families };
+    let model = &file.model;
+    std::fs::write(&a.out, serde_json::to_string_pretty(&file)?)
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    print_fit(model, &a.out);
+    print_family_scores(&file.families, force.is_some());
+    // What each channel will serve, from the held-out tail of the fit data.
+    let p = driftwatch_core::thermal_model::Predictor::new(model, model.to_ns);
+    println!(
+        "what each channel serves, from the held-out tail ({:.0} % of its observations):",
+        100.0 * model.config.holdout_share
+    );
+    for g in p.guards() {
+        println!("{g}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--family`: `auto` (None) or the family every displacement channel takes.
+fn forced_family(family: &str) -> Result<Option<Family>> {
+    Ok(match family {
         "auto" => None,
         f => Some(Family::parse(f).with_context(|| {
             format!(
@@ -318,11 +351,12 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
                 Family::ALL.map(Family::as_str).join(", ")
             )
         })?),
-    };
-    anyhow::ensure!(
-        a.step_min > 0.0 && a.step_min.is_finite(),
-        "--step-min must be > 0"
-    );
+    })
+}
+
+/// The recordings' events (only the named channels and sensors) and the model configuration
+/// the data allow; prints the inputs.
+fn fit_inputs(a: &FitArgs) -> Result<(Vec<Event>, ModelConfig)> {
     let sensors = split_columns(&a.sensors);
     let events = only_sensors(
         filter_channels(events_from(&read_recordings(&a.recording)?), &a.channels),
@@ -342,6 +376,31 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             all_sensors.join(", ")
         );
     }
+    inputs_the_data_allow(&mut cfg, &events, &all_sensors, &a.temperature_inputs);
+    println!(
+        "inputs: {}{}",
+        if spins(&events) {
+            "spindle speed, "
+        } else {
+            ""
+        },
+        if all_sensors.is_empty() {
+            "no temperatures".to_string()
+        } else {
+            format!("temperatures {}", all_sensors.join(", "))
+        }
+    );
+    Ok((events, cfg))
+}
+
+/// The temperature inputs and the spindle basis as the data allow them, with a warning when
+/// there is no spindle log.
+fn inputs_the_data_allow(
+    cfg: &mut ModelConfig,
+    events: &[Event],
+    all_sensors: &[String],
+    temperature_inputs: &[String],
+) {
     let every_sensor = || {
         all_sensors
             .iter()
@@ -354,12 +413,12 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     // A displacement recording's grey box takes every temperature that varies unless some
     // are named: it competes with regressions that take them all, and `bench thermal` judges
     // it so. (A constant one is the offset again.)
-    let none_named = split_columns(&a.temperature_inputs) == ["none"];
-    if cfg.temperatures.is_empty() && !none_named && !displacement_channels(&events).is_empty() {
+    let none_named = split_columns(temperature_inputs) == ["none"];
+    if cfg.temperatures.is_empty() && !none_named && !displacement_channels(events).is_empty() {
         cfg.temperatures = every_sensor();
-        cfg.temperatures.retain(|t| varies(&events, &t.sensor));
+        cfg.temperatures.retain(|t| varies(events, &t.sensor));
     }
-    if !spins(&events) {
+    if !spins(events) {
         // No spindle log: the spindle basis would be a column of zeros. The temperatures
         // are the inputs, every one unless some are named.
         cfg.taus_min.clear();
@@ -376,49 +435,40 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             }
         );
     }
-    println!(
-        "inputs: {}{}",
-        if spins(&events) {
-            "spindle speed, "
-        } else {
-            ""
-        },
-        if all_sensors.is_empty() {
-            "no temperatures".to_string()
-        } else {
-            format!("temperatures {}", all_sensors.join(", "))
-        }
-    );
-    let t0 = events.first().map_or(0, Event::t_ns);
-    let until = a.until.as_deref().map(|u| parse_time(u, t0)).transpose()?;
-    let model = fit(&cfg, &events, until)?;
-    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
-    }
-    // The families compete on each displacement channel, on the fit data only.
-    let step_ns = units::min_to_ns(a.step_min);
+}
+
+/// The families compete on each displacement channel, on the fit data only.
+fn choose_families(
+    events: &[Event],
+    cfg: &ModelConfig,
+    step_min: f64,
+    until: Option<i64>,
+    force: Option<Family>,
+) -> Vec<ChannelChoice> {
+    let step_ns = units::min_to_ns(step_min);
     let train_end = until.unwrap_or(i64::MAX);
     let mut families = Vec::new();
-    for ch in displacement_channels(&events) {
-        let Some(g) = driftwatch_core::families::grid(&events, &ch, step_ns) else {
+    for ch in displacement_channels(events) {
+        let Some(g) = driftwatch_core::families::grid(events, &ch, step_ns) else {
             continue;
         };
-        match driftwatch_core::families::choose(&events, &g, train_end, &Family::ALL, &cfg, force) {
+        match driftwatch_core::families::choose(events, &g, train_end, &Family::ALL, cfg, force) {
             Some(c) => families.push(c),
             None => eprintln!(
                 "{ch}: no family could be fitted (too few readings for the rolling origins)"
             ),
         }
     }
-    let file = ModelFile { model, families };
-    let model = &file.model;
-    std::fs::write(&a.out, serde_json::to_string_pretty(&file)?)
-        .with_context(|| format!("writing {}", a.out.display()))?;
+    families
+}
+
+/// The grey box's fit of each channel, as a table.
+fn print_fit(model: &ThermalModel, out: &std::path::Path) {
     println!(
         "model of {} channel(s) fitted on {:.2} h of data -> {}",
         model.channels.len(),
         units::ns_to_h(model.to_ns - model.from_ns),
-        a.out.display()
+        out.display()
     );
     println!(
         "channel          n   rms um  chi2/dof  discrepancy um  ridge  held-out rmse um  temperatures"
@@ -443,57 +493,49 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
             }
         );
     }
-    if !file.families.is_empty() {
-        println!(
-            "model families, rolling-origin cross-validation on the fit data (eight origins from 1/2 to 15/16 of it, each predicting freely to its end): CV RMSE; the 68/95 % band of the CV errors at horizons under 1 h and over 8 h; and its CV coverage (each fold against the other folds' bands; 68 and 95 % when calibrated). These are CV figures on the fit data, not a hold-out."
-        );
-        println!(
-            "{:<12} {:<15} {:>9} {:>13} {:>13} {:>11}  chosen / inputs",
-            "channel", "family", "CV rmse", "band <1 h", "band >8 h", "CV cov"
-        );
-        for c in &file.families {
-            for s in &c.scores {
-                let (early, late) = s
-                    .bands
-                    .as_ref()
-                    .map_or(((s.band68, s.band95), (s.band68, s.band95)), |b| {
-                        (b.at(0), b.at(usize::MAX))
-                    });
-                println!(
-                    "{:<12} {:<15} {:>9.3} {:>6.2}/{:<6.2} {:>6.2}/{:<6.2} {:>4.0}%/{:>3.0}%  {}{}",
-                    c.channel,
-                    s.family,
-                    s.cv_rmse,
-                    early.0,
-                    early.1,
-                    late.0,
-                    late.1,
-                    100.0 * s.cv_cover68.unwrap_or(f64::NAN),
-                    100.0 * s.cv_cover95.unwrap_or(f64::NAN),
-                    if s.family == c.family {
-                        if force.is_some() {
-                            "<- forced; "
-                        } else {
-                            "<- chosen; "
-                        }
-                    } else {
-                        ""
-                    },
-                    s.detail
-                );
-            }
+}
+
+/// The families' cross-validation scores on each displacement channel, the chosen (or
+/// `forced`) one marked.
+fn print_family_scores(families: &[ChannelChoice], forced: bool) {
+    if families.is_empty() {
+        return;
+    }
+    println!(
+        "model families, rolling-origin cross-validation on the fit data (eight origins from 1/2 to 15/16 of it, each predicting freely to its end): CV RMSE; the 68/95 % band of the CV errors at horizons under 1 h and over 8 h; and its CV coverage (each fold against the other folds' bands; 68 and 95 % when calibrated). These are CV figures on the fit data, not a hold-out."
+    );
+    println!(
+        "{:<12} {:<15} {:>9} {:>13} {:>13} {:>11}  chosen / inputs",
+        "channel", "family", "CV rmse", "band <1 h", "band >8 h", "CV cov"
+    );
+    for c in families {
+        for s in &c.scores {
+            let (early, late) = s
+                .bands
+                .as_ref()
+                .map_or(((s.band68, s.band95), (s.band68, s.band95)), |b| {
+                    (b.at(0), b.at(usize::MAX))
+                });
+            println!(
+                "{:<12} {:<15} {:>9.3} {:>6.2}/{:<6.2} {:>6.2}/{:<6.2} {:>4.0}%/{:>3.0}%  {}{}",
+                c.channel,
+                s.family,
+                s.cv_rmse,
+                early.0,
+                early.1,
+                late.0,
+                late.1,
+                100.0 * s.cv_cover68.unwrap_or(f64::NAN),
+                100.0 * s.cv_cover95.unwrap_or(f64::NAN),
+                if s.family == c.family {
+                    if forced { "<- forced; " } else { "<- chosen; " }
+                } else {
+                    ""
+                },
+                s.detail
+            );
         }
     }
-    // What each channel will serve, from the held-out tail of the fit data.
-    let p = driftwatch_core::thermal_model::Predictor::new(model, model.to_ns);
-    println!(
-        "what each channel serves, from the held-out tail ({:.0} % of its observations):",
-        100.0 * model.config.holdout_share
-    );
-    for g in p.guards() {
-        println!("{g}");
-    }
-    Ok(ExitCode::SUCCESS)
 }
 
 #[derive(clap::Args)]
@@ -865,15 +907,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         a.step_s > 0.0 && a.step_s.is_finite(),
         "--step-s must be > 0"
     );
-    let text = std::fs::read_to_string(&a.model)
-        .with_context(|| format!("reading {}", a.model.display()))?;
-    let model = ThermalModel::from_json(&text).with_context(|| a.model.display().to_string())?;
-    let (grey_chosen, chosen): (Vec<ChannelChoice>, Vec<ChannelChoice>) =
-        serde_json::from_str::<FamiliesOnly>(&text)
-            .with_context(|| a.model.display().to_string())?
-            .families
-            .into_iter()
-            .partition(|c| c.family == Family::GreyBox.as_str());
+    let (model, grey_chosen, chosen) = read_model_file(&a.model)?;
     let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
     let Some(first) = events.first() else {
         anyhow::bail!("{}: no events to replay", a.recording.display());
@@ -908,94 +942,27 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     // Channels another family serves are not the grey box's; it takes over where the
     // family leaves its fit data.
     let other = |ch: &str| runs.iter().any(|(c, ..)| c.channel == ch);
-    let grey_of = |ch: &str| -> Vec<(i64, f64)> {
-        steps
-            .iter()
-            .filter_map(|s| {
-                s.predictions
-                    .iter()
-                    .find(|p| p.channel == ch)
-                    .map(|p| (s.t_ns, p.value))
-            })
-            .collect()
-    };
-    let greys: Vec<Vec<(i64, f64)>> = runs.iter().map(|(c, ..)| grey_of(&c.channel)).collect();
+    let greys: Vec<Vec<(i64, f64)>> = runs
+        .iter()
+        .map(|(c, ..)| served_values(&steps, &c.channel))
+        .collect();
     for s in &mut steps {
         s.predictions.retain(|p| !other(&p.channel));
     }
     scores.retain(|s| !other(&s.channel));
     print_steps(&steps, from, t0, a.json)?;
-    let what = if a.from.is_some() {
-        "readings from --from on, each scored before it is used"
-    } else {
-        "readings after the last update"
-    };
-    for s in &scores {
-        eprintln!(
-            "{}: {} {what}: RMSE {:.3} {u} (persistence {:.3}, no change {:.3}, served {:.3}); band: z rms {:.2}, within 1 sigma {:.0} %, within 2 sigma {:.0} %",
-            s.channel,
-            s.n,
-            s.rmse_um,
-            s.persistence_rmse_um,
-            s.no_change_rmse_um,
-            s.served_rmse_um,
-            s.z_rms,
-            100.0 * s.within_1_sigma,
-            100.0 * s.within_2_sigma,
-            u = driftwatch_machine::compensation::unit(&s.channel)
-        );
-    }
+    print_scores(&scores, a.from.is_some());
     // Where the families' CV chose the grey box and the updates stop, its CV band by
     // horizon (the filter's own band assumes the updates go on).
     if update_until < i64::MAX {
-        for c in &grey_chosen {
-            // Each reading after the last update against the step at or before it.
-            let e: Vec<(usize, f64)> = events
-                .iter()
-                .filter_map(|ev| match ev {
-                    Event::Observation {
-                        t_ns,
-                        channel,
-                        value,
-                        ..
-                    } if *channel == c.channel && *t_ns > update_until => Some((*t_ns, *value)),
-                    _ => None,
-                })
-                .filter_map(|(t, m)| {
-                    let k = steps.partition_point(|s| s.t_ns <= t).checked_sub(1)?;
-                    let p = steps[k]
-                        .predictions
-                        .iter()
-                        .find(|p| p.channel == c.channel)?;
-                    let h = ((t - update_until) / c.step_ns.max(1)) as usize;
-                    Some((h, p.value - m))
-                })
-                .collect();
-            if let (false, Some(b)) = (e.is_empty(), &c.bands) {
-                let (c68, c95) = b.coverage(&e);
-                eprintln!(
-                    "{}: the grey box's CV band by horizon since the last update (from the families' CV): within the 68 % band {:.0} %, the 95 % band {:.0} % of {} readings",
-                    c.channel,
-                    100.0 * c68,
-                    100.0 * c95,
-                    e.len()
-                );
-            }
-        }
+        print_grey_bands(&grey_chosen, &events, &steps, update_until);
     }
     for g in served.iter().filter(|g| !other(&g.channel)) {
         eprintln!("at the end: {g}\n  {}", g.reason);
     }
     // One panel per channel: the grey box's served values, or the family's.
     let h = |t: i64| units::ns_to_h(t - t0);
-    let mut panels: std::collections::BTreeMap<String, Panel> = Default::default();
-    for s in steps.iter().filter(|s| s.t_ns >= from) {
-        for p in &s.predictions {
-            let panel = panels.entry(p.channel.clone()).or_default();
-            panel.source = "grey box (one sigma)".into();
-            panel.predicted.push((h(s.t_ns), p.value, p.sigma));
-        }
-    }
+    let mut panels = grey_panels(&steps, from, t0);
     for ((c, g, origin, leave), grey) in runs.iter().zip(&greys) {
         let run = FamilyRun {
             c,
@@ -1022,31 +989,161 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         let boundary = a.update_until.is_some().then(|| h(update_until));
         write_plot(path, panels, &events, from, t0, boundary)?;
     }
-    let truth = truth_of(&a.recording)?;
-    if let Some((_, reference)) = truth.first() {
-        let t =
-            driftwatch_core::thermal_model::truth_scores(&steps, &events, &truth, reference, from);
+    print_truth(&a.recording, &steps, &events, from)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// A model file written by `driftwatch fit`: the grey box, the channels whose families' CV
+/// chose the grey box, and the channels another family serves.
+fn read_model_file(
+    path: &std::path::Path,
+) -> Result<(ThermalModel, Vec<ChannelChoice>, Vec<ChannelChoice>)> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let model = ThermalModel::from_json(&text).with_context(|| path.display().to_string())?;
+    let (grey_chosen, chosen): (Vec<ChannelChoice>, Vec<ChannelChoice>) =
+        serde_json::from_str::<FamiliesOnly>(&text)
+            .with_context(|| path.display().to_string())?
+            .families
+            .into_iter()
+            .partition(|c| c.family == Family::GreyBox.as_str());
+    Ok((model, grey_chosen, chosen))
+}
+
+/// The grey box's served values of channel `ch`, by time.
+fn served_values(
+    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    ch: &str,
+) -> Vec<(i64, f64)> {
+    steps
+        .iter()
+        .filter_map(|s| {
+            s.predictions
+                .iter()
+                .find(|p| p.channel == ch)
+                .map(|p| (s.t_ns, p.value))
+        })
+        .collect()
+}
+
+/// The grey box's scores on the readings it predicted before using them.
+fn print_scores(scores: &[driftwatch_core::thermal_model::HoldoutScore], from_given: bool) {
+    let what = if from_given {
+        "readings from --from on, each scored before it is used"
+    } else {
+        "readings after the last update"
+    };
+    for s in scores {
         eprintln!(
-            "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
+            "{}: {} {what}: RMSE {:.3} {u} (persistence {:.3}, no change {:.3}, served {:.3}); band: z rms {:.2}, within 1 sigma {:.0} %, within 2 sigma {:.0} %",
+            s.channel,
+            s.n,
+            s.rmse_um,
+            s.persistence_rmse_um,
+            s.no_change_rmse_um,
+            s.served_rmse_um,
+            s.z_rms,
+            100.0 * s.within_1_sigma,
+            100.0 * s.within_2_sigma,
+            u = driftwatch_machine::compensation::unit(&s.channel)
         );
-        for s in &t {
-            let unit = driftwatch_machine::compensation::unit(&s.channel);
+    }
+}
+
+/// The coverage of the families' CV band by horizon, for each channel where the CV chose the
+/// grey box, over the readings after the last update.
+fn print_grey_bands(
+    grey_chosen: &[ChannelChoice],
+    events: &[Event],
+    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    update_until: i64,
+) {
+    for c in grey_chosen {
+        // Each reading after the last update against the step at or before it.
+        let e: Vec<(usize, f64)> = events
+            .iter()
+            .filter_map(|ev| match ev {
+                Event::Observation {
+                    t_ns,
+                    channel,
+                    value,
+                    ..
+                } if *channel == c.channel && *t_ns > update_until => Some((*t_ns, *value)),
+                _ => None,
+            })
+            .filter_map(|(t, m)| {
+                let k = steps.partition_point(|s| s.t_ns <= t).checked_sub(1)?;
+                let p = steps[k]
+                    .predictions
+                    .iter()
+                    .find(|p| p.channel == c.channel)?;
+                let h = ((t - update_until) / c.step_ns.max(1)) as usize;
+                Some((h, p.value - m))
+            })
+            .collect();
+        if let (false, Some(b)) = (e.is_empty(), &c.bands) {
+            let (c68, c95) = b.coverage(&e);
             eprintln!(
-                "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
-                s.channel,
-                s.samples,
-                s.none_rms,
-                s.last_measured_rms,
-                s.served_rms,
-                100.0 * s.removed(),
-                s.model_rms,
-                if s.served_rms > s.none_rms {
-                    "  WORSE THAN NONE"
-                } else {
-                    ""
-                }
+                "{}: the grey box's CV band by horizon since the last update (from the families' CV): within the 68 % band {:.0} %, the 95 % band {:.0} % of {} readings",
+                c.channel,
+                100.0 * c68,
+                100.0 * c95,
+                e.len()
             );
         }
     }
-    Ok(ExitCode::SUCCESS)
+}
+
+/// One panel per channel the grey box serves, with its served values from `from` on.
+fn grey_panels(
+    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    from: i64,
+    t0: i64,
+) -> std::collections::BTreeMap<String, Panel> {
+    let h = |t: i64| units::ns_to_h(t - t0);
+    let mut panels: std::collections::BTreeMap<String, Panel> = Default::default();
+    for s in steps.iter().filter(|s| s.t_ns >= from) {
+        for p in &s.predictions {
+            let panel = panels.entry(p.channel.clone()).or_default();
+            panel.source = "grey box (one sigma)".into();
+            panel.predicted.push((h(s.t_ns), p.value, p.sigma));
+        }
+    }
+    panels
+}
+
+/// The replay against the recording's truth (`/sim/truth`), when it has one.
+fn print_truth(
+    recording: &std::path::Path,
+    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    events: &[Event],
+    from: i64,
+) -> Result<()> {
+    let truth = truth_of(recording)?;
+    let Some((_, reference)) = truth.first() else {
+        return Ok(());
+    };
+    let t = driftwatch_core::thermal_model::truth_scores(steps, events, &truth, reference, from);
+    eprintln!(
+        "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
+    );
+    for s in &t {
+        let unit = driftwatch_machine::compensation::unit(&s.channel);
+        eprintln!(
+            "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
+            s.channel,
+            s.samples,
+            s.none_rms,
+            s.last_measured_rms,
+            s.served_rms,
+            100.0 * s.removed(),
+            s.model_rms,
+            if s.served_rms > s.none_rms {
+                "  WORSE THAN NONE"
+            } else {
+                ""
+            }
+        );
+    }
+    Ok(())
 }

@@ -83,23 +83,7 @@ pub fn import_csv_with(
     o: &CsvOptions,
     fmt: CsvFormat,
 ) -> Result<Imported, ImportError> {
-    if fmt.decimal_comma && fmt.delimiter == b',' {
-        return Err(ImportError::Options(
-            "a decimal comma needs another delimiter (--delimiter ';' or tab)".into(),
-        ));
-    }
-    if o.spindle.is_none() && o.temperatures.is_empty() && o.displacements.is_empty() {
-        return Err(ImportError::Options(
-            "nothing to import: name a spindle, temperature or displacement column".into(),
-        ));
-    }
-    if let RowTime::Interval(s) = o.time
-        && !crate::units::positive(s)
-    {
-        return Err(ImportError::Options(format!(
-            "--interval-s must be > 0, not {s}"
-        )));
-    }
+    check_options(o, fmt)?;
     let mut rd = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
         .delimiter(fmt.delimiter)
@@ -110,37 +94,7 @@ pub fn import_csv_with(
         .iter()
         .map(str::to_string)
         .collect();
-    let col = |name: &str| -> Result<usize, ImportError> {
-        let by_index = name
-            .strip_prefix('#')
-            .and_then(|n| n.parse::<usize>().ok())
-            .filter(|&n| n >= 1 && n <= header.len())
-            .map(|n| n - 1);
-        by_index
-            .or_else(|| header.iter().position(|h| h == name))
-            .ok_or_else(|| ImportError::NoColumn(name.to_string(), header.join(", ")))
-    };
-    let time_col = match &o.time {
-        RowTime::Column(c) => Some(col(c)?),
-        RowTime::Interval(_) => None,
-    };
-    let spindle = o.spindle.as_deref().map(col).transpose()?;
-    // A column named by position takes its header's name.
-    let named = |c: &String| -> Result<(String, usize), ImportError> {
-        let i = col(c)?;
-        Ok((header[i].clone(), i))
-    };
-    let temps: Vec<(String, usize)> = o
-        .temperatures
-        .iter()
-        .map(named)
-        .collect::<Result<_, ImportError>>()?;
-    let disps: Vec<(String, usize)> = o
-        .displacements
-        .iter()
-        .map(named)
-        .collect::<Result<_, ImportError>>()?;
-    let spindle_name = spindle.map(|i| header[i].clone());
+    let cols = Columns::of(&header, o)?;
 
     let mut rec = Recording {
         info: Some(MachineInfo {
@@ -157,36 +111,9 @@ pub fn import_csv_with(
     for (i, r) in rd.records().enumerate() {
         let row = i + 2; // 1-based, after the header
         let r = r.map_err(|e| ImportError::Csv(e.to_string()))?;
-        let t_ns = match (&o.time, time_col) {
+        let t_ns = match (&o.time, cols.time) {
             (RowTime::Interval(s), _) => o.start_ns + (i as f64 * s * 1e9).round() as i64,
-            (_, Some(c)) => {
-                let text = r.get(c).unwrap_or("");
-                let seconds = if fmt.decimal_comma {
-                    text.replace(',', ".").parse::<f64>()
-                } else {
-                    text.parse::<f64>()
-                };
-                let t_ns = match seconds {
-                    Ok(s) if s.is_finite() => o.start_ns + (s * 1e9).round() as i64,
-                    _ => chrono::DateTime::parse_from_rfc3339(text)
-                        .ok()
-                        .and_then(|d| d.timestamp_nanos_opt())
-                        .ok_or_else(|| ImportError::BadTime {
-                            row,
-                            text: text.to_string(),
-                        })?,
-                };
-                if let Some(p) = prev_t
-                    && t_ns < p
-                {
-                    return Err(ImportError::TimeBack {
-                        row,
-                        t_s: (t_ns - o.start_ns) as f64 / 1e9,
-                        prev_s: (p - o.start_ns) as f64 / 1e9,
-                    });
-                }
-                t_ns
-            }
+            (_, Some(c)) => column_time(&r, c, row, o.start_ns, fmt, prev_t)?,
             _ => unreachable!("a time column is resolved above"),
         };
         prev_t = Some(t_ns);
@@ -207,8 +134,8 @@ pub fn import_csv_with(
                 }
             }
         };
-        if let (Some(c), Some(name)) = (spindle, spindle_name.as_deref())
-            && let Some(rpm) = num(name, c)
+        if let Some((name, c)) = &cols.spindle
+            && let Some(rpm) = num(name, *c)
             && (last_rpm != Some(rpm) || rpm != 0.0)
         {
             rec.spindle.push(Timed {
@@ -217,7 +144,7 @@ pub fn import_csv_with(
             });
             last_rpm = Some(rpm);
         }
-        for (name, c) in &temps {
+        for (name, c) in &cols.temperatures {
             if let Some(celsius) = num(name, *c) {
                 rec.temperatures.push(Timed {
                     t_ns,
@@ -228,7 +155,7 @@ pub fn import_csv_with(
                 });
             }
         }
-        for (name, c) in &disps {
+        for (name, c) in &cols.displacements {
             if let Some(um) = num(name, *c) {
                 rec.displacements.push(Timed {
                     t_ns,
@@ -245,6 +172,116 @@ pub fn import_csv_with(
         rows,
         skipped,
     })
+}
+
+/// Options that cannot import anything, refused before the file is read.
+fn check_options(o: &CsvOptions, fmt: CsvFormat) -> Result<(), ImportError> {
+    if fmt.decimal_comma && fmt.delimiter == b',' {
+        return Err(ImportError::Options(
+            "a decimal comma needs another delimiter (--delimiter ';' or tab)".into(),
+        ));
+    }
+    if o.spindle.is_none() && o.temperatures.is_empty() && o.displacements.is_empty() {
+        return Err(ImportError::Options(
+            "nothing to import: name a spindle, temperature or displacement column".into(),
+        ));
+    }
+    if let RowTime::Interval(s) = o.time
+        && !crate::units::positive(s)
+    {
+        return Err(ImportError::Options(format!(
+            "--interval-s must be > 0, not {s}"
+        )));
+    }
+    Ok(())
+}
+
+/// The columns of the options, found in the header: the time's (if any), and each sensor's
+/// name (its header's) and index.
+struct Columns {
+    time: Option<usize>,
+    spindle: Option<(String, usize)>,
+    temperatures: Vec<(String, usize)>,
+    displacements: Vec<(String, usize)>,
+}
+
+impl Columns {
+    fn of(header: &[String], o: &CsvOptions) -> Result<Columns, ImportError> {
+        let col = |name: &str| -> Result<usize, ImportError> {
+            let by_index = name
+                .strip_prefix('#')
+                .and_then(|n| n.parse::<usize>().ok())
+                .filter(|&n| n >= 1 && n <= header.len())
+                .map(|n| n - 1);
+            by_index
+                .or_else(|| header.iter().position(|h| h == name))
+                .ok_or_else(|| ImportError::NoColumn(name.to_string(), header.join(", ")))
+        };
+        let time = match &o.time {
+            RowTime::Column(c) => Some(col(c)?),
+            RowTime::Interval(_) => None,
+        };
+        let spindle = o.spindle.as_deref().map(col).transpose()?;
+        // A column named by position takes its header's name.
+        let named = |c: &String| -> Result<(String, usize), ImportError> {
+            let i = col(c)?;
+            Ok((header[i].clone(), i))
+        };
+        let temperatures: Vec<(String, usize)> = o
+            .temperatures
+            .iter()
+            .map(named)
+            .collect::<Result<_, ImportError>>()?;
+        let displacements: Vec<(String, usize)> = o
+            .displacements
+            .iter()
+            .map(named)
+            .collect::<Result<_, ImportError>>()?;
+        Ok(Columns {
+            time,
+            spindle: spindle.map(|i| (header[i].clone(), i)),
+            temperatures,
+            displacements,
+        })
+    }
+}
+
+/// The time of row `row` from its column `c`: seconds after `start_ns` or an RFC 3339 time,
+/// never before the previous row's.
+fn column_time(
+    r: &csv::StringRecord,
+    c: usize,
+    row: usize,
+    start_ns: i64,
+    fmt: CsvFormat,
+    prev_t: Option<i64>,
+) -> Result<i64, ImportError> {
+    let text = r.get(c).unwrap_or("");
+    let seconds = if fmt.decimal_comma {
+        text.replace(',', ".").parse::<f64>()
+    } else {
+        text.parse::<f64>()
+    };
+    let t_ns = match seconds {
+        Ok(s) if s.is_finite() => start_ns + (s * 1e9).round() as i64,
+        _ => chrono::DateTime::parse_from_rfc3339(text)
+            .ok()
+            .and_then(|d| d.timestamp_nanos_opt())
+            .ok_or_else(|| ImportError::BadTime {
+                row,
+                text: text.to_string(),
+            })?,
+    };
+    if let Some(p) = prev_t
+        && t_ns < p
+    {
+        return Err(ImportError::TimeBack {
+            row,
+            t_s: (t_ns - start_ns) as f64 / 1e9,
+            prev_s: (p - start_ns) as f64 / 1e9,
+        });
+    }
+    Ok(t_ns)
 }
 
 /// Comma-separated column lists (`a,b` or repeated flags) as one list.

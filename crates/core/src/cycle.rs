@@ -250,6 +250,52 @@ pub fn process_cycle(
 ) -> CycleOutcome {
     let mut reasons: Vec<String> = Vec::new();
     let mut notes: Vec<String> = Vec::new();
+    let unique = readable_once(entries, &mut reasons, &mut notes);
+    let ok = tripped_or_retried(&unique, &mut reasons, &mut notes);
+    if let Some(expected) = &checks.expected
+        && let Some(missing) = missing_measurements(expected, &ok)
+    {
+        reasons.push(missing);
+    }
+    check_values(k, &ok, checks.max_deviation_mm, &mut reasons);
+    let times = ok.iter().map(|(t, _)| *t);
+    let t_ref = if times.clone().next().is_some() {
+        mean_time_ns(times)
+    } else {
+        mean_time_ns(entries.iter().map(|e| e.t_ns))
+    };
+    let mut outcome = CycleOutcome {
+        cycle,
+        t_ref_ns: t_ref,
+        status: ResultStatus::Rejected,
+        reason: None,
+        n_detections: entries.len(),
+        notes,
+        solution: None,
+    };
+    if !reasons.is_empty() {
+        outcome.reason = Some(reasons.join("; "));
+        return outcome;
+    }
+    let obs: Vec<Observation> = ok.iter().map(|(t, m)| observation(k, *t, m)).collect();
+    match Identifier::new(k, &obs, &checks.solve).and_then(|id| id.solve(&obs)) {
+        Ok(sol) => {
+            outcome.t_ref_ns = sol.t_ref_ns;
+            outcome.status = ResultStatus::Ok;
+            outcome.solution = Some(sol);
+        }
+        Err(e) => outcome.reason = Some(e.to_string()),
+    }
+    outcome
+}
+
+/// The readable detections of a cycle in time order, each delivered message once; a
+/// detection that cannot be read is a reason to reject the cycle.
+fn readable_once<'a>(
+    entries: &'a [Entry],
+    reasons: &mut Vec<String>,
+    notes: &mut Vec<String>,
+) -> Vec<(i64, &'a DetectionMsg)> {
     let mut readable: Vec<(i64, &DetectionMsg)> = Vec::new();
     for e in entries {
         match &e.msg {
@@ -275,6 +321,16 @@ pub fn process_cycle(
             unique.push((t, m));
         }
     }
+    unique
+}
+
+/// The detections that tripped; an approach that did not trip is a reason to reject the
+/// cycle unless it was retried at once.
+fn tripped_or_retried<'a>(
+    unique: &[(i64, &'a DetectionMsg)],
+    reasons: &mut Vec<String>,
+    notes: &mut Vec<String>,
+) -> Vec<(i64, &'a DetectionMsg)> {
     // A failed approach retried at once (the next approaches are the same measurement, and one
     // of them trips) is replaced by its retry. Any other failed approach rejects the cycle: a
     // trip of the same measurement later in the cycle is another pass of the plan, not a retry.
@@ -306,34 +362,50 @@ pub fn process_cycle(
             ));
         }
     }
-    if let Some(expected) = &checks.expected {
-        // A detection that could not be read is reported above; the count says what is short.
-        let mut have = ExpectedMeasurements::new();
-        for (_, m) in &ok {
-            *have.entry(MeasurementKey::of_detection(m)).or_default() += 1;
-        }
-        let missing: Vec<String> = expected
-            .iter()
-            .filter_map(|(key, need)| {
-                let got = have.get(key).copied().unwrap_or(0);
-                (got < *need).then(|| {
-                    if *need == 1 {
-                        key.to_string()
-                    } else {
-                        format!("{key} ({got} of {need})")
-                    }
-                })
-            })
-            .collect();
-        if !missing.is_empty() {
-            reasons.push(format!(
-                "missing measurements (pose, approach, feed): {}",
-                missing.join(", ")
-            ));
-        }
+    ok
+}
+
+/// The expected measurements the tripped detections fall short of, as a reason.
+fn missing_measurements(
+    expected: &ExpectedMeasurements,
+    ok: &[(i64, &DetectionMsg)],
+) -> Option<String> {
+    // A detection that could not be read is reported above; the count says what is short.
+    let mut have = ExpectedMeasurements::new();
+    for (_, m) in ok {
+        *have.entry(MeasurementKey::of_detection(m)).or_default() += 1;
     }
+    let missing: Vec<String> = expected
+        .iter()
+        .filter_map(|(key, need)| {
+            let got = have.get(key).copied().unwrap_or(0);
+            (got < *need).then(|| {
+                if *need == 1 {
+                    key.to_string()
+                } else {
+                    format!("{key} ({got} of {need})")
+                }
+            })
+        })
+        .collect();
+    (!missing.is_empty()).then(|| {
+        format!(
+            "missing measurements (pose, approach, feed): {}",
+            missing.join(", ")
+        )
+    })
+}
+
+/// Each tripped detection's values: finite, and a reading within `max_deviation_mm` of its
+/// nominal trip.
+fn check_values(
+    k: &Kinematics,
+    ok: &[(i64, &DetectionMsg)],
+    max_deviation_mm: f64,
+    reasons: &mut Vec<String>,
+) {
     let nominal = k.nominal_state();
-    for (_, m) in &ok {
+    for (_, m) in ok {
         let values = [
             ("b_deg", m.b_deg),
             ("c_deg", m.c_deg),
@@ -352,7 +424,7 @@ pub fn process_cycle(
             Ok(expected) => {
                 let got = o.reading();
                 let dev = got - expected;
-                if dev.abs() > checks.max_deviation_mm {
+                if dev.abs() > max_deviation_mm {
                     let ratio = if expected.abs() > 1e-6 { got / expected } else { f64::NAN };
                     let unit = if (500.0..2000.0).contains(&ratio.abs()) {
                         " (about 1000 times the nominal: written in um instead of mm?)"
@@ -364,7 +436,7 @@ pub fn process_cycle(
                         m.step,
                         m.axis.name(),
                         dev.abs(),
-                        checks.max_deviation_mm
+                        max_deviation_mm
                     ));
                 }
             }
@@ -374,35 +446,6 @@ pub fn process_cycle(
             )),
         }
     }
-    let times = ok.iter().map(|(t, _)| *t);
-    let t_ref = if times.clone().next().is_some() {
-        mean_time_ns(times)
-    } else {
-        mean_time_ns(entries.iter().map(|e| e.t_ns))
-    };
-    let mut outcome = CycleOutcome {
-        cycle,
-        t_ref_ns: t_ref,
-        status: ResultStatus::Rejected,
-        reason: None,
-        n_detections: entries.len(),
-        notes,
-        solution: None,
-    };
-    if !reasons.is_empty() {
-        outcome.reason = Some(reasons.join("; "));
-        return outcome;
-    }
-    let obs: Vec<Observation> = ok.iter().map(|(t, m)| observation(k, *t, m)).collect();
-    match Identifier::new(k, &obs, &checks.solve).and_then(|id| id.solve(&obs)) {
-        Ok(sol) => {
-            outcome.t_ref_ns = sol.t_ref_ns;
-            outcome.status = ResultStatus::Ok;
-            outcome.solution = Some(sol);
-        }
-        Err(e) => outcome.reason = Some(e.to_string()),
-    }
-    outcome
 }
 
 /// Validate and solve every cycle of a detection stream.

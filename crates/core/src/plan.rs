@@ -189,6 +189,162 @@ fn is_tilted(angles: &[f64], n_axes: usize) -> bool {
         .any(|a| wrap_deg(*a).abs() > 1e-9)
 }
 
+/// A plan's moves as [`Plan::expand_moves`] lays them out: the moves so far, the machine time
+/// at their end, and where the tool and the rotary axes are.
+struct Layout {
+    moves: Vec<Move>,
+    t: f64,
+    pos: Vec3,
+    angles: [f64; MAX_ROTARY],
+    /// Rapid and probing feeds, mm/s.
+    rapid: f64,
+    feed: f64,
+}
+
+impl Layout {
+    fn new(k: &Kinematics, feed_mm_min: f64) -> Self {
+        Layout {
+            moves: Vec::new(),
+            t: 0.0,
+            pos: Vec3::new(0.0, 0.0, k.motion.safe_z_mm),
+            angles: [0.0; MAX_ROTARY],
+            rapid: k.motion.rapid_mm_min / 60.0,
+            feed: feed_mm_min / 60.0,
+        }
+    }
+
+    /// A move of `d` s to `to` in the current pose, after the last.
+    fn push(&mut self, kind: MoveKind, d: f64, to: Vec3, step: Option<usize>, note: String) {
+        self.moves.push(Move {
+            kind,
+            t_start_s: self.t,
+            duration_s: d,
+            to: [to.x, to.y, to.z],
+            angles_deg: self.angles,
+            step,
+            note,
+        });
+        self.t += d;
+    }
+
+    /// Retract to the safe Z if below it, then index the rotary axes to `angles`.
+    fn index_to(&mut self, k: &Kinematics, angles: [f64; MAX_ROTARY]) {
+        if self.pos.z < k.motion.safe_z_mm {
+            let to = Vec3::new(self.pos.x, self.pos.y, k.motion.safe_z_mm);
+            let d = (k.motion.safe_z_mm - self.pos.z) / self.rapid;
+            self.push(MoveKind::Rapid, d, to, None, "retract to safe Z".into());
+            self.pos = to;
+        }
+        let dur = k
+            .rotary
+            .iter()
+            .enumerate()
+            .map(|(j, ax)| wrap_deg(angles[j] - self.angles[j]).abs() / (ax.speed_deg_min / 60.0))
+            .fold(0.0, f64::max);
+        self.angles = angles;
+        self.push(
+            MoveKind::Rotary,
+            dur + k.motion.clamp_s,
+            self.pos,
+            None,
+            "unclamp, index, clamp".into(),
+        );
+    }
+
+    /// Step `i` in the current pose: over its start clear of the beam, down, dwell, probe and
+    /// back off; sets the step's start time.
+    fn probe(&mut self, cfg: &PlanConfig, i: usize, step: &mut Step, same_pose: bool) {
+        let rapid = self.rapid;
+        // Over the start at a height clear of the beam, then down to the start.
+        let clear_z = step.start.z.max(step.expected + cfg.clearance_mm) + 5.0;
+        let clear_z = if same_pose {
+            clear_z
+        } else {
+            self.pos.z.max(clear_z)
+        };
+        if self.pos.z < clear_z {
+            let to = Vec3::new(self.pos.x, self.pos.y, clear_z);
+            let d = (clear_z - self.pos.z) / rapid;
+            self.push(
+                MoveKind::Rapid,
+                d,
+                to,
+                None,
+                "up clear of the setter".into(),
+            );
+            self.pos = to;
+        }
+        let over = Vec3::new(step.start.x, step.start.y, self.pos.z);
+        let dxy = (over - self.pos).norm();
+        if dxy > 0.0 {
+            self.push(
+                MoveKind::Rapid,
+                dxy / rapid,
+                over,
+                None,
+                "to the approach".into(),
+            );
+        }
+        let dz = (self.pos.z - step.start.z).abs();
+        self.push(
+            MoveKind::Rapid,
+            dz / rapid,
+            step.start,
+            None,
+            "down to the start".into(),
+        );
+        self.push(
+            MoveKind::Dwell,
+            cfg.dwell_s,
+            step.start,
+            Some(i),
+            "air blast, settle".into(),
+        );
+        step.t_start_s = self.t;
+        let probe_len = cfg.clearance_mm;
+        let mut end = step.start;
+        end[step.approach.axis.index()] = step.expected;
+        self.push(
+            MoveKind::Probe,
+            probe_len / self.feed,
+            end,
+            Some(i),
+            step.label.clone(),
+        );
+        self.push(
+            MoveKind::Rapid,
+            probe_len / rapid,
+            step.start,
+            Some(i),
+            "back off".into(),
+        );
+        self.pos = step.start;
+    }
+
+    /// Back to the safe Z, and to the zero pose if the axes are not there.
+    fn finish(&mut self, k: &Kinematics) {
+        let to = Vec3::new(self.pos.x, self.pos.y, k.motion.safe_z_mm);
+        let d = (k.motion.safe_z_mm - self.pos.z).max(0.0) / self.rapid;
+        self.push(MoveKind::Rapid, d, to, None, "retract to safe Z".into());
+        if self.angles.iter().any(|a| wrap_deg(*a).abs() > 1e-9) {
+            let dur = k
+                .rotary
+                .iter()
+                .enumerate()
+                .map(|(j, ax)| wrap_deg(self.angles[j]).abs() / (ax.speed_deg_min / 60.0))
+                .fold(0.0, f64::max);
+            self.angles = [0.0; MAX_ROTARY];
+            self.push(
+                MoveKind::Rotary,
+                dur + k.motion.clamp_s,
+                to,
+                None,
+                "back to the zero pose".into(),
+            );
+        }
+    }
+}
+
 impl Plan {
     pub fn build(k: &Kinematics, cfg: &PlanConfig) -> Result<Plan, PlanError> {
         let invalid = |message: String| PlanError::Invalid {
@@ -340,185 +496,21 @@ impl Plan {
     /// Moves and times: retract to the safe Z before any rotary move, rapid to the approach
     /// start (over the beam, then down), dwell, probe to the nominal trip, back to the start.
     fn expand_moves(&mut self, k: &Kinematics) {
-        let rapid = k.motion.rapid_mm_min / 60.0;
-        let feed = self.config.feed_mm_min / 60.0;
-        let mut t = 0.0;
-        let mut pos = Vec3::new(0.0, 0.0, k.motion.safe_z_mm);
-        let mut angles = [0.0; MAX_ROTARY];
-        let mut moves = Vec::new();
-        let push = |moves: &mut Vec<Move>,
-                    t: &mut f64,
-                    kind: MoveKind,
-                    d: f64,
-                    to: Vec3,
-                    a: [f64; MAX_ROTARY],
-                    step: Option<usize>,
-                    note: String| {
-            moves.push(Move {
-                kind,
-                t_start_s: *t,
-                duration_s: d,
-                to: [to.x, to.y, to.z],
-                angles_deg: a,
-                step,
-                note,
-            });
-            *t += d;
-        };
+        let mut l = Layout::new(k, self.config.feed_mm_min);
         for (i, step) in self.steps.iter_mut().enumerate() {
-            let same_pose = angles
+            let same_pose = l
+                .angles
                 .iter()
                 .zip(step.angles.iter())
                 .all(|(a, b)| (wrap_deg(a - b)).abs() < 1e-9);
             if !same_pose {
-                if pos.z < k.motion.safe_z_mm {
-                    let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
-                    let d = (k.motion.safe_z_mm - pos.z) / rapid;
-                    push(
-                        &mut moves,
-                        &mut t,
-                        MoveKind::Rapid,
-                        d,
-                        to,
-                        angles,
-                        None,
-                        "retract to safe Z".into(),
-                    );
-                    pos = to;
-                }
-                let dur = k
-                    .rotary
-                    .iter()
-                    .enumerate()
-                    .map(|(j, ax)| {
-                        wrap_deg(step.angles[j] - angles[j]).abs() / (ax.speed_deg_min / 60.0)
-                    })
-                    .fold(0.0, f64::max);
-                push(
-                    &mut moves,
-                    &mut t,
-                    MoveKind::Rotary,
-                    dur + k.motion.clamp_s,
-                    pos,
-                    step.angles,
-                    None,
-                    "unclamp, index, clamp".into(),
-                );
-                angles = step.angles;
+                l.index_to(k, step.angles);
             }
-            // Over the start at a height clear of the beam, then down to the start.
-            let clear_z = step.start.z.max(step.expected + self.config.clearance_mm) + 5.0;
-            let clear_z = if same_pose {
-                clear_z
-            } else {
-                pos.z.max(clear_z)
-            };
-            if pos.z < clear_z {
-                let to = Vec3::new(pos.x, pos.y, clear_z);
-                push(
-                    &mut moves,
-                    &mut t,
-                    MoveKind::Rapid,
-                    (clear_z - pos.z) / rapid,
-                    to,
-                    angles,
-                    None,
-                    "up clear of the setter".into(),
-                );
-                pos = to;
-            }
-            let over = Vec3::new(step.start.x, step.start.y, pos.z);
-            let dxy = (over - pos).norm();
-            if dxy > 0.0 {
-                push(
-                    &mut moves,
-                    &mut t,
-                    MoveKind::Rapid,
-                    dxy / rapid,
-                    over,
-                    angles,
-                    None,
-                    "to the approach".into(),
-                );
-            }
-            let dz = (pos.z - step.start.z).abs();
-            push(
-                &mut moves,
-                &mut t,
-                MoveKind::Rapid,
-                dz / rapid,
-                step.start,
-                angles,
-                None,
-                "down to the start".into(),
-            );
-            push(
-                &mut moves,
-                &mut t,
-                MoveKind::Dwell,
-                self.config.dwell_s,
-                step.start,
-                angles,
-                Some(i),
-                "air blast, settle".into(),
-            );
-            step.t_start_s = t;
-            let probe_len = self.config.clearance_mm;
-            let mut end = step.start;
-            end[step.approach.axis.index()] = step.expected;
-            push(
-                &mut moves,
-                &mut t,
-                MoveKind::Probe,
-                probe_len / feed,
-                end,
-                angles,
-                Some(i),
-                step.label.clone(),
-            );
-            push(
-                &mut moves,
-                &mut t,
-                MoveKind::Rapid,
-                probe_len / rapid,
-                step.start,
-                angles,
-                Some(i),
-                "back off".into(),
-            );
-            pos = step.start;
+            l.probe(&self.config, i, step, same_pose);
         }
-        let to = Vec3::new(pos.x, pos.y, k.motion.safe_z_mm);
-        push(
-            &mut moves,
-            &mut t,
-            MoveKind::Rapid,
-            (k.motion.safe_z_mm - pos.z).max(0.0) / rapid,
-            to,
-            angles,
-            None,
-            "retract to safe Z".into(),
-        );
-        if angles.iter().any(|a| wrap_deg(*a).abs() > 1e-9) {
-            let dur = k
-                .rotary
-                .iter()
-                .enumerate()
-                .map(|(j, ax)| wrap_deg(angles[j]).abs() / (ax.speed_deg_min / 60.0))
-                .fold(0.0, f64::max);
-            push(
-                &mut moves,
-                &mut t,
-                MoveKind::Rotary,
-                dur + k.motion.clamp_s,
-                to,
-                [0.0; MAX_ROTARY],
-                None,
-                "back to the zero pose".into(),
-            );
-        }
-        self.moves = moves;
-        self.machine_time_s = t;
+        l.finish(k);
+        self.moves = l.moves;
+        self.machine_time_s = l.t;
     }
 
     /// The observations a machine in `state` gives for this plan, without noise, each at its

@@ -1132,138 +1132,29 @@ fn fit_posterior(
     obs: &[Obs],
     n: usize,
 ) -> Result<ChannelFit, ModelError> {
-    let err = |m: String| ModelError::Channel {
-        channel: name.to_string(),
-        message: m,
-    };
+    let err = |m: String| channel_error(name, m);
     if obs.len() < 2 {
         return Err(err(format!(
             "{} observation(s); at least 2 needed",
             obs.len()
         )));
     }
-    // Scale of each column over the data, so that a ridge factor means the same for all.
-    let mut ms = vec![0.0; n];
-    for o in obs {
-        for (m, x) in ms.iter_mut().zip(o.row.iter()) {
-            *m += x * x / obs.len() as f64;
-        }
-    }
-    let base: Vec<f64> = (0..n)
-        .map(|j| {
-            let sd = if j == 0 {
-                PRIOR_SD_OFFSET
-            } else {
-                cfg.prior_gain_sd
-            };
-            1.0 / (sd * sd)
-        })
-        .collect();
-    let with_ridge = |k: f64| -> Vec<f64> {
-        base.iter()
-            .zip(&ms)
-            .enumerate()
-            .map(|(j, (b, m))| if j == 0 { *b } else { b + k * m.max(1e-12) })
-            .collect()
-    };
-    let all: Vec<&Obs> = obs.iter().collect();
-    // Discrepancy so that chi2/dof = 1 (0 when the stated uncertainties already explain the
-    // scatter): two passes are enough, the weights change little after the first.
-    let weights = |d2: f64| -> Vec<f64> {
-        obs.iter()
-            .map(|o| {
-                let v = o.sigma.map_or(0.0, |s| s * s) + d2;
-                if v > 0.0 { 1.0 / v } else { 1.0 }
-            })
-            .collect()
-    };
-    // Parameters the data determine (the rest stay at their prior): at most the observations.
-    let dof = obs.len() as f64 - n as f64;
-    let determined = dof >= 1.0;
-    let dof = dof.max(1.0);
-    // The discrepancy that makes chi2/dof = 1 for a given ridge (0 when the stated
-    // uncertainties already explain the scatter); a few passes settle the weights.
-    let discrepancy = |k: f64| -> Result<f64, ModelError> {
-        let mut d2 = 0.0;
-        for _ in 0..3 {
-            let (beta, _) = solve(&all, &weights(d2), &with_ridge(k))
-                .ok_or_else(|| err("singular fit".into()))?;
-            let r2: Vec<(f64, f64)> = obs
-                .iter()
-                .map(|o| {
-                    (
-                        (o.y - o.row.dot(&beta)).powi(2),
-                        o.sigma.map_or(0.0, |s| s * s),
-                    )
-                })
-                .collect();
-            let chi = |d2: f64| -> f64 {
-                r2.iter()
-                    .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
-                    .sum()
-            };
-            if !determined {
-                // Fewer observations than parameters: the residuals say nothing about the
-                // model's scatter; the posterior covariance carries the uncertainty.
-                d2 = if obs.iter().all(|o| o.sigma.is_none()) {
-                    1.0
-                } else {
-                    0.0
-                };
-            } else if obs.iter().all(|o| o.sigma.is_none()) {
-                d2 = r2.iter().map(|x| x.0).sum::<f64>() / dof;
-            } else if chi(0.0) <= dof {
-                d2 = 0.0;
-            } else {
-                // chi(d2) falls as d2 grows: bisect for chi = dof.
-                let (mut lo, mut hi) = (0.0, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
-                for _ in 0..80 {
-                    let mid = 0.5 * (lo + hi);
-                    if chi(mid) > dof { lo = mid } else { hi = mid }
-                }
-                d2 = hi;
-            }
-        }
-        Ok(d2)
-    };
-    let d2 = discrepancy(0.0)?;
-    let w = weights(d2);
+    let p = Posterior::new(cfg, name, obs, n);
+    let d2 = p.discrepancy(0.0)?;
+    let w = p.weights(d2);
     // Blocked cross-validation over contiguous stretches of time, when there are enough
     // observations for each held-out block to say something (two per block); else the prior
     // alone regularises.
-    let blocks = CV_BLOCKS.min(obs.len());
-    let mut best = (f64::INFINITY, 0.0);
     let grid: &[f64] = if obs.len() >= 2 * CV_BLOCKS {
         &cfg.ridge_grid
     } else {
         &[0.0]
     };
-    for &k in grid {
-        let mut sse = 0.0;
-        let mut count = 0usize;
-        for b in 0..blocks {
-            let lo = b * obs.len() / blocks;
-            let hi = (b + 1) * obs.len() / blocks;
-            let train: Vec<&Obs> = obs[..lo].iter().chain(&obs[hi..]).collect();
-            let wt: Vec<f64> = w[..lo].iter().chain(&w[hi..]).copied().collect();
-            let Some((beta, _)) = solve(&train, &wt, &with_ridge(k)) else {
-                continue;
-            };
-            for o in &obs[lo..hi] {
-                sse += (o.y - o.row.dot(&beta)).powi(2);
-                count += 1;
-            }
-        }
-        let rmse = (sse / count.max(1) as f64).sqrt();
-        // A larger ridge must do better, not merely as well.
-        if rmse < best.0 * (1.0 - 1e-9) {
-            best = (rmse, k);
-        }
-    }
-    let d2 = discrepancy(best.1)?;
-    let w = weights(d2);
-    let lambda = with_ridge(best.1);
-    let (beta, a) = solve(&all, &w, &lambda).ok_or_else(|| err("singular fit".into()))?;
+    let best = p.best_ridge(grid, &w);
+    let d2 = p.discrepancy(best.1)?;
+    let w = p.weights(d2);
+    let lambda = p.with_ridge(best.1);
+    let (beta, a) = solve(&p.all, &w, &lambda).ok_or_else(|| err("singular fit".into()))?;
     let cov = a
         .try_inverse()
         .ok_or_else(|| err("singular posterior".into()))?;
@@ -1286,12 +1177,170 @@ fn fit_posterior(
         discrepancy_um: d2.sqrt(),
         n_obs: obs.len(),
         rms_um: rms,
-        chi2_dof: chi2 / dof,
+        chi2_dof: chi2 / p.dof,
         cv_rmse_um: best.0,
         offset_walk_per_h: None,
         guard: Guard::default(),
         held_to_range,
     })
+}
+
+fn channel_error(name: &str, message: String) -> ModelError {
+    ModelError::Channel {
+        channel: name.to_string(),
+        message,
+    }
+}
+
+/// One channel's observations as [`fit_posterior`] solves them: the prior precision of each
+/// parameter and the scale of each column, for any ridge factor and discrepancy.
+struct Posterior<'a> {
+    name: &'a str,
+    obs: &'a [Obs],
+    all: Vec<&'a Obs>,
+    /// The prior precision of each parameter without the ridge.
+    base: Vec<f64>,
+    /// The mean square of each column over the data.
+    ms: Vec<f64>,
+    /// Whether the data determine the parameters (at least one degree of freedom), and the
+    /// degrees of freedom (at least 1).
+    determined: bool,
+    dof: f64,
+}
+
+impl<'a> Posterior<'a> {
+    fn new(cfg: &ModelConfig, name: &'a str, obs: &'a [Obs], n: usize) -> Self {
+        // Scale of each column over the data, so that a ridge factor means the same for all.
+        let mut ms = vec![0.0; n];
+        for o in obs {
+            for (m, x) in ms.iter_mut().zip(o.row.iter()) {
+                *m += x * x / obs.len() as f64;
+            }
+        }
+        let base: Vec<f64> = (0..n)
+            .map(|j| {
+                let sd = if j == 0 {
+                    PRIOR_SD_OFFSET
+                } else {
+                    cfg.prior_gain_sd
+                };
+                1.0 / (sd * sd)
+            })
+            .collect();
+        // Parameters the data determine (the rest stay at their prior): at most the observations.
+        let dof = obs.len() as f64 - n as f64;
+        Posterior {
+            name,
+            obs,
+            all: obs.iter().collect(),
+            base,
+            ms,
+            determined: dof >= 1.0,
+            dof: dof.max(1.0),
+        }
+    }
+
+    /// The prior precisions with ridge factor `k` on the gains.
+    fn with_ridge(&self, k: f64) -> Vec<f64> {
+        self.base
+            .iter()
+            .zip(&self.ms)
+            .enumerate()
+            .map(|(j, (b, m))| if j == 0 { *b } else { b + k * m.max(1e-12) })
+            .collect()
+    }
+
+    // Discrepancy so that chi2/dof = 1 (0 when the stated uncertainties already explain the
+    // scatter): two passes are enough, the weights change little after the first.
+    /// Each observation's weight with the discrepancy variance `d2` added to its own.
+    fn weights(&self, d2: f64) -> Vec<f64> {
+        self.obs
+            .iter()
+            .map(|o| {
+                let v = o.sigma.map_or(0.0, |s| s * s) + d2;
+                if v > 0.0 { 1.0 / v } else { 1.0 }
+            })
+            .collect()
+    }
+
+    /// The discrepancy that makes chi2/dof = 1 for a given ridge (0 when the stated
+    /// uncertainties already explain the scatter); a few passes settle the weights.
+    fn discrepancy(&self, k: f64) -> Result<f64, ModelError> {
+        let obs = self.obs;
+        let dof = self.dof;
+        let mut d2 = 0.0;
+        for _ in 0..3 {
+            let (beta, _) = solve(&self.all, &self.weights(d2), &self.with_ridge(k))
+                .ok_or_else(|| channel_error(self.name, "singular fit".into()))?;
+            let r2: Vec<(f64, f64)> = obs
+                .iter()
+                .map(|o| {
+                    (
+                        (o.y - o.row.dot(&beta)).powi(2),
+                        o.sigma.map_or(0.0, |s| s * s),
+                    )
+                })
+                .collect();
+            let chi = |d2: f64| -> f64 {
+                r2.iter()
+                    .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
+                    .sum()
+            };
+            if !self.determined {
+                // Fewer observations than parameters: the residuals say nothing about the
+                // model's scatter; the posterior covariance carries the uncertainty.
+                d2 = if obs.iter().all(|o| o.sigma.is_none()) {
+                    1.0
+                } else {
+                    0.0
+                };
+            } else if obs.iter().all(|o| o.sigma.is_none()) {
+                d2 = r2.iter().map(|x| x.0).sum::<f64>() / dof;
+            } else if chi(0.0) <= dof {
+                d2 = 0.0;
+            } else {
+                // chi(d2) falls as d2 grows: bisect for chi = dof.
+                let (mut lo, mut hi) = (0.0, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
+                for _ in 0..80 {
+                    let mid = 0.5 * (lo + hi);
+                    if chi(mid) > dof { lo = mid } else { hi = mid }
+                }
+                d2 = hi;
+            }
+        }
+        Ok(d2)
+    }
+
+    /// The ridge factor of `grid` with the lowest blocked cross-validation RMSE under the
+    /// weights `w`: (RMSE, factor).
+    fn best_ridge(&self, grid: &[f64], w: &[f64]) -> (f64, f64) {
+        let obs = self.obs;
+        let blocks = CV_BLOCKS.min(obs.len());
+        let mut best = (f64::INFINITY, 0.0);
+        for &k in grid {
+            let mut sse = 0.0;
+            let mut count = 0usize;
+            for b in 0..blocks {
+                let lo = b * obs.len() / blocks;
+                let hi = (b + 1) * obs.len() / blocks;
+                let train: Vec<&Obs> = obs[..lo].iter().chain(&obs[hi..]).collect();
+                let wt: Vec<f64> = w[..lo].iter().chain(&w[hi..]).copied().collect();
+                let Some((beta, _)) = solve(&train, &wt, &self.with_ridge(k)) else {
+                    continue;
+                };
+                for o in &obs[lo..hi] {
+                    sse += (o.y - o.row.dot(&beta)).powi(2);
+                    count += 1;
+                }
+            }
+            let rmse = (sse / count.max(1) as f64).sqrt();
+            // A larger ridge must do better, not merely as well.
+            if rmse < best.0 * (1.0 - 1e-9) {
+                best = (rmse, k);
+            }
+        }
+        best
+    }
 }
 
 /// The temperature columns a channel's prediction holds to the range of its fit data: all of

@@ -472,72 +472,150 @@ fn ambient_at(a: &crate::scenario::AmbientConfig, t_ns: i64) -> f64 {
     a.mean_c + a.amplitude_k * (2.0 * std::f64::consts::PI * (hours - a.peak_h) / a.period_h).cos()
 }
 
+/// A scenario's timeline: the cycle windows (s from the start) with each cycle's spindle
+/// speed and feed, and what the machine does at any time.
+struct Timeline<'a> {
+    scn: &'a Scenario,
+    windows: Vec<(f64, f64)>,
+    settings: Vec<(f64, f64)>,
+}
+
+impl<'a> Timeline<'a> {
+    fn new(scn: &'a Scenario, plan: &Plan, duration_s: f64) -> Self {
+        let cycle_len = plan.machine_time_s;
+        // Cycle windows, pushed back so that they never overlap.
+        let mut windows: Vec<(f64, f64)> = Vec::new();
+        for t in scn.cycle_times_min() {
+            let mut s = t * 60.0;
+            if let Some((_, e)) = windows.last()
+                && s < *e
+            {
+                s = *e;
+            }
+            if s < duration_s {
+                windows.push((s, s + cycle_len));
+            }
+        }
+        let settings: Vec<(f64, f64)> = windows
+            .iter()
+            .enumerate()
+            .map(|(c, (s, _))| {
+                scn.cycles.settings(
+                    c,
+                    s / 60.0,
+                    plan.config.spindle_rpm,
+                    plan.config.feed_mm_min,
+                )
+            })
+            .collect();
+        Timeline {
+            scn,
+            windows,
+            settings,
+        }
+    }
+
+    fn in_cycle(&self, t: f64) -> Option<usize> {
+        self.windows.iter().position(|(s, e)| t >= *s && t < *e)
+    }
+
+    fn segment_at(&self, t: f64) -> Option<usize> {
+        self.scn.spindle.iter().rposition(|s| s.at_min * 60.0 <= t)
+    }
+
+    fn rpm_at(&self, t: f64) -> f64 {
+        match self.in_cycle(t) {
+            Some(c) => self.settings[c].0,
+            None => self
+                .segment_at(t)
+                .map(|i| self.scn.spindle[i].rpm)
+                .unwrap_or(0.0),
+        }
+    }
+
+    /// The machine's state and program at `t`.
+    fn state_at(&self, t: f64) -> (MachineStateKind, Option<String>) {
+        match self.in_cycle(t) {
+            Some(c) => (
+                MachineStateKind::Measuring,
+                Some(format!("driftwatch cycle {}", c + 1)),
+            ),
+            None => match self.segment_at(t) {
+                Some(i) => (
+                    self.scn.spindle[i].state,
+                    self.scn.spindle[i].program.clone(),
+                ),
+                None => (MachineStateKind::Off, None),
+            },
+        }
+    }
+
+    /// Every event of the run before `duration_s`, in time order: spindle segments, cycle
+    /// starts, probes and ends, samples and heartbeats.
+    fn events(&self, plan: &Plan, duration_s: f64) -> Vec<(f64, Event)> {
+        let mut events: Vec<(f64, Event)> = Vec::new();
+        for (i, s) in self.scn.spindle.iter().enumerate() {
+            events.push((s.at_min * 60.0, Event::Segment(i)));
+        }
+        for (c, (s, e)) in self.windows.iter().enumerate() {
+            events.push((*s, Event::CycleStart(c)));
+            for (i, st) in plan.steps.iter().enumerate() {
+                events.push((s + st.t_start_s, Event::Probe(c, i)));
+            }
+            events.push((*e, Event::CycleEnd(c)));
+        }
+        let mut t = 0.0;
+        while t < duration_s {
+            events.push((t, Event::Sample));
+            t += self.scn.sample_s;
+        }
+        let mut t = 0.0;
+        while t < duration_s {
+            events.push((t, Event::Heartbeat));
+            t += 10.0;
+        }
+        events.retain(|(t, _)| *t >= 0.0 && *t < duration_s);
+        events.sort_by(|a, b| {
+            a.0.total_cmp(&b.0)
+                .then(a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal))
+        });
+        events
+    }
+}
+
+/// A cycle at its end: its truth at the mean time of its `ok` detections, from the snapshot
+/// of the virtual machine at the last probe start before then, the spindle at `rpm`.
+fn close_cycle(
+    mut cy: SimCycle,
+    snapshots: &[VirtualMachine],
+    k: &Kinematics,
+    rpm: f64,
+) -> SimCycle {
+    let ok = cy
+        .detections
+        .iter()
+        .filter(|d| d.msg.status() == DetectionStatus::Ok)
+        .map(|d| d.t_ns);
+    let t_ref = driftwatch_core::identify::mean_time_ns(ok);
+    let snap = snapshots
+        .iter()
+        .rev()
+        .find(|v| v.now_ns() <= t_ref)
+        .or(snapshots.first());
+    if let Some(v) = snap {
+        cy.truth = v.truth_at(k, t_ref, rpm, Some(cy.number));
+    }
+    cy
+}
+
 /// Run a scenario.
 pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulation, SimError> {
     let mut vm = VirtualMachine::new(k, scn)?;
     let start_ns = vm.start_ns();
     let to_ns = |t_s: f64| start_ns + (t_s * 1e9).round() as i64;
     let duration_s = scn.duration_min * 60.0;
-    let cycle_len = plan.machine_time_s;
-
-    // Cycle windows, pushed back so that they never overlap.
-    let mut windows: Vec<(f64, f64)> = Vec::new();
-    for t in scn.cycle_times_min() {
-        let mut s = t * 60.0;
-        if let Some((_, e)) = windows.last()
-            && s < *e
-        {
-            s = *e;
-        }
-        if s < duration_s {
-            windows.push((s, s + cycle_len));
-        }
-    }
-    let settings: Vec<(f64, f64)> = windows
-        .iter()
-        .enumerate()
-        .map(|(c, (s, _))| {
-            scn.cycles.settings(
-                c,
-                s / 60.0,
-                plan.config.spindle_rpm,
-                plan.config.feed_mm_min,
-            )
-        })
-        .collect();
-    let in_cycle = |t: f64| windows.iter().position(|(s, e)| t >= *s && t < *e);
-    let segment_at = |t: f64| scn.spindle.iter().rposition(|s| s.at_min * 60.0 <= t);
-    let rpm_at = |t: f64| match in_cycle(t) {
-        Some(c) => settings[c].0,
-        None => segment_at(t).map(|i| scn.spindle[i].rpm).unwrap_or(0.0),
-    };
-
-    let mut events: Vec<(f64, Event)> = Vec::new();
-    for (i, s) in scn.spindle.iter().enumerate() {
-        events.push((s.at_min * 60.0, Event::Segment(i)));
-    }
-    for (c, (s, e)) in windows.iter().enumerate() {
-        events.push((*s, Event::CycleStart(c)));
-        for (i, st) in plan.steps.iter().enumerate() {
-            events.push((s + st.t_start_s, Event::Probe(c, i)));
-        }
-        events.push((*e, Event::CycleEnd(c)));
-    }
-    let mut t = 0.0;
-    while t < duration_s {
-        events.push((t, Event::Sample));
-        t += scn.sample_s;
-    }
-    let mut t = 0.0;
-    while t < duration_s {
-        events.push((t, Event::Heartbeat));
-        t += 10.0;
-    }
-    events.retain(|(t, _)| *t >= 0.0 && *t < duration_s);
-    events.sort_by(|a, b| {
-        a.0.total_cmp(&b.0)
-            .then(a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal))
-    });
+    let timeline = Timeline::new(scn, plan, duration_s);
+    let events = timeline.events(plan, duration_s);
 
     let mut sim = Simulation {
         info: MachineInfo {
@@ -561,9 +639,9 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
     for (te, ev) in events {
         // Every speed change is an event: the speed since `now` held until `te`.
         let t_ns = to_ns(te);
-        vm.advance_to(t_ns, rpm_at(now));
+        vm.advance_to(t_ns, timeline.rpm_at(now));
         now = te;
-        let rpm_now = rpm_at(te);
+        let rpm_now = timeline.rpm_at(te);
         if rpm_now != last_rpm || (matches!(ev, Event::Heartbeat) && rpm_now > 0.0) {
             sim.spindle.push(Timed {
                 t_ns,
@@ -571,16 +649,7 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
             });
             last_rpm = rpm_now;
         }
-        let state_now = match in_cycle(te) {
-            Some(c) => (
-                MachineStateKind::Measuring,
-                Some(format!("driftwatch cycle {}", c + 1)),
-            ),
-            None => match segment_at(te) {
-                Some(i) => (scn.spindle[i].state, scn.spindle[i].program.clone()),
-                None => (MachineStateKind::Off, None),
-            },
-        };
+        let state_now = timeline.state_at(te);
         if last_state.as_ref() != Some(&state_now) {
             sim.states.push(Timed {
                 t_ns,
@@ -613,29 +682,16 @@ pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulatio
             Event::Probe(c, i) => {
                 snapshots.push(vm.clone());
                 let mut step = plan.steps[i].clone();
-                step.approach.feed_mm_min = settings[c].1;
+                step.approach.feed_mm_min = timeline.settings[c].1;
                 let d = vm.probe(k, &step, c as i64 + 1, rpm_now);
                 if let Some(cy) = open.as_mut() {
                     cy.detections.push(d);
                 }
             }
             Event::CycleEnd(c) => {
-                if let Some(mut cy) = open.take() {
-                    let ok = cy
-                        .detections
-                        .iter()
-                        .filter(|d| d.msg.status() == DetectionStatus::Ok)
-                        .map(|d| d.t_ns);
-                    let t_ref = driftwatch_core::identify::mean_time_ns(ok);
-                    let snap = snapshots
-                        .iter()
-                        .rev()
-                        .find(|v| v.now_ns() <= t_ref)
-                        .or(snapshots.first());
-                    if let Some(v) = snap {
-                        cy.truth = v.truth_at(k, t_ref, settings[c].0, Some(cy.number));
-                    }
-                    sim.cycles.push(cy);
+                if let Some(cy) = open.take() {
+                    let rpm = timeline.settings[c].0;
+                    sim.cycles.push(close_cycle(cy, &snapshots, k, rpm));
                 }
             }
             Event::Segment(_) | Event::Heartbeat => {}

@@ -56,7 +56,7 @@ pub(super) async fn request_diagnosis(
     axum::Extension(caller): axum::Extension<Caller>,
     body: Option<Json<DiagnosisRequest>>,
 ) -> Result<Response, ApiError> {
-    use driftwatch_diagnosis::cycles::{DiagnoseOptions, Inputs, diagnose_inputs};
+    use driftwatch_diagnosis::cycles::{DiagnoseOptions, diagnose_inputs};
     let h = handle(&st, &id)?;
     let k = h.kinematics.clone().ok_or_else(|| {
         ApiError::new(
@@ -66,25 +66,7 @@ pub(super) async fn request_diagnosis(
     })?;
     let requested_ns = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let req = body.map(|b| b.0).unwrap_or_default();
-    let to = match req.to_ns {
-        Some(t) => t,
-        None => st.store.last_detection_ns(&id).await?.unwrap_or(0),
-    };
-    let from = req
-        .from_ns
-        .unwrap_or_else(|| to.saturating_sub(DIAGNOSIS_DEFAULT_NS));
-    if from > to {
-        return Err(ApiError::new(
-            ErrorCode::BadWindow,
-            format!("from_ns {from} is after to_ns {to}"),
-        ));
-    }
-    if to.saturating_sub(from) > DIAGNOSIS_MAX_NS {
-        return Err(ApiError::new(
-            ErrorCode::BadWindow,
-            "a diagnosis window may span at most 31 days",
-        ));
-    }
+    let (from, to) = requested_window(&st, &id, &req).await?;
     let sigma = req.sigma_um.unwrap_or(k.setter.sigma_um);
     let (lo, hi) = driftwatch_diagnosis::cycles::SIGMA_UM_RANGE;
     if !(lo..=hi).contains(&sigma) {
@@ -93,49 +75,7 @@ pub(super) async fn request_diagnosis(
             driftwatch_diagnosis::cycles::DiagnosisError::BadSigma { sigma }.to_string(),
         ));
     }
-    let mut inputs = Inputs {
-        detections: Vec::new(),
-        spindle: Vec::new(),
-        temperatures: Vec::new(),
-        unparsed: 0,
-    };
-    for (t_ns, payload) in st.store.detections_between(&id, from, to).await? {
-        match serde_json::from_str(&payload) {
-            Ok(msg) => inputs
-                .detections
-                .push(driftwatch_core::recording::Timed { t_ns, msg }),
-            Err(_) => inputs.unparsed += 1,
-        }
-    }
-    let (Some(first), Some(last)) = (inputs.detections.first(), inputs.detections.last()) else {
-        return Err(ApiError::new(
-            ErrorCode::NoDetections,
-            format!("machine '{id}' has no stored detection in the window"),
-        ));
-    };
-    let (from, to) = (first.t_ns, last.t_ns);
-    for s in st
-        .store
-        .samples(&id, from.saturating_sub(DIAGNOSIS_LEAD_NS), to)
-        .await?
-    {
-        match s {
-            crate::store::Sample::Spindle { t_ns, rpm } => inputs
-                .spindle
-                .push(driftwatch_core::thermal_model::Event::Spindle { t_ns, rpm }),
-            crate::store::Sample::Temperature {
-                t_ns,
-                sensor,
-                celsius,
-            } => inputs
-                .temperatures
-                .push(driftwatch_core::thermal_model::Event::Temperature {
-                    t_ns,
-                    sensor,
-                    celsius,
-                }),
-        }
-    }
+    let (inputs, from, to) = stored_inputs(&st, &id, from, to).await?;
     let opts = DiagnoseOptions::new(sigma);
     let unparsed = inputs.unparsed;
     let Ok(_slot) = st.diagnosis_slots.clone().try_acquire_owned() else {
@@ -151,24 +91,7 @@ pub(super) async fn request_diagnosis(
     let (status, summary, result) = match &run {
         Ok((d, opts)) => (
             DiagnosisStatus::Done,
-            format!(
-                "{} readings in {} cycles over {:.1} h; baseline chi2/dof {:.3}; held-out RMS {:.3} -> {:.3} um; accepted: {}",
-                d.readings,
-                d.cycles,
-                d.span_h,
-                d.baseline.chi2_dof,
-                d.baseline.rms_heldout_um,
-                d.final_fit.rms_heldout_um,
-                if d.accepted.is_empty() {
-                    "none".to_string()
-                } else {
-                    d.accepted
-                        .iter()
-                        .map(|a| a.effect.to_string())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                }
-            ),
+            done_summary(d),
             Some(json!({
                 "format": "driftwatch-diagnosis/1",
                 "machine": id,
@@ -222,6 +145,112 @@ pub(super) async fn request_diagnosis(
         }),
     )
         .into_response())
+}
+
+/// The window a request asks for (by default the three days up to the last stored
+/// detection), refused when it is reversed or longer than 31 days.
+async fn requested_window(
+    st: &Shared,
+    id: &str,
+    req: &DiagnosisRequest,
+) -> Result<(i64, i64), ApiError> {
+    let to = match req.to_ns {
+        Some(t) => t,
+        None => st.store.last_detection_ns(id).await?.unwrap_or(0),
+    };
+    let from = req
+        .from_ns
+        .unwrap_or_else(|| to.saturating_sub(DIAGNOSIS_DEFAULT_NS));
+    if from > to {
+        return Err(ApiError::new(
+            ErrorCode::BadWindow,
+            format!("from_ns {from} is after to_ns {to}"),
+        ));
+    }
+    if to.saturating_sub(from) > DIAGNOSIS_MAX_NS {
+        return Err(ApiError::new(
+            ErrorCode::BadWindow,
+            "a diagnosis window may span at most 31 days",
+        ));
+    }
+    Ok((from, to))
+}
+
+/// The stored detections of the window, and the spindle and temperature samples from
+/// [`DIAGNOSIS_LEAD_NS`] before the first of them to the last; with the window narrowed to
+/// the detections' times. No detection: 422.
+async fn stored_inputs(
+    st: &Shared,
+    id: &str,
+    from: i64,
+    to: i64,
+) -> Result<(driftwatch_diagnosis::cycles::Inputs, i64, i64), ApiError> {
+    let mut inputs = driftwatch_diagnosis::cycles::Inputs {
+        detections: Vec::new(),
+        spindle: Vec::new(),
+        temperatures: Vec::new(),
+        unparsed: 0,
+    };
+    for (t_ns, payload) in st.store.detections_between(id, from, to).await? {
+        match serde_json::from_str(&payload) {
+            Ok(msg) => inputs
+                .detections
+                .push(driftwatch_core::recording::Timed { t_ns, msg }),
+            Err(_) => inputs.unparsed += 1,
+        }
+    }
+    let (Some(first), Some(last)) = (inputs.detections.first(), inputs.detections.last()) else {
+        return Err(ApiError::new(
+            ErrorCode::NoDetections,
+            format!("machine '{id}' has no stored detection in the window"),
+        ));
+    };
+    let (from, to) = (first.t_ns, last.t_ns);
+    for s in st
+        .store
+        .samples(id, from.saturating_sub(DIAGNOSIS_LEAD_NS), to)
+        .await?
+    {
+        match s {
+            crate::store::Sample::Spindle { t_ns, rpm } => inputs
+                .spindle
+                .push(driftwatch_core::thermal_model::Event::Spindle { t_ns, rpm }),
+            crate::store::Sample::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            } => inputs
+                .temperatures
+                .push(driftwatch_core::thermal_model::Event::Temperature {
+                    t_ns,
+                    sensor,
+                    celsius,
+                }),
+        }
+    }
+    Ok((inputs, from, to))
+}
+
+/// The stored summary of a diagnosis that ran.
+fn done_summary(d: &driftwatch_diagnosis::cycles::Diagnosis) -> String {
+    format!(
+        "{} readings in {} cycles over {:.1} h; baseline chi2/dof {:.3}; held-out RMS {:.3} -> {:.3} um; accepted: {}",
+        d.readings,
+        d.cycles,
+        d.span_h,
+        d.baseline.chi2_dof,
+        d.baseline.rms_heldout_um,
+        d.final_fit.rms_heldout_um,
+        if d.accepted.is_empty() {
+            "none".to_string()
+        } else {
+            d.accepted
+                .iter()
+                .map(|a| a.effect.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    )
 }
 
 #[utoipa::path(get, path = "/api/v1/machines/{id}/diagnoses", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "newest first, at most this many (default 100, at most 1000)"), ("before" = Option<i64>, Query, description = "only diagnoses numbered below this (the next page: see the Link header)")), responses((status = 200, description = "the diagnosis runs, newest first: id, window, who asked, status, summary; a full page has a Link header (rel=next) to the next", body = Vec<DiagnosisRow>), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
