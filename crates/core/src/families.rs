@@ -756,9 +756,14 @@ pub struct FamilyScore {
     pub cv_cover95: Option<f64>,
     /// Hold-out (after the training span, no reading used): RMSE, largest error, and the
     /// shares within the 68 % and 95 % bands at their horizons.
+    /// NaN where there is no hold-out: JSON writes it as null, and null reads back as NaN.
+    #[serde(deserialize_with = "null_as_nan")]
     pub holdout_rmse: f64,
+    #[serde(deserialize_with = "null_as_nan")]
     pub holdout_max: f64,
+    #[serde(deserialize_with = "null_as_nan")]
     pub cover68: f64,
+    #[serde(deserialize_with = "null_as_nan")]
     pub cover95: f64,
     pub chosen: bool,
     /// A combination's parts and weights.
@@ -769,6 +774,12 @@ pub struct FamilyScore {
     /// alone.
     #[serde(default)]
     pub relax_h: Option<f64>,
+}
+
+/// A figure that may be NaN: serde_json writes NaN as null, so null reads back as NaN (a
+/// model file written by `fit` without a hold-out must load again).
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 /// The share of errors within `band` (NaN without errors).
@@ -1169,6 +1180,32 @@ pub fn choose(
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_score_without_a_hold_out_round_trips_through_json() {
+        let score = FamilyScore {
+            family: "grey_box".into(),
+            detail: String::new(),
+            cv_rmse: 1.0,
+            band68: 1.0,
+            band95: 2.0,
+            bands: None,
+            cv_cover68: None,
+            cv_cover95: None,
+            holdout_rmse: f64::NAN,
+            holdout_max: f64::NAN,
+            cover68: f64::NAN,
+            cover95: f64::NAN,
+            chosen: true,
+            weights: Vec::new(),
+            relax_h: None,
+        };
+        let text = serde_json::to_string(&score).unwrap();
+        assert!(text.contains("\"holdout_rmse\":null"), "{text}");
+        let back: FamilyScore = serde_json::from_str(&text).unwrap();
+        assert!(back.holdout_rmse.is_nan() && back.cover95.is_nan());
+        assert_eq!(back.cv_rmse, 1.0);
+    }
     use super::*;
 
     const MIN: i64 = units::NS_PER_MIN;
