@@ -16,7 +16,7 @@ use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::recording::MachineInfo;
 use driftwatch_service::config::ServiceConfig;
-use driftwatch_service::daemon::{MachineRuntime, Settings};
+use driftwatch_service::daemon::MachineRuntime;
 use driftwatch_service::link::Simulated;
 use driftwatch_service::recorder::Recorder;
 use driftwatch_service::store::{CycleStatus, Store};
@@ -49,7 +49,7 @@ async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store
         software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
     };
     let recorder = Recorder::new(&dir.join("mcap"), info, cfg.max_file_mib << 20)?;
-    let mut settings = Settings::from_config(&cfg);
+    let mut settings = driftwatch_service::daemon::settings_from_config(&cfg);
     settings.prediction.enabled = prediction;
     let rt = MachineRuntime::new(
         "sim-1",

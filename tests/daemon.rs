@@ -242,7 +242,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         }
     }
     assert!(!per_sensor.is_empty());
-    let beat = driftwatch_service::daemon::TEMPERATURE_HEARTBEAT_MIN;
+    let beat = driftwatch_machine::machine_core::TEMPERATURE_HEARTBEAT_MIN;
     for (sensor, rows) in &per_sensor {
         assert!(
             rows[0].0 <= t0 / MIN + 1,

@@ -129,6 +129,18 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
     svc.stop().await;
     let store = Store::open(&db).await.unwrap();
     assert!(store.open_cycles("sim-1").await.unwrap().is_empty());
+    // Nothing of the fault window was lost or changed: the failed writes waited at the head
+    // of sim-2's queue, and its machine's reports behind them, until the store healed. Both
+    // machines run the same simulated day, so their per-minute samples are the same.
+    let one = store.samples("sim-1", t0, t_heal).await.unwrap();
+    let two = store.samples("sim-2", t0, t_heal).await.unwrap();
+    assert!(one.len() > 300, "{} samples in six hours", one.len());
+    assert!(
+        one == two,
+        "sim-1 stored {} samples, sim-2 {}",
+        one.len(),
+        two.len()
+    );
     store.close().await;
 }
 

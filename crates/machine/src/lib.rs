@@ -6,5 +6,6 @@
 pub mod alerts;
 pub mod compensation;
 pub mod live_model;
+pub mod machine_core;
 pub mod phase;
 pub mod scheduler;

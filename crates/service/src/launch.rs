@@ -255,7 +255,7 @@ enum Pending {
 /// a restart does not replay a day the store has seen. With a real NC the clock is the wall
 /// clock and simulated machines beside it are moved to start now.
 async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64), LaunchError> {
-    let settings = Settings::from_config(cfg);
+    let settings = crate::daemon::settings_from_config(cfg);
     let real = cfg
         .machines
         .iter()

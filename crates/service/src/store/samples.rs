@@ -7,26 +7,8 @@ use sqlx::Row;
 use super::{Store, StoreError};
 
 /// One sample of a per-minute series.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Sample {
-    Spindle {
-        t_ns: i64,
-        rpm: f64,
-    },
-    Temperature {
-        t_ns: i64,
-        sensor: String,
-        celsius: f64,
-    },
-}
-
-impl Sample {
-    pub fn t_ns(&self) -> i64 {
-        match self {
-            Sample::Spindle { t_ns, .. } | Sample::Temperature { t_ns, .. } => *t_ns,
-        }
-    }
-}
+/// A per-minute sample: the machine core decides which samples are kept.
+pub use driftwatch_machine::machine_core::Sample;
 
 impl Store {
     /// Store a batch of spindle and temperature samples in one transaction (one commit

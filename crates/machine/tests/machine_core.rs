@@ -1,0 +1,390 @@
+//! The machine core driven by plain calls: no runtime, no database, no recorder. Each test
+//! plays the executor: it feeds inputs, looks at the effects in their order, and answers the
+//! two effects that have an answer (a cycle request, a solve).
+
+use std::sync::Arc;
+
+use driftwatch_core::cycle::{CycleChecks, plan_measurements};
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_core::recording::{
+    DetectionMsg, MachineStateKind, ResultStatus, SpindleMsg, StateMsg, TemperatureMsg, Timed,
+};
+use driftwatch_core::units::NS_PER_MIN;
+use driftwatch_machine::machine_core::{
+    Effect, Input, MachineCore, Record, Restored, Sample, Settings, SolveJob,
+    TEMPERATURE_HEARTBEAT_MIN,
+};
+
+const T0: i64 = 1_700_000_000_000_000_000;
+
+fn min(m: i64) -> i64 {
+    T0 + m * NS_PER_MIN
+}
+
+struct Rig {
+    core: MachineCore,
+    plan: Plan,
+    tool: String,
+}
+
+fn rig_with(restored: Restored) -> Rig {
+    let k = Kinematics::load("table_bc").unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+    let mut checks = CycleChecks::new(&k);
+    checks.expected = Some(plan_measurements(&plan));
+    let mut settings = Settings::default();
+    // The thermal model has its own tests; here it would only add predicted sets.
+    settings.prediction.enabled = false;
+    let tool = k.tool_id.clone();
+    let (core, _) = MachineCore::new(
+        Arc::new(k),
+        checks,
+        plan.steps.len(),
+        &settings,
+        restored,
+        T0,
+    )
+    .unwrap();
+    Rig { core, plan, tool }
+}
+
+fn rig() -> Rig {
+    rig_with(Restored {
+        next_cycle: 1,
+        ..Default::default()
+    })
+}
+
+fn idle(t_ns: i64) -> Input {
+    Input::State(Timed {
+        t_ns,
+        msg: StateMsg {
+            state: MachineStateKind::Idle,
+            program: None,
+        },
+    })
+}
+
+/// Every step of the plan read where the nominal machine puts it, but for a few tenths of a
+/// micrometre that differ from step to step (a solver's fit is not exact).
+fn readings(rig: &Rig, cycle: i64, t_ns: i64) -> Vec<Input> {
+    rig.plan
+        .steps
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let mut pos = s.start;
+            pos[s.approach.axis.index()] = s.expected + 3e-4 * ((i * 7 % 5) as f64 - 2.0);
+            Input::Detection(Timed {
+                t_ns: t_ns + i as i64 * 1_000_000_000,
+                msg: DetectionMsg {
+                    cycle,
+                    step: s.label.clone(),
+                    b_deg: s.b_deg,
+                    c_deg: s.c_deg,
+                    axis: s.approach.axis,
+                    direction: s.approach.direction,
+                    feed_mm_min: s.approach.feed_mm_min,
+                    spindle_rpm: 0.0,
+                    tool_id: rig.tool.clone(),
+                    x_mm: pos.x,
+                    y_mm: pos.y,
+                    z_mm: pos.z,
+                    status: None,
+                },
+            })
+        })
+        .collect()
+}
+
+fn feed(core: &mut MachineCore, inputs: impl IntoIterator<Item = Input>, now: i64) -> Vec<Effect> {
+    inputs
+        .into_iter()
+        .flat_map(|i| core.handle(i, now))
+        .collect()
+}
+
+fn requested(effects: &[Effect]) -> Option<i64> {
+    effects.iter().find_map(|e| match e {
+        Effect::RequestCycle { number } => Some(*number),
+        _ => None,
+    })
+}
+
+fn solve_job(effects: &[Effect]) -> Option<&SolveJob> {
+    effects.iter().find_map(|e| match e {
+        Effect::Solve(j) => Some(j.as_ref()),
+        _ => None,
+    })
+}
+
+fn position(effects: &[Effect], f: impl Fn(&Effect) -> bool) -> Option<usize> {
+    effects.iter().position(f)
+}
+
+/// An operator's request at `at` min, answered by the machine with `answer`; the effects of
+/// the step and of the answer.
+fn ask(rig: &mut Rig, at: i64, answer: Result<(), String>) -> (Option<i64>, Vec<Effect>) {
+    let now = min(at);
+    let mut fx = feed(
+        &mut rig.core,
+        [
+            idle(now),
+            Input::Request {
+                by: "operator".into(),
+            },
+            Input::Tick,
+        ],
+        now,
+    );
+    let number = requested(&fx);
+    if let Some(number) = number {
+        fx.extend(rig.core.handle(
+            Input::CycleRequested {
+                number,
+                result: answer,
+            },
+            now,
+        ));
+    }
+    (number, fx)
+}
+
+/// Run cycle `number` to its end at `at` min; the effects up to the solve, then after it.
+fn run_cycle(rig: &mut Rig, number: i64, at: i64) -> (Vec<Effect>, Vec<Effect>) {
+    let now = min(at);
+    let mut inputs = readings(rig, number, now);
+    inputs.push(Input::CycleDone {
+        cycle: number,
+        t_ns: now + NS_PER_MIN,
+    });
+    let before = feed(&mut rig.core, inputs, now + NS_PER_MIN);
+    let job = solve_job(&before)
+        .expect("a finished cycle is solved")
+        .clone();
+    let after = rig.core.handle(
+        Input::Solved {
+            number,
+            outcome: Ok(job.run()),
+            seconds: 0.01,
+        },
+        now + NS_PER_MIN,
+    );
+    (before, after)
+}
+
+#[test]
+fn a_requested_cycle_is_opened_solved_stored_and_only_then_served() {
+    let mut rig = rig();
+    let (number, fx) = ask(&mut rig, 0, Ok(()));
+    assert_eq!(number, Some(1));
+    let open = position(&fx, |e| matches!(e, Effect::OpenCycle { number: 1, .. }));
+    let shown = position(&fx, |e| matches!(e, Effect::PublishView));
+    assert!(open.is_some() && open < shown, "{fx:#?}");
+    assert_eq!(rig.core.view().cycles.open, Some(1));
+    assert!(
+        rig.core
+            .view()
+            .cycles
+            .schedule
+            .starts_with("cycle 1 started")
+    );
+
+    let (before, after) = run_cycle(&mut rig, 1, 1);
+    let stored = position(
+        &before,
+        |e| matches!(e, Effect::StoreDetections { number: 1, rows } if rows.len() == rig.plan.steps.len()),
+    );
+    let solve = position(&before, |e| matches!(e, Effect::Solve(_)));
+    assert!(stored.is_some() && stored < solve, "{before:#?}");
+    // Every detection is recorded as it arrives.
+    let recorded = before
+        .iter()
+        .filter(|e| matches!(e, Effect::Record(r) if matches!(**r, Record::Detection(_))))
+        .count();
+    assert_eq!(recorded, rig.plan.steps.len());
+
+    let close = position(
+        &after,
+        |e| matches!(e, Effect::CloseCycle { result, set: Some(_), .. } if result.status == ResultStatus::Ok),
+    );
+    let shown = position(&after, |e| matches!(e, Effect::PublishView));
+    assert!(close.is_some() && close < shown, "{after:#?}");
+    let served = rig
+        .core
+        .view()
+        .compensation
+        .as_ref()
+        .expect("a set is served");
+    assert_eq!(served.version, 1);
+    assert_eq!(served.cycle, Some(1));
+    assert_eq!(rig.core.view().cycles.ok, 1);
+    assert_eq!(rig.core.view().cycles.last, Some(1));
+}
+
+#[test]
+fn a_refused_request_opens_nothing_and_the_next_step_asks_again_with_the_same_number() {
+    let mut rig = rig();
+    let (number, fx) = ask(&mut rig, 0, Err("not idle".into()));
+    assert_eq!(number, Some(1));
+    assert!(!fx.iter().any(|e| matches!(e, Effect::OpenCycle { .. })));
+    assert_eq!(rig.core.open_cycle(), None);
+    let schedule = &rig.core.view().cycles.schedule;
+    assert!(
+        schedule.contains("the machine refused: not idle"),
+        "{schedule}"
+    );
+    let again = feed(&mut rig.core, [Input::Tick], min(1));
+    assert_eq!(requested(&again), Some(1));
+}
+
+#[test]
+fn a_failed_solve_abandons_the_cycle_with_its_reason_and_a_retry_follows() {
+    let mut rig = rig();
+    ask(&mut rig, 0, Ok(()));
+    let mut inputs = readings(&rig, 1, min(1));
+    inputs.push(Input::CycleDone {
+        cycle: 1,
+        t_ns: min(2),
+    });
+    feed(&mut rig.core, inputs, min(2));
+    let fx = rig.core.handle(
+        Input::Solved {
+            number: 1,
+            outcome: Err("the solver panicked".into()),
+            seconds: 0.0,
+        },
+        min(2),
+    );
+    assert!(
+        fx.iter().any(|e| matches!(e, Effect::AbandonCycle { number: 1, reason, .. } if reason.contains("the solver panicked"))),
+        "{fx:#?}"
+    );
+    assert!(!fx.iter().any(|e| matches!(e, Effect::CloseCycle { .. })));
+    assert_eq!(rig.core.view().cycles.abandoned, 1);
+    assert!(rig.core.view().compensation.is_none());
+    // The retry waits for the spacing between starts (10 min by default), then runs.
+    assert_eq!(requested(&feed(&mut rig.core, [Input::Tick], min(5))), None);
+    assert_eq!(
+        requested(&feed(&mut rig.core, [Input::Tick], min(11))),
+        Some(2)
+    );
+}
+
+#[test]
+fn a_cycle_that_times_out_is_aborted_at_the_machine_and_abandoned() {
+    let mut rig = rig();
+    ask(&mut rig, 0, Ok(()));
+    let some = readings(&rig, 1, min(1)).into_iter().take(3);
+    feed(&mut rig.core, some, min(1));
+    assert_eq!(requested(&feed(&mut rig.core, [Input::Tick], min(4))), None);
+    let fx = feed(&mut rig.core, [Input::Tick], min(5));
+    let abort = position(&fx, |e| matches!(e, Effect::AbortCycle { number: 1 }));
+    let kept = position(
+        &fx,
+        |e| matches!(e, Effect::StoreDetections { number: 1, rows } if rows.len() == 3),
+    );
+    let abandon = position(&fx, |e| matches!(e, Effect::AbandonCycle { number: 1, .. }));
+    assert!(abort < kept && kept < abandon && abort.is_some(), "{fx:#?}");
+    assert_eq!(rig.core.open_cycle(), None);
+    // A detection of the abandoned cycle is recorded but changes nothing.
+    let late = readings(&rig, 1, min(6)).remove(3);
+    let fx = rig.core.handle(late, min(6));
+    assert!(
+        matches!(fx.as_slice(), [Effect::Record(_), Effect::Log(..)]),
+        "{fx:#?}"
+    );
+}
+
+#[test]
+fn cycle_numbers_continue_from_the_store_and_a_restart_does_not_measure_for_its_own_sake() {
+    let mut rig = rig_with(Restored {
+        next_cycle: 42,
+        last_start_ns: Some(min(-20)),
+        last_good_ns: Some(min(-19)),
+        ..Default::default()
+    });
+    // Idle with nothing due: no cycle.
+    let fx = feed(&mut rig.core, [idle(min(0)), Input::Tick], min(0));
+    assert_eq!(requested(&fx), None, "{fx:#?}");
+    let (number, _) = ask(&mut rig, 1, Ok(()));
+    assert_eq!(number, Some(42));
+    run_cycle(&mut rig, 42, 1);
+    assert_eq!(rig.core.view().cycles.last, Some(42));
+    assert_eq!(ask(&mut rig, 20, Ok(())).0, Some(43));
+}
+
+#[test]
+fn shutdown_during_a_cycle_stores_what_came_and_abandons_it() {
+    let mut rig = rig();
+    ask(&mut rig, 0, Ok(()));
+    let some = readings(&rig, 1, min(1)).into_iter().take(2);
+    feed(&mut rig.core, some, min(1));
+    let fx = rig.core.handle(Input::Shutdown, min(2));
+    assert!(
+        matches!(
+            fx.as_slice(),
+            [
+                Effect::AbortCycle { number: 1 },
+                Effect::StoreDetections { number: 1, .. },
+                Effect::AbandonCycle { number: 1, .. }
+            ]
+        ),
+        "{fx:#?}"
+    );
+}
+
+#[test]
+fn samples_are_stored_in_ten_minute_batches_and_a_steady_temperature_as_a_heartbeat() {
+    let mut rig = rig();
+    let mut batches = Vec::new();
+    for m in 0..=40 {
+        let t = min(m);
+        let fx = feed(
+            &mut rig.core,
+            [
+                Input::Spindle(Timed {
+                    t_ns: t,
+                    msg: SpindleMsg {
+                        rpm: if m < 20 { 1000.0 } else { 2000.0 },
+                    },
+                }),
+                Input::Temperature(Timed {
+                    t_ns: t,
+                    msg: TemperatureMsg {
+                        sensor: "hall".into(),
+                        celsius: 20.0,
+                    },
+                }),
+            ],
+            t,
+        );
+        batches.extend(fx.into_iter().filter_map(|e| match e {
+            Effect::StoreSamples(rows) => Some(rows),
+            _ => None,
+        }));
+    }
+    // A batch is stored once it spans ten minutes of machine time: minutes 0-10, 10-20,
+    // 20-30 and 30-40 (the sample that closes a batch is its last; the temperature read at
+    // the same minute opens the next).
+    assert_eq!(batches.len(), 4, "{batches:#?}");
+    let all: Vec<&Sample> = batches.iter().flatten().collect();
+    let spindle = all
+        .iter()
+        .filter(|s| matches!(s, Sample::Spindle { .. }))
+        .count();
+    let temps: Vec<i64> = all
+        .iter()
+        .filter_map(|s| match s {
+            Sample::Temperature { t_ns, .. } => Some((t_ns - T0) / NS_PER_MIN),
+            _ => None,
+        })
+        .collect();
+    // One spindle sample a minute (every minute is a new (minute, speed) pair).
+    assert_eq!(spindle, 41);
+    // The same temperature at the first minute and then every heartbeat.
+    let beat = TEMPERATURE_HEARTBEAT_MIN;
+    assert_eq!(temps, vec![0, beat, 2 * beat, 3 * beat]);
+    // The one read at minute 40 is held for the next batch.
+}
