@@ -578,7 +578,7 @@ impl MachineRuntime {
             {
                 v.nc_body = cv.compensation.as_ref().and_then(NcBody::of);
             }
-            v.phase = cv.phase.clone();
+            v.phase = cv.phase;
             v.cycles = cv.cycles.clone();
             v.compensation = cv.compensation.clone();
             v.open_alerts = cv.open_alerts.clone();
