@@ -660,7 +660,7 @@ fn write_plot(
     let list: Vec<Panel> = panels
         .into_iter()
         .map(|(ch, mut p)| {
-            p.unit = driftwatch_machine::compensation::unit(&ch).to_string();
+            p.unit = driftwatch_core::thermal_model::channel_unit(&ch).to_string();
             p.boundary_h = p.boundary_h.or(boundary_h);
             p.channel = ch;
             p
@@ -1045,7 +1045,7 @@ fn print_scores(scores: &[driftwatch_core::thermal_model::HoldoutScore], from_gi
             s.z_rms,
             100.0 * s.within_1_sigma,
             100.0 * s.within_2_sigma,
-            u = driftwatch_machine::compensation::unit(&s.channel)
+            u = driftwatch_core::thermal_model::channel_unit(&s.channel)
         );
     }
 }
@@ -1128,7 +1128,7 @@ fn print_truth(
         "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
     );
     for s in &t {
-        let unit = driftwatch_machine::compensation::unit(&s.channel);
+        let unit = driftwatch_core::thermal_model::channel_unit(&s.channel);
         eprintln!(
             "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
             s.channel,

@@ -560,7 +560,7 @@ fn the_simulator_is_deterministic_for_a_seed() {
 fn rotary_backlash_and_indexing_errors_act_through_the_axis_angle() {
     use driftwatch_core::thermal::Channel;
     let k = Kinematics::load("table_bc").unwrap();
-    let b_zero = k.rotary[0].error_names[4].clone();
+    let b_zero = k.rotary[0].error_names[4].to_string();
     let readings = |edit: &dyn Fn(&mut Scenario)| -> Vec<f64> {
         first_cycle(edit).iter().map(reading).collect()
     };

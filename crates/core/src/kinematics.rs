@@ -13,6 +13,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::error_name::{ErrorKind, ErrorName};
 use crate::geometry::{Affine, Mat3, Vec3, deg_to_rad, rotation};
 
 /// Most rotary axes a chain may have (keeps states on the stack).
@@ -69,7 +70,8 @@ pub enum Sense {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NamedDirection {
-    pub name: String,
+    /// The location error's ISO 230-7 name (`EX0B`): refused at parse when it is not one.
+    pub name: ErrorName,
     pub direction: [f64; 3],
 }
 
@@ -89,7 +91,7 @@ pub struct RotaryConfig {
     /// (urad), the first one applied first.
     pub orientation_errors: [NamedDirection; 2],
     /// Name of the zero-angle error (urad), added to the commanded angle.
-    pub zero_error: String,
+    pub zero_error: ErrorName,
     /// Position errors are measured from the carrying axis' line (the part of its offset
     /// perpendicular to this axis is inherited), as EX0C is measured from the B axis.
     #[serde(default)]
@@ -162,11 +164,11 @@ pub struct MachineConfig {
     pub tool: ToolConfig,
     pub motion: MotionConfig,
     /// The location errors a cycle identifies, in report order.
-    pub identify: Vec<String>,
+    pub identify: Vec<ErrorName>,
     /// Values held for the location errors that are not identified (um or urad), e.g. from a
     /// fuller calibration. Missing ones are 0.
     #[serde(default)]
-    pub held: BTreeMap<String, f64>,
+    pub held: BTreeMap<ErrorName, f64>,
     /// What the machine can report; the NC door refuses anything outside.
     #[serde(default)]
     pub limits: Limits,
@@ -226,8 +228,9 @@ pub struct RotaryAxis {
     pub sign: f64,
     pub position_dirs: [Vec3; 2],
     pub orientation_axes: [Vec3; 2],
-    /// Names of the five errors by slot.
-    pub error_names: [String; 5],
+    /// Names of the five errors by slot; each name's kind is its slot's (checked at load), so
+    /// [`ErrorId::unit`] and the name's unit agree.
+    pub error_names: [ErrorName; 5],
     pub relative_to_parent: bool,
     pub field: AngleField,
     pub travel_deg: [f64; 2],
@@ -315,6 +318,13 @@ impl MachineConfig {
     }
 }
 
+fn kind_article(kind: ErrorKind) -> &'static str {
+    match kind {
+        ErrorKind::Position => "a position",
+        ErrorKind::Orientation => "an orientation",
+    }
+}
+
 fn unit(v: [f64; 3], what: &str, machine: &str) -> Result<Vec3, MachineError> {
     let v = Vec3::from(v);
     let n = v.norm();
@@ -391,6 +401,49 @@ impl Kinematics {
                     r.name
                 )));
             }
+            let slots = [
+                (
+                    r.position_errors[0].name,
+                    ErrorKind::Position,
+                    "position_errors",
+                ),
+                (
+                    r.position_errors[1].name,
+                    ErrorKind::Position,
+                    "position_errors",
+                ),
+                (
+                    r.orientation_errors[0].name,
+                    ErrorKind::Orientation,
+                    "orientation_errors",
+                ),
+                (
+                    r.orientation_errors[1].name,
+                    ErrorKind::Orientation,
+                    "orientation_errors",
+                ),
+                (r.zero_error, ErrorKind::Orientation, "zero_error"),
+            ];
+            for (name, kind, key) in slots {
+                if name.kind() != kind {
+                    return Err(invalid(format!(
+                        "{key} of axis {} names {name}, which is {} error ({}); it must be {} \
+                         error ({})",
+                        r.name,
+                        kind_article(name.kind()),
+                        name.unit(),
+                        kind_article(kind),
+                        kind.unit()
+                    )));
+                }
+                if r.name.len() != 1 || !r.name.starts_with(name.axis()) {
+                    return Err(invalid(format!(
+                        "{key} of axis {} names {name}, an error of axis {}",
+                        r.name,
+                        name.axis()
+                    )));
+                }
+            }
             rotary.push(RotaryAxis {
                 name: r.name.clone(),
                 u0,
@@ -402,11 +455,11 @@ impl Kinematics {
                 position_dirs,
                 orientation_axes,
                 error_names: [
-                    r.position_errors[0].name.clone(),
-                    r.position_errors[1].name.clone(),
-                    r.orientation_errors[0].name.clone(),
-                    r.orientation_errors[1].name.clone(),
-                    r.zero_error.clone(),
+                    r.position_errors[0].name,
+                    r.position_errors[1].name,
+                    r.orientation_errors[0].name,
+                    r.orientation_errors[1].name,
+                    r.zero_error,
                 ],
                 relative_to_parent: r.relative_to_parent,
                 field: r.message_field,
@@ -414,10 +467,7 @@ impl Kinematics {
                 speed_deg_min: r.speed_deg_min,
             });
         }
-        let mut names: Vec<&str> = rotary
-            .iter()
-            .flat_map(|a| a.error_names.iter().map(|s| s.as_str()))
-            .collect();
+        let mut names: Vec<ErrorName> = rotary.iter().flat_map(|a| a.error_names).collect();
         names.sort_unstable();
         if names.windows(2).any(|w| w[0] == w[1]) {
             return Err(invalid("location error names must be unique".into()));
@@ -465,7 +515,7 @@ impl Kinematics {
         };
         for name in &cfg.identify {
             let id = k
-                .error_id(name)
+                .error_id(name.as_str())
                 .ok_or_else(|| invalid(format!("identify names unknown error '{name}'")))?;
             if k.identify.contains(&id) {
                 return Err(invalid(format!("identify names '{name}' twice")));
@@ -474,7 +524,7 @@ impl Kinematics {
         }
         for (name, v) in &cfg.held {
             let id = k
-                .error_id(name)
+                .error_id(name.as_str())
                 .ok_or_else(|| invalid(format!("held names unknown error '{name}'")))?;
             if k.identify.contains(&id) {
                 return Err(invalid(format!("'{name}' is both identified and held")));
@@ -491,13 +541,13 @@ impl Kinematics {
         self.rotary.iter().enumerate().find_map(|(axis, a)| {
             a.error_names
                 .iter()
-                .position(|n| n == name)
+                .position(|n| *n == name)
                 .map(|slot| ErrorId { axis, slot })
         })
     }
 
     pub fn error_name(&self, id: ErrorId) -> &str {
-        &self.rotary[id.axis].error_names[id.slot]
+        self.rotary[id.axis].error_names[id.slot].as_str()
     }
 
     /// Names of the identified errors, in report order.
@@ -744,6 +794,69 @@ mod tests {
             e.contains("no_such_machine") && e.contains("table_bc"),
             "{e}"
         );
+    }
+
+    /// A machine file's location error names must be ISO 230-7 names, of the kind of their
+    /// slot and of their axis: the unit of every error is read from its name.
+    #[test]
+    fn a_machine_file_with_a_bad_error_name_is_refused_naming_it() {
+        let text = crate::source::builtin_or_file("machine", "table_bc", BUILTIN_MACHINES).unwrap();
+        let load = |from: &str, to: &str| {
+            assert!(text.contains(from), "{from}");
+            let edited = text.replacen(from, to, 1);
+            MachineConfig::from_toml(&edited, "edited.toml")
+                .and_then(Kinematics::from_config)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        assert!(load("EX0B", "EX0B").is_ok());
+        for (from, to, says) in [
+            (
+                r#"{ name = "EX0B""#,
+                r#"{ name = "EQ0B""#,
+                r#"bad location error name "EQ0B""#,
+            ),
+            (
+                r#"zero_error = "EB0B""#,
+                r#"zero_error = "eb0b""#,
+                r#""eb0b": it must begin"#,
+            ),
+            (
+                r#"identify = ["EX0B""#,
+                r#"identify = ["EX0B ""#,
+                r#""EX0B ""#,
+            ),
+            ("EA0B = 0.0", "ch1 = 0.0", r#""ch1""#),
+            (
+                r#"{ name = "EA0C""#,
+                r#"{ name = "EA0X""#,
+                "rotary axis A, B or C",
+            ),
+        ] {
+            let e = load(from, to).unwrap_err();
+            assert!(e.contains("edited.toml") && e.contains(says), "{to}: {e}");
+        }
+        for (from, to, says) in [
+            (
+                r#"{ name = "EX0B""#,
+                r#"{ name = "EB0B""#,
+                "position_errors of axis B names EB0B, which is an orientation error (urad); \
+                 it must be a position error (um)",
+            ),
+            (
+                r#"zero_error = "EB0B""#,
+                r#"zero_error = "EY0B""#,
+                "zero_error of axis B names EY0B, which is a position error (um)",
+            ),
+            (
+                r#"{ name = "EX0C""#,
+                r#"{ name = "EX0A""#,
+                "position_errors of axis C names EX0A, an error of axis A",
+            ),
+        ] {
+            let e = load(from, to).unwrap_err();
+            assert!(e.contains("table_bc") && e.contains(says), "{to}: {e}");
+        }
     }
 
     /// The NC door's ranges come from the machine file; a file whose ranges no machine has,

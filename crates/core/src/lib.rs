@@ -8,6 +8,7 @@
 
 pub mod csv_import;
 pub mod cycle;
+pub mod error_name;
 pub mod families;
 pub mod geometry;
 pub mod identify;

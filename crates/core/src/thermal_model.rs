@@ -553,6 +553,13 @@ impl Served {
 /// Smallest and largest factor on the model's band.
 const SCALE_RANGE: (f64, f64) = (0.1, 10.0);
 
+/// The unit of a channel's values: a channel is a location error (`EZ0B`, `EA0C`: um or urad,
+/// as its name says) or a displacement sensor (`ch1` of a displacement recording: um). Only a
+/// channel that parses as an orientation error is in urad.
+pub fn channel_unit(channel: &str) -> &'static str {
+    crate::error_name::ErrorName::parse(channel).map_or("um", |e| e.unit())
+}
+
 /// A channel's record of its predictions and what it serves. Every observation is scored
 /// before it corrects the filter: the model's prediction, the last measured value and no
 /// change (the model's offset: its cold value) against it, and the served value in its
@@ -815,7 +822,7 @@ impl Guard {
 
     /// Why the channel serves `served` (its [`Guard::source`], or what [`Guard::serve`] gave).
     pub fn reason(&self, channel: &str, min_scored: usize, served: Served) -> String {
-        let u = crate::units::error_unit(channel);
+        let u = channel_unit(channel);
         let (m, l, c) = (
             self.rms(self.sse_model),
             self.rms(self.sse_last),
@@ -846,7 +853,7 @@ impl Guard {
         let n = self.n.max(1) as f64;
         GuardSummary {
             channel: channel.to_string(),
-            unit: crate::units::error_unit(channel).to_string(),
+            unit: channel_unit(channel).to_string(),
             source: self.source(min_scored),
             reason: self.reason(channel, min_scored, self.source(min_scored)),
             offset_walk_per_h: walk.0,
@@ -2081,6 +2088,15 @@ mod tests {
 
     fn of<'a, T>(v: &'a [T], name: &str, f: impl Fn(&T) -> &str) -> &'a T {
         v.iter().find(|x| f(x) == name).unwrap()
+    }
+
+    #[test]
+    fn a_channel_is_in_urad_only_when_it_names_an_orientation_error() {
+        assert_eq!(channel_unit("EA0C"), "urad");
+        assert_eq!(channel_unit("EB0C"), "urad");
+        assert_eq!(channel_unit("EZ0B"), "um");
+        assert_eq!(channel_unit("ch1"), "um");
+        assert_eq!(channel_unit("EA"), "um");
     }
 
     #[test]

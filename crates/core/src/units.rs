@@ -3,7 +3,8 @@
 //!
 //! The conventions (docs/kinematics-conventions.md): times are ns since the Unix epoch (`i64`),
 //! positions and angles commanded are mm and deg, location errors are um (position) or urad
-//! (orientation). Inside, the models work in mm, rad and minutes or hours.
+//! (orientation), as their parsed name says ([`crate::error_name::ErrorName::unit`]). Inside,
+//! the models work in mm, rad and minutes or hours.
 
 /// Nanoseconds in a second.
 pub const NS_PER_S: i64 = 1_000_000_000;
@@ -42,17 +43,6 @@ pub fn h_to_ns(hours: f64) -> i64 {
 /// Seconds as a duration in ns, rounded (saturating; NaN gives 0).
 pub fn s_to_ns(seconds: f64) -> i64 {
     (seconds * NS_PER_S as f64).round() as i64
-}
-
-/// The unit of a location error by its id (ISO 230-7 names, e.g. `EX0B`, `EA0C`): orientation
-/// errors (`EA..`, `EB..`, `EC..`) are in urad, position errors in um.
-pub fn error_unit(id: &str) -> &'static str {
-    if is_angular(id) { "urad" } else { "um" }
-}
-
-/// Whether a location error id names an orientation error.
-pub fn is_angular(id: &str) -> bool {
-    id.starts_with("EA") || id.starts_with("EB") || id.starts_with("EC")
 }
 
 /// A finite number above zero (false for NaN).
@@ -94,8 +84,6 @@ mod tests {
         assert_eq!(ns_to_h(h_to_ns(3.5)), 3.5);
         assert_eq!(ns_to_s(s_to_ns(0.25)), 0.25);
         assert_eq!(min_to_ns(f64::NAN), 0);
-        assert_eq!(error_unit("EA0C"), "urad");
-        assert_eq!(error_unit("EZ0B"), "um");
         assert!(!positive(f64::NAN) && !non_negative(-1e-12) && non_negative(0.0));
         assert!(plausible_rpm(-12_000.0) && !plausible_rpm(1e300) && !plausible_rpm(f64::NAN));
         assert!(plausible_celsius(20.0) && !plausible_celsius(f64::NAN));

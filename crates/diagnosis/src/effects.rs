@@ -11,7 +11,9 @@ use std::collections::BTreeMap;
 use serde::Serialize;
 
 use crate::rows::Rows;
-use driftwatch_core::thermal_model::{Event, Features, ModelConfig, TemperatureInput};
+use driftwatch_core::thermal_model::{
+    Event, Features, ModelConfig, TemperatureInput, channel_unit,
+};
 
 /// One effect of the library, as `diagnose --list-effects` prints it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -792,11 +794,7 @@ fn location_candidates(
         let Some(s) = signature_column(rows, p) else {
             continue;
         };
-        let unit = if p.starts_with("EA") || p.starts_with("EB") || p.starts_with("EC") {
-            "urad"
-        } else {
-            "um"
-        };
+        let unit = channel_unit(p);
         for (tau, g) in d.slow_taus_min.iter().zip(&d.slow) {
             out.push(candidate(
                 "slow_mode",
@@ -923,11 +921,7 @@ pub fn signature_unit(name: &str) -> &'static str {
         .iter()
         .find(|(n, _)| *n == name)
         .map_or(
-            if name.starts_with("angle_")
-                || name.starts_with("EA")
-                || name.starts_with("EB")
-                || name.starts_with("EC")
-            {
+            if name.starts_with("angle_") || channel_unit(name) == "urad" {
                 "urad"
             } else {
                 "um"

@@ -734,14 +734,10 @@ fn event(a: &Alert, kind: EventKind, t_ns: i64, cycle: i64, message: String) -> 
     }
 }
 
-/// ISO 230-7 names angular location errors EA.., EB.., EC.. and positional ones EX.., EY..,
-/// EZ..; the cycle reports the former in urad and the latter in um.
+/// The unit of an error as its ISO 230-7 name says (`EA0C`: urad, `EX0B`: um); um for a
+/// name that is not a location error name.
 fn unit(error: &str) -> &'static str {
-    if ["EA", "EB", "EC"].iter().any(|p| error.starts_with(p)) {
-        "urad"
-    } else {
-        "um"
-    }
+    driftwatch_core::error_name::ErrorName::parse(error).map_or("um", |e| e.unit())
 }
 
 fn severity(value: f64, limit: f64) -> Severity {

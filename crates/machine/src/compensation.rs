@@ -33,6 +33,8 @@
 use driftwatch_core::units;
 use std::collections::BTreeMap;
 
+use driftwatch_core::error_name::ErrorName;
+
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use thiserror::Error;
@@ -42,9 +44,39 @@ use driftwatch_core::stats::chi2_quantile;
 use driftwatch_core::units::positive;
 
 /// The location errors a `table_bc` cycle identifies, in report order.
-pub const TABLE_BC_ERRORS: [&str; 6] = ["EX0B", "EZ0B", "EY0C", "EX0C", "EA0C", "EB0C"];
+pub const TABLE_BC_ERRORS: [ErrorName; 6] = [
+    ErrorName::from_static("EX0B"),
+    ErrorName::from_static("EZ0B"),
+    ErrorName::from_static("EY0C"),
+    ErrorName::from_static("EX0C"),
+    ErrorName::from_static("EA0C"),
+    ErrorName::from_static("EB0C"),
+];
 
-pub use driftwatch_core::units::{error_unit as unit, is_angular};
+/// The `table_bc` errors as a list for messages ("EX0B, EZ0B, ...").
+fn table_bc_list() -> String {
+    TABLE_BC_ERRORS
+        .iter()
+        .map(|n| n.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// A map keyed by error names as strings (a cycle result's errors or sigma) with its names
+/// parsed; the first name that is not a location error name refuses it.
+pub fn typed(
+    m: &BTreeMap<String, f64>,
+) -> Result<BTreeMap<ErrorName, f64>, driftwatch_core::error_name::BadErrorName> {
+    m.iter()
+        .map(|(k, v)| Ok((ErrorName::parse(k)?, *v)))
+        .collect()
+}
+
+/// Whether a model channel names an orientation error (urad); a position error, or a channel
+/// that is no error name, is in um.
+fn angular_channel(channel: &str) -> bool {
+    ErrorName::parse(channel).is_ok_and(|e| e.is_angular())
+}
 
 // ---------------------------------------------------------------------------------------------
 // Validation
@@ -153,14 +185,14 @@ pub fn validate(
     let errors = result.errors.as_ref();
     let sigma = result.sigma.as_ref();
     for name in TABLE_BC_ERRORS {
-        let Some(&value) = errors.and_then(|e| e.get(name)) else {
+        let Some(&value) = errors.and_then(|e| e.get(name.as_str())) else {
             continue; // named by result_shape_reasons
         };
         if !value.is_finite() {
             continue; // named by result_shape_reasons
         }
-        let u = unit(name);
-        let angular = is_angular(name);
+        let u = name.unit();
+        let angular = name.is_angular();
         let max_abs = if angular {
             limit.max_abs_urad
         } else {
@@ -180,7 +212,7 @@ pub fn validate(
         } else {
             limit.max_sigma_um
         };
-        if let (Some(max), Some(&s)) = (max_sigma, sigma.and_then(|s| s.get(name)))
+        if let (Some(max), Some(&s)) = (max_sigma, sigma.and_then(|s| s.get(name.as_str())))
             && positive(s)
             && !within(s, max)
         {
@@ -196,7 +228,7 @@ pub fn validate(
             } else {
                 limit.max_step_um
             };
-            match prev.errors.get(name) {
+            match prev.errors.get(&name) {
                 None => reasons.push(format!(
                     "{name} has no value in the served set {} to measure the step from",
                     prev.version
@@ -422,7 +454,7 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
         }
     };
     for name in TABLE_BC_ERRORS {
-        match errors.get(name) {
+        match errors.get(name.as_str()) {
             None => reasons.push(format!("{name} missing from the errors")),
             Some(v) if !v.is_finite() => {
                 reasons.push(format!("{name} = {v} is not a finite number"));
@@ -431,10 +463,10 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
         }
     }
     for name in errors.keys() {
-        if !TABLE_BC_ERRORS.contains(&name.as_str()) {
+        if !TABLE_BC_ERRORS.iter().any(|n| *n == name.as_str()) {
             reasons.push(format!(
                 "unexpected error {name}: a table_bc set holds only {}",
-                TABLE_BC_ERRORS.join(", ")
+                table_bc_list()
             ));
         }
     }
@@ -442,14 +474,14 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
         None => reasons.push("no uncertainties (sigma)".into()),
         Some(sigma) => {
             for name in TABLE_BC_ERRORS {
-                if !errors.contains_key(name) {
+                if !errors.contains_key(name.as_str()) {
                     continue;
                 }
-                match sigma.get(name) {
+                match sigma.get(name.as_str()) {
                     None => reasons.push(format!("{name} has no uncertainty")),
                     Some(&s) if !positive(s) => reasons.push(format!(
                         "{name} uncertainty {s} {} is not a positive finite number",
-                        unit(name)
+                        name.unit()
                     )),
                     Some(_) => {}
                 }
@@ -486,9 +518,11 @@ pub struct CompensationSet {
     /// The cycle it was measured in.
     pub cycle: Option<i64>,
     /// Apparent location errors, um and urad.
-    pub errors: BTreeMap<String, f64>,
+    #[cfg_attr(feature = "openapi", schema(value_type = BTreeMap<String, f64>))]
+    pub errors: BTreeMap<ErrorName, f64>,
     /// Their standard uncertainties, same units.
-    pub sigma: BTreeMap<String, f64>,
+    #[cfg_attr(feature = "openapi", schema(value_type = BTreeMap<String, f64>))]
+    pub sigma: BTreeMap<ErrorName, f64>,
     /// The errors in the form the NC applies (see the module docs).
     pub offsets: BTreeMap<String, f64>,
     /// Why this set exists, for the operator.
@@ -555,10 +589,10 @@ pub fn next_set(
             reasons: vec!["no errors".into()],
         });
     };
-    let pick = |m: &BTreeMap<String, f64>| -> BTreeMap<String, f64> {
+    let pick = |m: &BTreeMap<String, f64>| -> BTreeMap<ErrorName, f64> {
         TABLE_BC_ERRORS
             .iter()
-            .filter_map(|&n| m.get(n).map(|&v| (n.to_string(), v)))
+            .filter_map(|&n| m.get(n.as_str()).map(|&v| (n, v)))
             .collect()
     };
     let errors = pick(all_errors);
@@ -584,7 +618,7 @@ pub fn next_set(
 
 /// The NC offsets of the `table_bc` convention (module docs). An offset whose inputs are
 /// missing or not finite is left out rather than guessed.
-pub fn offsets(errors: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
+pub fn offsets(errors: &BTreeMap<ErrorName, f64>) -> BTreeMap<String, f64> {
     let get = |n: &str| errors.get(n).copied().filter(|v| v.is_finite());
     let ex0b = get("EX0B");
     let entries = [
@@ -691,12 +725,15 @@ impl PredictionPolicy {
     /// Whether `predicted` differs enough from the served set to be worth a new version.
     pub fn moved(&self, served: &CompensationSet, predicted: &BTreeMap<String, f64>) -> bool {
         predicted.iter().any(|(n, v)| {
-            let limit = if is_angular(n) {
+            let limit = if angular_channel(n) {
                 self.move_threshold_urad
             } else {
                 self.move_threshold_um
             };
-            served.errors.get(n).is_none_or(|s| (s - v).abs() > limit)
+            served
+                .errors
+                .get(n.as_str())
+                .is_none_or(|s| (s - v).abs() > limit)
         })
     }
 }
@@ -718,12 +755,12 @@ pub fn predicted_set(
     let mut errors = BTreeMap::new();
     let mut sigma = BTreeMap::new();
     for n in TABLE_BC_ERRORS {
-        let Some(&(v, s)) = predicted.get(n) else {
+        let Some(&(v, s)) = predicted.get(n.as_str()) else {
             reasons.push(format!("the model does not predict {n}"));
             continue;
         };
-        let ang = is_angular(n);
-        let u = if ang { "urad" } else { "um" };
+        let ang = n.is_angular();
+        let u = n.unit();
         if !(v.is_finite() && s.is_finite()) {
             reasons.push(format!("{n}: predicted value or sigma is not finite"));
             continue;
@@ -745,8 +782,8 @@ pub fn predicted_set(
         }
         // A prediction means nothing below a nanometre; the rounding keeps the stored sets
         // short.
-        errors.insert(n.to_string(), (v * 1e3).round() / 1e3);
-        sigma.insert(n.to_string(), (s * 1e3).round() / 1e3);
+        errors.insert(n, (v * 1e3).round() / 1e3);
+        sigma.insert(n, (s * 1e3).round() / 1e3);
     }
     if let Some(prev) = previous
         && now_ns < prev.valid_from_ns
@@ -793,13 +830,18 @@ pub fn inconsistent(
     let minutes = (units::ns_to_min(t_ns - measured_t_ns)).abs();
     let mut reasons = Vec::new();
     for (n, &(v, s)) in predicted {
-        let (Some(&m), Some(&sm)) = (measured.errors.get(n), measured.sigma.get(n)) else {
+        // A channel that is not an error name has no measured value to disagree with.
+        let Ok(name) = ErrorName::parse(n) else {
             continue;
         };
-        let (u, rate) = if is_angular(n) {
-            ("urad", limits.max_rate_urad_per_min)
+        let (Some(&m), Some(&sm)) = (measured.errors.get(&name), measured.sigma.get(&name)) else {
+            continue;
+        };
+        let u = name.unit();
+        let rate = if name.is_angular() {
+            limits.max_rate_urad_per_min
         } else {
-            ("um", limits.max_rate_um_per_min)
+            limits.max_rate_um_per_min
         };
         let combined = s.hypot(sm);
         let allowed = k * combined + rate * minutes;
@@ -828,10 +870,10 @@ pub fn inconsistent(
 /// compensation. A step limit that is not a positive finite number moves nothing.
 pub fn ramp(
     from: &CompensationSet,
-    to: &BTreeMap<String, f64>,
+    to: &BTreeMap<ErrorName, f64>,
     max_step_um: f64,
     max_step_urad: f64,
-) -> BTreeMap<String, f64> {
+) -> BTreeMap<ErrorName, f64> {
     let mut out = BTreeMap::new();
     let names = from.errors.keys().chain(to.keys());
     for name in names {
@@ -846,10 +888,10 @@ pub fn ramp(
             (None, Some(_)) => 0.0,
         };
         let Some(target) = target else {
-            out.insert(name.clone(), current);
+            out.insert(*name, current);
             continue;
         };
-        let max = if is_angular(name) {
+        let max = if name.is_angular() {
             max_step_urad
         } else {
             max_step_um
@@ -861,7 +903,7 @@ pub fn ramp(
         } else {
             current + step.copysign(d)
         };
-        out.insert(name.clone(), next);
+        out.insert(*name, next);
     }
     out
 }
@@ -976,6 +1018,10 @@ mod tests {
 
     fn map(pairs: &[(&str, f64)]) -> BTreeMap<String, f64> {
         pairs.iter().map(|&(k, v)| (k.to_string(), v)).collect()
+    }
+
+    fn tmap(pairs: &[(&str, f64)]) -> BTreeMap<ErrorName, f64> {
+        typed(&map(pairs)).unwrap()
     }
 
     fn clean_errors() -> BTreeMap<String, f64> {
@@ -1101,7 +1147,7 @@ mod tests {
         far.version = 2;
         far.source = Source::Predicted;
         far.valid_from_ns = T0 + 1_800_000_000_000 + 11_000_000_000;
-        far.errors.insert("EZ0B".into(), 100.0);
+        far.errors.insert(ErrorName::from_static("EZ0B"), 100.0);
         let closed = far.valid_from_ns + units::NS_PER_MIN;
         let mut next = clean(2);
         next.t_ns = closed - 30_000_000_000;
@@ -1154,8 +1200,8 @@ mod tests {
         assert_eq!(s1.valid_from_ns, T0 + 100);
         assert_eq!(s1.source, Source::Measured);
         assert_eq!(s1.cycle, Some(1));
-        assert_eq!(s1.errors, clean_errors());
-        assert_eq!(s1.sigma, r1.sigma.clone().unwrap());
+        assert_eq!(s1.errors, typed(&clean_errors()).unwrap());
+        assert_eq!(s1.sigma, typed(r1.sigma.as_ref().unwrap()).unwrap());
         assert_eq!(s1.offsets["C_pivot_x_um"], 15.0);
         assert!(s1.reason.contains("cycle 1"), "{}", s1.reason);
 
@@ -1522,7 +1568,7 @@ mod tests {
 
     #[test]
     fn offsets_follow_the_table_bc_convention() {
-        let o = offsets(&clean_errors());
+        let o = offsets(&typed(&clean_errors()).unwrap());
         assert_eq!(
             o,
             map(&[
@@ -1535,15 +1581,15 @@ mod tests {
             ])
         );
         // Without EX0C the C line's X is unknown, and is not guessed.
-        let mut e = clean_errors();
+        let mut e = typed(&clean_errors()).unwrap();
         e.remove("EX0C");
-        e.insert("EY0C".into(), f64::NAN);
+        e.insert(ErrorName::from_static("EY0C"), f64::NAN);
         let o = offsets(&e);
         assert!(!o.contains_key("C_pivot_x_um") && !o.contains_key("C_pivot_y_um"));
         assert_eq!(o["B_pivot_x_um"], 12.0);
     }
 
-    fn served(errors: BTreeMap<String, f64>) -> CompensationSet {
+    fn served(errors: BTreeMap<ErrorName, f64>) -> CompensationSet {
         CompensationSet {
             version: 1,
             valid_from_ns: T0,
@@ -1558,8 +1604,8 @@ mod tests {
 
     #[test]
     fn repeated_ramping_reaches_the_target_and_never_exceeds_the_step() {
-        let from = clean_errors();
-        let to = map(&[
+        let from = typed(&clean_errors()).unwrap();
+        let to = tmap(&[
             ("EX0B", -20.0),
             ("EZ0B", 163.0),
             ("EY0C", -5.0),
@@ -1574,7 +1620,7 @@ mod tests {
             let next = ramp(&set, &to, step_um, step_urad);
             for (name, &v) in &next {
                 let before = set.errors[name];
-                let max = if unit(name) == "urad" {
+                let max = if name.is_angular() {
                     step_urad
                 } else {
                     step_um
@@ -1596,8 +1642,8 @@ mod tests {
 
     #[test]
     fn ramp_holds_and_starts_from_zero_where_it_must() {
-        let set = served(map(&[("EX0B", 5.0), ("EZ0B", 1.0)]));
-        let to = map(&[("EX0B", f64::NAN), ("EY0C", 30.0)]);
+        let set = served(tmap(&[("EX0B", 5.0), ("EZ0B", 1.0)]));
+        let to = tmap(&[("EX0B", f64::NAN), ("EY0C", 30.0)]);
         let out = ramp(&set, &to, 10.0, 10.0);
         // EX0B: the target is not a number, so the served value holds; EZ0B: no target.
         assert_eq!(out["EX0B"], 5.0);
@@ -1605,9 +1651,9 @@ mod tests {
         // EY0C: new, from no compensation at all.
         assert_eq!(out["EY0C"], 10.0);
         // An unusable step moves nothing.
-        let out = ramp(&set, &map(&[("EX0B", 50.0)]), f64::NAN, 10.0);
+        let out = ramp(&set, &tmap(&[("EX0B", 50.0)]), f64::NAN, 10.0);
         assert_eq!(out["EX0B"], 5.0);
-        let out = ramp(&set, &map(&[("EX0B", 50.0)]), -1.0, 10.0);
+        let out = ramp(&set, &tmap(&[("EX0B", 50.0)]), -1.0, 10.0);
         assert_eq!(out["EX0B"], 5.0);
     }
 
@@ -1616,8 +1662,8 @@ mod tests {
         fn ramp_never_exceeds_its_step(
             a in -500.0..500.0_f64, b in -500.0..500.0_f64, step in 0.001..100.0_f64
         ) {
-            let set = served(map(&[("EZ0B", a), ("EB0C", a)]));
-            let to = map(&[("EZ0B", b), ("EB0C", b)]);
+            let set = served(tmap(&[("EZ0B", a), ("EB0C", a)]));
+            let to = tmap(&[("EZ0B", b), ("EB0C", b)]);
             let out = ramp(&set, &to, step, 2.0 * step);
             proptest::prop_assert!((out["EZ0B"] - a).abs() <= step * (1.0 + 1e-12) + 1e-12);
             proptest::prop_assert!((out["EB0C"] - a).abs() <= 2.0 * step * (1.0 + 1e-12) + 1e-12);

@@ -12,6 +12,7 @@ use serde::Serialize;
 use crate::compensation::PredictionPolicy;
 use crate::compensation::TABLE_BC_ERRORS;
 use crate::scheduler::Uncertain;
+use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::thermal_model::{
     Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
 };
@@ -240,7 +241,7 @@ impl LiveModel {
         let preds = self.predict(now_ns)?;
         let values: BTreeMap<String, (f64, f64)> = preds
             .iter()
-            .filter(|p| measured.errors.contains_key(&p.channel))
+            .filter(|p| measured.errors.contains_key(p.channel.as_str()))
             .map(|p| (p.channel.clone(), (p.value, p.sigma)))
             .collect();
         let was = self.suspect.take();
@@ -384,16 +385,19 @@ impl LiveModel {
     pub fn uncertain(&self, predictions: &[Prediction], t_ns: i64) -> Option<Uncertain> {
         predictions
             .iter()
-            .filter(|p| TABLE_BC_ERRORS.contains(&p.channel.as_str()))
-            .find(|p| {
-                let limit = if crate::compensation::unit(&p.channel) == "urad" {
+            .filter_map(|p| {
+                let name = ErrorName::parse(&p.channel).ok()?;
+                TABLE_BC_ERRORS.contains(&name).then_some((p, name))
+            })
+            .find(|(p, name)| {
+                let limit = if name.is_angular() {
                     self.policy.cycle_above_sigma_urad
                 } else {
                     self.policy.cycle_above_sigma_um
                 };
                 p.sigma > limit
             })
-            .map(|p| Uncertain {
+            .map(|(p, _)| Uncertain {
                 since_ns: t_ns,
                 error: p.channel.clone(),
                 sigma: p.sigma,
@@ -609,8 +613,8 @@ mod tests {
             source: crate::compensation::Source::Measured,
             cycle: Some(7),
             offsets: BTreeMap::new(),
-            errors: all(v),
-            sigma: all(0.3),
+            errors: crate::compensation::typed(&all(v)).unwrap(),
+            sigma: crate::compensation::typed(&all(0.3)).unwrap(),
             reason: String::new(),
         }
     }

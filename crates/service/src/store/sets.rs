@@ -108,6 +108,11 @@ impl Store {
         if let Some(c) = set.cycle
             && let Some(r) = self.result(machine, c).await?
             && let (Some(e), Some(s)) = (r.errors, r.sigma)
+            // A measured set's cycle passed validation: its names are the set's.
+            && let (Ok(e), Ok(s)) = (
+                driftwatch_machine::compensation::typed(&e),
+                driftwatch_machine::compensation::typed(&s),
+            )
         {
             set.offsets = driftwatch_machine::compensation::offsets(&e);
             set.errors = e;
@@ -121,6 +126,7 @@ impl Store {
         machine: &str,
         source: Option<&str>,
     ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
+        use driftwatch_core::error_name::ErrorName;
         use driftwatch_machine::compensation::{CompensationSet, Source, offsets};
         let row = sqlx::query(
             "SELECT version, valid_from_ns, source, cycle, reason, payload FROM compensation_sets
@@ -136,8 +142,8 @@ impl Store {
         };
         #[derive(serde::Deserialize)]
         struct Values {
-            errors: BTreeMap<String, f64>,
-            sigma: BTreeMap<String, f64>,
+            errors: BTreeMap<ErrorName, f64>,
+            sigma: BTreeMap<ErrorName, f64>,
         }
         let v: Values = serde_json::from_str(&r.try_get::<String, _>(5)?)?;
         let version: i64 = r.try_get(0)?;
