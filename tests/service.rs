@@ -152,7 +152,11 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
         }
     };
     let (one, two) = (minutes("sim-1").await, minutes("sim-2").await);
-    assert!(one.len() > 300, "{} temperature samples in six hours", one.len());
+    assert!(
+        one.len() > 300,
+        "{} temperature samples in six hours",
+        one.len()
+    );
     assert!(
         one == two,
         "sim-1 stored {} temperature samples, sim-2 {}",

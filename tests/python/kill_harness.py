@@ -2,11 +2,13 @@
 link and on the nc_push link (a Python NC posting events and replaying a simulated cycle's
 detections for each order), then started again on the same data directory.
 
-usage: python3 kill_harness.py BINARY OUTDIR [--sim N] [--nc N] [--seed S]
+usage: python3 kill_harness.py BINARY OUTDIR [--sim N] [--nc N] [--seed S] [--run-after-s S]
 
 Each simulated trial runs a fresh data directory at 600x, is killed 0.3-2 s after it answers
 (every other trial as soon as a cycle is seen running: a cycle takes 0.1 s of wall time),
-restarted, checked and stopped. The
+restarted, checked, run `--run-after-s` more wall seconds (default 1, 10 min of the plant day)
+and stopped; its cycles are counted, and any rejected because its set would lie before the
+served one fails the series (the restarted plant must go on from the store's time). The
 nc_push trials share one data directory on the wall clock: the NC runs operator-requested
 cycles back to back, and the service is killed 0.3-2 s into each trial, mid-cycle included
 (while the NC posts a cycle's detections), and started again. After every restart:
@@ -23,6 +25,7 @@ import os
 import random
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -140,8 +143,21 @@ def unreadable(mcap_dir):
     return bad, len(partial)
 
 
-def sim_series(binary, out, trials, rng):
-    totals = dict(trials=0, mid=0, lost=0, back=0, unreadable=0, partial=0)
+def cycles_by_status(data, machine):
+    """(cycles, rejected, rejected because their set would lie before the served one)."""
+    db = sqlite3.connect(os.path.join(data, "driftwatch.db"))
+    try:
+        rows = db.execute("SELECT status, COALESCE(reason, '') FROM cycles WHERE machine_id = ?",
+                          (machine,)).fetchall()
+    finally:
+        db.close()
+    rejected = [r for s, r in rows if s == "rejected"]
+    return len(rows), len(rejected), sum("before the served set" in r for r in rejected)
+
+
+def sim_series(binary, out, trials, rng, run_after_s):
+    totals = dict(trials=0, mid=0, lost=0, back=0, unreadable=0, partial=0, cycles=0,
+                  rejected=0, before_served=0)
     for i in range(trials):
         data = os.path.join(out, f"sim-{i}")
         shutil.rmtree(data, ignore_errors=True)
@@ -160,7 +176,14 @@ def sim_series(binary, out, trials, rng):
         svc.kill()
         svc = Service(binary, data, log, scale=600)
         lost, back = w.compare(svc, "sim-1")
+        # The restarted plant goes on from where the store left it (not from its morning
+        # again, when every cycle after a restart lay before the served set and was rejected).
+        time.sleep(run_after_s)
         svc.stop()
+        cycles, rejected, before_served = cycles_by_status(data, "sim-1")
+        totals["cycles"] += cycles
+        totals["rejected"] += rejected
+        totals["before_served"] += before_served
         bad, partial = unreadable(os.path.join(data, "mcap", "sim-1"))
         totals["trials"] += 1
         totals["mid"] += int(w.mid_cycle)
@@ -304,18 +327,22 @@ def main():
     ap.add_argument("--sim", type=int, default=30)
     ap.add_argument("--nc", type=int, default=25)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--run-after-s", type=float, default=1.0,
+                    help="wall seconds each restarted simulated plant runs (600x) before it stops")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     rng = random.Random(a.seed)
     failed = False
     all_trials = 0
-    for name, series, n in [("simulated", sim_series, a.sim), ("nc_push", nc_series, a.nc)]:
+    sim = lambda binary, out, n, rng: sim_series(binary, out, n, rng, a.run_after_s)
+    for name, series, n in [("simulated", sim, a.sim), ("nc_push", nc_series, a.nc)]:
         if n == 0:
             continue
         t = series(a.binary, a.out, n, rng)
         all_trials += t["trials"]
         print(f"kill -9 harness, {name}: " + ", ".join(f"{k} {v}" for k, v in t.items()))
-        failed |= any(t.get(k, 0) for k in ("lost", "back", "unreadable", "partial", "nc5xx"))
+        failed |= any(t.get(k, 0) for k in ("lost", "back", "unreadable", "partial", "nc5xx",
+                                             "before_served"))
     print(f"kill -9 harness: {all_trials} trials, {'FAILED' if failed else 'ok'}")
     sys.exit(1 if failed else 0)
 

@@ -241,6 +241,8 @@ pub struct ThermalView {
     /// Why the last prediction was not served, if it was not.
     pub prediction_note: Option<String>,
     pub predictor: Option<Arc<Predictor>>,
+    /// Counts the changes of this view, so that a reader copies it only when it changed.
+    pub revision: u64,
 }
 
 /// What the core shows of the machine.
@@ -869,6 +871,7 @@ impl MachineCore {
         self.last_prediction_ns = now_ns;
         let Some(preds) = self.thermal.predict(now_ns) else {
             self.view.thermal.model = Some(self.thermal.view());
+            self.view.thermal.revision += 1;
             return;
         };
         self.sched.uncertain = match (
@@ -894,6 +897,7 @@ impl MachineCore {
             None
         };
         let t = &mut self.view.thermal;
+        t.revision += 1;
         t.prediction = preds;
         t.prediction_t_ns = Some(now_ns);
         t.prediction_note = note;

@@ -139,6 +139,8 @@ pub struct MachineRuntime {
     /// Clock-skew refusals the link reported and the core has not been told yet: count and
     /// the last worst skew, ns.
     skew: (u64, i64),
+    /// The set version and thermal-view revision last shown to the API.
+    published: (Option<u64>, u64),
     /// The service clock at the current step: recording files follow it.
     clock_ns: i64,
 }
@@ -271,6 +273,7 @@ impl MachineRuntime {
             source,
         })?;
         let cv = core.view();
+        let view_version = cv.compensation.as_ref().map(|c| c.version);
         let view = MachineView {
             id: id.to_string(),
             kinematics: kin_name,
@@ -292,6 +295,7 @@ impl MachineRuntime {
             alert_log: Vec::new(),
             notifier: Default::default(),
             skew: (0, 0),
+            published: (view_version, 0),
             clock_ns: now_ns,
         };
         rt.queue.extend(said.into_iter().map(Job::Core));
@@ -569,21 +573,38 @@ impl MachineRuntime {
             .collect())
     }
 
-    /// Show the core's view to the API; the NC's body is serialised once per version.
+    /// Show the core's view to the API. The copies are made before the lock is taken and the
+    /// old values dropped after it is released, so that the NC's reads never wait on them; the
+    /// set and its NC body (serialised once per version) and the thermal view are copied only
+    /// when they changed.
     fn publish(&mut self) {
         let cv = self.core.view();
+        let version = cv.compensation.as_ref().map(|c| c.version);
+        let set = (version != self.published.0).then(|| {
+            let nc = cv.compensation.as_ref().and_then(NcBody::of);
+            (cv.compensation.clone(), nc)
+        });
+        let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
+        self.published = (version, cv.thermal.revision);
+        let (mut cycles, mut alerts) = (cv.cycles.clone(), cv.open_alerts.clone());
+        let phase = cv.phase;
+        let mut old_set = None;
+        let mut old_thermal = None;
         if let Ok(mut v) = self.view.lock() {
-            if v.compensation.as_ref().map(|c| c.version)
-                != cv.compensation.as_ref().map(|c| c.version)
-            {
-                v.nc_body = cv.compensation.as_ref().and_then(NcBody::of);
+            v.phase = phase;
+            std::mem::swap(&mut v.cycles, &mut cycles);
+            std::mem::swap(&mut v.open_alerts, &mut alerts);
+            if let Some((set, nc)) = set {
+                old_set = Some((
+                    std::mem::replace(&mut v.compensation, set),
+                    std::mem::replace(&mut v.nc_body, nc),
+                ));
             }
-            v.phase = cv.phase;
-            v.cycles = cv.cycles.clone();
-            v.compensation = cv.compensation.clone();
-            v.open_alerts = cv.open_alerts.clone();
-            v.thermal = cv.thermal.clone();
+            if let Some(t) = thermal {
+                old_thermal = Some(std::mem::replace(&mut v.thermal, t));
+            }
         }
+        drop((cycles, alerts, old_set, old_thermal));
     }
 
     /// Give up the open cycle, store what is held and close the recording cleanly.
