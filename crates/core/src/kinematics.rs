@@ -318,6 +318,125 @@ impl MachineConfig {
     }
 }
 
+/// One rotary axis of a machine file, checked: unit directions perpendicular to the axis, a
+/// positive speed and an ordered travel, error names of their slot's kind and axis.
+fn rotary_axis(r: &RotaryConfig, m: &str) -> Result<RotaryAxis, MachineError> {
+    let invalid = |message: String| MachineError::Invalid {
+        machine: m.to_string(),
+        message,
+    };
+    let u0 = unit(r.axis, &format!("axis of {}", r.name), m)?;
+    let mut position_dirs = [Vec3::zeros(); 2];
+    let mut orientation_axes = [Vec3::zeros(); 2];
+    for k in 0..2 {
+        let d = unit(
+            r.position_errors[k].direction,
+            &format!("direction of {}", r.position_errors[k].name),
+            m,
+        )?;
+        let o = unit(
+            r.orientation_errors[k].direction,
+            &format!("direction of {}", r.orientation_errors[k].name),
+            m,
+        )?;
+        if d.dot(&u0).abs() > 1e-9 || o.dot(&u0).abs() > 1e-9 {
+            return Err(invalid(format!(
+                "the error directions of axis {} must be perpendicular to it",
+                r.name
+            )));
+        }
+        position_dirs[k] = d;
+        orientation_axes[k] = o;
+    }
+    if position_dirs[0].dot(&position_dirs[1]).abs() > 1e-9 {
+        return Err(invalid(format!(
+            "the two position error directions of axis {} must be perpendicular",
+            r.name
+        )));
+    }
+    if !crate::units::positive(r.speed_deg_min) || r.travel_deg[0] >= r.travel_deg[1] {
+        return Err(invalid(format!(
+            "axis {} needs a positive speed and travel_deg [min, max]",
+            r.name
+        )));
+    }
+    check_error_slots(r, &invalid)?;
+    Ok(RotaryAxis {
+        name: r.name.clone(),
+        u0,
+        q0: Vec3::from(r.point_mm),
+        sign: match r.sense {
+            Sense::Table => -1.0,
+            Sense::Direct => 1.0,
+        },
+        position_dirs,
+        orientation_axes,
+        error_names: [
+            r.position_errors[0].name,
+            r.position_errors[1].name,
+            r.orientation_errors[0].name,
+            r.orientation_errors[1].name,
+            r.zero_error,
+        ],
+        relative_to_parent: r.relative_to_parent,
+        field: r.message_field,
+        travel_deg: r.travel_deg,
+        speed_deg_min: r.speed_deg_min,
+    })
+}
+
+/// Each error name of an axis is of its slot's kind (position or orientation) and names the
+/// axis it belongs to.
+fn check_error_slots(
+    r: &RotaryConfig,
+    invalid: &dyn Fn(String) -> MachineError,
+) -> Result<(), MachineError> {
+    let slots = [
+        (
+            r.position_errors[0].name,
+            ErrorKind::Position,
+            "position_errors",
+        ),
+        (
+            r.position_errors[1].name,
+            ErrorKind::Position,
+            "position_errors",
+        ),
+        (
+            r.orientation_errors[0].name,
+            ErrorKind::Orientation,
+            "orientation_errors",
+        ),
+        (
+            r.orientation_errors[1].name,
+            ErrorKind::Orientation,
+            "orientation_errors",
+        ),
+        (r.zero_error, ErrorKind::Orientation, "zero_error"),
+    ];
+    for (name, kind, key) in slots {
+        if name.kind() != kind {
+            return Err(invalid(format!(
+                "{key} of axis {} names {name}, which is {} error ({}); it must be {} \
+                 error ({})",
+                r.name,
+                kind_article(name.kind()),
+                name.unit(),
+                kind_article(kind),
+                kind.unit()
+            )));
+        }
+        if r.name.len() != 1 || !r.name.starts_with(name.axis()) {
+            return Err(invalid(format!(
+                "{key} of axis {} names {name}, an error of axis {}",
+                r.name,
+                name.axis()
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn kind_article(kind: ErrorKind) -> &'static str {
     match kind {
         ErrorKind::Position => "a position",
@@ -364,109 +483,11 @@ impl Kinematics {
                 cfg.rotary.len()
             )));
         }
-        let mut rotary = Vec::new();
-        for r in &cfg.rotary {
-            let u0 = unit(r.axis, &format!("axis of {}", r.name), &m)?;
-            let mut position_dirs = [Vec3::zeros(); 2];
-            let mut orientation_axes = [Vec3::zeros(); 2];
-            for k in 0..2 {
-                let d = unit(
-                    r.position_errors[k].direction,
-                    &format!("direction of {}", r.position_errors[k].name),
-                    &m,
-                )?;
-                let o = unit(
-                    r.orientation_errors[k].direction,
-                    &format!("direction of {}", r.orientation_errors[k].name),
-                    &m,
-                )?;
-                if d.dot(&u0).abs() > 1e-9 || o.dot(&u0).abs() > 1e-9 {
-                    return Err(invalid(format!(
-                        "the error directions of axis {} must be perpendicular to it",
-                        r.name
-                    )));
-                }
-                position_dirs[k] = d;
-                orientation_axes[k] = o;
-            }
-            if position_dirs[0].dot(&position_dirs[1]).abs() > 1e-9 {
-                return Err(invalid(format!(
-                    "the two position error directions of axis {} must be perpendicular",
-                    r.name
-                )));
-            }
-            if !crate::units::positive(r.speed_deg_min) || r.travel_deg[0] >= r.travel_deg[1] {
-                return Err(invalid(format!(
-                    "axis {} needs a positive speed and travel_deg [min, max]",
-                    r.name
-                )));
-            }
-            let slots = [
-                (
-                    r.position_errors[0].name,
-                    ErrorKind::Position,
-                    "position_errors",
-                ),
-                (
-                    r.position_errors[1].name,
-                    ErrorKind::Position,
-                    "position_errors",
-                ),
-                (
-                    r.orientation_errors[0].name,
-                    ErrorKind::Orientation,
-                    "orientation_errors",
-                ),
-                (
-                    r.orientation_errors[1].name,
-                    ErrorKind::Orientation,
-                    "orientation_errors",
-                ),
-                (r.zero_error, ErrorKind::Orientation, "zero_error"),
-            ];
-            for (name, kind, key) in slots {
-                if name.kind() != kind {
-                    return Err(invalid(format!(
-                        "{key} of axis {} names {name}, which is {} error ({}); it must be {} \
-                         error ({})",
-                        r.name,
-                        kind_article(name.kind()),
-                        name.unit(),
-                        kind_article(kind),
-                        kind.unit()
-                    )));
-                }
-                if r.name.len() != 1 || !r.name.starts_with(name.axis()) {
-                    return Err(invalid(format!(
-                        "{key} of axis {} names {name}, an error of axis {}",
-                        r.name,
-                        name.axis()
-                    )));
-                }
-            }
-            rotary.push(RotaryAxis {
-                name: r.name.clone(),
-                u0,
-                q0: Vec3::from(r.point_mm),
-                sign: match r.sense {
-                    Sense::Table => -1.0,
-                    Sense::Direct => 1.0,
-                },
-                position_dirs,
-                orientation_axes,
-                error_names: [
-                    r.position_errors[0].name,
-                    r.position_errors[1].name,
-                    r.orientation_errors[0].name,
-                    r.orientation_errors[1].name,
-                    r.zero_error,
-                ],
-                relative_to_parent: r.relative_to_parent,
-                field: r.message_field,
-                travel_deg: r.travel_deg,
-                speed_deg_min: r.speed_deg_min,
-            });
-        }
+        let rotary = cfg
+            .rotary
+            .iter()
+            .map(|r| rotary_axis(r, &m))
+            .collect::<Result<Vec<_>, _>>()?;
         let mut names: Vec<ErrorName> = rotary.iter().flat_map(|a| a.error_names).collect();
         names.sort_unstable();
         if names.windows(2).any(|w| w[0] == w[1]) {
