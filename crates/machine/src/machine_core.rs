@@ -120,6 +120,24 @@ pub enum Sample {
     },
 }
 
+/// A stored sample is an input of the thermal model's timeline.
+impl From<Sample> for Event {
+    fn from(s: Sample) -> Event {
+        match s {
+            Sample::Spindle { t_ns, rpm } => Event::Spindle { t_ns, rpm },
+            Sample::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            } => Event::Temperature {
+                t_ns,
+                sensor,
+                celsius,
+            },
+        }
+    }
+}
+
 impl Sample {
     pub fn t_ns(&self) -> i64 {
         match self {

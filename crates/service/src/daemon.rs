@@ -153,23 +153,11 @@ async fn stored_events(
     from_ns: i64,
     to_ns: i64,
 ) -> Result<Vec<Event>, DaemonError> {
-    use crate::store::Sample;
     let mut ev: Vec<Event> = store
         .samples(machine, from_ns, to_ns)
         .await?
         .into_iter()
-        .map(|s| match s {
-            Sample::Spindle { t_ns, rpm } => Event::Spindle { t_ns, rpm },
-            Sample::Temperature {
-                t_ns,
-                sensor,
-                celsius,
-            } => Event::Temperature {
-                t_ns,
-                sensor,
-                celsius,
-            },
-        })
+        .map(Event::from)
         .collect();
     ev.extend(
         store
