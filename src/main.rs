@@ -157,9 +157,13 @@ enum Command {
     Bench {
         #[arg(value_enum)]
         which: BenchWhich,
-        /// Plan to solve (built-in or path).
-        #[arg(long, default_value = "patent_sequential")]
-        plan: String,
+        /// Machine whose cycles `bench solve` solves (built-in name or path).
+        #[arg(long, default_value = "table_bc")]
+        machine: String,
+        /// Plan to solve (built-in or path); default the machine's own plan in its listed order
+        /// (one pass: `patent_sequential` on table_bc).
+        #[arg(long)]
+        plan: Option<String>,
         /// Number of solves.
         #[arg(long, default_value_t = 20000)]
         n: usize,
@@ -361,10 +365,11 @@ fn run(cmd: Command) -> Result<ExitCode> {
         } => cmd_plan(&machine, &plan, sigma_um, drift_rates),
         Command::Bench {
             which: BenchWhich::Solve,
+            machine,
             plan,
             n,
             ..
-        } => cmd_bench_solve(&plan, n),
+        } => cmd_bench_solve(&machine, plan.as_deref(), n),
         Command::Bench {
             which: BenchWhich::Year,
             days,
@@ -788,9 +793,17 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
     Ok(ExitCode::SUCCESS)
 }
 
-fn cmd_bench_solve(plan: &str, n: usize) -> Result<ExitCode> {
-    let k = Kinematics::builtin("table_bc")?;
-    let plan = Plan::build(&k, &PlanConfig::load(plan)?)?;
+fn cmd_bench_solve(machine: &str, plan: Option<&str>, n: usize) -> Result<ExitCode> {
+    let k = Kinematics::load(machine)?;
+    let cfg = match plan {
+        Some(p) => PlanConfig::load(p)?,
+        None => {
+            let mut cfg = PlanConfig::load(&k.config.plan)?;
+            cfg.order = driftwatch_core::plan::Order::AsListed;
+            cfg
+        }
+    };
+    let plan = Plan::build(&k, &cfg)?;
     let obs = template(&k, &plan)?;
     let opts = SolveOptions::new(k.setter.sigma_um);
     let id = Identifier::new(&k, &obs, &opts)?;
@@ -817,10 +830,15 @@ fn cmd_bench_solve(plan: &str, n: usize) -> Result<ExitCode> {
     }
     let dt = t.elapsed().as_secs_f64();
     outln!(
-        "{} solves of the {}-detection plan '{}' in {:.3} s on one thread: {:.0} solves/s (checksum {:.3})",
+        "{} solves of the {}-detection plan '{}' ({}) on machine '{}' in {:.3} s on one thread: {:.0} solves/s (checksum {:.3})",
         n,
         obs.len(),
         plan.name,
+        match plan.config.order {
+            driftwatch_core::plan::Order::AsListed => "as listed",
+            driftwatch_core::plan::Order::TimeSymmetric => "time-symmetric",
+        },
+        k.name,
         dt,
         n as f64 / dt,
         sum

@@ -4,8 +4,10 @@
 //! A name is four ASCII characters (`docs/kinematics-conventions.md`): `E`, the component
 //! (`X`, `Y`, `Z` for a position error in um; `A`, `B`, `C` for an orientation error in urad,
 //! the rotation about X, Y, Z), `0` (a location error, not a motion error), and the rotary
-//! axis it belongs to (`A`, `B` or `C`): `EX0B`, `EZ0B`, `EA0B`, `EC0B`, `EB0B` (the zero
-//! angle of B), `EX0C`, `EY0C`, `EA0C`, `EB0C`, `EC0C`.
+//! axis it belongs to (`A`, `B`, `C`, or `D`, the 45-degree inclined axis of the patent's
+//! Figs. 11 and 12): `EX0B`, `EZ0B`, `EA0B`, `EC0B`, `EB0B` (the zero angle of B), `EX0C`,
+//! `EY0C`, `EA0C`, `EB0C`, `EC0C`. An inclined axis' components are those of its own frame
+//! (the machine frame turned so that the axis is one of its axes; for D, its Y).
 //!
 //! [`ErrorName`] orders, hashes and compares exactly as its string does and borrows as a
 //! `str`, so a `BTreeMap<ErrorName, _>` iterates and serializes in the order a
@@ -40,7 +42,7 @@ impl ErrorKind {
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error(
     "bad location error name {name:?}: {why} (a name is E, the component X/Y/Z (position, um) \
-     or A/B/C (orientation, urad), 0 and the rotary axis A/B/C, e.g. EX0B or EA0C)"
+     or A/B/C (orientation, urad), 0 and the rotary axis A/B/C/D, e.g. EX0B or EA0C)"
 )]
 pub struct BadErrorName {
     /// The name as given (cut to its first 32 characters).
@@ -67,8 +69,8 @@ const fn check(b: &[u8]) -> Result<[u8; 4], &'static str> {
     if b[2] != b'0' {
         return Err("the third character must be 0");
     }
-    if !matches!(b[3], b'A' | b'B' | b'C') {
-        return Err("the fourth character must be the rotary axis A, B or C");
+    if !matches!(b[3], b'A' | b'B' | b'C' | b'D') {
+        return Err("the fourth character must be the rotary axis A, B, C or D");
     }
     Ok([b[0], b[1], b[2], b[3]])
 }
@@ -120,7 +122,7 @@ impl ErrorName {
         self.0[1] as char
     }
 
-    /// The rotary axis the error belongs to: A, B or C.
+    /// The rotary axis the error belongs to: A, B, C or D.
     pub fn axis(&self) -> char {
         self.0[3] as char
     }
@@ -271,8 +273,8 @@ mod tests {
             ("EQ0B", "second character"),
             ("Ex0B", "second character"),
             ("EX1B", "third character must be 0"),
-            ("EX0X", "rotary axis A, B or C"),
-            ("EX0D", "rotary axis A, B or C"),
+            ("EX0X", "rotary axis A, B, C or D"),
+            ("EX0E", "rotary axis A, B, C or D"),
             ("EÅ0B", "exactly 4 characters"),
         ] {
             let e = ErrorName::parse(s).unwrap_err();

@@ -12,8 +12,9 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::geometry::{Vec3, wrap_deg};
+use crate::kinematics::PoseGeometry;
 use crate::kinematics::{ErrorId, Kinematics, MAX_ROTARY, MachineState};
-use crate::measurement::{Approach, Axis, NoTrip, latched_with_beam};
+use crate::measurement::{Approach, Axis, NoTrip, latched_at};
 
 /// One detection as the solver sees it.
 #[derive(Debug, Clone, PartialEq)]
@@ -399,22 +400,23 @@ impl<'a> Identifier<'a> {
     fn predict(&self, obs: &[Observation], p: &[f64], t_ref: i64) -> Result<Vec<f64>, SolveError> {
         let s = self.state(p);
         let lines = self.k.lines(&s);
-        let mut cache: Vec<([f64; MAX_ROTARY], Vec3, Vec3)> = Vec::with_capacity(8);
+        let mut cache: Vec<([f64; MAX_ROTARY], PoseGeometry)> = Vec::with_capacity(8);
         let mut out = Vec::with_capacity(obs.len());
         for o in obs {
-            let (bp, be) = match cache.iter().find(|(a, _, _)| same_angles(a, &o.angles)) {
-                Some((_, p, e)) => (*p, *e),
+            let pose = match cache.iter().find(|(a, _)| same_angles(a, &o.angles)) {
+                Some((_, g)) => *g,
                 None => {
-                    let t = self.k.pose_transform_on(&lines, &s, &o.angles);
-                    let (p, e) = (t.point(&s.beam_point), t.vector(&s.beam_dir));
-                    cache.push((o.angles, p, e));
-                    (p, e)
+                    let g = self.k.pose_geometry_on(&lines, &s, &o.angles);
+                    cache.push((o.angles, g));
+                    g
                 }
             };
-            let mut v = latched_with_beam(self.k, &s, &bp, &be, &o.approach, &o.position, None)
-                .map_err(|reason| SolveError::NoTrip {
-                    label: o.label.clone(),
-                    reason,
+            let mut v =
+                latched_at(&s, &pose, &o.approach, &o.position, None).map_err(|reason| {
+                    SolveError::NoTrip {
+                        label: o.label.clone(),
+                        reason,
+                    }
                 })?;
             let dt_min = units::ns_to_min(o.t_ns - t_ref);
             for (param, val) in self.params.iter().zip(p) {
@@ -803,18 +805,12 @@ fn null_combinations(j: &DMatrix<f64>, names: &[String]) -> Vec<String> {
 }
 
 fn identifiability_hint(k: &Kinematics, obs: &[Observation]) -> Option<String> {
-    let n = k.rotary.len();
-    let tilted = obs.iter().any(|o| {
-        o.angles[..n.saturating_sub(1)]
-            .iter()
-            .any(|a| wrap_deg(*a).abs() > 1e-9)
-    });
-    if !tilted && n > 1 {
-        let outer: Vec<&str> = k.rotary[..n - 1].iter().map(|a| a.name.as_str()).collect();
+    let tilting = k.tilting_axes();
+    if !tilting.is_empty() && !obs.iter().any(|o| k.is_tilted(&o.angles)) {
         return Some(format!(
             "no tilted pose: the position of the {} axis shows only when it turns; add a pose with {} != 0",
-            outer.join("/"),
-            outer.join("/")
+            tilting.join("/"),
+            tilting.join("/")
         ));
     }
     None

@@ -1,12 +1,16 @@
-//! Machine kinematics built from data: a chain of work-side rotary axes, each turning about its
-//! actual average line (ISO 230-7 location errors), a linear tool side with scale and squareness
-//! errors, the laser tool setter's beam and the tool.
+//! Machine kinematics built from data: chains of rotary axes on the work side (tables,
+//! swivels) and the tool side (swivel heads), each turning about its actual average line
+//! (ISO 230-7 location errors), a linear tool side with scale and squareness errors, the laser
+//! tool setter's beam and the tool.
 //!
 //! Conventions (pinned by tests; see the contract `kinematics-conventions.md`):
-//! `p_machine = T_1(a_1) * T_2(a_2) * ... * p_table`, outermost axis first, with
-//! `T_i(a) = Tr(q_i) * Rot(u_i, sense * (a + zero_i + eps_i)) * Tr(-q_i)`; `sense = -1` for
-//! table axes (ISO 841). Every line is given as seen with all axes at zero, so at the zero pose
-//! the table frame is the machine frame whatever the position and orientation errors.
+//! `p_machine = T_1(a_1) * T_2(a_2) * ... * p_table` over the table axes, outermost first, and
+//! `tip = c - H_nom(a)(0) + H(a)(s)` over the head axes (outermost, nearest the ram, first),
+//! with `T_i(a) = Tr(q_i) * Rot(u_i, sense * (a + zero_i + eps_i)) * Tr(-q_i)`; `sense = -1`
+//! for table axes (ISO 841), `+1` for head axes. Every line is given as seen with all axes at
+//! zero (head lines in the head frame: relative to the tool tip at the zero pose), so at the
+//! zero pose the table frame is the machine frame and the tip is where the NC commands it,
+//! whatever the position and orientation errors.
 
 use std::collections::BTreeMap;
 
@@ -43,10 +47,28 @@ impl RotarySense {
 }
 
 /// Built-in machine descriptions, by name.
-pub const BUILTIN_MACHINES: &[(&str, &str)] = &[(
-    "table_bc",
-    include_str!("../../../config/machines/table_bc.toml"),
-)];
+pub const BUILTIN_MACHINES: &[(&str, &str)] = &[
+    (
+        "table_bc",
+        include_str!("../../../config/machines/table_bc.toml"),
+    ),
+    (
+        "head_b_table_c",
+        include_str!("../../../config/machines/head_b_table_c.toml"),
+    ),
+    (
+        "table_d45_c",
+        include_str!("../../../config/machines/table_d45_c.toml"),
+    ),
+    (
+        "head_d45_table_c",
+        include_str!("../../../config/machines/head_d45_table_c.toml"),
+    ),
+    (
+        "trunnion_ac",
+        include_str!("../../../config/machines/trunnion_ac.toml"),
+    ),
+];
 
 #[derive(Debug, Error)]
 pub enum MachineError {
@@ -58,8 +80,19 @@ pub enum MachineError {
     Invalid { machine: String, message: String },
 }
 
-/// Whether a positive command turns the carried body positively (`direct`) or negatively
-/// (`table`, the ISO 841 sense of work-side axes).
+/// Which part of the machine an axis turns: the table (work side; its lines are in the
+/// machine frame) or the spindle head (tool side; its lines are in the head frame, relative
+/// to the tool tip at the zero pose).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Side {
+    #[default]
+    Table,
+    Head,
+}
+
+/// Whether a positive command turns the carried body positively (`direct`, the ISO 841 sense
+/// of head axes) or negatively (`table`, the ISO 841 sense of work-side axes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sense {
@@ -79,9 +112,13 @@ pub struct NamedDirection {
 #[serde(deny_unknown_fields)]
 pub struct RotaryConfig {
     pub name: String,
+    /// The table (work side, default) or the spindle head (tool side).
+    #[serde(default)]
+    pub side: Side,
     /// Nominal direction of the axis with all axes at zero.
     pub axis: [f64; 3],
-    /// A point of the nominal axis line, mm.
+    /// A point of the nominal axis line, mm: machine frame for a table axis, head frame
+    /// (relative to the tool tip at the zero pose) for a head axis.
     #[serde(default)]
     pub point_mm: [f64; 3],
     pub sense: Sense,
@@ -93,7 +130,8 @@ pub struct RotaryConfig {
     /// Name of the zero-angle error (urad), added to the commanded angle.
     pub zero_error: ErrorName,
     /// Position errors are measured from the carrying axis' line (the part of its offset
-    /// perpendicular to this axis is inherited), as EX0C is measured from the B axis.
+    /// perpendicular to this axis is inherited), as EX0C is measured from the B axis. The
+    /// carrying axis is the one listed before on the same side.
     #[serde(default)]
     pub relative_to_parent: bool,
     /// Field of `/probe/detection` that carries this axis' commanded angle.
@@ -131,9 +169,14 @@ pub struct ToolConfig {
     pub id: String,
     /// Calibrated effective radius (envelope of the turning cutter), mm.
     pub radius_mm: f64,
-    /// Spindle (tool) axis in the machine frame, pointing from the tip into the spindle.
+    /// Spindle (tool) axis at the zero pose, machine frame, pointing from the tip into the
+    /// spindle.
     #[serde(default = "default_tool_axis")]
     pub axis: [f64; 3],
+}
+
+fn default_plan() -> String {
+    "patent".into()
 }
 
 fn default_tool_axis() -> [f64; 3] {
@@ -163,6 +206,10 @@ pub struct MachineConfig {
     pub setter: SetterConfig,
     pub tool: ToolConfig,
     pub motion: MotionConfig,
+    /// The plan (built-in name or path) this machine's cycles run unless the service
+    /// configuration or the command line names another.
+    #[serde(default = "default_plan")]
+    pub plan: String,
     /// The location errors a cycle identifies, in report order.
     pub identify: Vec<ErrorName>,
     /// Values held for the location errors that are not identified (um or urad), e.g. from a
@@ -223,6 +270,7 @@ impl ErrorId {
 #[derive(Debug, Clone)]
 pub struct RotaryAxis {
     pub name: String,
+    pub side: Side,
     pub u0: Vec3,
     pub q0: Vec3,
     pub sign: f64,
@@ -298,7 +346,8 @@ pub struct MachineState {
     /// Angular positioning error at the current pose (beyond the zero error), rad.
     pub angle_error: [f64; MAX_ROTARY],
     pub linear: LinearErrors,
-    /// Tool-tip thermal displacement, machine frame, mm.
+    /// Tool-tip thermal displacement, mm, in the head frame (the machine frame as the head
+    /// is at the zero pose; the machine frame itself when no axis turns the head).
     pub tool_tip: Vec3,
     /// Beam line in the table frame.
     pub beam_point: Vec3,
@@ -363,6 +412,7 @@ fn rotary_axis(r: &RotaryConfig, m: &str) -> Result<RotaryAxis, MachineError> {
     check_error_slots(r, &invalid)?;
     Ok(RotaryAxis {
         name: r.name.clone(),
+        side: r.side,
         u0,
         q0: Vec3::from(r.point_mm),
         sign: match r.sense {
@@ -622,9 +672,22 @@ impl Kinematics {
         state: &MachineState,
         angles_deg: &[f64],
     ) -> Affine {
-        let (offsets, dirs) = lines;
+        self.chain(Side::Table, lines, state, angles_deg)
+    }
+
+    /// The transform of one side's axes at the commanded angles, outermost first.
+    fn chain(
+        &self,
+        side: Side,
+        (offsets, dirs): &AxisLines,
+        state: &MachineState,
+        angles_deg: &[f64],
+    ) -> Affine {
         let mut total = Affine::identity();
         for (i, ax) in self.rotary.iter().enumerate() {
+            if ax.side != side {
+                continue;
+            }
             let angle =
                 ax.sign * (deg_to_rad(angles_deg[i]) + state.loc[i][4] + state.angle_error[i]);
             let t = Affine::about_line(&(ax.q0 + offsets[i]), &dirs[i], angle);
@@ -633,46 +696,149 @@ impl Kinematics {
         total
     }
 
+    /// The axis that turns the table under the work (the innermost table axis, C on every
+    /// built-in machine), if any: the one axis a pose may turn and stay "untilted".
+    pub fn table_axis(&self) -> Option<usize> {
+        self.rotary.iter().rposition(|a| a.side == Side::Table)
+    }
+
+    /// Whether a pose turns any axis but the table axis (the "tilted" poses of the patent,
+    /// where the position of the tilting axis shows).
+    pub fn is_tilted(&self, angles_deg: &[f64]) -> bool {
+        let table = self.table_axis();
+        (0..self.rotary.len())
+            .filter(|i| Some(*i) != table)
+            .any(|i| crate::geometry::wrap_deg(angles_deg[i]).abs() > 1e-9)
+    }
+
+    /// A pose as a label: each axis' name and angle, e.g. `B-90C-270`.
+    pub fn pose_label(&self, angles_deg: &[f64]) -> String {
+        self.rotary
+            .iter()
+            .zip(angles_deg)
+            .map(|(ax, a)| {
+                if a.fract() == 0.0 {
+                    format!("{}{}", ax.name, *a as i64)
+                } else {
+                    format!("{}{a}", ax.name)
+                }
+            })
+            .collect()
+    }
+
+    /// The axes that tilt (every axis but the table axis), by name.
+    pub fn tilting_axes(&self) -> Vec<&str> {
+        let table = self.table_axis();
+        self.rotary
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| Some(*i) != table)
+            .map(|(_, a)| a.name.as_str())
+            .collect()
+    }
+
+    /// Whether any axis turns the spindle head.
+    pub fn has_head_axes(&self) -> bool {
+        self.rotary.iter().any(|a| a.side == Side::Head)
+    }
+
+    /// Where the tool is at a pose, relative to the commanded position (see [`ToolPose`]).
+    pub fn tool_pose_on(
+        &self,
+        lines: &AxisLines,
+        state: &MachineState,
+        angles_deg: &[f64],
+    ) -> ToolPose {
+        if !self.has_head_axes() {
+            return ToolPose {
+                nominal: Vec3::zeros(),
+                actual: state.tool_tip,
+                axis: self.tool_axis,
+            };
+        }
+        // The NC's model of the head: nominal lines, no zero-angle or positioning errors.
+        let mut nominal = Affine::identity();
+        for (i, ax) in self.rotary.iter().enumerate() {
+            if ax.side == Side::Head {
+                let angle = ax.sign * deg_to_rad(angles_deg[i]);
+                nominal = nominal.then_inner(&Affine::about_line(&ax.q0, &ax.u0, angle));
+            }
+        }
+        let actual = self.chain(Side::Head, lines, state, angles_deg);
+        ToolPose {
+            nominal: nominal.point(&Vec3::zeros()),
+            actual: actual.point(&state.tool_tip),
+            axis: actual.vector(&self.tool_axis),
+        }
+    }
+
+    /// The beam and the tool at a pose, with the axis lines of `state` already computed.
+    pub fn pose_geometry_on(
+        &self,
+        lines: &AxisLines,
+        state: &MachineState,
+        angles_deg: &[f64],
+    ) -> PoseGeometry {
+        let t = self.pose_transform_on(lines, state, angles_deg);
+        PoseGeometry {
+            beam_point: t.point(&state.beam_point),
+            beam_dir: t.vector(&state.beam_dir),
+            tool: self.tool_pose_on(lines, state, angles_deg),
+        }
+    }
+
+    /// The beam and the tool at a pose.
+    pub fn pose_geometry(&self, state: &MachineState, angles_deg: &[f64]) -> PoseGeometry {
+        self.pose_geometry_on(&self.lines(state), state, angles_deg)
+    }
+
     /// Absolute offsets of each axis line from its nominal point and the actual directions.
+    /// A `relative_to_parent` axis inherits the offset of the axis listed before it on the
+    /// same side.
     pub fn lines(&self, state: &MachineState) -> AxisLines {
         let mut offsets = [Vec3::zeros(); MAX_ROTARY];
         let mut dirs = [Vec3::zeros(); MAX_ROTARY];
-        let mut parent = Vec3::zeros();
+        let mut parent = [Vec3::zeros(); 2];
         for (i, ax) in self.rotary.iter().enumerate() {
             let e = &state.loc[i];
+            let side = ax.side as usize;
             let mut o = ax.position_dirs[0] * e[0] + ax.position_dirs[1] * e[1];
             if ax.relative_to_parent {
-                o += parent - ax.u0 * parent.dot(&ax.u0);
+                o += parent[side] - ax.u0 * parent[side].dot(&ax.u0);
             }
             offsets[i] = o;
             dirs[i] = rotation(&ax.orientation_axes[1], e[3])
                 * rotation(&ax.orientation_axes[0], e[2])
                 * ax.u0;
-            parent = o;
+            parent[side] = o;
         }
         (offsets, dirs)
     }
 
     /// The state a tool-setter cycle measures (the contract's apparent errors): the tool-tip
-    /// displacement `s` moved into the axis lines and the setter, both shifted by `-s`, with
-    /// the tool tip at zero. Every reading is exactly the same as with `state`.
+    /// displacement `s` moved into the axis lines (table lines and setter shifted by `-s` in
+    /// the machine frame, head lines by `-s` in the head frame), with the tool tip at zero.
+    /// Every reading is exactly the same as with `state`: a head chain `H` with its lines
+    /// shifted by `-s` is `Tr(-s) H Tr(s)`, so the tip `H(s)` becomes `H'(0) + s`, and a tip
+    /// moved by a constant `s` reads as table lines and setter moved by `-s`.
     pub fn apparent_state(&self, state: &MachineState) -> MachineState {
         let s = state.tool_tip;
         let (offsets, dirs) = self.lines(state);
         let mut out = *state;
-        let mut parent = Vec3::zeros();
+        let mut parent = [Vec3::zeros(); 2];
         for (i, ax) in self.rotary.iter().enumerate() {
+            let side = ax.side as usize;
             // Shift the line by -s, then name it by its point in the plane normal to u0.
             let q = offsets[i] - s;
             let lambda = q.dot(&ax.u0) / dirs[i].dot(&ax.u0);
             let o = q - dirs[i] * lambda;
             let mut own = o;
             if ax.relative_to_parent {
-                own -= parent - ax.u0 * parent.dot(&ax.u0);
+                own -= parent[side] - ax.u0 * parent[side].dot(&ax.u0);
             }
             out.loc[i][0] = own.dot(&ax.position_dirs[0]);
             out.loc[i][1] = own.dot(&ax.position_dirs[1]);
-            parent = o;
+            parent[side] = o;
         }
         out.beam_point = state.beam_point - s;
         out.tool_tip = Vec3::zeros();
@@ -684,6 +850,29 @@ impl Kinematics {
         let t = self.pose_transform(state, angles_deg);
         (t.point(&state.beam_point), t.vector(&state.beam_dir))
     }
+}
+
+/// Where the tool is at a pose, relative to the commanded position `c`: the NC places the
+/// linear axes at `c - nominal`, so the actual tip is at `A (c - nominal) + actual`, its axis
+/// along `axis`. Without head axes `nominal` is zero, `actual` the tool-tip displacement and
+/// `axis` the configured spindle axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToolPose {
+    /// Tip displacement by the head chain as the NC's model has it (nominal lines), mm.
+    pub nominal: Vec3,
+    /// Actual tip displacement by the head chain, tool-tip displacement included, mm.
+    pub actual: Vec3,
+    /// Actual tool axis, from the tip into the spindle (unit).
+    pub axis: Vec3,
+}
+
+/// The beam line (machine frame) and the tool at one pose: all a reading depends on besides
+/// the approach.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseGeometry {
+    pub beam_point: Vec3,
+    pub beam_dir: Vec3,
+    pub tool: ToolPose,
 }
 
 #[cfg(test)]
@@ -851,7 +1040,7 @@ mod tests {
             (
                 r#"{ name = "EA0C""#,
                 r#"{ name = "EA0X""#,
-                "rotary axis A, B or C",
+                "rotary axis A, B, C or D",
             ),
         ] {
             let e = load(from, to).unwrap_err();

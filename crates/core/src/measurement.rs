@@ -2,20 +2,21 @@
 //! effective radius along the spindle axis, flat end) moved into the beam line, and the
 //! commanded position the NC latches at the skip signal.
 //!
-//! - Lateral approach (x or y): the trip is where the distance between the tool axis and the
-//!   beam line, measured across the tool axis, equals the radius, coming from outside, with the
-//!   tool end below the beam.
-//! - Vertical approach (-z): the trip is where the end face reaches the highest point of the
-//!   beam line within one radius of the tool axis (a beam sloping by s along its length meets
-//!   the end face r |s| higher than at the axis; the corner of |s| at 0 is rounded over
-//!   1 urad, a change under 5 nm).
+//! - Lateral approach (a linear axis across the tool axis): the trip is where the distance
+//!   between the tool axis and the beam line, measured across the tool axis, equals the radius,
+//!   coming from outside, with the tool end past the beam.
+//! - End-face approach (the linear axis along the tool axis, moving the tip out of the
+//!   spindle: -z for a vertical spindle): the trip is where the end face reaches the nearest
+//!   point of the beam line within one radius of the tool axis (a beam sloping by s along its
+//!   length meets the end face r |s| earlier than at the axis; the corner of |s| at 0 is
+//!   rounded over 1 urad, a change under 5 nm).
 //! - Skip latency: the latched position lies `feed * latency` further along the motion.
 
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::geometry::Vec3;
-use crate::kinematics::{Kinematics, MachineState};
+use crate::kinematics::{Kinematics, MachineState, PoseGeometry};
 
 #[derive(
     Debug,
@@ -83,8 +84,10 @@ pub enum NoTrip {
         "the trip lies {needed_mm:.3} mm from the start, beyond the allowed travel {max_mm:.3} mm"
     )]
     BeyondTravel { needed_mm: f64, max_mm: f64 },
-    #[error("vertical approaches move -z (direction -1)")]
-    UpwardZ,
+    #[error(
+        "an approach along the tool axis must move the tip out of the spindle (-z for a vertical spindle)"
+    )]
+    IntoSpindle,
 }
 
 /// Slope (rad) below which the corner of `|slope|` is rounded.
@@ -118,28 +121,39 @@ pub fn latched(
     commanded: &Vec3,
     travel: Option<Travel>,
 ) -> Result<f64, NoTrip> {
-    let (p, e) = k.beam_in_machine(s, angles_deg);
-    latched_with_beam(k, s, &p, &e, approach, commanded, travel)
+    latched_at(
+        s,
+        &k.pose_geometry(s, angles_deg),
+        approach,
+        commanded,
+        travel,
+    )
 }
 
-/// As [`latched`], with the beam line in the machine frame already computed for the pose.
-pub fn latched_with_beam(
-    k: &Kinematics,
+/// Whether an approach along `axis` is an end-face approach (along the tool axis `w`) rather
+/// than a lateral one: the moving axis is nearer the tool axis than across it.
+pub fn along_tool(axis: Axis, w: &Vec3) -> bool {
+    w[axis.index()].abs() > std::f64::consts::FRAC_1_SQRT_2
+}
+
+/// As [`latched`], with the beam line and the tool already computed for the pose.
+pub fn latched_at(
     s: &MachineState,
-    beam_p: &Vec3,
-    beam_e: &Vec3,
+    pose: &PoseGeometry,
     approach: &Approach,
     commanded: &Vec3,
     travel: Option<Travel>,
 ) -> Result<f64, NoTrip> {
-    let w = k.tool_axis;
+    let (beam_p, beam_e) = (&pose.beam_point, &pose.beam_dir);
+    let w = pose.tool.axis;
     let a_mat = s.linear.matrix();
     let i = approach.axis.index();
     let col = a_mat.column(i).into_owned();
     let mut c0 = *commanded;
     c0[i] = 0.0;
-    // Actual tool-tip position as an affine function of the moving coordinate v.
-    let a0 = a_mat * c0 + s.tool_tip;
+    // Actual tool-tip position as an affine function of the moving coordinate v: the linear
+    // axes stand at the commanded position less the NC's head offset.
+    let a0 = a_mat * (c0 - pose.tool.nominal) + pose.tool.actual;
     let e_perp = beam_e - w * beam_e.dot(&w);
     let e_perp_norm = e_perp.norm();
     if e_perp_norm < 1e-12 {
@@ -148,10 +162,10 @@ pub fn latched_with_beam(
     let e_hat = e_perp / e_perp_norm;
     let n = w.cross(&e_hat);
     let r = s.radius;
-    let v = match approach.axis {
-        crate::measurement::Axis::Z => {
-            if approach.direction != -1 {
-                return Err(NoTrip::UpwardZ);
+    let v = match along_tool(approach.axis, &w) {
+        true => {
+            if f64::from(approach.direction) * w[i] > 0.0 {
+                return Err(NoTrip::IntoSpindle);
             }
             let dh = col.dot(&w);
             let mut v = travel.map(|t| t.start).unwrap_or(commanded[i]);
@@ -172,7 +186,7 @@ pub fn latched_with_beam(
             }
             v
         }
-        _ => {
+        false => {
             let g = n.dot(&col);
             if g.abs() < 1e-12 {
                 return Err(NoTrip::Parallel);

@@ -21,6 +21,22 @@ pub const BUILTIN_PLANS: &[(&str, &str)] = &[
         "patent_sequential",
         include_str!("../../../config/plans/patent_sequential.toml"),
     ),
+    (
+        "head_b_table_c",
+        include_str!("../../../config/plans/head_b_table_c.toml"),
+    ),
+    (
+        "table_d45_c",
+        include_str!("../../../config/plans/table_d45_c.toml"),
+    ),
+    (
+        "head_d45_table_c",
+        include_str!("../../../config/plans/head_d45_table_c.toml"),
+    ),
+    (
+        "trunnion_ac",
+        include_str!("../../../config/plans/trunnion_ac.toml"),
+    ),
 ];
 
 #[derive(Debug, Error)]
@@ -44,10 +60,15 @@ pub enum Order {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PoseConfig {
+    /// The tilting axis' angle: B, or D or A on machines that have those (`d_deg` and
+    /// `a_deg` are read as this field), as in the detection message.
+    #[serde(alias = "a_deg", alias = "d_deg")]
     pub b_deg: f64,
     pub c_deg: f64,
-    /// `"z"` (vertical, -z), `"lateral"` (across the beam from outside, along x or y),
-    /// or an explicit `"x+"`, `"x-"`, `"y+"`, `"y-"` (axis and direction of motion).
+    /// `"z"` (the end face, moving along the tool axis out of the spindle: -z for a vertical
+    /// spindle), `"lateral"` (across the beam and the tool axis from outside, along the linear
+    /// axis that lies so), or an explicit lateral `"x+"`, `"x-"`, `"y+"`, `"y-"`, `"z+"`,
+    /// `"z-"` (axis and direction of motion).
     pub approaches: Vec<String>,
     /// Touches of each approach in a row.
     #[serde(default = "one")]
@@ -152,41 +173,74 @@ pub struct Plan {
     pub machine_time_s: f64,
 }
 
-struct ApproachSpec {
-    axis: Axis,
-    direction: Option<i8>,
+/// An approach as a plan names it: the end face, or a lateral one along a given or derived
+/// axis and direction.
+enum ApproachSpec {
+    EndFace,
+    Lateral(Option<(Axis, i8)>),
 }
 
 fn parse_approach(s: &str) -> Option<ApproachSpec> {
-    let (axis, direction) = match s {
-        "z" => (Axis::Z, Some(-1)),
-        "lateral" => (Axis::X, None),
-        "x+" => (Axis::X, Some(1)),
-        "x-" => (Axis::X, Some(-1)),
-        "y+" => (Axis::Y, Some(1)),
-        "y-" => (Axis::Y, Some(-1)),
-        _ => return None,
-    };
-    Some(ApproachSpec { axis, direction })
-}
-
-fn pose_label(b: f64, c: f64) -> String {
-    format!("B{}C{}", fmt_angle(b), fmt_angle(c))
-}
-
-fn fmt_angle(a: f64) -> String {
-    if a.fract() == 0.0 {
-        format!("{}", a as i64)
-    } else {
-        format!("{a}")
+    let lateral = |a, d| Some(ApproachSpec::Lateral(Some((a, d))));
+    match s {
+        "z" => Some(ApproachSpec::EndFace),
+        "lateral" => Some(ApproachSpec::Lateral(None)),
+        "x+" => lateral(Axis::X, 1),
+        "x-" => lateral(Axis::X, -1),
+        "y+" => lateral(Axis::Y, 1),
+        "y-" => lateral(Axis::Y, -1),
+        "z+" => lateral(Axis::Z, 1),
+        "z-" => lateral(Axis::Z, -1),
+        _ => None,
     }
 }
 
-/// Whether a pose tilts any axis but the innermost (the "tilted" poses of the patent).
-fn is_tilted(angles: &[f64], n_axes: usize) -> bool {
-    angles[..n_axes.saturating_sub(1)]
-        .iter()
-        .any(|a| wrap_deg(*a).abs() > 1e-9)
+/// The machine axis a unit vector lies along, with its sign, if it lies along one.
+fn along_axis(v: &Vec3) -> Option<(Axis, i8)> {
+    [Axis::X, Axis::Y, Axis::Z]
+        .into_iter()
+        .find(|a| v[a.index()].abs() > 1.0 - 1e-9)
+        .map(|a| (a, v[a.index()].signum() as i8))
+}
+
+/// The commanded axis, direction and held position of one approach at a pose whose beam
+/// passes through `p` along `e` with the tool axis `w` (nominal state).
+fn approach_geometry(
+    spec: &ApproachSpec,
+    cfg: &PlanConfig,
+    (p, e, w): (Vec3, Vec3, Vec3),
+) -> Result<(Axis, i8, Vec3), String> {
+    match spec {
+        ApproachSpec::EndFace => {
+            // Along the tool axis, out of the spindle, over the probed point of the beam.
+            let (axis, sign) = along_axis(&w)
+                .ok_or("the tool axis is not parallel to a linear axis; no end-face approach")?;
+            Ok((axis, -sign, p))
+        }
+        ApproachSpec::Lateral(given) => {
+            // Across both the beam and the tool axis, pointing away from the machine origin
+            // (as seen along the tool axis); the tool end past the beam by the depth.
+            let mut n = w.cross(&e);
+            if n.norm() < 1e-9 {
+                return Err("the beam is parallel to the tool axis; no lateral approach".into());
+            }
+            n /= n.norm();
+            if n.dot(&(p - w * w.dot(&p))) < 0.0 {
+                n = -n;
+            }
+            let (axis, direction) = match given {
+                Some(g) => *g,
+                None => {
+                    let (axis, sign) = along_axis(&n).ok_or(
+                        "the beam is not square to a linear axis across the tool; give the \
+                         lateral approach explicitly (x+, x-, y+, y-, z+, z-)",
+                    )?;
+                    (axis, -sign)
+                }
+            };
+            Ok((axis, direction, p - w * cfg.lateral_depth_mm))
+        }
+    }
 }
 
 /// A plan's moves as [`Plan::expand_moves`] lays them out: the moves so far, the machine time
@@ -256,7 +310,12 @@ impl Layout {
     fn probe(&mut self, cfg: &PlanConfig, i: usize, step: &mut Step, same_pose: bool) {
         let rapid = self.rapid;
         // Over the start at a height clear of the beam, then down to the start.
-        let clear_z = step.start.z.max(step.expected + cfg.clearance_mm) + 5.0;
+        // Over the start clear of the beam: above the trip when the approach moves along z.
+        let top = match step.approach.axis {
+            Axis::Z => step.start.z.max(step.expected + cfg.clearance_mm),
+            _ => step.start.z,
+        };
+        let clear_z = top + 5.0;
         let clear_z = if same_pose {
             clear_z
         } else {
@@ -379,53 +438,26 @@ impl Plan {
         let mut per_pose: Vec<(bool, Vec<Step>)> = Vec::new();
         for pose in &cfg.poses {
             let angles = k.angles_from_fields(pose.b_deg, pose.c_deg);
+            let label_pose = k.pose_label(&angles);
             for (i, ax) in k.rotary.iter().enumerate() {
                 if angles[i] < ax.travel_deg[0] || angles[i] > ax.travel_deg[1] {
                     return Err(invalid(format!(
-                        "pose {} is outside the travel of axis {}",
-                        pose_label(pose.b_deg, pose.c_deg),
+                        "pose {label_pose} is outside the travel of axis {}",
                         ax.name
                     )));
                 }
             }
-            let (p, e) = k.beam_in_machine(&nominal, &angles);
+            let g = k.pose_geometry(&nominal, &angles);
             let mut steps = Vec::new();
             for spec_text in &pose.approaches {
                 let spec = parse_approach(spec_text).ok_or_else(|| {
                     invalid(format!(
-                        "approach '{spec_text}' is not one of z, lateral, x+, x-, y+, y-"
+                        "approach '{spec_text}' is not one of z, lateral, x+, x-, y+, y-, z+, z-"
                     ))
                 })?;
-                let label_pose = pose_label(pose.b_deg, pose.c_deg);
-                let (axis, direction, held) = if spec.axis == Axis::Z {
-                    // Tool axis over the probed point of the beam.
-                    (Axis::Z, -1, Vec3::new(p.x, p.y, 0.0))
-                } else {
-                    // Horizontal normal of the beam, pointing away from the machine origin.
-                    let mut n = Vec3::z().cross(&e);
-                    if n.norm() < 1e-9 {
-                        return Err(invalid(format!(
-                            "pose {label_pose}: the beam is vertical; no lateral approach"
-                        )));
-                    }
-                    n /= n.norm();
-                    if n.dot(&Vec3::new(p.x, p.y, 0.0)) < 0.0 {
-                        n = -n;
-                    }
-                    let (axis, direction) = match spec.direction {
-                        Some(d) => (spec.axis, d),
-                        None if n.x.abs() > 1.0 - 1e-9 => (Axis::X, -(n.x.signum() as i8)),
-                        None if n.y.abs() > 1.0 - 1e-9 => (Axis::Y, -(n.y.signum() as i8)),
-                        None => {
-                            return Err(invalid(format!(
-                                "pose {label_pose}: the beam is not parallel to a linear axis; \
-                                 give the lateral approach explicitly (x+, x-, y+, y-)"
-                            )));
-                        }
-                    };
-                    let depth = p.z - cfg.lateral_depth_mm;
-                    (axis, direction, Vec3::new(p.x, p.y, depth))
-                };
+                let (axis, direction, held) =
+                    approach_geometry(&spec, cfg, (g.beam_point, g.beam_dir, g.tool.axis))
+                        .map_err(|m| invalid(format!("pose {label_pose}, {spec_text}: {m}")))?;
                 let approach = Approach {
                     axis,
                     direction,
@@ -453,7 +485,7 @@ impl Plan {
                     });
                 }
             }
-            per_pose.push((is_tilted(&angles, k.rotary.len()), steps));
+            per_pose.push((k.is_tilted(&angles), steps));
         }
         let mut steps: Vec<Step> = Vec::new();
         match cfg.order {
