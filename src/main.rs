@@ -136,8 +136,12 @@ enum Command {
         #[arg(long, default_value = "out/experiment")]
         out_dir: PathBuf,
         /// Scenario to run instead of the built-in one.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "machine")]
         scenario: Option<String>,
+        /// Run the built-in patent scenario of this machine family (`patent_<machine>`;
+        /// `table_bc`: `patent`).
+        #[arg(long)]
+        machine: Option<String>,
     },
     /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error.
     Plan {
@@ -356,7 +360,15 @@ fn run(cmd: Command) -> Result<ExitCode> {
             which: Which::Patent,
             out_dir,
             scenario,
-        } => cmd_experiment(scenario.as_deref().unwrap_or("patent"), &out_dir),
+            machine,
+        } => {
+            let scenario = match (scenario, machine.as_deref()) {
+                (Some(s), _) => s,
+                (None, None | Some("table_bc")) => "patent".to_string(),
+                (None, Some(m)) => format!("patent_{m}"),
+            };
+            cmd_experiment(&scenario, &out_dir)
+        }
         Command::Plan {
             machine,
             plan,
@@ -698,11 +710,16 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
     out!("{}", ex.table());
     let s = &ex.summary;
     outln!(
-        "EZ0B rise over 0..{stop:.0} min: {:.1} um (patent: about 80); drop in 30 min after the stop: {:.1} um (patent: about 45)",
-        s.ez0b_rise_um,
-        s.ez0b_drop_um
+        "{} rise over 0..{stop:.0} min: {:.1} um (the patent's EZ0B: about 80); drop in 30 min after the stop: {:.1} um (about 45)",
+        s.main,
+        s.main_rise_um,
+        s.main_drop_um
     );
-    outln!("EX0B rise: {:.1} um (patent: about 20)", s.ex0b_rise_um);
+    outln!(
+        "{} rise: {:.1} um (the patent's EX0B: about 20)",
+        s.second,
+        s.second_rise_um
+    );
     outln!(
         "largest |identified - truth| / sigma: {:.2} over {} values; {} of {} cycles ok",
         s.max_abs_z,
@@ -717,7 +734,10 @@ fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
         .with_context(|| format!("writing {}", csv.display()))?;
     let svg = out_dir.join("patent_experiment.svg");
     let plot = ex
-        .svg("patent experiment: identified (2 sigma) vs truth")
+        .svg(&format!(
+            "patent experiment on {}: identified (2 sigma) vs truth",
+            k.name
+        ))
         .map_err(|e| anyhow::anyhow!("plotting: {e}"))?;
     std::fs::write(&svg, plot).with_context(|| format!("writing {}", svg.display()))?;
     let mcap = out_dir.join("patent_experiment.mcap");

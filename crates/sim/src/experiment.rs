@@ -12,6 +12,7 @@ use serde::Serialize;
 use crate::scenario::Scenario;
 use crate::simulator::{SimError, Simulation, simulate};
 use driftwatch_core::cycle::{CycleChecks, CycleOutcome, process_all};
+use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 
@@ -26,13 +27,19 @@ pub struct Row {
     pub values: BTreeMap<String, (f64, f64, f64)>,
 }
 
+/// The patent's three figures on any machine: the tilting axis' second identified position
+/// error (EZ0B on the patent's machine) and its first (EX0B), each family's own names.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
-    /// Identified EZ0B at the last cycle before the stop minus at the first cycle, um.
-    pub ez0b_rise_um: f64,
-    /// Identified EZ0B at the last cycle before the stop minus 30 min after it, um.
-    pub ez0b_drop_um: f64,
-    pub ex0b_rise_um: f64,
+    /// The error the patent reports rising about 80 um and dropping 45 um (identify[1]).
+    pub main: String,
+    /// Identified `main` at the last cycle before the stop minus at the first cycle, um.
+    pub main_rise_um: f64,
+    /// Identified `main` at the last cycle before the stop minus 30 min after it, um.
+    pub main_drop_um: f64,
+    /// The error the patent reports rising about 20 um (identify[0]).
+    pub second: String,
+    pub second_rise_um: f64,
     /// Largest |identified - truth| / sigma over every error of every cycle.
     pub max_abs_z: f64,
     pub cycles_ok: usize,
@@ -100,10 +107,15 @@ pub fn run(
         .flat_map(|r| r.values.values())
         .map(|(v, s, t)| ((v - t) / s).abs())
         .fold(0.0, f64::max);
+    let names = k.identify_names();
+    let name = |i: usize| names.get(i).cloned().unwrap_or_default();
+    let (main, second) = (name(1), name(0));
     let summary = Summary {
-        ez0b_rise_um: value(cs, "EZ0B") - value(c0, "EZ0B"),
-        ez0b_drop_um: value(cs, "EZ0B") - value(c30, "EZ0B"),
-        ex0b_rise_um: value(cs, "EX0B") - value(c0, "EX0B"),
+        main_rise_um: value(cs, &main) - value(c0, &main),
+        main_drop_um: value(cs, &main) - value(c30, &main),
+        second_rise_um: value(cs, &second) - value(c0, &second),
+        main,
+        second,
         max_abs_z,
         cycles_ok: rows.iter().filter(|r| r.ok).count(),
         cycles: rows.len(),
@@ -194,9 +206,15 @@ impl Experiment {
                 .map_err(|e| e.to_string())?;
             let panels = root.split_evenly((2, 1));
             let start = self.simulation.truth.first().map(|t| t.t_ns).unwrap_or(0);
+            // The identified errors by kind, as the rows name them.
+            let names = self.names();
+            let (angular, linear): (Vec<&str>, Vec<&str>) = names
+                .iter()
+                .map(|n| n.as_str())
+                .partition(|n| ErrorName::parse(n).is_ok_and(|e| e.is_angular()));
             let groups: [(&str, &[&str]); 2] = [
-                ("position errors [um]", &["EZ0B", "EX0B", "EY0C", "EX0C"]),
-                ("orientation errors [urad]", &["EA0C", "EB0C"]),
+                ("position errors [um]", &linear),
+                ("orientation errors [urad]", &angular),
             ];
             let colors = [RED, BLUE, GREEN, MAGENTA];
             for (panel, (ylabel, names)) in panels.iter().zip(groups) {

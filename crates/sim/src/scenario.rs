@@ -16,6 +16,22 @@ pub const BUILTIN_SCENARIOS: &[(&str, &str)] = &[
         include_str!("../../../config/scenarios/patent.toml"),
     ),
     (
+        "patent_head_b_table_c",
+        include_str!("../../../config/scenarios/patent_head_b_table_c.toml"),
+    ),
+    (
+        "patent_table_d45_c",
+        include_str!("../../../config/scenarios/patent_table_d45_c.toml"),
+    ),
+    (
+        "patent_head_d45_table_c",
+        include_str!("../../../config/scenarios/patent_head_d45_table_c.toml"),
+    ),
+    (
+        "patent_trunnion_ac",
+        include_str!("../../../config/scenarios/patent_trunnion_ac.toml"),
+    ),
+    (
         "warmup",
         include_str!("../../../config/scenarios/warmup.toml"),
     ),
@@ -218,15 +234,21 @@ fn lag(gain: f64, tau_min: f64) -> Channel {
 
 /// The default virtual machine: reproduces the patent experiment (see `config/scenarios/patent.toml`
 /// for the reasoning). EZ0B_app = EZ0B - sz splits into tool growth (fast) and structure (slow).
-pub fn default_channels() -> BTreeMap<String, Channel> {
+/// On another machine the same story drives its own errors: the tilting axis' first and second
+/// identified position errors (`identify[0]`, `identify[1]`) take EX0B's and EZ0B's lags; the
+/// C errors keep their names; a default the machine has no error for is left out.
+pub fn default_channels(identify: &[String]) -> BTreeMap<String, Channel> {
+    let tilt = |i: usize, fallback: &str| identify.get(i).cloned().unwrap_or(fallback.into());
     let mut m = BTreeMap::new();
     m.insert("sz".into(), lag(-41.0, 11.0));
-    m.insert("EZ0B".into(), lag(48.0, 120.0));
-    m.insert("EX0B".into(), lag(22.0, 60.0));
+    m.insert(tilt(1, "EZ0B"), lag(48.0, 120.0));
+    m.insert(tilt(0, "EX0B"), lag(22.0, 60.0));
     m.insert("sy".into(), lag(-4.0, 45.0));
-    m.insert("EX0C".into(), lag(2.0, 90.0));
-    m.insert("EA0C".into(), lag(3.0, 90.0));
-    m.insert("EB0C".into(), lag(-4.0, 90.0));
+    for (name, gain) in [("EX0C", 2.0), ("EA0C", 3.0), ("EB0C", -4.0)] {
+        if identify.is_empty() || identify.iter().any(|n| n == name) {
+            m.insert(name.into(), lag(gain, 90.0));
+        }
+    }
     m
 }
 
@@ -532,9 +554,10 @@ impl Scenario {
         t
     }
 
-    /// Truth channels: the defaults with this scenario's channels over them.
-    pub fn truth_channels(&self) -> BTreeMap<String, Channel> {
-        let mut m = default_channels();
+    /// Truth channels: the defaults for a machine identifying `identify` (see
+    /// [`default_channels`]) with this scenario's channels over them.
+    pub fn truth_channels(&self, identify: &[String]) -> BTreeMap<String, Channel> {
+        let mut m = default_channels(identify);
         for (k, v) in &self.truth.channels {
             m.insert(k.clone(), v.clone());
         }

@@ -146,7 +146,10 @@ struct Virtual {
 
 impl Virtual {
     fn new(k: &Kinematics, scn: &Scenario) -> Result<Self, SimError> {
-        let channels: Vec<_> = scn.truth_channels().into_iter().collect();
+        let channels: Vec<_> = scn
+            .truth_channels(&k.identify_names())
+            .into_iter()
+            .collect();
         let target = |name: &str| -> Result<Target, SimError> {
             Ok(match name {
                 "sx" => Target::Tool(0),
