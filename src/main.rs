@@ -620,6 +620,7 @@ fn cmd_solve(
     }
     // Each result is judged as the service would judge it: against the set the cycles before
     // it would have made, at the time its cycle closed.
+    let layout = driftwatch_machine::nc_offsets::NcLayout::of(&k);
     let mut served = None;
     let mut rejected = 0;
     for (c, entries) in &groups {
@@ -632,6 +633,7 @@ fn cmd_solve(
             served.as_ref(),
             &limits,
             closed_ns,
+            &layout,
         );
         if let Some(a) = set {
             served = Some(a.measured);

@@ -18,9 +18,10 @@ async fn service(name: &str, anonymous_read: bool) -> TestService {
     let m = &mut cfg.machines[0];
     m.id = "m1".into();
     m.machine = "table_bc".into();
-    m.plan = "patent".into();
+    m.plan = Some("patent".into());
     m.link = LinkConfig::Simulated {
         scenario: "patent".into(),
+        seed: None,
     };
     launch_test(cfg, None).await
 }

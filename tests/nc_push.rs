@@ -61,7 +61,7 @@ fn nc_config(dir: &std::path::Path) -> ServiceConfig {
     let m = &mut cfg.machines[0];
     m.id = "nc1".into();
     m.machine = "table_bc".into();
-    m.plan = "patent".into();
+    m.plan = Some("patent".into());
     m.link = toml::from_str(r#"kind = "nc_push""#).unwrap();
     cfg
 }

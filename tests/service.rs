@@ -171,3 +171,73 @@ fn get(uri: &str) -> axum::http::Request<axum::body::Body> {
         .body(axum::body::Body::empty())
         .unwrap()
 }
+
+/// `config/fleet.toml` as shipped: four simulated machines of four families in one service.
+/// Each runs its own plan and serves compensation in its own names and NC offsets; an alert
+/// rule on an error a machine does not identify is refused at start, naming both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_shipped_fleet_runs_four_families_each_serving_its_own_compensation() {
+    let dir = scratch("service-fleet");
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/fleet.toml");
+    let mut cfg = ServiceConfig::load(Some(&path)).unwrap();
+    cfg.data_dir = dir.clone();
+    cfg.http.tokens.clear();
+    let families: Vec<(String, String)> = cfg
+        .machines
+        .iter()
+        .map(|m| (m.id.clone(), m.machine.clone()))
+        .collect();
+    assert_eq!(families.len(), 4);
+
+    // A service-wide rule on table_bc's EZ0B given to the trunnion is refused at start.
+    let mut wrong = cfg.clone();
+    wrong.data_dir = scratch("service-fleet-wrong");
+    wrong.machines.retain(|m| m.id == "ac-1");
+    wrong.machines[0].alerts = None;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let token = tokio_util::sync::CancellationToken::new();
+    let e = driftwatch_service::launch::launch(wrong, listener, token)
+        .await
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(
+        e.contains("EZ0B") && e.contains("trunnion_ac") && e.contains("alerts"),
+        "{e}"
+    );
+
+    let svc = launch_test(cfg, None).await;
+    let t0 = svc.t0();
+    // The morning's warm-up: its cycles every 30 min from power-on.
+    for k in 1..=16 {
+        svc.run_to(t0 + k * 15 * MIN).await;
+    }
+    for (id, family) in &families {
+        let v = view_of(&svc, id);
+        assert!(v.cycles.ok >= 2, "{id} ({family}): {:?}", v.cycles);
+        let k = driftwatch_core::kinematics::Kinematics::load(family).unwrap();
+        let (code, _, set) = svc
+            .call(get(&format!("/api/v1/machines/{id}/compensation")))
+            .await;
+        assert_eq!(code, 200, "{id}: {set}");
+        let names: Vec<String> = set["errors"].as_object().unwrap().keys().cloned().collect();
+        let mut want = k.identify_names();
+        want.sort();
+        assert_eq!(names, want, "{id} ({family})");
+        // The NC offsets of its own lines: the tilting axis' pivot and the C table's tilts.
+        let tilt = k.tilting_axes()[0].to_string();
+        let offsets = set["offsets"].as_object().unwrap();
+        assert!(
+            offsets
+                .keys()
+                .any(|o| o.starts_with(&format!("{tilt}_pivot_")))
+                && offsets.contains_key("C_tilt_a_urad"),
+            "{id}: {offsets:?}"
+        );
+        println!(
+            "{id} ({family}): {} cycles ok, set {} offsets {offsets:?}",
+            v.cycles.ok, set["version"]
+        );
+    }
+    svc.stop().await;
+}

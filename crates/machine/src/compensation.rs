@@ -1,39 +1,25 @@
 //! From a `/cycle/result` to the compensation the NC applies: validation against limits,
-//! versioned compensation sets, the NC offsets of the `table_bc` machine, step limiting of
-//! served values, and the `/compensation` message.
+//! versioned compensation sets with the NC offsets of the machine's layout
+//! ([`crate::nc_offsets`]), step limiting of served values, and the `/compensation` message.
 //!
 //! Compensation values move a real machine, so this module fails closed: a set is only ever
 //! built from a result that passed [`validate`], every refusal names each failed check with
 //! its numbers, and a limit that is not a usable number refuses rather than waving values
 //! through (a comparison with NaN is false, which would otherwise pass everything).
 //!
-//! # Offsets of the `table_bc` convention
-//!
-//! The location errors are actual minus nominal (`docs/kinematics-conventions.md`): the B line
-//! passes through `(EX0B, 0, EZ0B)`, the C line at B = 0 through `(EX0B + EX0C, EY0C, 0)` with
-//! the direction `+Z` turned by `EA0C` about X and `EB0C` about Y (to first order
-//! `(EB0C, -EA0C, 1)`). The NC's kinematic model must put its axis lines where the actual lines
-//! are, so each offset is the nominal-to-actual move of one line, in machine coordinates at
-//! B = C = 0:
-//!
-//! | offset | value | meaning |
-//! |---|---|---|
-//! | `B_pivot_x_um` | `EX0B` | X of the B line |
-//! | `B_pivot_z_um` | `EZ0B` | Z of the B line |
-//! | `C_pivot_x_um` | `EX0B + EX0C` | X of the C line at B = 0 (EX0C is relative to the B line) |
-//! | `C_pivot_y_um` | `EY0C` | Y of the C line |
-//! | `C_tilt_a_urad` | `EA0C` | tilt of the C line about X, right-hand rule |
-//! | `C_tilt_b_urad` | `EB0C` | tilt of the C line about Y, right-hand rule |
-//!
-//! A line's position along its own direction has no meaning (no Y for B, no Z for C), so there
-//! is no offset for it. The errors are the apparent (tool-relative) values a cycle measures:
-//! the tool-tip drift is already folded into `EX0B`, `EY0C` and `EZ0B`, and that is what the NC
-//! must compensate, since it positions the tool, not the spindle nose.
+//! The errors a set holds and its NC offsets are the machine's ([`NcLayout`]): on `table_bc`
+//! the six of the patent and the offsets `B_pivot_x_um = EX0B`, `B_pivot_z_um = EZ0B`,
+//! `C_pivot_x_um = EX0B + EX0C`, `C_pivot_y_um = EY0C`, `C_tilt_a_urad = EA0C`,
+//! `C_tilt_b_urad = EB0C`. The errors are the apparent (tool-relative) values a cycle
+//! measures: the tool-tip drift is already folded into them, and that is what the NC must
+//! compensate, since it positions the tool, not the spindle nose.
 
 use driftwatch_core::units;
 use std::collections::BTreeMap;
 
 use driftwatch_core::error_name::ErrorName;
+
+use crate::nc_offsets::NcLayout;
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
@@ -43,8 +29,9 @@ use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
 use driftwatch_core::stats::chi2_quantile;
 use driftwatch_core::units::positive;
 
-/// The location errors a `table_bc` cycle identifies, in report order.
-pub const TABLE_BC_ERRORS: [ErrorName; 6] = [
+/// The location errors a `table_bc` cycle identifies, in report order (test data).
+#[cfg(test)]
+pub(crate) const TABLE_BC_ERRORS: [ErrorName; 6] = [
     ErrorName::from_static("EX0B"),
     ErrorName::from_static("EZ0B"),
     ErrorName::from_static("EY0C"),
@@ -52,15 +39,6 @@ pub const TABLE_BC_ERRORS: [ErrorName; 6] = [
     ErrorName::from_static("EA0C"),
     ErrorName::from_static("EB0C"),
 ];
-
-/// The `table_bc` errors as a list for messages ("EX0B, EZ0B, ...").
-fn table_bc_list() -> String {
-    TABLE_BC_ERRORS
-        .iter()
-        .map(|n| n.as_str())
-        .collect::<Vec<_>>()
-        .join(", ")
-}
 
 /// A map keyed by error names as strings (a cycle result's errors or sigma) with its names
 /// parsed; the first name that is not a location error name refuses it.
@@ -136,8 +114,8 @@ pub struct Validation {
     pub reasons: Vec<String>,
 }
 
-/// Check a cycle result before it may become compensation: the solver's verdict, the six
-/// `table_bc` errors present, finite and believable, their uncertainties within limits, the
+/// Check a cycle result before it may become compensation: the solver's verdict, exactly the
+/// machine's identified errors (`layout`) present, finite and believable, their uncertainties within limits, the
 /// chi-square of the fit within its `chi2_quantile` point, the step from the served set
 /// (`previous`) within limits, and the cycle newer than the served one. Every failed check is
 /// named; nothing stops at the first.
@@ -145,8 +123,9 @@ pub fn validate(
     result: &CycleResultMsg,
     previous: Option<&CompensationSet>,
     limits: &ValidationLimits,
+    layout: &NcLayout,
 ) -> Validation {
-    let mut reasons = result_shape_reasons(result);
+    let mut reasons = result_shape_reasons(result, layout);
     let limit = usable_limits(limits, &mut reasons);
 
     match (result.chi2, result.dof) {
@@ -184,7 +163,7 @@ pub fn validate(
 
     let errors = result.errors.as_ref();
     let sigma = result.sigma.as_ref();
-    for name in TABLE_BC_ERRORS {
+    for &name in &layout.errors {
         let Some(&value) = errors.and_then(|e| e.get(name.as_str())) else {
             continue; // named by result_shape_reasons
         };
@@ -306,6 +285,7 @@ pub fn admit(
     measured: Option<&CompensationSet>,
     limits: &ValidationLimits,
     now_ns: i64,
+    layout: &NcLayout,
 ) -> (CycleResultMsg, Option<Admitted>) {
     if result.status != ResultStatus::Ok {
         return (result, None);
@@ -316,12 +296,12 @@ pub fn admit(
     {
         result.chi2_point = Some(chi2_quantile(limits.chi2_quantile, dof));
     }
-    let v = validate(&result, measured, limits);
+    let v = validate(&result, measured, limits, layout);
     let refused = if v.ok {
-        match next_set(served, &result, &v, now_ns) {
+        match next_set(served, &result, &v, now_ns, layout) {
             Ok(set) => {
                 let nc = match served {
-                    Some(from) => ramped(from, &set, limits),
+                    Some(from) => ramped(from, &set, limits, layout),
                     None => set.clone(),
                 };
                 return (result, Some(Admitted { nc, measured: set }));
@@ -342,6 +322,7 @@ fn ramped(
     from: &CompensationSet,
     to: &CompensationSet,
     limits: &ValidationLimits,
+    layout: &NcLayout,
 ) -> CompensationSet {
     let minutes = (units::ns_to_min(to.valid_from_ns - from.valid_from_ns)).max(0.0);
     let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
@@ -361,7 +342,7 @@ fn ramped(
             from.source,
             held.join(", ")
         ));
-        set.offsets = offsets(&errors);
+        set.offsets = layout.offsets(&errors);
         set.errors = errors;
     }
     set
@@ -435,10 +416,10 @@ fn usable_limits(l: &ValidationLimits, reasons: &mut Vec<String>) -> Usable {
     }
 }
 
-/// The checks that need no limits: the solver's verdict and exactly the six `table_bc` errors,
-/// finite, each with a finite positive uncertainty. [`next_set`] repeats them, so a set can
+/// The checks that need no limits: the solver's verdict and exactly the machine's identified
+/// errors, finite, each with a finite positive uncertainty. [`next_set`] repeats them, so a set can
 /// never be built from a result without usable numbers, whatever `Validation` it is handed.
-fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
+fn result_shape_reasons(result: &CycleResultMsg, layout: &NcLayout) -> Vec<String> {
     let mut reasons = Vec::new();
     if result.status == ResultStatus::Rejected {
         reasons.push(format!(
@@ -453,7 +434,7 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
             return reasons;
         }
     };
-    for name in TABLE_BC_ERRORS {
+    for name in &layout.errors {
         match errors.get(name.as_str()) {
             None => reasons.push(format!("{name} missing from the errors")),
             Some(v) if !v.is_finite() => {
@@ -463,17 +444,18 @@ fn result_shape_reasons(result: &CycleResultMsg) -> Vec<String> {
         }
     }
     for name in errors.keys() {
-        if !TABLE_BC_ERRORS.iter().any(|n| *n == name.as_str()) {
+        if !layout.holds(name) {
             reasons.push(format!(
-                "unexpected error {name}: a table_bc set holds only {}",
-                table_bc_list()
+                "unexpected error {name}: a {} set holds only {}",
+                layout.machine,
+                layout.list()
             ));
         }
     }
     match &result.sigma {
         None => reasons.push("no uncertainties (sigma)".into()),
         Some(sigma) => {
-            for name in TABLE_BC_ERRORS {
+            for name in &layout.errors {
                 if !errors.contains_key(name.as_str()) {
                     continue;
                 }
@@ -547,6 +529,7 @@ pub fn next_set(
     result: &CycleResultMsg,
     validation: &Validation,
     now_ns: i64,
+    layout: &NcLayout,
 ) -> Result<CompensationSet, Refused> {
     let mut reasons = Vec::new();
     if !validation.ok {
@@ -558,7 +541,7 @@ pub fn next_set(
         reasons.push("the validation says ok but names failed checks".into());
         reasons.extend(validation.reasons.iter().cloned());
     }
-    for r in result_shape_reasons(result) {
+    for r in result_shape_reasons(result, layout) {
         if !reasons.contains(&r) {
             reasons.push(r);
         }
@@ -590,7 +573,8 @@ pub fn next_set(
         });
     };
     let pick = |m: &BTreeMap<String, f64>| -> BTreeMap<ErrorName, f64> {
-        TABLE_BC_ERRORS
+        layout
+            .errors
             .iter()
             .filter_map(|&n| m.get(n.as_str()).map(|&v| (n, v)))
             .collect()
@@ -606,7 +590,7 @@ pub fn next_set(
         valid_from_ns: now_ns,
         source: Source::Measured,
         cycle: Some(result.cycle),
-        offsets: offsets(&errors),
+        offsets: layout.offsets(&errors),
         errors,
         sigma,
         reason: format!(
@@ -614,25 +598,6 @@ pub fn next_set(
             result.cycle, result.t_ns
         ),
     })
-}
-
-/// The NC offsets of the `table_bc` convention (module docs). An offset whose inputs are
-/// missing or not finite is left out rather than guessed.
-pub fn offsets(errors: &BTreeMap<ErrorName, f64>) -> BTreeMap<String, f64> {
-    let get = |n: &str| errors.get(n).copied().filter(|v| v.is_finite());
-    let ex0b = get("EX0B");
-    let entries = [
-        ("B_pivot_x_um", ex0b),
-        ("B_pivot_z_um", get("EZ0B")),
-        ("C_pivot_x_um", ex0b.zip(get("EX0C")).map(|(b, c)| b + c)),
-        ("C_pivot_y_um", get("EY0C")),
-        ("C_tilt_a_urad", get("EA0C")),
-        ("C_tilt_b_urad", get("EB0C")),
-    ];
-    entries
-        .into_iter()
-        .filter_map(|(k, v)| v.map(|v| (k.to_string(), v)))
-        .collect()
 }
 
 /// What the service does with the thermal model's predictions (the `[thermal]` section).
@@ -750,11 +715,12 @@ pub fn predicted_set(
     policy: &PredictionPolicy,
     now_ns: i64,
     note: &str,
+    layout: &NcLayout,
 ) -> Result<CompensationSet, Refused> {
     let mut reasons = Vec::new();
     let mut errors = BTreeMap::new();
     let mut sigma = BTreeMap::new();
-    for n in TABLE_BC_ERRORS {
+    for &n in &layout.errors {
         let Some(&(v, s)) = predicted.get(n.as_str()) else {
             reasons.push(format!("the model does not predict {n}"));
             continue;
@@ -804,13 +770,13 @@ pub fn predicted_set(
         valid_from_ns: now_ns,
         source: Source::Predicted,
         cycle: None,
-        offsets: offsets(&errors),
+        offsets: layout.offsets(&errors),
         errors,
         sigma,
         reason: format!("predicted by {note}"),
     };
     Ok(match previous {
-        Some(prev) => ramped(prev, &set, limits),
+        Some(prev) => ramped(prev, &set, limits, layout),
         None => set,
     })
 }
@@ -961,6 +927,53 @@ fn percent(p: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The layout of `table_bc`, the machine these tests judge results of.
+    fn tbc() -> &'static NcLayout {
+        static L: std::sync::OnceLock<NcLayout> = std::sync::OnceLock::new();
+        L.get_or_init(|| {
+            NcLayout::of(&driftwatch_core::kinematics::Kinematics::builtin("table_bc").unwrap())
+        })
+    }
+
+    // The functions under test on table_bc (these shadow the module's own).
+    fn validate(
+        r: &CycleResultMsg,
+        prev: Option<&CompensationSet>,
+        limits: &ValidationLimits,
+    ) -> Validation {
+        super::validate(r, prev, limits, tbc())
+    }
+    fn next_set(
+        prev: Option<&CompensationSet>,
+        r: &CycleResultMsg,
+        v: &Validation,
+        now_ns: i64,
+    ) -> Result<CompensationSet, Refused> {
+        super::next_set(prev, r, v, now_ns, tbc())
+    }
+    fn admit(
+        r: CycleResultMsg,
+        served: Option<&CompensationSet>,
+        measured: Option<&CompensationSet>,
+        limits: &ValidationLimits,
+        now_ns: i64,
+    ) -> (CycleResultMsg, Option<Admitted>) {
+        super::admit(r, served, measured, limits, now_ns, tbc())
+    }
+    fn predicted_set(
+        prev: Option<&CompensationSet>,
+        p: &BTreeMap<String, (f64, f64)>,
+        limits: &ValidationLimits,
+        policy: &PredictionPolicy,
+        now_ns: i64,
+        note: &str,
+    ) -> Result<CompensationSet, Refused> {
+        super::predicted_set(prev, p, limits, policy, now_ns, note, tbc())
+    }
+    fn offsets(e: &BTreeMap<ErrorName, f64>) -> BTreeMap<String, f64> {
+        tbc().offsets(e)
+    }
 
     fn predictions(v: f64, s: f64) -> BTreeMap<String, (f64, f64)> {
         TABLE_BC_ERRORS

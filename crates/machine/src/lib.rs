@@ -7,5 +7,6 @@ pub mod alerts;
 pub mod compensation;
 pub mod live_model;
 pub mod machine_core;
+pub mod nc_offsets;
 pub mod phase;
 pub mod scheduler;

@@ -10,7 +10,6 @@ use std::sync::Arc;
 use serde::Serialize;
 
 use crate::compensation::PredictionPolicy;
-use crate::compensation::TABLE_BC_ERRORS;
 use crate::scheduler::Uncertain;
 use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::thermal_model::{
@@ -386,8 +385,9 @@ impl LiveModel {
         predictions
             .iter()
             .filter_map(|p| {
+                // The location errors (a model may have other channels).
                 let name = ErrorName::parse(&p.channel).ok()?;
-                TABLE_BC_ERRORS.contains(&name).then_some((p, name))
+                Some((p, name))
             })
             .find(|(p, name)| {
                 let limit = if name.is_angular() {
@@ -459,6 +459,7 @@ impl LiveModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::compensation::TABLE_BC_ERRORS;
 
     const MIN: i64 = units::NS_PER_MIN;
 

@@ -32,6 +32,7 @@ use thiserror::Error;
 use crate::alerts::{Alert, AlertEngine, AlertEvent, ClockInput, Rule};
 use crate::compensation::{self, CompensationSet, PredictionPolicy, ValidationLimits};
 use crate::live_model::{LiveModel, ModelView};
+use crate::nc_offsets::NcLayout;
 use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
 use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 
@@ -351,6 +352,8 @@ fn minute(t_ns: i64) -> i64 {
 /// One machine's decisions.
 pub struct MachineCore {
     k: Arc<Kinematics>,
+    /// The errors its sets hold and the NC offsets they make.
+    layout: NcLayout,
     checks: CycleChecks,
     phase: PhaseTracker,
     policy: SchedulePolicy,
@@ -429,6 +432,16 @@ impl MachineCore {
         let phase = PhaseTracker::new(settings.phase.clone())?;
         let alerts = AlertEngine::new(settings.alert_rules.clone())
             .map_err(|e| CoreError::Alerts(e.to_string()))?;
+        // The NC offsets of the stored sets are this machine's, whatever the store kept.
+        let layout = NcLayout::of(&k);
+        let mut restored = restored;
+        let sets = restored
+            .served
+            .iter_mut()
+            .chain(restored.measured.iter_mut().map(|(_, m)| m));
+        for set in sets {
+            set.offsets = layout.offsets(&set.errors);
+        }
         let view = View {
             compensation: restored.served.clone(),
             cycles: CycleView {
@@ -440,6 +453,7 @@ impl MachineCore {
         };
         let core = MachineCore {
             k,
+            layout,
             checks,
             phase,
             policy: settings.schedule.clone(),
@@ -807,6 +821,7 @@ impl MachineCore {
             self.measured.as_ref().map(|(_, m)| m),
             &self.limits,
             now_ns,
+            &self.layout,
         );
         if result.status == ResultStatus::Rejected {
             out.push(Effect::Log(
@@ -968,6 +983,7 @@ impl MachineCore {
                     &policy,
                     now_ns,
                     &about,
+                    &self.layout,
                 ) {
                     Ok(mut set) => {
                         set.cycle = served.cycle;

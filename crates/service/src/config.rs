@@ -82,7 +82,13 @@ fn default_request_timeout_s() -> f64 {
 #[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
 pub enum LinkConfig {
     /// The truth simulator's virtual machine running a scenario's day program.
-    Simulated { scenario: String },
+    Simulated {
+        scenario: String,
+        /// The scenario's noise seed instead of its own (the machines of a simulated fleet
+        /// running one scenario then differ).
+        #[serde(default)]
+        seed: Option<u64>,
+    },
     /// A real NC (or its gateway) posting events and polling for cycle orders over HTTP.
     NcPush {
         /// How far ahead of the service clock an event may be stamped, s.
@@ -124,13 +130,25 @@ pub struct MachineConfigEntry {
     pub id: String,
     /// Built-in machine name or path to a machine TOML.
     pub machine: String,
-    /// Built-in plan name or path to a plan TOML.
-    pub plan: String,
+    /// Built-in plan name or path to a plan TOML; default the machine file's `plan`.
+    #[serde(default)]
+    pub plan: Option<String>,
     pub link: LinkConfig,
     /// A thermal model fitted by `driftwatch fit` (e.g. on an earlier day of this machine):
     /// predictions start from it at once instead of after `thermal.min_cycles` cycles.
     #[serde(default)]
     pub thermal_model: Option<PathBuf>,
+    /// This machine's alert rules instead of the service-wide `[[alerts]]` (a machine of
+    /// another family has other error names).
+    #[serde(default)]
+    pub alerts: Option<Vec<Rule>>,
+}
+
+impl MachineConfigEntry {
+    /// The alert rules this machine runs.
+    pub fn alert_rules<'a>(&'a self, service: &'a [Rule]) -> &'a [Rule] {
+        self.alerts.as_deref().unwrap_or(service)
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -341,7 +359,7 @@ mod tests {
         assert_eq!(c.http.listen.to_string(), "127.0.0.1:8080");
         assert_eq!(c.time_scale, 60.0);
         assert!(
-            matches!(&c.machines[0].link, LinkConfig::Simulated { scenario } if scenario == "two_shift")
+            matches!(&c.machines[0].link, LinkConfig::Simulated { scenario, .. } if scenario == "two_shift")
         );
     }
 

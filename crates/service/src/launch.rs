@@ -247,6 +247,35 @@ enum Pending {
     Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
 }
 
+/// Every error an alert rule watches is one the machine identifies: a rule on another
+/// family's error would never fire, and silence is not a verdict.
+fn alerts_fit(
+    rules: &[driftwatch_machine::alerts::Rule],
+    k: &Kinematics,
+    own: bool,
+) -> Result<(), String> {
+    use driftwatch_machine::alerts::Rule;
+    let names = k.identify_names();
+    for r in rules {
+        let (Rule::Threshold { error, .. } | Rule::Rate { error, .. }) = r else {
+            continue;
+        };
+        if !names.contains(error) {
+            return Err(format!(
+                "the alert rule on {error} watches an error machine '{}' does not identify ({}); {}",
+                k.name,
+                names.join(", "),
+                if own {
+                    "correct its alerts"
+                } else {
+                    "give this machine its own alerts = [...] in its [[machines]] entry"
+                }
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Every configured machine's link, and the machine time the clock starts at.
 ///
 /// Simulated machines start just before their first power-on, so that a newcomer sees the
@@ -270,18 +299,26 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
             message,
         };
         let k = Kinematics::load(&m.machine).map_err(|e| fail(e.to_string()))?;
-        let plan_cfg = PlanConfig::load(&m.plan).map_err(|e| fail(e.to_string()))?;
+        let plan_name = m.plan.as_deref().unwrap_or(&k.config.plan);
+        let plan_cfg = PlanConfig::load(plan_name).map_err(|e| fail(e.to_string()))?;
         let plan = Plan::build(&k, &plan_cfg).map_err(|e| fail(e.to_string()))?;
         let mut settings = settings.clone();
+        settings.alert_rules = m.alert_rules(&cfg.alerts).to_vec();
+        alerts_fit(&settings.alert_rules, &k, m.alerts.is_some()).map_err(fail)?;
         if let Some(path) = &m.thermal_model {
             let model = initial_model(path, &k)
                 .map_err(|e| fail(format!("thermal_model {}: {e}", path.display())))?;
             settings.initial_model = Some(Arc::new(model));
         }
         let link = match &m.link {
-            LinkConfig::Simulated { scenario } => {
+            LinkConfig::Simulated { scenario, seed } => {
                 let mut scn = Scenario::load(scenario).map_err(|e| fail(e.to_string()))?;
                 scn.machine_id = m.id.clone();
+                // The configured machine is the one simulated, whatever the scenario names.
+                scn.machine = m.machine.clone();
+                if let Some(seed) = seed {
+                    scn.seed = *seed;
+                }
                 let first_on_min = scn
                     .spindle
                     .iter()

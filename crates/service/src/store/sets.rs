@@ -114,7 +114,6 @@ impl Store {
                 driftwatch_machine::compensation::typed(&s),
             )
         {
-            set.offsets = driftwatch_machine::compensation::offsets(&e);
             set.errors = e;
             set.sigma = s;
         }
@@ -127,7 +126,7 @@ impl Store {
         source: Option<&str>,
     ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
         use driftwatch_core::error_name::ErrorName;
-        use driftwatch_machine::compensation::{CompensationSet, Source, offsets};
+        use driftwatch_machine::compensation::{CompensationSet, Source};
         let row = sqlx::query(
             "SELECT version, valid_from_ns, source, cycle, reason, payload FROM compensation_sets
              WHERE machine_id = $1 AND ($2 IS NULL OR source = $2)
@@ -157,7 +156,8 @@ impl Store {
                 Source::Measured
             },
             cycle: r.try_get(3)?,
-            offsets: offsets(&v.errors),
+            // The NC offsets are the machine's layout's: its core fills them in.
+            offsets: BTreeMap::new(),
             errors: v.errors,
             sigma: v.sigma,
             reason: r.try_get(4)?,
