@@ -113,6 +113,11 @@ enum Command {
         /// Read a recording cut short up to its last complete chunk.
         #[arg(long)]
         recover: bool,
+        /// Also print each cycle's estimate from the patent's first-order sum and difference
+        /// relations (derived for every built-in family) and its difference from the exact
+        /// solve: an independent cross-check of the model.
+        #[arg(long)]
+        relations: bool,
         #[command(flatten)]
         solver: SolverArgs,
     },
@@ -347,6 +352,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
             json,
             plan,
             recover,
+            relations,
             solver,
         } => cmd_solve(
             &machine,
@@ -354,6 +360,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
             json,
             plan.as_deref(),
             recover,
+            relations,
             &solver,
         ),
         Command::Experiment {
@@ -556,6 +563,7 @@ fn cmd_solve(
     json: bool,
     plan: Option<&str>,
     recover: bool,
+    relations: bool,
     args: &SolverArgs,
 ) -> Result<ExitCode> {
     let k = Kinematics::load(machine)?;
@@ -662,6 +670,25 @@ fn cmd_solve(
                 outln!(" {:>8.3} {:>6.2} {:>6}", s.residual_rms_um(), s.chi2, point);
                 if let Some(r) = &result.reason {
                     outln!("{:>5} refused: {r}", "");
+                }
+                if relations {
+                    let obs: Vec<Observation> = entries
+                        .iter()
+                        .filter_map(|e| e.msg.as_ref().ok().map(|m| (e.t_ns, m)))
+                        .filter(|(_, m)| m.status() == rec::DetectionStatus::Ok)
+                        .map(|(t, m)| driftwatch_core::cycle::observation(&k, t, m))
+                        .collect();
+                    match driftwatch_core::patent_relations::estimate(&k, &obs) {
+                        Ok(f) => {
+                            out!("{:>5} {:>39}", "", "first order (minus exact):");
+                            for e in &s.errors {
+                                let v = f.errors.get(&e.name).copied().unwrap_or(f64::NAN);
+                                out!(" {:>18}", format!("{v:.2} ({:+.2})", v - e.value));
+                            }
+                            outln!();
+                        }
+                        Err(e) => outln!("{:>5} first-order relations: {e}", ""),
+                    }
                 }
             }
             None => outln!(

@@ -425,3 +425,45 @@ fn an_end_face_approach_into_the_spindle_is_refused() {
     .unwrap_err();
     assert!(e.to_string().contains("out of the spindle"), "{e}");
 }
+
+/// The patent's first-order relations, derived by hand for each family's poses
+/// (`patent_relations`), agree with the exact solver within second-order terms: an
+/// independent check of each family's chain, signs and senses.
+#[test]
+fn first_order_relations_agree_with_the_exact_solver_on_every_family() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for name in FAMILIES {
+        let k = machine(name);
+        let p = own_plan(&k);
+        let mut worst = (0.0f64, 0.0f64);
+        for _ in 0..100 {
+            let mut truth = k.nominal_state();
+            for id in &k.identify {
+                let lim = if id.is_position() { 10.0 } else { 50.0 };
+                truth.loc[id.axis][id.slot] = rng.random_range(-lim..lim) * id.scale();
+            }
+            truth.beam_point += Vec3::new(
+                0.0,
+                rng.random_range(-0.1..0.1),
+                rng.random_range(-0.1..0.1),
+            );
+            let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+            let exact = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+            let first = driftwatch_core::patent_relations::estimate(&k, &obs)
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+            for e in &exact.errors {
+                let d = (e.value - first.errors[&e.name]).abs();
+                if e.unit == "um" {
+                    worst.0 = worst.0.max(d);
+                } else {
+                    worst.1 = worst.1.max(d);
+                }
+            }
+        }
+        println!(
+            "{name}: largest difference exact vs first-order {:.4} um, {:.4} urad",
+            worst.0, worst.1
+        );
+        assert!(worst.0 < 0.01 && worst.1 < 0.05, "{name}: {worst:?}");
+    }
+}
