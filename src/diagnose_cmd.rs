@@ -21,7 +21,7 @@ use driftwatch_diagnosis::effects::{EFFECTS, Effect};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {
-    /// Machine TOML, or a built-in name (table_bc); needed for recordings of measurement
+    /// Machine TOML, or a built-in name (table_bc, head_b_table_c, table_d45_c, head_d45_table_c, trunnion_ac); needed for recordings of measurement
     /// cycles, not for displacement recordings.
     #[arg(long)]
     machine: Option<String>,

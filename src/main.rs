@@ -98,7 +98,7 @@ enum Command {
     },
     /// Identify every cycle of a contract recording.
     Solve {
-        /// Machine TOML, or a built-in name (table_bc).
+        /// Machine TOML, or a built-in name (table_bc, head_b_table_c, table_d45_c, head_d45_table_c, trunnion_ac).
         #[arg(long)]
         machine: String,
         #[arg(long)]

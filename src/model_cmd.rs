@@ -149,7 +149,7 @@ fn read_recordings(paths: &[PathBuf]) -> Result<Vec<Recording>> {
 
 #[derive(clap::Args)]
 pub struct FitArgs {
-    /// Machine TOML, or a built-in name (table_bc): checked when given; a displacement
+    /// Machine TOML, or a built-in name (table_bc, head_b_table_c, table_d45_c, head_d45_table_c, trunnion_ac): checked when given; a displacement
     /// recording needs none.
     #[arg(long)]
     machine: Option<String>,

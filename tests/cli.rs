@@ -395,6 +395,48 @@ fn experiment_and_plan_commands_report_their_figures() {
     }
 }
 
+/// Another family through the command line: its patent experiment in its own names, its
+/// recording solved with the first-order relations beside the exact solve.
+#[test]
+fn experiment_and_solve_run_on_another_machine_family() {
+    let dir = tmp("experiment-trunnion");
+    let (ok, out, err) = run(&[
+        "experiment",
+        "patent",
+        "--machine",
+        "trunnion_ac",
+        "--out-dir",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("on trunnion_ac") && out.contains("EZ0A rise"),
+        "{out}"
+    );
+    let svg = std::fs::read_to_string(dir.join("patent_experiment.svg")).unwrap();
+    assert!(svg.contains("EY0A") && svg.contains("trunnion_ac"));
+    let mcap = dir.join("patent_experiment.mcap");
+    let (ok, out, err) = run(&[
+        "solve",
+        "--machine",
+        "trunnion_ac",
+        "--recording",
+        mcap.to_str().unwrap(),
+        "--relations",
+    ]);
+    assert!(ok, "{err}");
+    let first: Vec<&str> = out.lines().filter(|l| l.contains("first order")).collect();
+    assert_eq!(first.len(), 15, "{out}");
+    // The relations use a subset of the readings, unweighted: within a few sigma of the exact.
+    for l in &first {
+        let values = l.split_once(':').unwrap().1;
+        for d in values.split('(').skip(1) {
+            let v: f64 = d.split(')').next().unwrap().parse().unwrap();
+            assert!(v.abs() < 8.0, "{l}");
+        }
+    }
+}
+
 #[test]
 fn import_fit_and_predict_a_thermal_test_table() {
     // Five hours at 60 s: 10000 min^-1 for 3 h, then stopped; ch1 is a 30-min lag, 12 um.
