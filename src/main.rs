@@ -20,6 +20,7 @@ use driftwatch_sim::simulator::simulate;
 mod bench;
 mod diagnose_cmd;
 mod model_cmd;
+mod plan_design_cmd;
 mod serve;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
@@ -139,20 +140,9 @@ enum Command {
         #[arg(long)]
         scenario: Option<String>,
     },
-    /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error.
-    Plan {
-        #[arg(long)]
-        machine: String,
-        /// Plan TOML or built-in name (patent, patent_sequential).
-        #[arg(long, default_value = "patent")]
-        plan: String,
-        /// One-reading standard uncertainty, um (default: the machine's).
-        #[arg(long)]
-        sigma_um: Option<f64>,
-        /// Also estimate tool-tip drift rates within the cycle.
-        #[arg(long)]
-        drift_rates: bool,
-    },
+    /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error
+    /// (`plan design`: search for a plan instead).
+    Plan(PlanArgs),
     /// Benchmarks (run and report; not tests).
     Bench {
         #[arg(value_enum)]
@@ -192,6 +182,34 @@ enum Command {
         #[arg(long, value_delimiter = ',')]
         after_stop: Option<Vec<f64>>,
     },
+}
+
+/// `plan --machine M [--plan P]` prints a plan; `plan design ...` designs one. The flags of
+/// the first form do not mix with the subcommand.
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+struct PlanArgs {
+    #[command(subcommand)]
+    design: Option<PlanWhat>,
+    /// Machine TOML, or a built-in name (table_bc).
+    #[arg(long, required = true)]
+    machine: Option<String>,
+    /// Plan TOML or built-in name (patent, patent_sequential).
+    #[arg(long, default_value = "patent")]
+    plan: String,
+    /// One-reading standard uncertainty, um (default: the machine's).
+    #[arg(long)]
+    sigma_um: Option<f64>,
+    /// Also estimate tool-tip drift rates within the cycle.
+    #[arg(long)]
+    drift_rates: bool,
+}
+
+#[derive(Subcommand)]
+enum PlanWhat {
+    /// Search poses, approaches, repeats and order for the smallest worst Cramer-Rao sigma
+    /// within a machine-time budget; print the Pareto front, write the chosen plan.
+    Design(plan_design_cmd::DesignArgs),
 }
 
 #[derive(Subcommand)]
@@ -353,12 +371,20 @@ fn run(cmd: Command) -> Result<ExitCode> {
             out_dir,
             scenario,
         } => cmd_experiment(scenario.as_deref().unwrap_or("patent"), &out_dir),
-        Command::Plan {
+        Command::Plan(PlanArgs {
+            design: Some(PlanWhat::Design(a)),
+            ..
+        }) => plan_design_cmd::cmd_plan_design(a),
+        Command::Plan(PlanArgs {
+            design: None,
             machine,
             plan,
             sigma_um,
             drift_rates,
-        } => cmd_plan(&machine, &plan, sigma_um, drift_rates),
+        }) => {
+            let machine = machine.context("--machine is required")?;
+            cmd_plan(&machine, &plan, sigma_um, drift_rates)
+        }
         Command::Bench {
             which: BenchWhich::Solve,
             plan,
