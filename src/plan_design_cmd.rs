@@ -50,6 +50,10 @@ pub struct DesignArgs {
     /// Largest repeats of a pose to try.
     #[arg(long, default_value_t = 4)]
     max_repeats: u32,
+    /// Accept plans that hold a setter nuisance the reference estimates (their errors then
+    /// take any setter movement one-to-one).
+    #[arg(long)]
+    allow_held_setter: bool,
     /// Write the chosen plan here (plan TOML, as `--plan FILE` reads it).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -71,6 +75,7 @@ pub fn cmd_plan_design(a: DesignArgs) -> Result<ExitCode> {
     };
     opts.budget_s = a.budget_s;
     opts.max_repeats = a.max_repeats;
+    opts.keep_reference_nuisances = !a.allow_held_setter;
     let d = design(&k, &reference, &opts)?;
     let mut out = std::io::stdout().lock();
     let unit = &d.chosen.objective_unit;

@@ -62,6 +62,11 @@ pub struct DesignOptions {
     pub max_repeats: u32,
     /// Hill-climbing steps per budget level, at most.
     pub max_steps: usize,
+    /// Refuse plans that hold a nuisance the reference estimates (drift rates aside, which
+    /// the alias covers). Without this the search prefers plans that cannot see the setter
+    /// height or lateral shift: fewer parameters give smaller sigmas, but the errors then take
+    /// any setter movement one-to-one (docs/physics.md 1.6).
+    pub keep_reference_nuisances: bool,
 }
 
 impl DesignOptions {
@@ -73,6 +78,7 @@ impl DesignOptions {
             budget_s: None,
             max_repeats: 4,
             max_steps: 60,
+            keep_reference_nuisances: true,
         }
     }
 }
@@ -600,6 +606,8 @@ struct Search<'a> {
     base: &'a PlanConfig,
     poses: Vec<CandidatePose>,
     opts: &'a DesignOptions,
+    /// Nuisances every plan must estimate.
+    required: Vec<String>,
     archive: BTreeMap<Genome, Result<PlanEvaluation, String>>,
 }
 
@@ -611,7 +619,14 @@ impl Search<'_> {
         let r = if g.genes.is_empty() {
             Err("no poses".to_string())
         } else {
-            evaluate(self.k, &g.to_config(self.base, &self.poses), self.opts)
+            evaluate(self.k, &g.to_config(self.base, &self.poses), self.opts).and_then(|e| {
+                match self.required.iter().find(|n| !e.nuisances.contains(n)) {
+                    Some(n) => Err(format!(
+                        "the plan cannot estimate {n}, which the reference estimates"
+                    )),
+                    None => Ok(e),
+                }
+            })
         };
         self.archive.insert(g.clone(), r.clone());
         r
@@ -703,6 +718,16 @@ pub fn design(
         base: reference,
         poses,
         opts,
+        required: if opts.keep_reference_nuisances {
+            ref_eval
+                .nuisances
+                .iter()
+                .filter(|n| !n.starts_with("tool_drift"))
+                .cloned()
+                .collect()
+        } else {
+            Vec::new()
+        },
         archive: BTreeMap::new(),
     };
     // Seeds: the reference in both orders.
@@ -809,9 +834,10 @@ pub fn pareto_front(plans: &[&PlanEvaluation]) -> Vec<PlanEvaluation> {
     });
     let mut out: Vec<PlanEvaluation> = Vec::new();
     for e in v {
-        // Strictly better than every faster plan, beyond rounding (plans equal to 1e-9 are
-        // the same plan in another order of its poses).
-        if out.last().is_none_or(|l| e.worst < l.worst * (1.0 - 1e-9)) {
+        // Better than every faster plan by more than 1e-4 of its sigma: finite differences
+        // leave the sigmas of equivalent plans (the same touches in another order or mirror
+        // pose) apart by far less, and a front of such twins says nothing.
+        if out.last().is_none_or(|l| e.worst < l.worst * (1.0 - 1e-4)) {
             out.push(e.clone());
         }
     }
