@@ -20,6 +20,7 @@ use driftwatch_sim::simulator::simulate;
 mod bench;
 mod diagnose_cmd;
 mod model_cmd;
+mod plan_design_cmd;
 mod serve;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
@@ -148,20 +149,9 @@ enum Command {
         #[arg(long)]
         machine: Option<String>,
     },
-    /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error.
-    Plan {
-        #[arg(long)]
-        machine: String,
-        /// Plan TOML or built-in name (patent, patent_sequential).
-        #[arg(long, default_value = "patent")]
-        plan: String,
-        /// One-reading standard uncertainty, um (default: the machine's).
-        #[arg(long)]
-        sigma_um: Option<f64>,
-        /// Also estimate tool-tip drift rates within the cycle.
-        #[arg(long)]
-        drift_rates: bool,
-    },
+    /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error
+    /// (`plan design`: search for a plan instead).
+    Plan(PlanArgs),
     /// Benchmarks (run and report; not tests).
     Bench {
         #[arg(value_enum)]
@@ -205,6 +195,36 @@ enum Command {
         #[arg(long, value_delimiter = ',')]
         after_stop: Option<Vec<f64>>,
     },
+}
+
+/// `plan --machine M [--plan P]` prints a plan; `plan design ...` designs one. The flags of
+/// the first form do not mix with the subcommand.
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+struct PlanArgs {
+    #[command(subcommand)]
+    design: Option<PlanWhat>,
+    /// Machine TOML, or a built-in name (table_bc, head_b_table_c, table_d45_c,
+    /// head_d45_table_c, trunnion_ac).
+    #[arg(long, required = true)]
+    machine: Option<String>,
+    /// Plan TOML or built-in name (patent, patent_sequential, a family's own); default the
+    /// machine file's `plan`.
+    #[arg(long)]
+    plan: Option<String>,
+    /// One-reading standard uncertainty, um (default: the machine's).
+    #[arg(long)]
+    sigma_um: Option<f64>,
+    /// Also estimate tool-tip drift rates within the cycle.
+    #[arg(long)]
+    drift_rates: bool,
+}
+
+#[derive(Subcommand)]
+enum PlanWhat {
+    /// Search poses, approaches, repeats and order for the smallest worst Cramer-Rao sigma
+    /// within a machine-time budget; print the Pareto front, write the chosen plan.
+    Design(plan_design_cmd::DesignArgs),
 }
 
 #[derive(Subcommand)]
@@ -376,12 +396,20 @@ fn run(cmd: Command) -> Result<ExitCode> {
             };
             cmd_experiment(&scenario, &out_dir)
         }
-        Command::Plan {
+        Command::Plan(PlanArgs {
+            design: Some(PlanWhat::Design(a)),
+            ..
+        }) => plan_design_cmd::cmd_plan_design(a),
+        Command::Plan(PlanArgs {
+            design: None,
             machine,
             plan,
             sigma_um,
             drift_rates,
-        } => cmd_plan(&machine, &plan, sigma_um, drift_rates),
+        }) => {
+            let machine = machine.context("--machine is required")?;
+            cmd_plan(&machine, plan.as_deref(), sigma_um, drift_rates)
+        }
         Command::Bench {
             which: BenchWhich::Solve,
             machine,
@@ -787,9 +815,14 @@ fn template(k: &Kinematics, plan: &Plan) -> Result<Vec<Observation>> {
     Ok(plan.observations(k, &k.nominal_state())?)
 }
 
-fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) -> Result<ExitCode> {
+fn cmd_plan(
+    machine: &str,
+    plan: Option<&str>,
+    sigma: Option<f64>,
+    drift_rates: bool,
+) -> Result<ExitCode> {
     let k = Kinematics::load(machine)?;
-    let plan = Plan::build(&k, &PlanConfig::load(plan)?)?;
+    let plan = Plan::build(&k, &PlanConfig::load(plan.unwrap_or(&k.config.plan))?)?;
     outln!("plan '{}': {}", plan.name, plan.description);
     outln!(
         "{:>8} {:>7} {:>9} {:>9} {:>9} {:>8} {:>8}  {}",
@@ -798,8 +831,8 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
         "x/mm",
         "y/mm",
         "z/mm",
-        "B/deg",
-        "C/deg",
+        format!("{}/deg", k.rotary.first().map_or("-", |a| a.name.as_str())),
+        format!("{}/deg", k.rotary.get(1).map_or("-", |a| a.name.as_str())),
         "move"
     );
     for m in &plan.moves {
@@ -817,14 +850,16 @@ fn cmd_plan(machine: &str, plan: &str, sigma: Option<f64>, drift_rates: bool) ->
         );
     }
     outln!(
-        "{} approaches; machine time {:.1} s (rapid {} mm/min, probing {} mm/min, clearance {} mm, dwell {} s, B {} deg/min, C {} deg/min, clamp {} s)",
+        "{} approaches; machine time {:.1} s (rapid {} mm/min, probing {} mm/min, clearance {} mm, dwell {} s, {} {} deg/min, {} {} deg/min, clamp {} s)",
         plan.steps.len(),
         plan.machine_time_s,
         k.motion.rapid_mm_min,
         plan.config.feed_mm_min,
         plan.config.clearance_mm,
         plan.config.dwell_s,
+        k.rotary[0].name,
         k.rotary[0].speed_deg_min,
+        k.rotary.get(1).map_or("-", |a| a.name.as_str()),
         k.rotary.get(1).map(|a| a.speed_deg_min).unwrap_or(0.0),
         k.motion.clamp_s
     );

@@ -16,6 +16,7 @@ pub mod kinematics;
 pub mod measurement;
 pub mod patent_relations;
 pub mod plan;
+pub mod plan_design;
 pub mod prediction_plot;
 pub mod recording;
 pub mod series;
