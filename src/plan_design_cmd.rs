@@ -24,7 +24,8 @@ pub enum WeightArg {
 
 #[derive(clap::Args)]
 pub struct DesignArgs {
-    /// Machine TOML, or a built-in name (table_bc).
+    /// Machine TOML, or a built-in name (table_bc, head_b_table_c, table_d45_c,
+    /// head_d45_table_c, trunnion_ac).
     #[arg(long)]
     machine: String,
     /// Machine-time budget, s (default: the reference plan's machine time).
@@ -44,9 +45,10 @@ pub struct DesignArgs {
     #[arg(long)]
     max_alias: Option<f64>,
     /// Plan whose probing parameters the designs use, whose time is the default budget and
-    /// which is placed against the front (built-in name or TOML path).
-    #[arg(long, default_value = "patent")]
-    reference: String,
+    /// which is placed against the front (built-in name or TOML path; default the machine's
+    /// own plan).
+    #[arg(long)]
+    reference: Option<String>,
     /// Largest repeats of a pose to try.
     #[arg(long, default_value_t = 4)]
     max_repeats: u32,
@@ -61,7 +63,7 @@ pub struct DesignArgs {
 
 pub fn cmd_plan_design(a: DesignArgs) -> Result<ExitCode> {
     let k = Kinematics::load(&a.machine)?;
-    let reference = PlanConfig::load(&a.reference)?;
+    let reference = PlanConfig::load(a.reference.as_deref().unwrap_or(&k.config.plan))?;
     let mut opts = DesignOptions::new(a.sigma_um.unwrap_or(k.setter.sigma_um));
     opts.weight = match a.weight {
         WeightArg::Unit => Weight::Unit,
@@ -102,10 +104,10 @@ pub fn cmd_plan_design(a: DesignArgs) -> Result<ExitCode> {
         "time/s", "n", "worst", "error", "alias"
     )?;
     for e in &d.front {
-        row(&mut out, e)?;
+        row(&mut out, &k, e)?;
     }
     writeln!(out, "chosen (best within {:.1} s):", d.budget_s)?;
-    row(&mut out, &d.chosen)?;
+    row(&mut out, &k, &d.chosen)?;
     for s in &d.chosen.sigmas {
         writeln!(out, "  {:>6} {:>8.3} {}", s.name, s.sigma, s.unit)?;
     }
@@ -116,7 +118,7 @@ pub fn cmd_plan_design(a: DesignArgs) -> Result<ExitCode> {
     )?;
     let r = &d.reference;
     writeln!(out, "reference '{}':", r.evaluation.config.name)?;
-    row(&mut out, &r.evaluation)?;
+    row(&mut out, &k, &r.evaluation)?;
     match (r.front_worst_at_time, r.ratio) {
         (Some(w), Some(q)) => writeln!(
             out,
@@ -154,7 +156,7 @@ pub fn cmd_plan_design(a: DesignArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn row(out: &mut impl std::io::Write, e: &PlanEvaluation) -> std::io::Result<()> {
+fn row(out: &mut impl std::io::Write, k: &Kinematics, e: &PlanEvaluation) -> std::io::Result<()> {
     writeln!(
         out,
         "{:>7.1} {:>4} {:>8.3}  {:<6} {:>9.2e}  {}",
@@ -163,6 +165,6 @@ fn row(out: &mut impl std::io::Write, e: &PlanEvaluation) -> std::io::Result<()>
         e.worst,
         e.worst_error,
         e.max_alias,
-        e.poses_text()
+        e.poses_text(k)
     )
 }

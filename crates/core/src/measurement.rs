@@ -88,6 +88,11 @@ pub enum NoTrip {
         "an approach along the tool axis must move the tip out of the spindle (-z for a vertical spindle)"
     )]
     IntoSpindle,
+    #[error(
+        "the motion is {angle_deg:.1} deg from the tool axis: neither along it nor across it \
+         (within 15 deg), so neither the end face nor the side is known to meet the beam first"
+    )]
+    Oblique { angle_deg: f64 },
 }
 
 /// Slope (rad) below which the corner of `|slope|` is rounded.
@@ -130,10 +135,23 @@ pub fn latched(
     )
 }
 
-/// Whether an approach along `axis` is an end-face approach (along the tool axis `w`) rather
-/// than a lateral one: the moving axis is nearer the tool axis than across it.
-pub fn along_tool(axis: Axis, w: &Vec3) -> bool {
-    w[axis.index()].abs() > std::f64::consts::FRAC_1_SQRT_2
+/// Largest angle (deg) between the motion and the tool axis (end face) or its normal plane
+/// (lateral) for which a trip model holds: beyond it the end's rim and the side could meet
+/// the beam first, and neither model says which.
+pub const MAX_OBLIQUE_DEG: f64 = 15.0;
+
+/// Whether an approach along `axis` is an end-face approach (along the tool axis `w`, within
+/// [`MAX_OBLIQUE_DEG`]) or a lateral one (across it, within as much); `None` in between.
+pub fn along_tool(axis: Axis, w: &Vec3) -> Option<bool> {
+    let c = w[axis.index()].abs();
+    let limit = MAX_OBLIQUE_DEG.to_radians();
+    if c >= limit.cos() {
+        Some(true)
+    } else if c <= limit.sin() {
+        Some(false)
+    } else {
+        None
+    }
 }
 
 /// As [`latched`], with the beam line and the tool already computed for the pose.
@@ -162,7 +180,12 @@ pub fn latched_at(
     let e_hat = e_perp / e_perp_norm;
     let n = w.cross(&e_hat);
     let r = s.radius;
-    let v = match along_tool(approach.axis, &w) {
+    let Some(end_face) = along_tool(approach.axis, &w) else {
+        return Err(NoTrip::Oblique {
+            angle_deg: w[i].abs().clamp(0.0, 1.0).acos().to_degrees(),
+        });
+    };
+    let v = match end_face {
         true => {
             if f64::from(approach.direction) * w[i] > 0.0 {
                 return Err(NoTrip::IntoSpindle);

@@ -22,20 +22,40 @@ pub const BUILTIN_PLANS: &[(&str, &str)] = &[
         include_str!("../../../config/plans/patent_sequential.toml"),
     ),
     (
+        "table_bc_designed",
+        include_str!("../../../config/plans/table_bc_designed.toml"),
+    ),
+    (
         "head_b_table_c",
         include_str!("../../../config/plans/head_b_table_c.toml"),
+    ),
+    (
+        "head_b_table_c_patent",
+        include_str!("../../../config/plans/head_b_table_c_patent.toml"),
     ),
     (
         "table_d45_c",
         include_str!("../../../config/plans/table_d45_c.toml"),
     ),
     (
+        "table_d45_c_patent",
+        include_str!("../../../config/plans/table_d45_c_patent.toml"),
+    ),
+    (
         "head_d45_table_c",
         include_str!("../../../config/plans/head_d45_table_c.toml"),
     ),
     (
+        "head_d45_table_c_patent",
+        include_str!("../../../config/plans/head_d45_table_c_patent.toml"),
+    ),
+    (
         "trunnion_ac",
         include_str!("../../../config/plans/trunnion_ac.toml"),
+    ),
+    (
+        "trunnion_ac_patent",
+        include_str!("../../../config/plans/trunnion_ac_patent.toml"),
     ),
 ];
 

@@ -145,8 +145,9 @@ impl PlanEvaluation {
         self.max_alias <= self.alias_limit
     }
 
-    /// The poses as `B0C0[z,lateral]x2`, in listed order, and the order.
-    pub fn poses_text(&self) -> String {
+    /// The poses as `B0C0[z,lateral]x2` (the machine's axis names), in listed order, and
+    /// the order.
+    pub fn poses_text(&self, k: &Kinematics) -> String {
         let poses: Vec<String> = self
             .config
             .poses
@@ -157,7 +158,8 @@ impl PlanEvaluation {
                 } else {
                     String::new()
                 };
-                format!("B{}C{}[{}]{rep}", p.b_deg, p.c_deg, p.approaches.join(","))
+                let pose = k.pose_label(&k.angles_from_fields(p.b_deg, p.c_deg));
+                format!("{pose}[{}]{rep}", p.approaches.join(","))
             })
             .collect();
         let order = match self.config.order {
@@ -205,7 +207,7 @@ pub struct CandidatePose {
 
 /// The approaches a pose is tried with: the patent's two, then the explicit directions
 /// (which only add something where they differ from `lateral`, e.g. from inside the setter).
-const APPROACHES: [&str; 6] = ["z", "lateral", "x+", "x-", "y+", "y-"];
+const APPROACHES: [&str; 8] = ["z", "lateral", "x+", "x-", "y+", "y-", "z+", "z-"];
 
 /// Angles tried on the innermost axis: multiples of -45 deg (0 and the patent's -90 steps
 /// first), shifted by +360 where the travel only allows positive angles.

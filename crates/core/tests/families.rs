@@ -23,9 +23,19 @@ fn machine(name: &str) -> Kinematics {
     Kinematics::builtin(name).unwrap()
 }
 
-/// The machine's own plan (its `plan` key).
+/// The machine's own plan (its `plan` key: on the new families the one `plan design` found).
 fn own_plan(k: &Kinematics) -> Plan {
     Plan::build(k, &PlanConfig::load(&k.config.plan).unwrap()).unwrap()
+}
+
+/// The patent's poses on the machine (`patent` on table_bc, `<family>_patent` on the others).
+fn patent_config(k: &Kinematics) -> PlanConfig {
+    let name = if k.name == "table_bc" {
+        "patent".to_string()
+    } else {
+        format!("{}_patent", k.name)
+    };
+    PlanConfig::load(&name).unwrap()
 }
 
 fn set(k: &Kinematics, s: &mut MachineState, name: &str, v: f64) {
@@ -250,8 +260,10 @@ fn apparent_state_gives_the_same_readings_on_every_family() {
             let a = k.apparent_state(&s);
             assert_eq!(a.tool_tip, Vec3::zeros());
             for st in &p.steps {
-                let v1 = latched(&k, &s, &st.angles, &st.approach, &st.start, None).unwrap();
-                let v2 = latched(&k, &a, &st.angles, &st.approach, &st.start, None).unwrap();
+                let v1 = latched(&k, &s, &st.angles, &st.approach, &st.start, None)
+                    .unwrap_or_else(|e| panic!("{name} {}: {e}", st.label));
+                let v2 = latched(&k, &a, &st.angles, &st.approach, &st.start, None)
+                    .unwrap_or_else(|e| panic!("{name} {}: {e}", st.label));
                 assert!((v1 - v2).abs() < 1e-11, "{name} {}: {v1} vs {v2}", st.label);
             }
         }
@@ -265,7 +277,7 @@ fn noise_free_round_trip_on_every_family() {
     let mut rng = ChaCha8Rng::seed_from_u64(16);
     for name in FAMILIES {
         let k = machine(name);
-        let p = own_plan(&k);
+        let p = Plan::build(&k, &patent_config(&k)).unwrap();
         let mut worst = (0.0f64, 0.0f64);
         for _ in 0..100 {
             let mut truth = k.nominal_state();
@@ -363,7 +375,7 @@ fn monte_carlo_matches_the_cramer_rao_bound_on_every_family() {
 fn a_plan_without_a_tilted_pose_is_refused_on_every_family() {
     for name in FAMILIES {
         let k = machine(name);
-        let mut cfg = PlanConfig::load(&k.config.plan).unwrap();
+        let mut cfg = patent_config(&k);
         cfg.poses.retain(|p| p.b_deg == 0.0);
         let p = Plan::build(&k, &cfg).unwrap();
         let obs = p.observations(&k, &k.nominal_state()).unwrap();
@@ -389,7 +401,7 @@ fn the_patents_own_d_poses_cannot_see_the_d_lines_x_position() {
         ("head_d45_table_c", "EX0D (no reading depends on it)"),
     ] {
         let k = machine(name);
-        let mut cfg = PlanConfig::load(&k.config.plan).unwrap();
+        let mut cfg = patent_config(&k);
         cfg.poses
             .retain(|p| p.b_deg == 0.0 || (p.b_deg.abs() == 180.0 && p.c_deg != -45.0));
         assert_eq!(cfg.poses.len(), 6);
@@ -406,7 +418,7 @@ fn the_patents_own_d_poses_cannot_see_the_d_lines_x_position() {
 /// The end face meets the beam moving out of the spindle whatever the tool axis: an approach
 /// into the spindle is refused with the reason.
 #[test]
-fn an_end_face_approach_into_the_spindle_is_refused() {
+fn an_end_face_approach_into_the_spindle_or_an_oblique_one_is_refused() {
     let k = machine("head_d45_table_c");
     let s = k.nominal_state();
     let into = Approach {
@@ -424,6 +436,28 @@ fn an_end_face_approach_into_the_spindle_is_refused() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("out of the spindle"), "{e}");
+    // At D = -90 the tool axis is 45 deg from X: an approach along X is neither end face nor
+    // lateral, and is refused rather than guessed (a plan with it does not build).
+    let oblique = Approach {
+        axis: Axis::X,
+        direction: -1,
+        feed_mm_min: 100.0,
+    };
+    let e = latched(
+        &k,
+        &s,
+        &[-90.0, -135.0],
+        &oblique,
+        &Vec3::new(50.0, 0.0, 70.0),
+        None,
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("45.0 deg from the tool axis"), "{e}");
+    let mut cfg = PlanConfig::load("head_d45_table_c_patent").unwrap();
+    cfg.poses[0].b_deg = -90.0;
+    cfg.poses[0].approaches = vec!["x-".into()];
+    let e = Plan::build(&k, &cfg).unwrap_err().to_string();
+    assert!(e.contains("neither along it nor across it"), "{e}");
 }
 
 /// The patent's first-order relations, derived by hand for each family's poses
@@ -434,7 +468,7 @@ fn first_order_relations_agree_with_the_exact_solver_on_every_family() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     for name in FAMILIES {
         let k = machine(name);
-        let p = own_plan(&k);
+        let p = Plan::build(&k, &patent_config(&k)).unwrap();
         let mut worst = (0.0f64, 0.0f64);
         for _ in 0..100 {
             let mut truth = k.nominal_state();

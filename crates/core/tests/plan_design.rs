@@ -246,9 +246,9 @@ fn the_search_is_deterministic() {
     let a = design(&k, &reference, &opts).unwrap();
     let b = design(&k, &reference, &opts).unwrap();
     assert_eq!(a.evaluated, b.evaluated);
-    assert_eq!(a.chosen.poses_text(), b.chosen.poses_text());
+    assert_eq!(a.chosen.poses_text(&k), b.chosen.poses_text(&k));
     assert_eq!(a.chosen.worst, b.chosen.worst);
-    let fa: Vec<_> = a.front.iter().map(|e| e.poses_text()).collect();
-    let fb: Vec<_> = b.front.iter().map(|e| e.poses_text()).collect();
+    let fa: Vec<_> = a.front.iter().map(|e| e.poses_text(&k)).collect();
+    let fb: Vec<_> = b.front.iter().map(|e| e.poses_text(&k)).collect();
     assert_eq!(fa, fb);
 }
