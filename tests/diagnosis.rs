@@ -619,6 +619,7 @@ fn the_diagnosis_works_on_every_machine_family() {
         },
     ];
     let mut failures = Vec::new();
+    let mut nulls = Vec::new();
     for (f, m) in [
         "head_b_table_c",
         "table_d45_c",
@@ -637,10 +638,12 @@ fn the_diagnosis_works_on_every_machine_family() {
                 }
             }
         }
-        let null = null_selections_on(m, 2000 + 10 * f as u64, 2);
-        if !null.is_empty() {
-            failures.push(format!("{m}: clean recordings selected {null:?}"));
-        }
+        nulls.extend(null_selections_on(m, 2000 + 10 * f as u64, 2));
+    }
+    // Eight clean recordings: at most one false selection, the table_bc bar of 2 in 40 at this
+    // size (twenty per family in release: 1 in 80, `clean_recordings_of_every_family...`).
+    if nulls.len() > 1 {
+        failures.push(format!("clean recordings selected {nulls:?}"));
     }
     assert!(failures.is_empty(), "{failures:?}");
 }
@@ -1018,4 +1021,30 @@ fn debug_injected() {
             }
         }
     }
+}
+
+/// Twenty clean recordings per family (80 diagnoses: slow in a debug build, so not in the
+/// default run): the false-selection rate of each family against the bar of the table_bc
+/// nulls (at most 2 in 40). Run with
+/// `cargo test --release --test diagnosis clean_recordings_of_every_family -- --ignored --nocapture`.
+#[test]
+#[ignore = "80 diagnoses: run in release with --ignored"]
+fn clean_recordings_of_every_family_select_at_most_one_in_twenty() {
+    let mut over = Vec::new();
+    for (f, m) in [
+        "head_b_table_c",
+        "table_d45_c",
+        "head_d45_table_c",
+        "trunnion_ac",
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let null = null_selections_on(m, 5000 + 100 * f as u64, 20);
+        println!("{m}: {} selections in 20: {null:?}", null.len());
+        if null.len() > 1 {
+            over.push(format!("{m}: {null:?}"));
+        }
+    }
+    assert!(over.is_empty(), "{over:?}");
 }
