@@ -271,15 +271,16 @@ fn apparent_state_gives_the_same_readings_on_every_family() {
 }
 
 /// Random errors within +-100 um and +-300 urad and a setter off by up to 0.5 mm are recovered
-/// from noise-free readings of each family's own plan.
+/// from noise-free readings of each family's own plan and of its patent-pattern plan.
 #[test]
 fn noise_free_round_trip_on_every_family() {
     let mut rng = ChaCha8Rng::seed_from_u64(16);
     for name in FAMILIES {
         let k = machine(name);
-        let p = Plan::build(&k, &patent_config(&k)).unwrap();
+        let plans = [own_plan(&k), Plan::build(&k, &patent_config(&k)).unwrap()];
         let mut worst = (0.0f64, 0.0f64);
-        for _ in 0..100 {
+        for i in 0..200 {
+            let p = &plans[i % 2];
             let mut truth = k.nominal_state();
             let vals: Vec<f64> = k
                 .identify
@@ -296,7 +297,7 @@ fn noise_free_round_trip_on_every_family() {
                 rng.random_range(-0.5..0.5),
                 rng.random_range(-0.5..0.5),
             );
-            let obs = observe(&k, &p, &truth, 0.0, &mut rng);
+            let obs = observe(&k, p, &truth, 0.0, &mut rng);
             let sol = identify(&k, &obs, &SolveOptions::new(0.5))
                 .unwrap_or_else(|e| panic!("{name}: {e}"));
             for (e, v) in sol.errors.iter().zip(&vals) {
