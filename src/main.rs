@@ -700,23 +700,7 @@ fn cmd_solve(
                     outln!("{:>5} refused: {r}", "");
                 }
                 if relations {
-                    let obs: Vec<Observation> = entries
-                        .iter()
-                        .filter_map(|e| e.msg.as_ref().ok().map(|m| (e.t_ns, m)))
-                        .filter(|(_, m)| m.status() == rec::DetectionStatus::Ok)
-                        .map(|(t, m)| driftwatch_core::cycle::observation(&k, t, m))
-                        .collect();
-                    match driftwatch_core::patent_relations::estimate(&k, &obs) {
-                        Ok(f) => {
-                            out!("{:>5} {:>39}", "", "first order (minus exact):");
-                            for e in &s.errors {
-                                let v = f.errors.get(&e.name).copied().unwrap_or(f64::NAN);
-                                out!(" {:>18}", format!("{v:.2} ({:+.2})", v - e.value));
-                            }
-                            outln!();
-                        }
-                        Err(e) => outln!("{:>5} first-order relations: {e}", ""),
-                    }
+                    print_relations(&k, entries, s)?;
                 }
             }
             None => outln!(
@@ -740,6 +724,33 @@ fn cmd_solve(
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One cycle's estimate from the patent's first-order relations, and its difference from
+/// the exact solve `s`, under the cycle's row.
+fn print_relations(
+    k: &Kinematics,
+    entries: &[rec::Timed<Result<rec::DetectionMsg, rec::DetectionIssue>>],
+    s: &driftwatch_core::identify::Solution,
+) -> Result<()> {
+    let obs: Vec<Observation> = entries
+        .iter()
+        .filter_map(|e| e.msg.as_ref().ok().map(|m| (e.t_ns, m)))
+        .filter(|(_, m)| m.status() == rec::DetectionStatus::Ok)
+        .map(|(t, m)| driftwatch_core::cycle::observation(k, t, m))
+        .collect();
+    match driftwatch_core::patent_relations::estimate(k, &obs) {
+        Ok(f) => {
+            out!("{:>5} {:>39}", "", "first order (minus exact):");
+            for e in &s.errors {
+                let v = f.errors.get(&e.name).copied().unwrap_or(f64::NAN);
+                out!(" {:>18}", format!("{v:.2} ({:+.2})", v - e.value));
+            }
+            outln!();
+        }
+        Err(e) => outln!("{:>5} first-order relations: {e}", ""),
+    }
+    Ok(())
 }
 
 fn cmd_experiment(scenario: &str, out_dir: &Path) -> Result<ExitCode> {
