@@ -1589,6 +1589,8 @@ mod tests {
                 ("B_pivot_z_um", 40.0),
                 ("C_pivot_x_um", 15.0),
                 ("C_pivot_y_um", -5.0),
+                ("C_dir_x_urad", -30.0),
+                ("C_dir_y_urad", -20.0),
                 ("C_tilt_a_urad", 20.0),
                 ("C_tilt_b_urad", -30.0),
             ])

@@ -15,6 +15,9 @@
 //! - `{axis}_tilt_{a|b|c}_urad`: an identified orientation error of the line, the rotation
 //!   about the axis its name gives (an inclined axis' own frame for its own errors), right-hand
 //!   rule; `{axis}_zero_urad` an identified zero-angle error.
+//! - `{axis}_dir_{x|y|z}_urad`: the same tilts as the change of the line's unit direction
+//!   vector, per machine component (first order; the form of NCs whose kinematics take an
+//!   axis direction vector): on `table_bc` `C_dir_x_urad = EB0C`, `C_dir_y_urad = -EA0C`.
 //!
 //! Held (not identified) errors are not in a set, so they move no offset. On `table_bc` this
 //! is the convention the project has always served: `B_pivot_x_um = EX0B`,
@@ -70,6 +73,31 @@ impl NcLayout {
                     offsets.push(Offset {
                         name: format!("{}_pivot_{letter}_um", ax.name),
                         unit: "um",
+                        terms,
+                    });
+                }
+            }
+            // The direction vector's first-order change per identified tilt: o x u0.
+            let tilts: Vec<(ErrorName, Vec3)> = (2..4)
+                .map(|slot| ErrorId { axis: i, slot })
+                .filter(|id| k.identify.contains(id))
+                .map(|id| {
+                    (
+                        name_of(k, id),
+                        ax.orientation_axes[id.slot - 2].cross(&ax.u0),
+                    )
+                })
+                .collect();
+            for (c, letter) in ["x", "y", "z"].iter().enumerate() {
+                let terms: Vec<(ErrorName, f64)> = tilts
+                    .iter()
+                    .filter(|(_, v)| v[c].abs() > NEGLIGIBLE)
+                    .map(|(n, v)| (*n, v[c]))
+                    .collect();
+                if !terms.is_empty() {
+                    offsets.push(Offset {
+                        name: format!("{}_dir_{letter}_urad", ax.name),
+                        unit: "urad",
                         terms,
                     });
                 }
@@ -195,6 +223,8 @@ mod tests {
                 t("B_pivot_z_um", &[("EZ0B", 1.0)]),
                 t("C_pivot_x_um", &[("EX0C", 1.0), ("EX0B", 1.0)]),
                 t("C_pivot_y_um", &[("EY0C", 1.0)]),
+                t("C_dir_x_urad", &[("EB0C", 1.0)]),
+                t("C_dir_y_urad", &[("EA0C", -1.0)]),
                 t("C_tilt_a_urad", &[("EA0C", 1.0)]),
                 t("C_tilt_b_urad", &[("EB0C", 1.0)]),
             ]
@@ -215,6 +245,8 @@ mod tests {
                 t("D_pivot_z_um", &[("EZ0D", h)]),
                 t("C_pivot_x_um", &[("EX0C", 1.0), ("EX0D", 1.0)]),
                 t("C_pivot_y_um", &[("EY0C", 1.0), ("EZ0D", -h)]),
+                t("C_dir_x_urad", &[("EB0C", 1.0)]),
+                t("C_dir_y_urad", &[("EA0C", -1.0)]),
                 t("C_tilt_a_urad", &[("EA0C", 1.0)]),
                 t("C_tilt_b_urad", &[("EB0C", 1.0)]),
             ]
@@ -226,6 +258,8 @@ mod tests {
                 t("A_pivot_z_um", &[("EZ0A", 1.0)]),
                 t("C_pivot_x_um", &[("EX0C", 1.0)]),
                 t("C_pivot_y_um", &[("EY0C", 1.0), ("EY0A", 1.0)]),
+                t("C_dir_x_urad", &[("EB0C", 1.0)]),
+                t("C_dir_y_urad", &[("EA0C", -1.0)]),
                 t("C_tilt_a_urad", &[("EA0C", 1.0)]),
                 t("C_tilt_b_urad", &[("EB0C", 1.0)]),
             ]
@@ -234,7 +268,7 @@ mod tests {
         let hb = names(&layout("head_b_table_c"));
         assert!(hb.contains(&t("B_pivot_x_um", &[("EX0B", 1.0)])));
         assert!(hb.contains(&t("C_pivot_x_um", &[("EX0C", 1.0)])));
-        assert_eq!(names(&layout("head_d45_table_c")).len(), 7);
+        assert_eq!(names(&layout("head_d45_table_c")).len(), 9);
     }
 
     #[test]
