@@ -173,8 +173,9 @@ fn get(uri: &str) -> axum::http::Request<axum::body::Body> {
 }
 
 /// `config/fleet.toml` as shipped: four simulated machines of four families in one service.
-/// Each runs its own plan and serves compensation in its own names and NC offsets; an alert
-/// rule on an error a machine does not identify is refused at start, naming both.
+/// Each runs its own plan, fits its own thermal model and serves compensation in its own names
+/// and NC offsets; an alert rule on an error a machine does not identify is refused at start,
+/// naming both.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_shipped_fleet_runs_four_families_each_serving_its_own_compensation() {
     let dir = scratch("service-fleet");
@@ -208,13 +209,28 @@ async fn the_shipped_fleet_runs_four_families_each_serving_its_own_compensation(
 
     let svc = launch_test(cfg, None).await;
     let t0 = svc.t0();
-    // The morning's warm-up: its cycles every 30 min from power-on.
-    for k in 1..=16 {
+    // The morning's warm-up, its cycles every 30 min from power-on, and the machining after.
+    for k in 1..=28 {
         svc.run_to(t0 + k * 15 * MIN).await;
     }
     for (id, family) in &families {
         let v = view_of(&svc, id);
-        assert!(v.cycles.ok >= 2, "{id} ({family}): {:?}", v.cycles);
+        assert!(v.cycles.ok >= 6, "{id} ({family}): {:?}", v.cycles);
+        // Each machine's own thermal model, fitted on its own errors, predicting them.
+        let model = v.thermal.model.as_ref().expect("a model view");
+        assert_eq!(model.status, "fitted", "{id}: {}", model.message);
+        let predicted: Vec<&str> = v
+            .thermal
+            .prediction
+            .iter()
+            .map(|p| p.channel.as_str())
+            .collect();
+        for name in driftwatch_core::kinematics::Kinematics::load(family)
+            .unwrap()
+            .identify_names()
+        {
+            assert!(predicted.contains(&name.as_str()), "{id}: {predicted:?}");
+        }
         let k = driftwatch_core::kinematics::Kinematics::load(family).unwrap();
         let (code, _, set) = svc
             .call(get(&format!("/api/v1/machines/{id}/compensation")))
