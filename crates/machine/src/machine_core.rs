@@ -394,7 +394,7 @@ impl MachineCore {
         checks: CycleChecks,
         steps_per_cycle: usize,
         settings: &Settings,
-        restored: Restored,
+        mut restored: Restored,
         now_ns: i64,
     ) -> Result<(Self, Vec<Effect>), CoreError> {
         let mut out = Vec::new();
@@ -434,7 +434,6 @@ impl MachineCore {
             .map_err(|e| CoreError::Alerts(e.to_string()))?;
         // The NC offsets of the stored sets are this machine's, whatever the store kept.
         let layout = NcLayout::of(&k);
-        let mut restored = restored;
         let sets = restored
             .served
             .iter_mut()

@@ -63,20 +63,7 @@ impl NcLayout {
                 .filter(|(id, _)| k.identify.contains(id))
                 .map(|(id, v)| (name_of(k, id), v))
                 .collect();
-            for (c, letter) in ["x", "y", "z"].iter().enumerate() {
-                let terms: Vec<(ErrorName, f64)> = moves
-                    .iter()
-                    .filter(|(_, v)| v[c].abs() > NEGLIGIBLE)
-                    .map(|(n, v)| (*n, v[c]))
-                    .collect();
-                if !terms.is_empty() {
-                    offsets.push(Offset {
-                        name: format!("{}_pivot_{letter}_um", ax.name),
-                        unit: "um",
-                        terms,
-                    });
-                }
-            }
+            by_component(&mut offsets, &format!("{}_pivot", ax.name), "um", &moves);
             // The direction vector's first-order change per identified tilt: o x u0.
             let tilts: Vec<(ErrorName, Vec3)> = (2..4)
                 .map(|slot| ErrorId { axis: i, slot })
@@ -88,20 +75,7 @@ impl NcLayout {
                     )
                 })
                 .collect();
-            for (c, letter) in ["x", "y", "z"].iter().enumerate() {
-                let terms: Vec<(ErrorName, f64)> = tilts
-                    .iter()
-                    .filter(|(_, v)| v[c].abs() > NEGLIGIBLE)
-                    .map(|(n, v)| (*n, v[c]))
-                    .collect();
-                if !terms.is_empty() {
-                    offsets.push(Offset {
-                        name: format!("{}_dir_{letter}_urad", ax.name),
-                        unit: "urad",
-                        terms,
-                    });
-                }
-            }
+            by_component(&mut offsets, &format!("{}_dir", ax.name), "urad", &tilts);
             for slot in 2..5 {
                 let id = ErrorId { axis: i, slot };
                 if !k.identify.contains(&id) {
@@ -158,6 +132,30 @@ impl NcLayout {
 
     pub fn holds(&self, name: &str) -> bool {
         self.errors.iter().any(|n| *n == name)
+    }
+}
+
+/// One offset `{prefix}_{x|y|z}_{unit}` per machine component that any of the errors moves,
+/// each error weighted by its vector's component.
+fn by_component(
+    offsets: &mut Vec<Offset>,
+    prefix: &str,
+    unit: &'static str,
+    moves: &[(ErrorName, Vec3)],
+) {
+    for (c, letter) in ["x", "y", "z"].iter().enumerate() {
+        let terms: Vec<(ErrorName, f64)> = moves
+            .iter()
+            .filter(|(_, v)| v[c].abs() > NEGLIGIBLE)
+            .map(|(n, v)| (*n, v[c]))
+            .collect();
+        if !terms.is_empty() {
+            offsets.push(Offset {
+                name: format!("{prefix}_{letter}_{unit}"),
+                unit,
+                terms,
+            });
+        }
     }
 }
 
