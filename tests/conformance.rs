@@ -216,3 +216,68 @@ fn recordings_of_an_independent_writer_solve_to_their_truth() {
     assert!(all.len() >= 150, "{}", all.len());
     assert!((0.7..1.3).contains(&rms), "z RMS {rms:.2}");
 }
+
+/// The other machine families through a second independent writer:
+/// `tests/python/family_writer.py`, written from `docs/` and the machine and plan files alone
+/// (no Rust source), simulates `head_b_table_c` (a head axis, the NC's pivot model) and
+/// `trunnion_ac` with and without a tool-tip displacement of (30, -40, -60) um. Every cycle
+/// solves ok through the command line, within 4 sigma of the writer's apparent truth, and the
+/// z-scores have an RMS near 1.
+#[test]
+fn other_families_from_an_independent_writer_solve_to_their_truth() {
+    let dir = data().join("families");
+    let mut zs = Vec::new();
+    let mut problems = Vec::new();
+    for m in ["head_b_table_c", "trunnion_ac"] {
+        for case in ["plain", "tool_shift"] {
+            let rec = dir.join(format!("{m}_{case}.mcap"));
+            let truth = json(&dir.join(format!("{m}_{case}.mcap.truth.json")));
+            let plan = format!("{m}_patent");
+            let rec_s = rec.display().to_string();
+            let (ok, out, err) = run(&[
+                "solve",
+                "--machine",
+                m,
+                "--recording",
+                &rec_s,
+                "--plan",
+                &plan,
+                "--json",
+            ]);
+            assert!(ok, "{m} {case}: {err}");
+            let results: BTreeMap<i64, Value> = out
+                .lines()
+                .filter(|l| l.starts_with('{'))
+                .map(|l| {
+                    let v: Value = serde_json::from_str(l).unwrap();
+                    (v["cycle"].as_i64().unwrap(), v)
+                })
+                .collect();
+            let cycles = truth["cycles"].as_array().unwrap();
+            assert_eq!(results.len(), cycles.len(), "{m} {case}");
+            for tc in cycles {
+                let c = tc["cycle"].as_i64().unwrap();
+                let r = &results[&c];
+                if r["status"] != "ok" {
+                    problems.push(format!("{m} {case} cycle {c}: {}", r["reason"]));
+                    continue;
+                }
+                for (k, want) in tc["errors"].as_object().unwrap() {
+                    let z = (f(&r["errors"], k) - want.as_f64().unwrap()) / f(&r["sigma"], k);
+                    if !(z.abs() < Z_MAX) {
+                        problems.push(format!("{m} {case} cycle {c} {k}: z {z:.2}"));
+                    }
+                    zs.push(z);
+                }
+            }
+        }
+    }
+    let rms = (zs.iter().map(|z| z * z).sum::<f64>() / zs.len() as f64).sqrt();
+    println!("{} values, z RMS {rms:.3}", zs.len());
+    assert!(problems.is_empty(), "{problems:?}");
+    assert!(
+        zs.len() == 144 && (0.75..1.3).contains(&rms),
+        "{} {rms}",
+        zs.len()
+    );
+}

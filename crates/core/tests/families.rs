@@ -514,3 +514,54 @@ fn first_order_relations_agree_with_the_exact_solver_on_every_family() {
         assert!(worst.0 < 0.01 && worst.1 < 0.05, "{name}: {worst:?}");
     }
 }
+
+/// The apparent errors each family's conventions state: a tool-tip displacement s = (sx, sy,
+/// sz) moves the identified errors by these amounts (and no others), to first order.
+#[test]
+fn apparent_errors_follow_the_documented_rule_of_each_family() {
+    let (sx, sy, sz) = (3.0, -2.0, -20.0);
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    for (name, want) in [
+        (
+            "table_bc",
+            vec![("EX0B", -sx), ("EZ0B", -sz), ("EY0C", -sy), ("EX0C", 0.0)],
+        ),
+        (
+            "head_b_table_c",
+            vec![("EX0B", -sx), ("EZ0B", -sz), ("EX0C", -sx), ("EY0C", -sy)],
+        ),
+        (
+            "table_d45_c",
+            vec![
+                ("EX0D", -sx),
+                ("EZ0D", (sy - sz) * h),
+                ("EX0C", 0.0),
+                ("EY0C", -(sy + sz) / 2.0),
+            ],
+        ),
+        (
+            "head_d45_table_c",
+            vec![
+                ("EX0D", -sx),
+                ("EZ0D", (sy - sz) * h),
+                ("EX0C", -sx),
+                ("EY0C", -sy),
+            ],
+        ),
+        (
+            "trunnion_ac",
+            vec![("EY0A", -sy), ("EZ0A", -sz), ("EX0C", -sx), ("EY0C", 0.0)],
+        ),
+    ] {
+        let k = machine(name);
+        let mut s = k.nominal_state();
+        s.tool_tip = Vec3::new(sx, sy, sz) * 1e-3;
+        let a = k.apparent_state(&s);
+        for id in &k.identify {
+            let n = k.error_name(*id);
+            let got = a.loc[id.axis][id.slot] / id.scale();
+            let expect = want.iter().find(|(w, _)| *w == n).map_or(0.0, |w| w.1);
+            assert!((got - expect).abs() < 1e-9, "{name} {n}: {got} vs {expect}");
+        }
+    }
+}
