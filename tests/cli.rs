@@ -968,3 +968,58 @@ fn the_command_line_cannot_bypass_a_configuration_check() {
     );
     assert!(!data.join("driftwatch.db").exists());
 }
+
+/// `nc program` writes the golden FANUC program of the default plan, and `--check` replays a
+/// family's program on the simulator next to its plan and prints both solves.
+#[test]
+fn nc_program_writes_the_golden_file_and_checks_against_the_plan() {
+    let (ok, out, err) = run(&[
+        "nc",
+        "program",
+        "--machine",
+        "table_bc",
+        "--dialect",
+        "fanuc",
+    ]);
+    assert!(ok, "{err}");
+    let golden = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/nc/tests/golden/patent_table_bc.nc"),
+    )
+    .unwrap();
+    assert_eq!(out, golden);
+
+    let path = tmp("trunnion.ngc");
+    let (ok, out, err) = run(&[
+        "nc",
+        "program",
+        "--machine",
+        "trunnion_ac",
+        "--dialect",
+        "iso",
+        "--out",
+        path.to_str().unwrap(),
+        "--check",
+    ]);
+    assert!(ok, "{err}");
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains("G38.2") && text.contains("G0 A"), "{text}");
+    let worst = out
+        .lines()
+        .find_map(|l| l.strip_prefix("largest difference: "))
+        .unwrap_or_else(|| panic!("{out}"));
+    let um: f64 = worst.split(' ').next().unwrap().parse().unwrap();
+    assert!(um <= 0.01, "{out}");
+
+    // An increment the controls do not have is refused, naming the option.
+    let (ok, _, err) = run(&[
+        "nc",
+        "program",
+        "--machine",
+        "table_bc",
+        "--dialect",
+        "siemens",
+        "--decimals",
+        "9",
+    ]);
+    assert!(!ok && err.contains("decimals"), "{err}");
+}

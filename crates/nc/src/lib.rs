@@ -3,4 +3,7 @@
 //! moves it commands (`reader`), and compensation values become that control's variables and
 //! the program text that writes them (`offsets`). No I/O: text in, text out.
 
+pub mod check;
 pub mod dialect;
+pub mod program;
+pub mod reader;

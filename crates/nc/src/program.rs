@@ -1,0 +1,518 @@
+//! A measurement plan as a program for one control: safe moves, the spindle at the plan's
+//! speed, each approach as a skip (probing) move at its feed with a bounded travel, the latched
+//! coordinate stored under the step, a failed trip detected and reported.
+//!
+//! The program follows the plan's move list exactly (`Plan::moves`), so its run time is the
+//! plan's machine time and `reader` + a replay can check that the program measures what the
+//! plan measures. Each approach is preceded by a comment naming its step (`STEP n label`), and
+//! its latched coordinate goes to result variable `first + n - 1`.
+//!
+//! What each dialect assumes of the control, and where each variable comes from, is in
+//! `docs/nc.md`. In short:
+//! - **FANUC** (custom macro B): the program claims work offset `G54.1 P48` with a zero origin
+//!   (written by `G10 L20`) so that its coordinates are machine coordinates; `G31` skips; the
+//!   skip position is read from `#5061`-`#5063`; a move that ends at its end point did not
+//!   trip and raises macro alarm `#3000`.
+//! - **Siemens** 840D: `G500` (no settable frame); `MEAS=1` deletes the distance to go at the
+//!   probe's edge; `$AC_MEA[1]` says whether it tripped; `$AA_MM[...]` is the latched machine
+//!   coordinate; a line per approach goes to a log file with `WRITE`.
+//! - **HEIDENHAIN** (Klartext): `TCH PROBE 0` from a pre-position, the probed coordinate in a
+//!   Q parameter; the probing feed and the measuring range come from the touch-probe table, so
+//!   the program names the row values it needs (`PROBE TABLE F.. DIST..`); the control stops
+//!   with an error when no contact is made within the range.
+//! - **ISO** (RS274/NGC as LinuxCNC runs it): `G38.2` probes and errors out without contact;
+//!   `#5061`-`#5063` hold the latched position; `(LOG,...)` writes a line per approach; the
+//!   program claims `G59.3` with a zero origin.
+
+use std::fmt::Write as _;
+
+use thiserror::Error;
+
+use driftwatch_core::geometry::wrap_deg;
+use driftwatch_core::kinematics::{Kinematics, MAX_ROTARY};
+use driftwatch_core::measurement::Axis;
+use driftwatch_core::plan::{MoveKind, Plan};
+
+use crate::dialect::Dialect;
+
+#[derive(Debug, Error, PartialEq)]
+pub enum ProgramError {
+    #[error(
+        "rotary axis {0} has no NC address in this dialect (A, B, C, or D programmed as B); \
+         rename it in the machine file"
+    )]
+    NoAddress(String),
+    #[error("rotary axes {0} and {1} would share the NC address {2}")]
+    SharedAddress(String, String, char),
+    #[error("decimals must be 1..=5, not {0}")]
+    Decimals(usize),
+    #[error("plan '{plan}' has a probing move without a step; it cannot be written")]
+    ProbeWithoutStep { plan: String },
+}
+
+/// Choices a plant makes when it loads the program; the defaults are documented in
+/// `docs/nc.md` and by `driftwatch nc program --help`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProgramOptions {
+    /// FANUC `O` number, the program name elsewhere (`DW<number>`).
+    pub number: u32,
+    /// M code that unclamps the rotary axes before an index (empty: the PLC does it).
+    pub unclamp: String,
+    /// M code that clamps them after.
+    pub clamp: String,
+    /// Decimals of positions and angles: the control's least input increment (3: 0.001 mm).
+    pub decimals: usize,
+    /// The first result variable (FANUC `#`, Siemens `R`, HEIDENHAIN `Q`, ISO `#`).
+    pub first_result: u32,
+}
+
+impl ProgramOptions {
+    pub fn defaults(d: Dialect) -> Self {
+        ProgramOptions {
+            number: 9100,
+            unclamp: "M11".into(),
+            clamp: "M10".into(),
+            decimals: 3,
+            first_result: match d {
+                // FANUC common variables #500-#999 are kept over power-off.
+                Dialect::Fanuc => 601,
+                Dialect::Siemens => 101,
+                // TNC: Q1600-Q1999 are free for the user.
+                Dialect::Heidenhain => 1601,
+                Dialect::Iso => 1001,
+            },
+        }
+    }
+}
+
+/// Where one approach's latched coordinate is left.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResultSlot {
+    /// 1-based approach number in the program.
+    pub number: usize,
+    pub label: String,
+    /// The variable as the control names it (`#601`, `R101`, `Q1601`, `#1001`).
+    pub variable: String,
+    pub axis: Axis,
+}
+
+#[derive(Debug, Clone)]
+pub struct Program {
+    pub dialect: Dialect,
+    pub text: String,
+    pub results: Vec<ResultSlot>,
+    /// The variable that holds the number of the approach running (the failed one after a
+    /// no-trip alarm) and the one set to 1 when the cycle completes.
+    pub step_variable: String,
+    pub done_variable: String,
+}
+
+/// The NC address of each rotary axis (index as in `Kinematics::rotary`).
+pub fn rotary_addresses(k: &Kinematics) -> Result<Vec<char>, ProgramError> {
+    let mut out: Vec<char> = Vec::new();
+    for (i, ax) in k.rotary.iter().enumerate() {
+        // `D` is the tool-radius offset word on every control: an inclined axis is
+        // programmed under the letter of the axis it replaces (B on the 45-degree heads).
+        let a = match ax.name.as_str() {
+            "A" => 'A',
+            "B" | "D" => 'B',
+            "C" => 'C',
+            _ => return Err(ProgramError::NoAddress(ax.name.clone())),
+        };
+        if let Some(j) = out.iter().position(|b| *b == a) {
+            return Err(ProgramError::SharedAddress(
+                k.rotary[j].name.clone(),
+                k.rotary[i].name.clone(),
+                a,
+            ));
+        }
+        out.push(a);
+    }
+    Ok(out)
+}
+
+fn variable(d: Dialect, n: u32) -> String {
+    match d {
+        Dialect::Fanuc | Dialect::Iso => format!("#{n}"),
+        Dialect::Siemens => format!("R{n}"),
+        Dialect::Heidenhain => format!("Q{n}"),
+    }
+}
+
+/// The program text of `plan` on machine `k` in dialect `d`.
+pub fn write(
+    k: &Kinematics,
+    plan: &Plan,
+    d: Dialect,
+    opts: &ProgramOptions,
+) -> Result<Program, ProgramError> {
+    if !(1..=5).contains(&opts.decimals) {
+        return Err(ProgramError::Decimals(opts.decimals));
+    }
+    let addresses = rotary_addresses(k)?;
+    let mut w = Writer {
+        d,
+        out: String::new(),
+        line: 0,
+        decimals: opts.decimals,
+        addresses,
+    };
+    let step_var = variable(d, opts.first_result - 1);
+    let done_var = variable(d, opts.first_result - 2);
+    let results: Vec<ResultSlot> = plan
+        .steps
+        .iter()
+        .enumerate()
+        .map(|(i, s)| ResultSlot {
+            number: i + 1,
+            label: s.label.clone(),
+            variable: variable(d, opts.first_result + i as u32),
+            axis: s.approach.axis,
+        })
+        .collect();
+    w.header(k, plan, opts, &results, &step_var, &done_var);
+    // Where the plan's layout starts: the zero pose over the machine origin at the safe Z.
+    let mut pos = [f64::NAN; 3];
+    let mut angles = [f64::NAN; MAX_ROTARY];
+    w.rapid(&mut pos, [None, None, Some(k.motion.safe_z_mm)]);
+    w.rapid(&mut pos, [Some(0.0), Some(0.0), None]);
+    w.index(&mut angles, &[0.0; MAX_ROTARY], k.rotary.len(), opts);
+    w.spindle(plan.config.spindle_rpm);
+    for m in &plan.moves {
+        match m.kind {
+            MoveKind::Rapid => w.rapid(&mut pos, m.to.map(Some)),
+            MoveKind::Rotary => w.index(&mut angles, &m.angles_deg, k.rotary.len(), opts),
+            MoveKind::Dwell => {
+                if let Some(i) = m.step {
+                    w.comment(&format!("STEP {} {}", i + 1, plan.steps[i].label));
+                }
+                w.dwell(m.duration_s);
+            }
+            MoveKind::Probe => {
+                let i = m.step.ok_or_else(|| ProgramError::ProbeWithoutStep {
+                    plan: plan.name.clone(),
+                })?;
+                let s = &plan.steps[i];
+                let ax = s.approach.axis.index();
+                let mut end = pos;
+                end[ax] = s.start[ax] + f64::from(s.approach.direction) * s.max_travel_mm;
+                w.skip(
+                    i + 1,
+                    &results[i],
+                    &step_var,
+                    (s.approach.axis, s.approach.direction),
+                    (pos, end),
+                    s.approach.feed_mm_min,
+                );
+                // Where the skip stops is the measurement: the next rapid names every axis it
+                // moves from there.
+                pos[ax] = f64::NAN;
+            }
+        }
+    }
+    w.footer(&done_var, &step_var, opts.number);
+    Ok(Program {
+        dialect: d,
+        text: w.out,
+        results,
+        step_variable: step_var,
+        done_variable: done_var,
+    })
+}
+
+struct Writer {
+    d: Dialect,
+    out: String,
+    /// HEIDENHAIN block number.
+    line: usize,
+    decimals: usize,
+    addresses: Vec<char>,
+}
+
+impl Writer {
+    fn emit(&mut self, text: &str) {
+        if self.d == Dialect::Heidenhain {
+            let _ = writeln!(self.out, "{} {text}", self.line);
+            self.line += 1;
+        } else {
+            let _ = writeln!(self.out, "{text}");
+        }
+    }
+
+    fn comment(&mut self, text: &str) {
+        match self.d {
+            Dialect::Fanuc | Dialect::Iso => self.emit(&format!("({text})")),
+            Dialect::Siemens | Dialect::Heidenhain => self.emit(&format!("; {text}")),
+        }
+    }
+
+    /// A coordinate word: `X12.345`, HEIDENHAIN `X+12.345`.
+    fn word(&self, letter: char, v: f64) -> String {
+        // Negative zero after rounding reads as "-0.000"; print it as zero.
+        let scale = 10f64.powi(self.decimals as i32);
+        let v = (v * scale).round() / scale + 0.0;
+        match self.d {
+            Dialect::Heidenhain => format!("{letter}{v:+.*}", self.decimals),
+            _ => format!("{letter}{v:.*}", self.decimals),
+        }
+    }
+
+    fn header(
+        &mut self,
+        k: &Kinematics,
+        plan: &Plan,
+        opts: &ProgramOptions,
+        results: &[ResultSlot],
+        step_var: &str,
+        done_var: &str,
+    ) {
+        let title = format!(
+            "DRIFTWATCH PLAN {} ON {} - GENERATED, DO NOT EDIT",
+            plan.name, k.name
+        );
+        match self.d {
+            Dialect::Fanuc => {
+                self.emit("%");
+                self.emit(&format!("O{:04} ({title})", opts.number));
+            }
+            Dialect::Heidenhain => self.emit(&format!("BEGIN PGM DW{} MM", opts.number)),
+            Dialect::Siemens => self.comment(&format!("DW{} {title}", opts.number)),
+            Dialect::Iso => {
+                self.emit("%");
+                self.comment(&format!("DW{} {title}", opts.number));
+            }
+        }
+        self.comment(&format!(
+            "TOOL {} IN THE SPINDLE, SETTER BEAM CLEAR; MACHINE TIME {:.1} S",
+            k.tool_id, plan.machine_time_s
+        ));
+        self.comment(&format!(
+            "RESULTS {}..{} LATCHED COORDINATE PER STEP, {step_var} STEP RUNNING, {done_var} 1 WHEN DONE",
+            results.first().map_or("", |r| r.variable.as_str()),
+            results.last().map_or("", |r| r.variable.as_str()),
+        ));
+        let travel = plan.steps.first().map_or(0.0, |s| s.max_travel_mm);
+        match self.d {
+            Dialect::Fanuc => {
+                self.emit("G21 G90 G17 G40 G49 G80 G94");
+                self.comment("WORK OFFSET G54.1 P48 IS SET TO ZERO: COORDINATES ARE MACHINE");
+                let rot: String = self.addresses.iter().map(|a| format!(" {a}0")).collect();
+                self.emit(&format!("G10 L20 P48 X0 Y0 Z0{rot}"));
+                self.emit("G54.1 P48");
+                self.emit(&format!("{done_var}=0"));
+            }
+            Dialect::Siemens => {
+                self.emit("DEF INT DW_ERR");
+                self.emit("G71 G90 G17 G40 G94 G500");
+                self.emit(&format!("{done_var}=0"));
+            }
+            Dialect::Heidenhain => {
+                self.comment(&format!(
+                    "PROBE TABLE F{} DIST{}",
+                    fmt_plain(plan.config.feed_mm_min),
+                    fmt_plain(travel)
+                ));
+                self.comment("ACTIVE PRESET ALL ZERO: COORDINATES ARE MACHINE");
+                self.emit(&format!("FN 0: {done_var} = +0"));
+            }
+            Dialect::Iso => {
+                self.emit("G21 G90 G17 G40 G49 G94");
+                let rot: String = self.addresses.iter().map(|a| format!(" {a}0")).collect();
+                self.emit(&format!("G10 L2 P9 X0 Y0 Z0{rot}"));
+                self.emit("G59.3");
+                self.emit(&format!(
+                    "(LOGOPEN,dw{}_{}.log)",
+                    opts.number,
+                    plan.name.replace(['/', ' '], "_")
+                ));
+                self.emit(&format!("{done_var}=0"));
+            }
+        }
+    }
+
+    fn spindle(&mut self, rpm: f64) {
+        let rpm = rpm.round() as i64;
+        match self.d {
+            Dialect::Fanuc => self.emit(&format!("S{rpm} M03")),
+            Dialect::Siemens | Dialect::Iso => self.emit(&format!("S{rpm} M3")),
+            Dialect::Heidenhain => {
+                self.emit(&format!("TOOL CALL Z S{rpm}"));
+                self.emit("L M3");
+            }
+        }
+    }
+
+    /// A rapid to the given coordinates (None: unchanged); nothing when nothing moves.
+    fn rapid(&mut self, pos: &mut [f64; 3], to: [Option<f64>; 3]) {
+        let mut words = Vec::new();
+        for (i, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+            if let Some(v) = to[i] {
+                let moved = self.word(letter, v) != self.word(letter, pos[i]);
+                if moved || pos[i].is_nan() {
+                    words.push(self.word(letter, v));
+                }
+                pos[i] = v;
+            }
+        }
+        if words.is_empty() {
+            return;
+        }
+        let w = words.join(" ");
+        match self.d {
+            Dialect::Fanuc => self.emit(&format!("G00 {w}")),
+            Dialect::Siemens | Dialect::Iso => self.emit(&format!("G0 {w}")),
+            Dialect::Heidenhain => self.emit(&format!("L {w} R0 FMAX")),
+        }
+    }
+
+    /// Unclamp, index the rotary axes, clamp; nothing when no axis moves.
+    fn index(&mut self, angles: &mut [f64], to: &[f64], n: usize, opts: &ProgramOptions) {
+        let moved = (0..n).any(|i| angles[i].is_nan() || wrap_deg(angles[i] - to[i]).abs() > 1e-9);
+        if !moved {
+            return;
+        }
+        let words: Vec<String> = (0..n)
+            .map(|i| self.word(self.addresses[i], to[i]))
+            .collect();
+        angles[..n].copy_from_slice(&to[..n]);
+        let m = |s: &mut Self, code: &str| {
+            if code.is_empty() {
+                return;
+            }
+            match s.d {
+                Dialect::Heidenhain => s.emit(&format!("L {code}")),
+                _ => s.emit(code),
+            }
+        };
+        m(self, &opts.unclamp);
+        let w = words.join(" ");
+        match self.d {
+            Dialect::Fanuc => self.emit(&format!("G00 {w}")),
+            Dialect::Siemens | Dialect::Iso => self.emit(&format!("G0 {w}")),
+            Dialect::Heidenhain => self.emit(&format!("L {w} R0 FMAX")),
+        }
+        m(self, &opts.clamp);
+    }
+
+    fn dwell(&mut self, s: f64) {
+        if s <= 0.0 {
+            return;
+        }
+        let s = fmt_plain(s);
+        match self.d {
+            Dialect::Fanuc => self.emit(&format!("G04 X{s}")),
+            Dialect::Siemens => self.emit(&format!("G4 F{s}")),
+            Dialect::Iso => self.emit(&format!("G4 P{s}")),
+            Dialect::Heidenhain => {
+                self.emit("CYCL DEF 9.0 DWELL TIME");
+                self.emit(&format!("CYCL DEF 9.1 DWELL {s}"));
+            }
+        }
+    }
+
+    /// One approach: the skip move from `start` towards `end` (the bounded travel), the latched
+    /// coordinate stored, a move that reached its end reported as no trip.
+    fn skip(
+        &mut self,
+        number: usize,
+        slot: &ResultSlot,
+        step_var: &str,
+        (axis, direction): (Axis, i8),
+        (start, end): ([f64; 3], [f64; 3]),
+        feed: f64,
+    ) {
+        let letter = axis.name().to_ascii_uppercase();
+        let l = letter.chars().next().unwrap_or('Z');
+        let target = self.word(l, end[axis.index()]);
+        let f = fmt_plain(feed);
+        let var = slot.variable.clone();
+        match self.d {
+            Dialect::Fanuc => {
+                self.emit(&format!("{step_var}={number}"));
+                self.emit(&format!("G31 {target} F{f}"));
+                let sys = 5061 + axis.index();
+                self.emit(&format!("{var}=#{sys}"));
+                // Without a skip signal the block ends at its end point.
+                let end_v = &target[1..];
+                self.emit(&format!("IF[ABS[#{sys}-[{end_v}]]LT0.0005]GOTO9001"));
+            }
+            Dialect::Siemens => {
+                self.emit(&format!("{step_var}={number}"));
+                self.emit(&format!("MEAS=1 G1 {target} F{f}"));
+                self.emit("STOPRE");
+                self.emit("IF $AC_MEA[1]==0 GOTO NOTRIP");
+                self.emit(&format!("{var}=$AA_MM[{letter}]"));
+                self.emit(&format!(
+                    "WRITE(DW_ERR,\"DRIFTWATCH_LOG\",\"{} {} \"<<{var})",
+                    number, slot.label
+                ));
+            }
+            Dialect::Heidenhain => {
+                let sign = if direction > 0 { '+' } else { '-' };
+                self.emit(&format!("FN 0: {step_var} = +{number}"));
+                self.emit(&format!("TCH PROBE 0.0 REF. PLANE {var} {letter}{sign}"));
+                let pre: Vec<String> = ['X', 'Y', 'Z']
+                    .into_iter()
+                    .enumerate()
+                    .map(|(i, c)| self.word(c, start[i]))
+                    .collect();
+                self.emit(&format!("TCH PROBE 0.1 {}", pre.join(" ")));
+            }
+            Dialect::Iso => {
+                self.emit(&format!("{step_var}={number}"));
+                self.emit(&format!("G38.2 {target} F{f}"));
+                let sys = 5061 + axis.index();
+                self.emit(&format!("{var}=#{sys}"));
+                self.emit(&format!("(LOG,{number} {} #{sys})", slot.label));
+            }
+        }
+    }
+
+    fn footer(&mut self, done_var: &str, step_var: &str, number: u32) {
+        match self.d {
+            Dialect::Fanuc => {
+                self.emit(&format!("{done_var}=1"));
+                self.emit("M05");
+                self.emit("M30");
+                self.emit(&format!(
+                    "N9001 #3000=1(DRIFTWATCH NO TRIP - STEP IN {step_var})"
+                ));
+                self.emit("%");
+            }
+            Dialect::Siemens => {
+                self.emit(&format!("{done_var}=1"));
+                self.emit("M5");
+                self.emit("M30");
+                self.emit("NOTRIP:");
+                self.emit(&format!(
+                    "MSG(\"DRIFTWATCH: NO TRIP AT STEP \"<<{step_var})"
+                ));
+                self.emit("SETAL(65100)");
+                self.emit("M30");
+            }
+            Dialect::Heidenhain => {
+                self.emit(&format!("FN 0: {done_var} = +1"));
+                self.emit("L M5");
+                self.emit(&format!("END PGM DW{number} MM"));
+            }
+            Dialect::Iso => {
+                self.emit(&format!("{done_var}=1"));
+                self.emit("(LOGCLOSE)");
+                self.emit("M5");
+                self.emit("M2");
+                self.emit("%");
+            }
+        }
+    }
+}
+
+/// A number without trailing zeros (`100`, `0.5`, `2.5`).
+fn fmt_plain(v: f64) -> String {
+    let s = format!("{v:.4}");
+    let s = s.trim_end_matches('0').trim_end_matches('.');
+    if s.is_empty() || s == "-" {
+        "0".into()
+    } else {
+        s.to_string()
+    }
+}

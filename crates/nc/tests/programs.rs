@@ -1,0 +1,203 @@
+//! Measurement programs: each dialect's program for the default plan is a golden file, read
+//! back and replayed through the truth simulator; every family's plan in every dialect reads
+//! back to the plan's own approaches and machine time; a bad program is refused by line.
+
+use std::path::PathBuf;
+
+use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::measurement::latched;
+use driftwatch_core::plan::{Plan, PlanConfig};
+use driftwatch_nc::check::against_truth;
+use driftwatch_nc::dialect::Dialect;
+use driftwatch_nc::program::{ProgramOptions, write};
+use driftwatch_nc::reader::{Block, ReadError, ReplayError, read, replay};
+use driftwatch_sim::scenario::Scenario;
+
+const FAMILIES: [&str; 5] = [
+    "table_bc",
+    "head_b_table_c",
+    "table_d45_c",
+    "head_d45_table_c",
+    "trunnion_ac",
+];
+
+fn plan_of(machine: &str) -> (Kinematics, Plan) {
+    let k = Kinematics::builtin(machine).unwrap();
+    let cfg = PlanConfig::load(&k.config.plan).unwrap();
+    let plan = Plan::build(&k, &cfg).unwrap();
+    (k, plan)
+}
+
+fn program(k: &Kinematics, plan: &Plan, d: Dialect) -> String {
+    write(k, plan, d, &ProgramOptions::defaults(d))
+        .unwrap()
+        .text
+}
+
+fn golden(d: Dialect) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/golden")
+        .join(format!("patent_table_bc.{}", d.extension()))
+}
+
+/// The default plan's program in each dialect is the golden file, byte for byte (run with
+/// `DRIFTWATCH_BLESS=1` to rewrite them after a deliberate change, and review the diff).
+#[test]
+fn default_programs_match_their_golden_files() {
+    let (k, plan) = plan_of("table_bc");
+    for d in Dialect::ALL {
+        let text = program(&k, &plan, d);
+        let path = golden(d);
+        if std::env::var_os("DRIFTWATCH_BLESS").is_some() {
+            std::fs::write(&path, &text).unwrap();
+        }
+        let want = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(
+            text,
+            want,
+            "{d}: the program differs from {}",
+            path.display()
+        );
+    }
+}
+
+/// The golden programs, read and replayed on the patent's warm machine, measure what the
+/// plan measures: the same errors within 0.01 um / 0.1 urad and the same run time.
+#[test]
+fn golden_programs_replayed_solve_to_the_plans_errors() {
+    let (k, plan) = plan_of("table_bc");
+    let scn = Scenario::load("patent").unwrap();
+    for d in Dialect::ALL {
+        let text = std::fs::read_to_string(golden(d)).unwrap();
+        let c = against_truth(&k, &plan, &text, d, &scn, 40.0).unwrap();
+        assert_eq!(c.approaches, plan.steps.len(), "{d}");
+        assert_eq!(c.errors.len(), k.identify.len(), "{d}");
+        // The machine is warm: the errors are not all zero, so agreement means something.
+        assert!(
+            c.errors.iter().any(|e| e.plan.abs() > 1.0),
+            "{d}: {:?}",
+            c.errors
+        );
+        assert!(c.worst("um") <= 0.01, "{d}: {:?}", c.errors);
+        assert!(c.worst("urad") <= 0.1, "{d}: {:?}", c.errors);
+        assert!(
+            (c.program_time_s - c.plan_time_at_trips_s).abs() < 0.01,
+            "{d}: program {} s, plan {} s at the same trips ({} s nominal)",
+            c.program_time_s,
+            c.plan_time_at_trips_s,
+            c.plan_time_s
+        );
+    }
+}
+
+/// Every family's own plan, in every dialect, reads back to the plan's approaches in order
+/// (label, pose, start, axis, sense, feed, travel) and replays in the plan's machine time.
+#[test]
+fn every_family_reads_back_to_its_plan() {
+    for machine in FAMILIES {
+        let (k, plan) = plan_of(machine);
+        let nominal = k.nominal_state();
+        for d in Dialect::ALL {
+            let text = program(&k, &plan, d);
+            let p = read(&text, d).unwrap_or_else(|e| panic!("{machine} {d}: {e}"));
+            let r = replay(&k, &p, |a| {
+                let s = &plan.steps[a.number - 1];
+                let start =
+                    driftwatch_core::geometry::Vec3::new(a.start[0], a.start[1], a.start[2]);
+                latched(&k, &nominal, &a.angles, &s.approach, &start, None).ok()
+            })
+            .unwrap_or_else(|e| panic!("{machine} {d}: {e}"));
+            assert_eq!(r.approaches.len(), plan.steps.len(), "{machine} {d}");
+            for ((a, v), s) in r.approaches.iter().zip(&plan.steps) {
+                let what = format!("{machine} {d} {}", s.label);
+                assert_eq!(a.label, s.label, "{what}");
+                assert_eq!(a.axis, s.approach.axis, "{what}");
+                assert_eq!(a.direction, s.approach.direction, "{what}");
+                assert_eq!(a.feed_mm_min, s.approach.feed_mm_min, "{what}");
+                assert!((a.travel_mm - s.max_travel_mm).abs() < 1e-3, "{what}");
+                for i in 0..k.rotary.len() {
+                    assert!((a.angles[i] - s.angles[i]).abs() < 1e-3, "{what}");
+                }
+                for i in 0..3 {
+                    assert!((a.start[i] - s.start[i]).abs() <= 5e-4, "{what}");
+                }
+                assert!(
+                    (v - s.expected).abs() < 2e-3,
+                    "{what}: {v} vs {}",
+                    s.expected
+                );
+                assert!((a.t_start_s - s.t_start_s).abs() < 0.01, "{what}");
+            }
+            assert!(
+                (r.run_time_s - plan.machine_time_s).abs() < 0.01,
+                "{machine} {d}: {} vs {}",
+                r.run_time_s,
+                plan.machine_time_s
+            );
+        }
+    }
+}
+
+/// A program that does not say what driftwatch wrote is refused with its line.
+#[test]
+fn a_changed_program_is_refused_by_line() {
+    let (k, plan) = plan_of("table_bc");
+    let text = program(&k, &plan, Dialect::Fanuc);
+    let incremental = text.replacen("G21 G90", "G21 G91", 1);
+    match read(&incremental, Dialect::Fanuc) {
+        Err(ReadError::Line { line, message, .. }) => {
+            assert_eq!(
+                line,
+                1 + text.lines().position(|l| l.starts_with("G21")).unwrap()
+            );
+            assert!(message.contains("G91"), "{message}");
+        }
+        other => panic!("G91 read as {other:?}"),
+    }
+    // The result no longer stored: the skip is not paired.
+    let unstored = text.replacen("#601=#5063", "#601=1", 1);
+    assert!(read(&unstored, Dialect::Fanuc).is_err());
+    // Truncated: no end block.
+    let cut: String = text.lines().take(40).map(|l| format!("{l}\n")).collect();
+    assert_eq!(read(&cut, Dialect::Fanuc), Err(ReadError::NoEnd));
+    let siemens = program(&k, &plan, Dialect::Siemens).replacen("$AA_MM[Z]", "$AA_MW[Z]", 1);
+    assert!(read(&siemens, Dialect::Siemens).is_err());
+}
+
+/// An approach that does not trip stops the replay, naming it; the program has the check
+/// that makes a real control stop there too.
+#[test]
+fn a_failed_trip_stops_the_program() {
+    let (k, plan) = plan_of("table_bc");
+    for d in Dialect::ALL {
+        let text = program(&k, &plan, d);
+        let p = read(&text, d).unwrap();
+        let third = plan.steps[2].label.clone();
+        let r = replay(&k, &p, |a| (a.number != 3).then_some(0.0));
+        assert_eq!(
+            r.map(|_| ()),
+            Err(ReplayError::NoTrip {
+                number: 3,
+                label: third
+            }),
+            "{d}"
+        );
+        let check = match d {
+            Dialect::Fanuc => "GOTO9001",
+            Dialect::Siemens => "IF $AC_MEA[1]==0 GOTO NOTRIP",
+            // The TNC and LinuxCNC stop by themselves when a probing move makes no contact.
+            Dialect::Heidenhain => "TCH PROBE 0.0",
+            Dialect::Iso => "G38.2",
+        };
+        assert_eq!(
+            text.matches(check).count(),
+            plan.steps.len(),
+            "{d}: one check per approach"
+        );
+        assert!(
+            p.blocks
+                .iter()
+                .any(|b| matches!(b, Block::Spindle(s) if *s == plan.config.spindle_rpm))
+        );
+    }
+}
