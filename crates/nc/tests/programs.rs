@@ -201,3 +201,108 @@ fn a_failed_trip_stops_the_program() {
         );
     }
 }
+
+/// A move as both readers see it: kind, the axis words with their values (f32 precision, as
+/// the `gcode` crate keeps them).
+fn moves_of_reader(blocks: &[Block]) -> Vec<(String, Vec<(char, f32)>)> {
+    blocks
+        .iter()
+        .map(|b| match b {
+            Block::Spindle(s) => ("spindle".to_string(), vec![('S', *s as f32)]),
+            Block::Rapid(to) => (
+                "rapid".to_string(),
+                ['X', 'Y', 'Z']
+                    .into_iter()
+                    .zip(to)
+                    .filter_map(|(c, v)| v.map(|v| (c, v as f32)))
+                    .collect(),
+            ),
+            Block::Index(w) => (
+                "rapid".to_string(),
+                w.iter().map(|(c, v)| (*c, *v as f32)).collect(),
+            ),
+            Block::Dwell(s) => ("dwell".to_string(), vec![('T', *s as f32)]),
+            Block::Skip {
+                axis, end, feed, ..
+            } => (
+                "skip".to_string(),
+                vec![
+                    (
+                        axis.name().to_ascii_uppercase().chars().next().unwrap(),
+                        *end as f32,
+                    ),
+                    ('F', *feed as f32),
+                ],
+            ),
+        })
+        .collect()
+}
+
+fn moves_of_gcode_crate(text: &str) -> Vec<(String, Vec<(char, f32)>)> {
+    // The crate reads G-code words, not macro statements: leave out the assignments, the
+    // trip checks and the alarm block (the project's own reader checks those).
+    let words: String = text
+        .lines()
+        .filter(|l| !(l.starts_with('#') || l.starts_with("IF") || l.starts_with("N9001")))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let program = gcode::parse(&words).unwrap_or_else(|d| panic!("{d:?}"));
+    let lit = |v: &gcode::Value| match v {
+        gcode::Value::Literal(x) => *x,
+        other => panic!("{other:?}"),
+    };
+    let mut out = Vec::new();
+    for b in &program.blocks {
+        let s_word = b.word_addresses.iter().find(|w| w.letter == 'S');
+        for code in &b.codes {
+            match code {
+                gcode::Code::General(g) => {
+                    let args: Vec<(char, f32)> =
+                        g.args.iter().map(|a| (a.letter, lit(&a.value))).collect();
+                    match g.number.to_string().as_str() {
+                        "0" => out.push(("rapid".to_string(), args)),
+                        "31" | "38.2" => out.push(("skip".to_string(), args)),
+                        "4" => out.push(("dwell".to_string(), vec![('T', args[0].1)])),
+                        _ => {}
+                    }
+                }
+                gcode::Code::Miscellaneous(m) => match m.number.to_string().as_str() {
+                    "3" => out.push((
+                        "spindle".to_string(),
+                        vec![('S', lit(&s_word.expect("M3 with S").value))],
+                    )),
+                    "5" => out.push(("spindle".to_string(), vec![('S', 0.0)])),
+                    _ => {}
+                },
+                _ => {}
+            }
+        }
+    }
+    out
+}
+
+/// The `gcode` crate, an independent parser, reads the same moves from the FANUC and ISO
+/// programs of every family as the project's reader does.
+#[test]
+fn an_independent_gcode_parser_reads_the_same_moves() {
+    for machine in FAMILIES {
+        let (k, plan) = plan_of(machine);
+        for d in [Dialect::Fanuc, Dialect::Iso] {
+            let text = program(&k, &plan, d);
+            let ours = moves_of_reader(&read(&text, d).unwrap().blocks);
+            let theirs = moves_of_gcode_crate(&text);
+            assert_eq!(ours.len(), theirs.len(), "{machine} {d}");
+            for (i, (a, b)) in ours.iter().zip(&theirs).enumerate() {
+                assert_eq!(a.0, b.0, "{machine} {d} move {i}");
+                assert_eq!(a.1.len(), b.1.len(), "{machine} {d} move {i}: {a:?} {b:?}");
+                for ((ca, va), (cb, vb)) in a.1.iter().zip(&b.1) {
+                    assert_eq!(ca, cb, "{machine} {d} move {i}");
+                    assert!(
+                        (va - vb).abs() <= 1e-4 * va.abs().max(1.0),
+                        "{machine} {d} move {i}"
+                    );
+                }
+            }
+        }
+    }
+}
