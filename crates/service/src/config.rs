@@ -372,7 +372,7 @@ impl ServiceConfig {
             && self.time_scale != 1.0
         {
             return bad(format!(
-                "time_scale is {}: a real NC ({} on machine '{}') runs on the wall clock, time_scale = 1.0",
+                "time_scale is {}: a real NC ({}) runs on the wall clock, time_scale = 1.0 (machine '{}')",
                 self.time_scale,
                 m.link.kind(),
                 m.id
@@ -537,7 +537,7 @@ mod tests {
             (
                 "time_scale = 1.0",
                 "time_scale = 60.0",
-                "mtconnect on machine 'sim-1'",
+                "a real NC (mtconnect) runs on the wall clock",
             ),
             ("poll_ms = 1000", "poll_ms = 0", "poll_ms"),
             ("count = 1000", "count = 0", "count"),
