@@ -164,9 +164,12 @@ fn the_documented_example_in_the_default_configuration_parses() {
     let cfg = driftwatch_service::config::ServiceConfig::from_toml(&with, "t").unwrap();
     assert_eq!(cfg.webhooks.len(), 1);
     assert_eq!(cfg.webhooks[0].max_attempts, 8);
-    let bad = with.replace("http://127.0.0.1:9000", "https://127.0.0.1:9000");
+    // https is built in; a ca_cert is for https receivers only.
+    let tls = with.replace("http://127.0.0.1:9000", "https://127.0.0.1:9000");
+    assert!(driftwatch_service::config::ServiceConfig::from_toml(&tls, "t").is_ok());
+    let bad = format!("{with}ca_cert = \"plant-ca.pem\"\n");
     let e = driftwatch_service::config::ServiceConfig::from_toml(&bad, "t")
         .unwrap_err()
         .to_string();
-    assert!(e.contains("https"), "{e}");
+    assert!(e.contains("ca_cert is for https"), "{e}");
 }

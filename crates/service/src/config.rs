@@ -98,6 +98,35 @@ pub enum LinkConfig {
         #[serde(default = "default_max_behind_s")]
         max_behind_s: f64,
     },
+    /// An MTConnect agent's `current` and `sample` streams, followed over HTTP. It observes
+    /// only: MTConnect takes no orders, so no cycle is ordered through it.
+    Mtconnect {
+        /// The agent's base URL, `http://host:5000` (or `https://`).
+        agent: String,
+        /// The device's name or uuid at the agent (every device of the agent when absent).
+        #[serde(default)]
+        device: Option<String>,
+        /// The data item ids mapped to the recording's topics.
+        items: crate::mtconnect::Items,
+        /// Wait between two `sample` requests while the agent has nothing more, ms.
+        #[serde(default = "default_poll_ms")]
+        poll_ms: u64,
+        /// Observations asked for per `sample` request.
+        #[serde(default = "default_count")]
+        count: u32,
+        #[serde(default = "default_max_ahead_s")]
+        max_ahead_s: f64,
+        #[serde(default = "default_max_behind_s")]
+        max_behind_s: f64,
+    },
+}
+
+fn default_poll_ms() -> u64 {
+    1000
+}
+
+fn default_count() -> u32 {
+    1000
 }
 
 fn default_max_ahead_s() -> f64 {
@@ -109,12 +138,32 @@ fn default_max_behind_s() -> f64 {
 }
 
 impl LinkConfig {
-    /// The clock tolerance of an `nc_push` link (none for the simulator, which is the clock).
+    /// A real machine (on the wall clock), not the simulator.
+    pub fn is_real(&self) -> bool {
+        !matches!(self, LinkConfig::Simulated { .. })
+    }
+
+    /// The `kind` as configured.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            LinkConfig::Simulated { .. } => "simulated",
+            LinkConfig::NcPush { .. } => "nc_push",
+            LinkConfig::Mtconnect { .. } => "mtconnect",
+        }
+    }
+
+    /// The clock tolerance of a real machine's link (none for the simulator, which is the
+    /// clock).
     pub fn clock_tolerance(&self) -> Option<crate::nc_push::ClockTolerance> {
         match self {
             LinkConfig::NcPush {
                 max_ahead_s,
                 max_behind_s,
+            }
+            | LinkConfig::Mtconnect {
+                max_ahead_s,
+                max_behind_s,
+                ..
             } => Some(crate::nc_push::ClockTolerance {
                 ahead_ns: (max_ahead_s * 1e9) as i64,
                 behind_ns: (max_behind_s * 1e9) as i64,
@@ -122,6 +171,54 @@ impl LinkConfig {
             LinkConfig::Simulated { .. } => None,
         }
     }
+}
+
+/// An `mtconnect` link's own checks (nothing for the other kinds).
+fn validate_mtconnect(link: &LinkConfig) -> Result<(), String> {
+    let LinkConfig::Mtconnect {
+        agent,
+        device,
+        items,
+        poll_ms,
+        count,
+        ..
+    } = link
+    else {
+        return Ok(());
+    };
+    crate::mtconnect_link::endpoint(agent, device.as_deref(), "current")
+        .map_err(|e| e.to_string())?;
+    if !(50..=600_000).contains(poll_ms) {
+        return Err(format!("poll_ms must be from 50 to 600000, not {poll_ms}"));
+    }
+    if !(1..=100_000).contains(count) {
+        return Err(format!("count must be from 1 to 100000, not {count}"));
+    }
+    let mut ids: Vec<&str> = vec![&items.spindle_speed, &items.execution];
+    ids.extend(items.controller_mode.as_deref());
+    ids.extend(items.temperatures.values().map(String::as_str));
+    if ids.iter().any(|i| i.trim().is_empty()) {
+        return Err("an MTConnect data item id is empty".into());
+    }
+    let mut sorted = ids.clone();
+    sorted.sort_unstable();
+    if let Some(w) = sorted.windows(2).find(|w| w[0] == w[1]) {
+        return Err(format!(
+            "data item '{}' is mapped twice: each id maps to one topic",
+            w[0]
+        ));
+    }
+    let max = driftwatch_core::kinematics::MAX_NAME_CHARS;
+    if let Some(s) = items
+        .temperatures
+        .keys()
+        .find(|s| s.is_empty() || s.chars().count() > max)
+    {
+        return Err(format!(
+            "temperature sensor name '{s}' must have 1 to {max} characters"
+        ));
+    }
+    Ok(())
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -249,6 +346,11 @@ impl ServiceConfig {
             if let LinkConfig::NcPush {
                 max_ahead_s,
                 max_behind_s,
+            }
+            | LinkConfig::Mtconnect {
+                max_ahead_s,
+                max_behind_s,
+                ..
             } = m.link
                 && !(driftwatch_core::units::positive(max_ahead_s)
                     && driftwatch_core::units::positive(max_behind_s)
@@ -261,15 +363,19 @@ impl ServiceConfig {
                 ));
             }
         }
-        if self
-            .machines
-            .iter()
-            .any(|m| matches!(m.link, LinkConfig::NcPush { .. }))
+        for m in &self.machines {
+            if let Err(e) = validate_mtconnect(&m.link) {
+                return bad(format!("machine '{}': {e}", m.id));
+            }
+        }
+        if let Some(m) = self.machines.iter().find(|m| m.link.is_real())
             && self.time_scale != 1.0
         {
             return bad(format!(
-                "time_scale is {}: a real NC (nc_push) runs on the wall clock, time_scale = 1.0",
-                self.time_scale
+                "time_scale is {}: a real NC ({}) runs on the wall clock, time_scale = 1.0 (machine '{}')",
+                self.time_scale,
+                m.link.kind(),
+                m.id
             ));
         }
         if let Err(e) = self.phase.validate() {
@@ -387,6 +493,68 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("nc_push"), "{e}");
+    }
+
+    /// The shipped default's commented MTConnect example, in place of the simulated link.
+    fn mtconnect_example() -> String {
+        let block: Vec<&str> = DEFAULT_CONFIG
+            .lines()
+            .skip_while(|l| !l.starts_with("# [machines.link]"))
+            .map_while(|l| l.strip_prefix("# "))
+            .collect();
+        assert!(block.len() > 5, "{block:?}");
+        DEFAULT_CONFIG
+            .replace("time_scale = 60.0", "time_scale = 1.0")
+            .replace(
+                r#"link = { kind = "simulated", scenario = "two_shift" }"#,
+                "",
+            )
+            .replace("\n[phase]", &format!("\n{}\n\n[phase]", block.join("\n")))
+    }
+
+    #[test]
+    fn the_documented_mtconnect_link_parses_and_is_checked() {
+        let text = mtconnect_example();
+        let c = ServiceConfig::from_toml(&text, "t").unwrap();
+        let LinkConfig::Mtconnect {
+            agent,
+            device,
+            items,
+            poll_ms,
+            count,
+            ..
+        } = &c.machines[0].link
+        else {
+            panic!("{:?}", c.machines[0].link)
+        };
+        assert_eq!(agent, "http://mtc-agent:5000");
+        assert_eq!(device.as_deref(), Some("VMC-1"));
+        assert_eq!((*poll_ms, *count), (1000, 1000));
+        assert_eq!(items.temperatures["ambient"], "Tamb");
+        assert_eq!(items.controller_mode.as_deref(), Some("mode"));
+        assert!(c.machines[0].link.is_real());
+        for (from, to, says) in [
+            (
+                "time_scale = 1.0",
+                "time_scale = 60.0",
+                "a real NC (mtconnect) runs on the wall clock",
+            ),
+            ("poll_ms = 1000", "poll_ms = 0", "poll_ms"),
+            ("count = 1000", "count = 0", "count"),
+            ("http://mtc-agent:5000", "mtc-agent:5000", "agent url"),
+            (
+                r#"controller_mode = "mode""#,
+                r#"controller_mode = "exec""#,
+                "mapped twice",
+            ),
+        ] {
+            let e = ServiceConfig::from_toml(&text.replace(from, to), "t")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(says), "{from} -> {to}: {e}");
+        }
+        let unknown = text.replace("count = 1000", "count = 1000\nfrom = 5");
+        assert!(ServiceConfig::from_toml(&unknown, "t").is_err());
     }
 
     #[test]

@@ -27,6 +27,7 @@ use crate::clock::{ManualClock, ServiceClock};
 use crate::config::{LinkConfig, ServiceConfig};
 use crate::daemon::{DaemonError, MachineRuntime, MachineView, Settings};
 use crate::link::{MachineLink, Simulated};
+use crate::mtconnect_link::{MtconnectLink, MtconnectSettings};
 use crate::nc_push::nc_push;
 use crate::recorder::Recorder;
 use crate::store::Store;
@@ -245,6 +246,8 @@ type Linked = (
 enum Pending {
     Simulated(Box<Simulated>),
     Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
+    /// A real machine's link the API has nothing of.
+    Observed(Box<dyn MachineLink>),
 }
 
 /// Every error an alert rule watches is one the machine identifies: a rule on another
@@ -285,10 +288,7 @@ fn alerts_fit(
 /// clock and simulated machines beside it are moved to start now.
 async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64), LaunchError> {
     let settings = crate::daemon::settings_from_config(cfg);
-    let real = cfg
-        .machines
-        .iter()
-        .any(|m| matches!(m.link, LinkConfig::NcPush { .. }));
+    let real = cfg.machines.iter().any(|m| m.link.is_real());
     let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let mut pending = Vec::new();
     let mut t0 = i64::MAX;
@@ -343,6 +343,27 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 t0 = t0.min(wall_now);
                 Pending::Nc(Box::new(link), handle)
             }
+            LinkConfig::Mtconnect {
+                agent,
+                device,
+                items,
+                poll_ms,
+                count,
+                ..
+            } => {
+                let settings = MtconnectSettings {
+                    agent: agent.clone(),
+                    device: device.clone(),
+                    items: items.clone(),
+                    poll: Duration::from_millis(*poll_ms),
+                    count: *count,
+                    tolerance: m.link.clock_tolerance().unwrap_or_default(),
+                };
+                let link = MtconnectLink::start(&m.id, settings, k.config.limits)
+                    .map_err(|e| fail(e.to_string()))?;
+                t0 = t0.min(wall_now);
+                Pending::Observed(Box::new(link))
+            }
         };
         pending.push((m.id.clone(), k, plan, settings, link));
     }
@@ -366,6 +387,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 (id, k, plan, sim as Box<dyn MachineLink>, settings, None)
             }
             Pending::Nc(link, handle) => (id, k, plan, link, settings, Some(handle)),
+            Pending::Observed(link) => (id, k, plan, link, settings, None),
         })
         .collect();
     Ok((linked, t0))

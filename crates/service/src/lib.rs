@@ -9,6 +9,8 @@ pub mod config;
 pub mod daemon;
 pub mod launch;
 pub mod link;
+pub mod mtconnect;
+pub mod mtconnect_link;
 pub mod nc_push;
 pub mod recorder;
 pub mod store;

@@ -60,6 +60,10 @@ pub enum LinkError {
         "the NC has not reported its state yet: a cycle runs only once it reports idle (the state shown is inferred)"
     )]
     NoState,
+    #[error(
+        "the {0} link only observes the machine and cannot order a cycle: cycles must be ordered by another route (an nc_push gateway, or the NC's own program)"
+    )]
+    ObserveOnly(&'static str),
 }
 
 pub trait MachineLink: Send {

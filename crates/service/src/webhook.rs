@@ -3,6 +3,11 @@
 //! or answers 5xx, 408 or 429. A 4xx answer is final (the receiver refused the request; retrying
 //! the same body cannot help). Delivery never blocks a machine loop: events wait in a bounded
 //! queue per webhook, and the events are in the database whatever happens to the delivery.
+//!
+//! `https://` receivers are reached through rustls (no system OpenSSL): the server's
+//! certificate must chain to the system's roots or to the webhook's own `ca_cert` (a plant's
+//! internal CA). A certificate that does not verify is a refusal, not a network error: it is
+//! final (counted as failed), since sending the same request again cannot make it trusted.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -20,8 +25,12 @@ const QUEUE: usize = 1024;
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WebhookConfig {
-    /// `http://` URL the events are POSTed to.
+    /// `http://` or `https://` URL the events are POSTed to.
     pub url: String,
+    /// A PEM file of CA certificates trusted for this `https` receiver besides the system's
+    /// (a plant-internal CA).
+    #[serde(default)]
+    pub ca_cert: Option<std::path::PathBuf>,
     /// Optional bearer token sent as `Authorization`, or `env:VAR`.
     #[serde(default)]
     pub token: Option<String>,
@@ -63,17 +72,17 @@ impl WebhookConfig {
         let url = reqwest::Url::parse(&self.url)
             .map_err(|e| format!("webhook url '{}': {e}", self.url))?;
         match url.scheme() {
-            "http" => {}
-            "https" => {
+            "https" => {}
+            "http" if self.ca_cert.is_none() => {}
+            "http" => {
                 return Err(format!(
-                    "webhook url '{}': https is not built in; point it at an http relay on the \
-                     plant network (for example nginx with proxy_pass to the https receiver)",
+                    "webhook url '{}': ca_cert is for https receivers; this one is http",
                     self.url
                 ));
             }
             s => {
                 return Err(format!(
-                    "webhook url '{}': scheme '{s}' is not http",
+                    "webhook url '{}': scheme '{s}' is not http or https",
                     self.url
                 ));
             }
@@ -160,10 +169,14 @@ impl Notifier {
         let mut tasks = Vec::new();
         for (cfg, token) in hooks {
             cfg.validate()?;
-            let client = reqwest::Client::builder()
-                .timeout(Duration::from_secs_f64(cfg.timeout_s))
+            let mut builder =
+                reqwest::Client::builder().timeout(Duration::from_secs_f64(cfg.timeout_s));
+            if let Some(path) = &cfg.ca_cert {
+                builder = builder.tls_certs_merge(ca_certs(path)?);
+            }
+            let client = builder
                 .build()
-                .map_err(|e| format!("webhook client: {e}"))?;
+                .map_err(|e| format!("webhook {} client: {e}", cfg.url))?;
             let (tx, rx) = mpsc::channel(QUEUE);
             senders.push((cfg.min_severity, cfg.url.clone(), tx));
             tasks.push(tokio::spawn(deliver(cfg, token, client, rx, stats.clone())));
@@ -197,6 +210,37 @@ impl Notifier {
             }
         }
     }
+}
+
+/// The CA certificates of a PEM file (one or more), or why there are none.
+fn ca_certs(path: &std::path::Path) -> Result<Vec<reqwest::Certificate>, String> {
+    let what = |m: String| format!("webhook ca_cert {}: {m}", path.display());
+    let pem = std::fs::read(path).map_err(|e| what(e.to_string()))?;
+    let certs = reqwest::Certificate::from_pem_bundle(&pem).map_err(|e| what(e.to_string()))?;
+    if certs.is_empty() {
+        return Err(what("no PEM certificate in it".into()));
+    }
+    Ok(certs)
+}
+
+/// Whether a failed request failed because the receiver's certificate did not verify: rustls
+/// says so in an I/O error of the connection, nested in I/O errors whose `source` skips it (so
+/// the chain is walked through `get_ref` too).
+fn untrusted(e: &reqwest::Error) -> Option<String> {
+    let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
+    while let Some(err) = cur {
+        if let Some(rustls::Error::InvalidCertificate(c)) = err.downcast_ref::<rustls::Error>() {
+            return Some(format!("the receiver's certificate is not trusted: {c:?}"));
+        }
+        cur = match err
+            .downcast_ref::<std::io::Error>()
+            .and_then(|io| io.get_ref())
+        {
+            Some(inner) => Some(inner as &(dyn std::error::Error + 'static)),
+            None => err.source(),
+        };
+    }
+    None
 }
 
 async fn deliver(
@@ -234,7 +278,10 @@ async fn deliver(
                         Outcome::Refused(format!("answered {s}"))
                     }
                 }
-                Err(e) => Outcome::Retry(e.to_string()),
+                Err(e) => match untrusted(&e) {
+                    Some(why) => Outcome::Refused(why),
+                    None => Outcome::Retry(e.to_string()),
+                },
             };
             match outcome {
                 Outcome::Delivered => {
@@ -280,10 +327,13 @@ mod tests {
     }
 
     #[test]
-    fn only_http_urls_are_taken() {
+    fn http_and_https_urls_are_taken() {
         assert!(cfg("http://relay.plant:8000/alerts").validate().is_ok());
-        let e = cfg("https://hooks.example/x").validate().unwrap_err();
-        assert!(e.contains("relay"), "{e}");
+        assert!(cfg("https://hooks.example/x").validate().is_ok());
+        let mut c = cfg("http://relay.plant:8000/alerts");
+        c.ca_cert = Some("plant-ca.pem".into());
+        let e = c.validate().unwrap_err();
+        assert!(e.contains("ca_cert is for https"), "{e}");
         assert!(cfg("ftp://x/y").validate().is_err());
         assert!(cfg("not a url").validate().is_err());
         let mut c = cfg("http://x/");
