@@ -4,3 +4,4 @@
 //! the program text that writes them (`offsets`). No I/O: text in, text out.
 
 pub mod dialect;
+pub mod offsets;
