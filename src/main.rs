@@ -20,6 +20,7 @@ use driftwatch_sim::simulator::simulate;
 mod bench;
 mod diagnose_cmd;
 mod model_cmd;
+mod nc_cmd;
 mod plan_design_cmd;
 mod serve;
 
@@ -121,6 +122,11 @@ enum Command {
         relations: bool,
         #[command(flatten)]
         solver: SolverArgs,
+    },
+    /// The NC side: a compensation set in a control's own variables and program.
+    Nc {
+        #[command(subcommand)]
+        what: nc_cmd::NcCmd,
     },
     /// Turn a table from another tool into a contract recording.
     Import {
@@ -363,6 +369,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
         Command::Import {
             what: ImportWhat::Csv(a),
         } => model_cmd::cmd_import_csv(a),
+        Command::Nc { what } => nc_cmd::cmd_nc(what),
         Command::Fit(a) => model_cmd::cmd_fit(a),
         Command::Predict(a) => model_cmd::cmd_predict(a),
         Command::Diagnose(a) => diagnose_cmd::cmd_diagnose(a),

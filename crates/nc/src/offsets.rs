@@ -1042,8 +1042,8 @@ fn program(
     match o.format {
         OffsetFormat::Json => return None,
         OffsetFormat::Fanuc => {
-            // FANUC comments: parentheses, upper case, no parentheses inside.
-            let c = |s: &str| s.to_uppercase().replace(['(', ')'], "");
+            // FANUC comments: parentheses, upper case, no parentheses or quotes inside.
+            let c = |s: &str| s.to_uppercase().replace(['(', ')', '\''], "");
             let _ = writeln!(p, "%\nO{:04} (DRIFTWATCH OFFSETS)", opts.fanuc_program);
             for line in &head {
                 let _ = writeln!(p, "({})", c(line));
