@@ -867,7 +867,7 @@ fn heidenhain_form(
         let q = opts.heidenhain_q_base.saturating_add(i as u32);
         raw.push(Raw {
             name: format!("Q{q}"),
-            label: o.name.clone(),
+            label: format!("{} in {}", o.name, if angular { "deg" } else { "mm" }),
             meaning: format!(
                 "{} in {} for the OEM cycle that loads the kinematics",
                 o.name,
