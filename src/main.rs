@@ -20,6 +20,7 @@ use driftwatch_sim::simulator::simulate;
 mod bench;
 mod diagnose_cmd;
 mod model_cmd;
+mod nc_cmd;
 mod nc_program_cmd;
 mod plan_design_cmd;
 mod serve;
@@ -123,6 +124,12 @@ enum Command {
         #[command(flatten)]
         solver: SolverArgs,
     },
+    /// The NC side: a plan as a program in the control's own language, a compensation set
+    /// in its variables.
+    Nc {
+        #[command(subcommand)]
+        what: nc_cmd::NcCmd,
+    },
     /// Turn a table from another tool into a contract recording.
     Import {
         #[command(subcommand)]
@@ -153,11 +160,6 @@ enum Command {
     /// Print a plan's moves, its machine time and the Cramer-Rao bound of each error
     /// (`plan design`: search for a plan instead).
     Plan(PlanArgs),
-    /// The NC side: a plan as a program in the control's own language.
-    Nc {
-        #[command(subcommand)]
-        what: NcWhat,
-    },
     /// Benchmarks (run and report; not tests).
     Bench {
         #[arg(value_enum)]
@@ -231,13 +233,6 @@ enum PlanWhat {
     /// Search poses, approaches, repeats and order for the smallest worst Cramer-Rao sigma
     /// within a machine-time budget; print the Pareto front, write the chosen plan.
     Design(plan_design_cmd::DesignArgs),
-}
-
-#[derive(Subcommand)]
-enum NcWhat {
-    /// Write a plan's measurement cycle as a program for one control (FANUC, Siemens,
-    /// HEIDENHAIN, ISO/RS274-NGC); `--check` reads it back and replays it on the simulator.
-    Program(nc_program_cmd::ProgramArgs),
 }
 
 #[derive(Subcommand)]
@@ -376,6 +371,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
         Command::Import {
             what: ImportWhat::Csv(a),
         } => model_cmd::cmd_import_csv(a),
+        Command::Nc { what } => nc_cmd::cmd_nc(what),
         Command::Fit(a) => model_cmd::cmd_fit(a),
         Command::Predict(a) => model_cmd::cmd_predict(a),
         Command::Diagnose(a) => diagnose_cmd::cmd_diagnose(a),
@@ -409,9 +405,6 @@ fn run(cmd: Command) -> Result<ExitCode> {
             };
             cmd_experiment(&scenario, &out_dir)
         }
-        Command::Nc {
-            what: NcWhat::Program(a),
-        } => nc_program_cmd::cmd_nc_program(a),
         Command::Plan(PlanArgs {
             design: Some(PlanWhat::Design(a)),
             ..

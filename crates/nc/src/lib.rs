@@ -5,5 +5,6 @@
 
 pub mod check;
 pub mod dialect;
+pub mod offsets;
 pub mod program;
 pub mod reader;

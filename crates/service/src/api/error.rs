@@ -34,6 +34,11 @@ pub enum ErrorCode {
     UnknownDiagnosis,
     UnknownAlert,
     NoCompensation,
+    /// A compensation format that is not one of json, fanuc, siemens, heidenhain.
+    BadFormat,
+    /// The served set may not be put in the NC's form (a step beyond the limit, a set that
+    /// does not look validated, a machine chain without that form).
+    OffsetsRefused,
     NoModel,
     BeforeLastInput,
     BadWindow,
@@ -63,8 +68,8 @@ impl ErrorCode {
     pub fn status(self) -> StatusCode {
         use ErrorCode::*;
         match self {
-            BadRequest | BadQuery | BeforeLastInput | BadWindow | BadEvery | BadSource
-            | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
+            BadRequest | BadQuery | BadFormat | BeforeLastInput | BadWindow | BadEvery
+            | BadSource | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
             BadBody | NoDetections | DiagnosisFailed => StatusCode::UNPROCESSABLE_ENTITY,
             BodyTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -73,7 +78,7 @@ impl ErrorCode {
             | NoCompensation | NoModel => StatusCode::NOT_FOUND,
             TokenRequired | BadToken => StatusCode::UNAUTHORIZED,
             Role => StatusCode::FORBIDDEN,
-            NoKinematics | NotNcPush => StatusCode::CONFLICT,
+            NoKinematics | NotNcPush | OffsetsRefused => StatusCode::CONFLICT,
             DiagnosisBusy => StatusCode::TOO_MANY_REQUESTS,
             Busy | Timeout => StatusCode::SERVICE_UNAVAILABLE,
             DiagnosisPanicked | Storage | Error => StatusCode::INTERNAL_SERVER_ERROR,

@@ -127,12 +127,16 @@ pub(super) async fn machine(
 }
 
 /// The NC's endpoint: the last validated set, with its version as ETag.
-#[utoipa::path(get, path = "/api/v1/machines/{id}/compensation", params(("id" = String, Path, description = "machine id"), ("If-None-Match" = Option<String>, Header, description = "the ETag last read")), responses((status = 200, description = "the last validated compensation set (version, valid_from_ns, source, errors, offsets, sigma); ETag header", body = CompensationSet), (status = 304, description = "unchanged since the ETag given"), (status = 404, description = "no validated set yet")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/compensation", params(("id" = String, Path, description = "machine id"), ("If-None-Match" = Option<String>, Header, description = "the ETag last read"), ("format" = Option<String>, Query, description = "absent: the set as it always was; json: the set plus each NC variable with its step from the previous served set, the errors no variable carries, notes and the datum shift; fanuc, siemens, heidenhain: the control's program (text/plain) writing its variables (docs/nc.md)"), ("fanuc_increment_mm" = Option<f64>, Query, description = "FANUC: the increment of parameters 19700-19714, mm (default 0.001, IS-B; 0.0001 for IS-C)"), ("fanuc_nominal" = Option<String>, Query, description = "FANUC: the commissioned value of each parameter written, PARAMETER:MM,... (required: the parameters are absolute)"), ("siemens_carrier" = Option<u32>, Query, description = "Siemens: the swivel data record number (default 1)"), ("siemens_axis_sign" = Option<f64>, Query, description = "Siemens: +1 (default) when the commissioned rotary axis vectors point along the machine file's axes, -1 against"), ("heidenhain_q_base" = Option<u32>, Query, description = "HEIDENHAIN: the first Q parameter written (default 1600)"), ("work_origin_mm" = Option<String>, Query, description = "the work origin of the datum-shift report, x,y,z mm in the table frame (default 0,0,0)")), responses((status = 200, description = "the last validated compensation set (version, valid_from_ns, source, errors, offsets, sigma; with format=json also variables, not_written, notes, datum_shift, previous_version) or, with format=fanuc|siemens|heidenhain, the program as text/plain; ETag header (per format)", content((CompensationSet = "application/json"), (String = "text/plain"))), (status = 304, description = "unchanged since the ETag given"), (status = 400, description = "an unknown format (bad_format), an option that does not parse or a FANUC parameter without its commissioned value (bad_query)"), (status = 404, description = "no validated set yet"), (status = 409, description = "the set may not be put in that form (offsets_refused): a step from the previous served set beyond the validation limit, a set that does not look validated, a chain without that form")), security((), ("bearer" = [])))]
 pub(super) async fn compensation(
     State(st): State<Shared>,
     Path(id): Path<String>,
+    Query(q): Query<super::nc_offsets::FormatQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    if let Some(format) = &q.format {
+        return super::nc_offsets::in_format(&st, &id, format, &q, &headers).await;
+    }
     // Only the prepared body is taken from the view: no clone of the machine's state, no
     // serialisation per request.
     let body = handle(&st, &id)?

@@ -11,6 +11,7 @@ mod error;
 mod machines;
 mod metrics;
 mod nc;
+mod nc_offsets;
 
 pub use auth::Caller;
 use auth::for_caller;
@@ -63,6 +64,8 @@ pub struct ApiState {
     pub diagnoses_kept: i64,
     /// A request not answered by then is answered 503 (`http.request_timeout_s`).
     pub request_timeout: std::time::Duration,
+    /// The step limits the compensation endpoint's NC forms hold a set to (`[validation]`).
+    pub validation: driftwatch_machine::compensation::ValidationLimits,
 }
 
 impl ApiState {
@@ -76,6 +79,7 @@ impl ApiState {
             diagnosis_slots: Arc::new(tokio::sync::Semaphore::new(1)),
             diagnoses_kept: 200,
             request_timeout: std::time::Duration::from_secs(120),
+            validation: Default::default(),
         }
     }
 }

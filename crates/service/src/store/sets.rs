@@ -92,7 +92,17 @@ impl Store {
         &self,
         machine: &str,
     ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
-        self.latest_set(machine, None).await
+        self.latest_set(machine, None, None).await
+    }
+
+    /// The newest set of a machine before version `version`: the one served before it.
+    pub async fn compensation_before(
+        &self,
+        machine: &str,
+        version: u64,
+    ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
+        let before = i64::try_from(version).unwrap_or(i64::MAX);
+        self.latest_set(machine, None, Some(before)).await
     }
 
     /// The newest measured compensation set of a machine, with the values its cycle measured
@@ -102,7 +112,7 @@ impl Store {
         &self,
         machine: &str,
     ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
-        let Some(mut set) = self.latest_set(machine, Some("measured")).await? else {
+        let Some(mut set) = self.latest_set(machine, Some("measured"), None).await? else {
             return Ok(None);
         };
         if let Some(c) = set.cycle
@@ -124,16 +134,19 @@ impl Store {
         &self,
         machine: &str,
         source: Option<&str>,
+        before: Option<i64>,
     ) -> Result<Option<driftwatch_machine::compensation::CompensationSet>, StoreError> {
         use driftwatch_core::error_name::ErrorName;
         use driftwatch_machine::compensation::{CompensationSet, Source};
         let row = sqlx::query(
             "SELECT version, valid_from_ns, source, cycle, reason, payload FROM compensation_sets
              WHERE machine_id = $1 AND ($2 IS NULL OR source = $2)
+               AND ($3 IS NULL OR version < $3)
              ORDER BY version DESC LIMIT 1",
         )
         .bind(machine)
         .bind(source)
+        .bind(before)
         .fetch_optional(&self.pool)
         .await?;
         let Some(r) = row else {

@@ -1,0 +1,157 @@
+//! The compensation endpoint in an NC's own form (`?format=fanuc|siemens|heidenhain|json`):
+//! the served set through `driftwatch_nc::offsets`, its previous version from the store for
+//! the step, the options a control needs from the query. Without `format` the endpoint keeps
+//! its prepared JSON body (`machines::compensation`).
+
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+
+use driftwatch_machine::compensation::compensation_message;
+use driftwatch_nc::offsets::{NcOptions, OffsetFormat, OffsetsError, nc_offsets};
+
+use super::{ApiError, ErrorCode, Shared, handle};
+
+/// The query of the compensation endpoint.
+// Unknown parameters are ignored, as the endpoint always has: no client breaks.
+#[derive(Debug, Default, Deserialize)]
+pub(super) struct FormatQuery {
+    pub format: Option<String>,
+    /// FANUC: the increment of 19700-19714, mm (0.001 IS-B, 0.0001 IS-C).
+    pub fanuc_increment_mm: Option<f64>,
+    /// FANUC: the commissioned values, `19700:-123.456,19702:50` (mm).
+    pub fanuc_nominal: Option<String>,
+    pub siemens_carrier: Option<u32>,
+    pub siemens_axis_sign: Option<f64>,
+    pub heidenhain_q_base: Option<u32>,
+    /// `x,y,z` mm in the table frame.
+    pub work_origin_mm: Option<String>,
+}
+
+fn bad(message: String) -> ApiError {
+    ApiError::new(ErrorCode::BadQuery, message)
+}
+
+fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
+    let mut o = NcOptions::default();
+    if let Some(v) = q.fanuc_increment_mm {
+        o.fanuc_increment_mm = v;
+    }
+    if let Some(list) = &q.fanuc_nominal {
+        for pair in list.split(',').filter(|p| !p.trim().is_empty()) {
+            let parsed = pair.split_once(':').and_then(|(n, v)| {
+                Some((n.trim().parse::<u32>().ok()?, v.trim().parse::<f64>().ok()?))
+            });
+            match parsed {
+                Some((n, v)) if v.is_finite() => {
+                    o.fanuc_nominal_mm.insert(n, v);
+                }
+                _ => {
+                    return Err(bad(format!(
+                        "fanuc_nominal entry '{pair}' is not PARAMETER:MM (e.g. 19700:-123.456)"
+                    )));
+                }
+            }
+        }
+    }
+    if let Some(v) = q.siemens_carrier {
+        o.siemens_carrier = v;
+    }
+    if let Some(v) = q.siemens_axis_sign {
+        o.siemens_axis_sign = v;
+    }
+    if let Some(v) = q.heidenhain_q_base {
+        o.heidenhain_q_base = v;
+    }
+    if let Some(s) = &q.work_origin_mm {
+        let v: Vec<f64> = s
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad(format!("work_origin_mm '{s}' is not x,y,z in mm")))?;
+        o.work_origin_mm = v
+            .try_into()
+            .map_err(|_| bad(format!("work_origin_mm '{s}' is not x,y,z in mm")))?;
+    }
+    Ok(o)
+}
+
+/// The served set in `format`: JSON (the set, its variables, steps and datum shift) or the
+/// control's program as text. Refusals name why; no value is ever served that the set's
+/// validation or the step limit did not pass.
+pub(super) async fn in_format(
+    st: &Shared,
+    id: &str,
+    format: &str,
+    q: &FormatQuery,
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
+    let format = OffsetFormat::parse(format)
+        .map_err(|e| ApiError::new(ErrorCode::BadFormat, e.to_string()))?;
+    let opts = options(q)?;
+    let h = handle(st, id)?;
+    let set = h.view.lock().ok().and_then(|v| v.compensation.clone());
+    let Some(set) = set else {
+        return Err(ApiError::new(
+            ErrorCode::NoCompensation,
+            format!(
+                "machine '{id}' has no validated compensation yet: the NC keeps its own values"
+            ),
+        ));
+    };
+    let k = h.kinematics.clone().ok_or_else(|| {
+        ApiError::new(
+            ErrorCode::NoKinematics,
+            format!("machine '{id}' has no kinematics in this service"),
+        )
+    })?;
+    let etag = format!("\"{id}-v{}-{}\"", set.version, format.name());
+    if headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|h| h.to_str().ok())
+        .is_some_and(|h| h.split(',').any(|t| t.trim() == etag || t.trim() == "*"))
+    {
+        return Ok(with_etag(StatusCode::NOT_MODIFIED.into_response(), &etag));
+    }
+    let previous = st.store.compensation_before(id, set.version).await?;
+    let o = nc_offsets(format, &k, &set, previous.as_ref(), &st.validation, &opts).map_err(
+        |e| match e {
+            OffsetsError::MissingNominal { .. } | OffsetsError::BadOption(_) => bad(e.to_string()),
+            e => ApiError::new(ErrorCode::OffsetsRefused, e.to_string()),
+        },
+    )?;
+    let r = match &o.program {
+        Some(program) => (
+            [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
+            program.clone(),
+        )
+            .into_response(),
+        None => {
+            let mut body = compensation_message(&set);
+            if let (Some(m), Ok(serde_json::Value::Object(extra))) =
+                (body.as_object_mut(), serde_json::to_value(&o))
+            {
+                for key in [
+                    "previous_version",
+                    "variables",
+                    "not_written",
+                    "notes",
+                    "datum_shift",
+                ] {
+                    if let Some(v) = extra.get(key) {
+                        m.insert(key.to_string(), v.clone());
+                    }
+                }
+            }
+            axum::Json(body).into_response()
+        }
+    };
+    Ok(with_etag(r, &etag))
+}
+
+fn with_etag(mut r: Response, etag: &str) -> Response {
+    if let Ok(h) = HeaderValue::from_str(etag) {
+        r.headers_mut().insert(header::ETAG, h);
+    }
+    r
+}
