@@ -245,6 +245,8 @@ type Linked = (
 enum Pending {
     Simulated(Box<Simulated>),
     Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
+    /// A link that needs no door of the API (OPC UA: the service is the client).
+    Real(Box<dyn MachineLink>),
 }
 
 /// Every error an alert rule watches is one the machine identifies: a rule on another
@@ -288,7 +290,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
     let real = cfg
         .machines
         .iter()
-        .any(|m| matches!(m.link, LinkConfig::NcPush { .. }));
+        .any(|m| matches!(m.link, LinkConfig::NcPush { .. } | LinkConfig::Opcua(_)));
     let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let mut pending = Vec::new();
     let mut t0 = i64::MAX;
@@ -343,6 +345,18 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 t0 = t0.min(wall_now);
                 Pending::Nc(Box::new(link), handle)
             }
+            LinkConfig::Opcua(c) => {
+                let link = crate::opcua::OpcuaLink::start(
+                    c,
+                    plan.clone(),
+                    k.config.limits,
+                    &cfg.data_dir,
+                    &m.id,
+                )
+                .map_err(|e| fail(e.to_string()))?;
+                t0 = t0.min(wall_now);
+                Pending::Real(Box::new(link))
+            }
         };
         pending.push((m.id.clone(), k, plan, settings, link));
     }
@@ -366,6 +380,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 (id, k, plan, sim as Box<dyn MachineLink>, settings, None)
             }
             Pending::Nc(link, handle) => (id, k, plan, link, settings, Some(handle)),
+            Pending::Real(link) => (id, k, plan, link, settings, None),
         })
         .collect();
     Ok((linked, t0))

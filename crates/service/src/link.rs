@@ -60,6 +60,9 @@ pub enum LinkError {
         "the NC has not reported its state yet: a cycle runs only once it reports idle (the state shown is inferred)"
     )]
     NoState,
+    /// The link cannot reach the NC now (a network link between sessions).
+    #[error("the NC cannot be reached: {0}")]
+    Unavailable(String),
 }
 
 pub trait MachineLink: Send {
@@ -71,6 +74,9 @@ pub trait MachineLink: Send {
     fn abort_cycle(&mut self, number: i64, now_ns: i64);
     /// The earliest time the machine will report something by itself.
     fn next_event_ns(&self) -> Option<i64>;
+    /// The compensation set served from now on (validated: the loop publishes only those). A
+    /// link that writes it to the NC does so; the others ignore it.
+    fn serve(&mut self, _set: &driftwatch_machine::compensation::CompensationSet) {}
 }
 
 struct ActiveCycle {
