@@ -15,8 +15,8 @@ The latched positions come from a file (`--detections`: a JSON list of /probe/de
 messages, one per step label), written by the test from driftwatch's truth simulator before
 the server starts: the server plays back a machine's readings, it does not compute them.
 
-A report (`--report`, JSON, rewritten atomically every 0.2 s) says what the server saw:
-cycles run, the compensation values and version written to it.
+A report (`--report`, JSON, rewritten atomically every 0.2 s and at each approach) says what
+the server saw: cycles begun, the one running and its approaches done, the compensation values and version written to it.
 """
 
 import argparse
@@ -54,6 +54,7 @@ async def security(server, args):
     # A server certificate of its own, made for this run (the `cryptography` package comes
     # with asyncua).
     import datetime
+    import ipaddress
 
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
@@ -73,7 +74,12 @@ async def security(server, args):
         .not_valid_after(now + datetime.timedelta(days=30))
         .add_extension(
             x509.SubjectAlternativeName(
-                [x509.UniformResourceIdentifier(args.app_uri), x509.DNSName("localhost")]
+                [
+                    x509.UniformResourceIdentifier(args.app_uri),
+                    x509.DNSName("localhost"),
+                    # The client checks the host it dialled against the certificate.
+                    x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+                ]
             ),
             critical=False,
         )
@@ -124,7 +130,7 @@ async def main():
     ap.add_argument("--workdir", required=True)
     ap.add_argument("--security", choices=["none", "sign_and_encrypt"], default="none")
     ap.add_argument("--app-uri", default="urn:driftwatch:test-machine:server")
-    ap.add_argument("--step-s", type=float, default=0.02, help="machine time of one approach")
+    ap.add_argument("--step-s", type=float, default=0.15, help="machine time of one approach")
     args = ap.parse_args()
 
     with open(args.detections) as f:
@@ -152,7 +158,14 @@ async def main():
     comp = {n: await variable(m, idx, f"Driftwatch/Compensation/{n}", 0.0, D, writable=True) for n in comp_names}
     version = await variable(m, idx, "Driftwatch/Compensation/version", 0, I, writable=True)
 
-    report = {"cycles_run": [], "compensation": {}, "version": 0, "requests": 0, "rpm": args.rpm}
+    report = {
+        "cycles_run": [],
+        "running": None,
+        "compensation": {},
+        "version": 0,
+        "requests": 0,
+        "rpm": args.rpm,
+    }
     ran = set()
     t_start = time.time()
     async with server:
@@ -168,8 +181,10 @@ async def main():
                 order = json.loads(text)
                 if order["cycle"] not in ran:
                     ran.add(order["cycle"])
-                    await run_cycle(order, by_label, spindle, state, detections, args)
+                    # Listed as begun: driftwatch may close the cycle at its last approach,
+                    # before the program's end.
                     report["cycles_run"].append(order["cycle"])
+                    await run_cycle(order, by_label, spindle, state, detections, args, report)
             if now - last_report > 0.2:
                 report["compensation"] = {n: await comp[n].read_value() for n in comp_names}
                 report["version"] = await version.read_value()
@@ -178,8 +193,9 @@ async def main():
             await asyncio.sleep(0.05)
 
 
-async def run_cycle(order, by_label, spindle, state, detections, args):
-    """The measurement program: each step's latched position appended as it trips."""
+async def run_cycle(order, by_label, spindle, state, detections, args, report):
+    """The measurement program: each step's latched position appended as it trips (the
+    report says how far it got, so that a test can kill the server in the middle)."""
     await spindle.write_value(float(order["spindle_rpm"]))
     await state.write_value(ua.LocalizedText("Running"))
     doc = {"cycle": order["cycle"], "detections": []}
@@ -190,6 +206,9 @@ async def run_cycle(order, by_label, spindle, state, detections, args):
         reading["cycle"] = order["cycle"]
         doc["detections"].append({"t_ns": time.time_ns(), "msg": reading})
         await detections.write_value(json.dumps(doc))
+        report["running"] = {"cycle": order["cycle"], "done": len(doc["detections"])}
+        write_report(args.report, report)
+    report["running"] = None
     await asyncio.sleep(args.step_s)
     await state.write_value(ua.LocalizedText("Ended"))
     await spindle.write_value(args.rpm)

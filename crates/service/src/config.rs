@@ -99,7 +99,7 @@ pub enum LinkConfig {
         max_behind_s: f64,
     },
     /// A real NC (or its PLC or gateway) as an OPC UA server (`crate::opcua`).
-    Opcua(crate::opcua::OpcuaConfig),
+    Opcua(Box<crate::opcua::OpcuaConfig>),
 }
 
 pub(crate) fn default_max_ahead_s() -> f64 {

@@ -14,7 +14,8 @@
 //! - `cycle_request` (String, written by driftwatch): the order as JSON, the shape of nc_push's
 //!   `GET .../nc/request` answer (`cycle`, `plan`, `spindle_rpm`, `steps`), or `""` when
 //!   nothing is asked (written when the cycle closes or is aborted). The NC runs a cycle number
-//!   at most once (driftwatch writes the open order again after a reconnect).
+//!   at most once (driftwatch writes an open order again after a reconnect if it has read no
+//!   detection of it yet).
 //! - `detections` (String, written by the NC): `{"cycle": N, "detections": [{"t_ns": ..,
 //!   "msg": {<a /probe/detection message>}}, ...]}`, one entry appended per approach (a
 //!   `no_trip` one included), a new document for a new cycle. The document is cumulative, so a
@@ -346,7 +347,6 @@ pub struct OpcuaLink {
     handle: NcPushHandle,
     commands: mpsc::UnboundedSender<Command>,
     status: Arc<Status>,
-    task: tokio::task::JoinHandle<()>,
 }
 
 impl OpcuaLink {
@@ -363,25 +363,20 @@ impl OpcuaLink {
         let (inner, handle) = nc_push(plan, limits, cfg.clock_tolerance());
         let (commands, rx) = mpsc::unbounded_channel();
         let status = Arc::new(Status::default());
-        let task = tokio::spawn(run(prepared, handle.clone(), rx, status.clone()));
+        // Not aborted when the link is dropped: the closed command channel tells the task to
+        // close its session politely (the server frees it at once) and end.
+        tokio::spawn(run(prepared, handle.clone(), rx, status.clone()));
         Ok(OpcuaLink {
             inner,
             handle,
             commands,
             status,
-            task,
         })
     }
 
     /// Whether a session with the server is up now.
     pub fn connected(&self) -> bool {
         self.status.connected.load(Ordering::Relaxed)
-    }
-}
-
-impl Drop for OpcuaLink {
-    fn drop(&mut self) {
-        self.task.abort();
     }
 }
 
@@ -655,7 +650,11 @@ async fn session(
     info!(endpoint = %p.cfg.endpoint, mode = ?p.cfg.security.mode, "OPC UA session up");
     status.connected.store(true, Ordering::Relaxed);
     flow.session_ns = wall_ns();
-    // What the NC may have missed while the session was down.
+    // What the NC may have missed while the session was down, or forgotten in a restart: the
+    // open order and the served set are written again.
+    if let Some((_, written)) = &mut flow.served {
+        *written = false;
+    }
     if let Err(e) = catch_up(&session, &p, flow).await {
         events.abort();
         return lost(e, true);
@@ -668,7 +667,7 @@ async fn session(
             Some((id, dv)) = changes.recv() => on_change(&session, &p, handle, flow, &id, dv).await,
             c = commands.recv() => match c {
                 None => {
-                    let _ = session.disconnect().await;
+                    let _ = tokio::time::timeout(CALL_TIMEOUT, session.disconnect()).await;
                     events.abort();
                     return Ended::Closed;
                 }
@@ -685,10 +684,29 @@ async fn session(
             }
         };
         if let Err(e) = step {
-            let _ = session.disconnect().await;
+            let _ = tokio::time::timeout(CALL_TIMEOUT, session.disconnect()).await;
             events.abort();
             return lost(e, true);
         }
+    }
+}
+
+/// How long one service call may take. A call on a session whose connection has just died
+/// may never be answered, and while the task awaits it nothing else is looked at: the bound
+/// turns it into a lost session.
+const CALL_TIMEOUT: Duration = Duration::from_secs(5);
+
+async fn within<T, E: std::fmt::Display>(
+    what: &str,
+    call: impl std::future::Future<Output = Result<T, E>>,
+) -> Result<T, String> {
+    match tokio::time::timeout(CALL_TIMEOUT, call).await {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(format!("{what}: {e}")),
+        Err(_) => Err(format!(
+            "{what}: no answer within {} s",
+            CALL_TIMEOUT.as_secs()
+        )),
     }
 }
 
@@ -699,8 +717,9 @@ async fn subscribe(
     tx: mpsc::UnboundedSender<(NodeId, DataValue)>,
 ) -> Result<(), String> {
     let interval = Duration::from_millis(p.cfg.publishing_ms);
-    let sub = session
-        .create_subscription(
+    let sub = within(
+        "creating the subscription",
+        session.create_subscription(
             interval,
             // Lifetime and keep-alive counts: the server drops the subscription after 60
             // silent intervals, and says it is alive every 10.
@@ -712,9 +731,9 @@ async fn subscribe(
             DataChangeCallback::new(move |dv: DataValue, item: &MonitoredItem| {
                 let _ = tx.send((item.item_to_monitor().node_id.clone(), dv));
             }),
-        )
-        .await
-        .map_err(|e| e.to_string())?;
+        ),
+    )
+    .await?;
     let mut ids = vec![
         ("spindle_speed".to_string(), p.spindle.clone()),
         ("execution".to_string(), p.execution.clone()),
@@ -736,10 +755,11 @@ async fn subscribe(
             r
         })
         .collect();
-    let created = session
-        .create_monitored_items(sub, TimestampsToReturn::Both, items)
-        .await
-        .map_err(|e| e.to_string())?;
+    let created = within(
+        "creating the monitored items",
+        session.create_monitored_items(sub, TimestampsToReturn::Both, items),
+    )
+    .await?;
     for ((key, id), c) in ids.iter().zip(created) {
         let s = c.result.status_code;
         if !s.is_good() {
@@ -751,17 +771,25 @@ async fn subscribe(
 }
 
 /// After a (re)connect or a command: write the open order (or its absence) and the served set
-/// where they are not written yet, and read the detections document for what came meanwhile.
+/// where it is not written yet. (What the NC wrote meanwhile comes as the subscription's first
+/// values.)
 async fn catch_up(session: &Session, p: &Prepared, flow: &mut Flow) -> Result<(), String> {
     let request = match &flow.order {
-        Some(o) => serde_json::to_string(o).map_err(|e| e.to_string())?,
-        None => String::new(),
+        // An order the NC has begun (a detection of it taken) is not written again: an NC that
+        // still runs it goes on, and one that lost it in a restart reports its program ended,
+        // which closes the cycle with what was read (nc_push's rule), missing measurements
+        // named. Writing it again would have a restarted NC run a cycle already closing.
+        Some(o) if flow.taken.is_some_and(|(c, n)| c == o.cycle && n > 0) => None,
+        Some(o) => Some(serde_json::to_string(o).map_err(|e| e.to_string())?),
+        None => Some(String::new()),
     };
-    write(
-        session,
-        &[(p.request.clone(), Variant::String(UAString::from(request)))],
-    )
-    .await?;
+    if let Some(request) = request {
+        write(
+            session,
+            &[(p.request.clone(), Variant::String(UAString::from(request)))],
+        )
+        .await?;
+    }
     if let Some((set, written @ false)) = &mut flow.served {
         let values = compensation_values(set, &p.compensation);
         if !values.is_empty() {
@@ -810,10 +838,7 @@ async fn write(session: &Session, values: &[(NodeId, Variant)]) -> Result<(), St
             value: DataValue::value_only(v.clone()),
         })
         .collect();
-    let results = session
-        .write(&nodes)
-        .await
-        .map_err(|e| format!("writing: {e}"))?;
+    let results = within("writing", session.write(&nodes)).await?;
     for ((id, _), s) in values.iter().zip(results) {
         if !s.is_good() {
             return Err(format!("writing {id}: {s}"));
@@ -991,10 +1016,11 @@ async fn on_change(
                     attribute_id: AttributeId::Value as u32,
                     ..Default::default()
                 };
-                let got = session
-                    .read(&[read], TimestampsToReturn::Both, 0.0)
-                    .await
-                    .map_err(|e| format!("reading the detections: {e}"))?;
+                let got = within(
+                    "reading the detections",
+                    session.read(&[read], TimestampsToReturn::Both, 0.0),
+                )
+                .await?;
                 if let Some(d) = got.first() {
                     take_detections(handle, flow, d.value.as_ref());
                 }
