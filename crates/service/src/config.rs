@@ -119,6 +119,8 @@ pub enum LinkConfig {
         #[serde(default = "default_max_behind_s")]
         max_behind_s: f64,
     },
+    /// A real NC (or its PLC or gateway) as an OPC UA server (`crate::opcua`).
+    Opcua(Box<crate::opcua::OpcuaConfig>),
 }
 
 fn default_poll_ms() -> u64 {
@@ -129,11 +131,11 @@ fn default_count() -> u32 {
     1000
 }
 
-fn default_max_ahead_s() -> f64 {
+pub(crate) fn default_max_ahead_s() -> f64 {
     60.0
 }
 
-fn default_max_behind_s() -> f64 {
+pub(crate) fn default_max_behind_s() -> f64 {
     86_400.0
 }
 
@@ -149,6 +151,7 @@ impl LinkConfig {
             LinkConfig::Simulated { .. } => "simulated",
             LinkConfig::NcPush { .. } => "nc_push",
             LinkConfig::Mtconnect { .. } => "mtconnect",
+            LinkConfig::Opcua(_) => "opcua",
         }
     }
 
@@ -168,6 +171,7 @@ impl LinkConfig {
                 ahead_ns: (max_ahead_s * 1e9) as i64,
                 behind_ns: (max_behind_s * 1e9) as i64,
             }),
+            LinkConfig::Opcua(c) => Some(c.clock_tolerance()),
             LinkConfig::Simulated { .. } => None,
         }
     }
@@ -343,6 +347,11 @@ impl ServiceConfig {
             ));
         }
         for m in &self.machines {
+            if let LinkConfig::Opcua(c) = &m.link
+                && let Err(e) = c.check()
+            {
+                return bad(format!("machine '{}': {e}", m.id));
+            }
             if let LinkConfig::NcPush {
                 max_ahead_s,
                 max_behind_s,

@@ -572,6 +572,10 @@ impl MachineRuntime {
             let nc = cv.compensation.as_ref().and_then(NcBody::of);
             (cv.compensation.clone(), nc)
         });
+        // A link that writes the set to the NC gets it as the API does: only once stored.
+        if let Some((Some(served), _)) = &set {
+            self.link.serve(served);
+        }
         let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
         self.published = (version, cv.thermal.revision);
         let (mut cycles, mut alerts) = (cv.cycles.clone(), cv.open_alerts.clone());

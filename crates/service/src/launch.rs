@@ -247,8 +247,9 @@ type Linked = (
 enum Pending {
     Simulated(Box<Simulated>),
     Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
-    /// A real machine's link the API has nothing of.
-    Observed(Box<dyn MachineLink>),
+    /// A real machine's link the API has no door for (MTConnect observes; OPC UA: the service
+    /// is the client).
+    Real(Box<dyn MachineLink>),
 }
 
 /// Every error an alert rule watches is one the machine identifies: a rule on another
@@ -363,7 +364,19 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 let link = MtconnectLink::start(&m.id, settings, k.config.limits)
                     .map_err(|e| fail(e.to_string()))?;
                 t0 = t0.min(wall_now);
-                Pending::Observed(Box::new(link))
+                Pending::Real(Box::new(link))
+            }
+            LinkConfig::Opcua(c) => {
+                let link = crate::opcua::OpcuaLink::start(
+                    c,
+                    plan.clone(),
+                    k.config.limits,
+                    &cfg.data_dir,
+                    &m.id,
+                )
+                .map_err(|e| fail(e.to_string()))?;
+                t0 = t0.min(wall_now);
+                Pending::Real(Box::new(link))
             }
         };
         pending.push((m.id.clone(), k, plan, settings, link));
@@ -388,7 +401,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
                 (id, k, plan, sim as Box<dyn MachineLink>, settings, None)
             }
             Pending::Nc(link, handle) => (id, k, plan, link, settings, Some(handle)),
-            Pending::Observed(link) => (id, k, plan, link, settings, None),
+            Pending::Real(link) => (id, k, plan, link, settings, None),
         })
         .collect();
     Ok((linked, t0))

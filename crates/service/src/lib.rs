@@ -1,5 +1,5 @@
 //! The service shell around the core: machine links (simulated, or a real NC posting to its
-//! door), the loop of each machine, SQLite storage, MCAP recorders, the HTTP API, webhook
+//! door or as an OPC UA server), the loop of each machine, SQLite storage, MCAP recorders, the HTTP API, webhook
 //! delivery and the configuration. The only crate with an async runtime, a database and a
 //! network.
 
@@ -12,6 +12,7 @@ pub mod link;
 pub mod mtconnect;
 pub mod mtconnect_link;
 pub mod nc_push;
+pub mod opcua;
 pub mod recorder;
 pub mod store;
 pub mod webhook;

@@ -64,6 +64,9 @@ pub enum LinkError {
         "the {0} link only observes the machine and cannot order a cycle: cycles must be ordered by another route (an nc_push gateway, or the NC's own program)"
     )]
     ObserveOnly(&'static str),
+    /// The link cannot reach the NC now (a network link between sessions).
+    #[error("the NC cannot be reached: {0}")]
+    Unavailable(String),
 }
 
 pub trait MachineLink: Send {
@@ -75,6 +78,9 @@ pub trait MachineLink: Send {
     fn abort_cycle(&mut self, number: i64, now_ns: i64);
     /// The earliest time the machine will report something by itself.
     fn next_event_ns(&self) -> Option<i64>;
+    /// The compensation set served from now on (validated: the loop publishes only those). A
+    /// link that writes it to the NC does so; the others ignore it.
+    fn serve(&mut self, _set: &driftwatch_machine::compensation::CompensationSet) {}
 }
 
 struct ActiveCycle {
