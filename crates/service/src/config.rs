@@ -506,9 +506,15 @@ mod tests {
 
     /// The shipped default's commented MTConnect example, in place of the simulated link.
     fn mtconnect_example() -> String {
-        let block: Vec<&str> = DEFAULT_CONFIG
-            .lines()
-            .skip_while(|l| !l.starts_with("# [machines.link]"))
+        // The MTConnect block: from the `[machines.link]` line before its `kind` (the file
+        // documents other links' blocks too).
+        let lines: Vec<&str> = DEFAULT_CONFIG.lines().collect();
+        let kind = lines
+            .iter()
+            .position(|l| l.starts_with("# kind = \"mtconnect\""))
+            .expect("the mtconnect example");
+        let block: Vec<&str> = lines[kind - 1..]
+            .iter()
             .map_while(|l| l.strip_prefix("# "))
             .collect();
         assert!(block.len() > 5, "{block:?}");
