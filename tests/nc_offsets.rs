@@ -64,7 +64,7 @@ async fn each_control_gets_the_served_set_in_its_own_form() {
     let nominal = "fanuc_nominal=19700:0,19702:0,19703:-100,19704:0";
     let (s, _, b) = get(&app, "/api/v1/machines/m1/compensation?format=fanuc").await;
     assert_eq!(s, StatusCode::BAD_REQUEST);
-    assert_eq!(b["code"], "bad_query");
+    assert_eq!(b["code"], "missing_nominal");
     assert!(b["message"].as_str().unwrap().contains("19700"), "{b}");
     let uri = format!("/api/v1/machines/m1/compensation?format=fanuc&{nominal}");
     let r = app.text(&uri).await;

@@ -39,6 +39,9 @@ pub enum ErrorCode {
     /// The served set may not be put in the NC's form (a step beyond the limit, a set that
     /// does not look validated, a machine chain without that form).
     OffsetsRefused,
+    /// FANUC's parameters are absolute: the commissioned value of each one written must be
+    /// given (a constraint between `format` and `fanuc_nominal` that OpenAPI cannot state).
+    MissingNominal,
     NoModel,
     BeforeLastInput,
     BadWindow,
@@ -68,7 +71,7 @@ impl ErrorCode {
     pub fn status(self) -> StatusCode {
         use ErrorCode::*;
         match self {
-            BadRequest | BadQuery | BadFormat | BeforeLastInput | BadWindow | BadEvery
+            BadRequest | BadQuery | BadFormat | MissingNominal | BeforeLastInput | BadWindow | BadEvery
             | BadSource | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
             BadBody | NoDetections | DiagnosisFailed => StatusCode::UNPROCESSABLE_ENTITY,
             BodyTooLarge => StatusCode::PAYLOAD_TOO_LARGE,

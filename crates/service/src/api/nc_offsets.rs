@@ -12,6 +12,18 @@ use driftwatch_nc::offsets::{NcOptions, OffsetFormat, OffsetsError, nc_offsets};
 
 use super::{ApiError, ErrorCode, Shared, handle};
 
+/// The forms of the compensation endpoint (its `format` parameter in the OpenAPI document).
+#[derive(utoipa::ToSchema)]
+#[schema(rename_all = "snake_case")]
+// Never built: it exists to state the parameter's values in the document.
+#[allow(dead_code)]
+pub(super) enum FormatName {
+    Json,
+    Fanuc,
+    Siemens,
+    Heidenhain,
+}
+
 /// The query of the compensation endpoint.
 // Unknown parameters are ignored, as the endpoint always has: no client breaks.
 #[derive(Debug, Default, Deserialize)]
@@ -32,13 +44,21 @@ fn bad(message: String) -> ApiError {
     ApiError::new(ErrorCode::BadQuery, message)
 }
 
-fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
+/// The options of the query, each checked as the OpenAPI document states it, with or without
+/// `format`: a request the document calls invalid is refused, never half read.
+pub(super) fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
     let mut o = NcOptions::default();
     if let Some(v) = q.fanuc_increment_mm {
+        if !(v > 0.0 && v <= 0.01) {
+            return Err(bad(format!(
+                "fanuc_increment_mm = {v}: the increment of 19700-19714 in mm, in (0, 0.01] \
+                 (0.001 IS-B, 0.0001 IS-C)"
+            )));
+        }
         o.fanuc_increment_mm = v;
     }
     if let Some(list) = &q.fanuc_nominal {
-        for pair in list.split(',').filter(|p| !p.trim().is_empty()) {
+        for pair in list.split(',') {
             let parsed = pair.split_once(':').and_then(|(n, v)| {
                 Some((n.trim().parse::<u32>().ok()?, v.trim().parse::<f64>().ok()?))
             });
@@ -55,12 +75,20 @@ fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
         }
     }
     if let Some(v) = q.siemens_carrier {
+        if !(1..=9999).contains(&v) {
+            return Err(bad(format!("siemens_carrier = {v}: a record number, 1 to 9999")));
+        }
         o.siemens_carrier = v;
     }
+    // Any negative number means "against": the sign is all that is asked.
     if let Some(v) = q.siemens_axis_sign {
-        o.siemens_axis_sign = v;
+        o.siemens_axis_sign = if v < 0.0 { -1.0 } else { 1.0 };
     }
     if let Some(v) = q.heidenhain_q_base {
+        // Q parameters run to Q1999; the variables written follow the first.
+        if v > 1999 {
+            return Err(bad(format!("heidenhain_q_base = {v}: Q parameters end at Q1999")));
+        }
         o.heidenhain_q_base = v;
     }
     if let Some(s) = &q.work_origin_mm {
@@ -116,7 +144,10 @@ pub(super) async fn in_format(
     let previous = st.store.compensation_before(id, set.version).await?;
     let o = nc_offsets(format, &k, &set, previous.as_ref(), &st.validation, &opts).map_err(
         |e| match e {
-            OffsetsError::MissingNominal { .. } | OffsetsError::BadOption(_) => bad(e.to_string()),
+            OffsetsError::MissingNominal { .. } => {
+                ApiError::new(ErrorCode::MissingNominal, e.to_string())
+            }
+            OffsetsError::BadOption(_) => bad(e.to_string()),
             e => ApiError::new(ErrorCode::OffsetsRefused, e.to_string()),
         },
     )?;
