@@ -71,8 +71,8 @@ impl ErrorCode {
     pub fn status(self) -> StatusCode {
         use ErrorCode::*;
         match self {
-            BadRequest | BadQuery | BadFormat | MissingNominal | BeforeLastInput | BadWindow | BadEvery
-            | BadSource | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
+            BadRequest | BadQuery | BadFormat | MissingNominal | BeforeLastInput | BadWindow
+            | BadEvery | BadSource | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
             BadBody | NoDetections | DiagnosisFailed => StatusCode::UNPROCESSABLE_ENTITY,
             BodyTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,

@@ -76,7 +76,9 @@ pub(super) fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
     }
     if let Some(v) = q.siemens_carrier {
         if !(1..=9999).contains(&v) {
-            return Err(bad(format!("siemens_carrier = {v}: a record number, 1 to 9999")));
+            return Err(bad(format!(
+                "siemens_carrier = {v}: a record number, 1 to 9999"
+            )));
         }
         o.siemens_carrier = v;
     }
@@ -87,7 +89,9 @@ pub(super) fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
     if let Some(v) = q.heidenhain_q_base {
         // Q parameters run to Q1999; the variables written follow the first.
         if v > 1999 {
-            return Err(bad(format!("heidenhain_q_base = {v}: Q parameters end at Q1999")));
+            return Err(bad(format!(
+                "heidenhain_q_base = {v}: Q parameters end at Q1999"
+            )));
         }
         o.heidenhain_q_base = v;
     }
