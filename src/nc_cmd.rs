@@ -10,8 +10,8 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 
 use driftwatch_core::kinematics::Kinematics;
-use driftwatch_machine::compensation::{CompensationSet, compensation_message};
-use driftwatch_nc::offsets::{NcOffsets, NcOptions, OffsetFormat, nc_offsets};
+use driftwatch_machine::compensation::CompensationSet;
+use driftwatch_nc::offsets::{NcOptions, OffsetFormat, json_body, nc_offsets};
 
 #[derive(clap::Subcommand)]
 pub enum NcCmd {
@@ -111,26 +111,6 @@ fn options(a: &OffsetsArgs) -> Result<NcOptions> {
     Ok(o)
 }
 
-/// The API's `format=json` body: the set as served, plus the variables and the report.
-fn json_body(set: &CompensationSet, o: &NcOffsets) -> Result<serde_json::Value> {
-    let mut body = compensation_message(set);
-    let extra = serde_json::to_value(o)?;
-    if let (Some(m), Some(extra)) = (body.as_object_mut(), extra.as_object()) {
-        for key in [
-            "previous_version",
-            "variables",
-            "not_written",
-            "notes",
-            "datum_shift",
-        ] {
-            if let Some(v) = extra.get(key) {
-                m.insert(key.to_string(), v.clone());
-            }
-        }
-    }
-    Ok(body)
-}
-
 fn cmd_offsets(a: OffsetsArgs) -> Result<ExitCode> {
     let format = OffsetFormat::parse(&a.format)?;
     let k = Kinematics::load(&a.machine).with_context(|| format!("machine {}", a.machine))?;
@@ -152,7 +132,7 @@ fn cmd_offsets(a: OffsetsArgs) -> Result<ExitCode> {
         writeln!(
             out,
             "{}",
-            serde_json::to_string_pretty(&json_body(&set, &o)?)?
+            serde_json::to_string_pretty(&json_body(&set, &o))?
         )?;
     }
     Ok(ExitCode::SUCCESS)

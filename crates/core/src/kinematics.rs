@@ -659,6 +659,19 @@ impl Kinematics {
         a
     }
 
+    /// The message fields (`b_deg`, `c_deg`) of commanded angles: the inverse of
+    /// [`Kinematics::angles_from_fields`] (a field no axis uses stays 0).
+    pub fn fields_from_angles(&self, angles_deg: &[f64; MAX_ROTARY]) -> (f64, f64) {
+        let mut fields = (0.0, 0.0);
+        for (i, ax) in self.rotary.iter().enumerate() {
+            match ax.field {
+                AngleField::B => fields.0 = angles_deg[i],
+                AngleField::C => fields.1 = angles_deg[i],
+            }
+        }
+        fields
+    }
+
     /// The work-side transform table -> machine at the commanded angles (deg).
     pub fn pose_transform(&self, state: &MachineState, angles_deg: &[f64]) -> Affine {
         self.pose_transform_on(&self.lines(state), state, angles_deg)

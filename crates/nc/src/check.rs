@@ -8,7 +8,7 @@ use thiserror::Error;
 
 use driftwatch_core::cycle::{CycleChecks, plan_measurements, process_cycle};
 use driftwatch_core::geometry::Vec3;
-use driftwatch_core::kinematics::{AngleField, Kinematics};
+use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::measurement::Approach;
 use driftwatch_core::plan::{Plan, Step};
 use driftwatch_core::recording::{DetectionIssue, DetectionMsg, DetectionStatus, Timed};
@@ -97,13 +97,7 @@ pub fn against_truth(
     let mut by_program: Vec<Entry> = Vec::new();
     let replayed = replay(k, &program, |a| {
         vm.advance_to(at(a.t_start_s), a.spindle_rpm);
-        let mut fields = (0.0, 0.0);
-        for (i, ax) in k.rotary.iter().enumerate() {
-            match ax.field {
-                AngleField::B => fields.0 = a.angles[i],
-                AngleField::C => fields.1 = a.angles[i],
-            }
-        }
+        let fields = k.fields_from_angles(&a.angles);
         let start = Vec3::new(a.start[0], a.start[1], a.start[2]);
         let step = Step {
             label: a.label.clone(),

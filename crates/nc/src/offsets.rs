@@ -31,7 +31,7 @@ use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::{Kinematics, MAX_ROTARY, MachineState, Side};
 use driftwatch_core::units;
-use driftwatch_machine::compensation::{CompensationSet, ValidationLimits};
+use driftwatch_machine::compensation::{CompensationSet, ValidationLimits, compensation_message};
 use driftwatch_machine::nc_offsets::NcLayout;
 
 /// The form the offsets are asked for in.
@@ -1090,6 +1090,30 @@ fn program(
         }
     }
     Some(p)
+}
+
+/// The `format=json` answer (API and `nc offsets --format json`): the set exactly as served,
+/// plus the variables with their steps, what no variable carries, the notes, the datum shift
+/// and the previous version.
+pub fn json_body(set: &CompensationSet, o: &NcOffsets) -> serde_json::Value {
+    let mut body = compensation_message(set);
+    // `NcOffsets` is plain data with string keys: serialising it cannot fail.
+    if let (Some(m), Ok(serde_json::Value::Object(extra))) =
+        (body.as_object_mut(), serde_json::to_value(o))
+    {
+        for key in [
+            "previous_version",
+            "variables",
+            "not_written",
+            "notes",
+            "datum_shift",
+        ] {
+            if let Some(v) = extra.get(key) {
+                m.insert(key.to_string(), v.clone());
+            }
+        }
+    }
+    body
 }
 
 #[cfg(test)]

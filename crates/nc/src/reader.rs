@@ -135,7 +135,8 @@ fn assemble(
 ) -> Result<ReadProgram, ReadError> {
     let mut blocks = Vec::new();
     let mut step: Option<(usize, String)> = None;
-    let mut pending: Option<(usize, String, Axis, f64, f64, Option<String>)> = None;
+    // A skip move waiting for the store of its result (its `variable` still empty).
+    let mut pending: Option<Block> = None;
     let mut pos = [f64::NAN; 3];
     for (line, text, item) in parsed.items {
         match item {
@@ -185,37 +186,42 @@ fn assemble(
                         ));
                     }
                 };
-                pending = Some((number, label, axis, end, feed, variable));
-            }
-            Item::Store(var, axis) => {
-                let Some((number, label, skip_axis, end, feed, named)) = pending.take() else {
-                    return Err(err(line, &text, "a result stored without a skip move"));
+                let skip = Block::Skip {
+                    number,
+                    label,
+                    axis,
+                    end,
+                    feed,
+                    variable: variable.clone().unwrap_or_default(),
                 };
-                if axis != skip_axis || named.as_ref().is_some_and(|v| *v != var) {
-                    return Err(err(line, &text, "the stored coordinate is not the skip's"));
+                // A cycle that names its result variable (HEIDENHAIN's) stores it itself.
+                if variable.is_some() {
+                    blocks.push(skip);
+                } else {
+                    pending = Some(skip);
                 }
-                blocks.push(Block::Skip {
+            }
+            Item::Store(var, axis) => match pending.take() {
+                Some(Block::Skip {
+                    number,
+                    label,
+                    axis: skip_axis,
+                    end,
+                    feed,
+                    ..
+                }) if skip_axis == axis => blocks.push(Block::Skip {
                     number,
                     label,
                     axis,
                     end,
                     feed,
                     variable: var,
-                });
-            }
-        }
-        // HEIDENHAIN's cycle stores its own result: close the skip at once.
-        if d == Dialect::Heidenhain
-            && let Some((number, label, axis, end, feed, Some(var))) = pending.take()
-        {
-            blocks.push(Block::Skip {
-                number,
-                label,
-                axis,
-                end,
-                feed,
-                variable: var,
-            });
+                }),
+                Some(_) => {
+                    return Err(err(line, &text, "the stored coordinate is not the skip's"));
+                }
+                None => return Err(err(line, &text, "a result stored without a skip move")),
+            },
         }
     }
     Ok(ReadProgram { dialect: d, blocks })

@@ -7,8 +7,7 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 
-use driftwatch_machine::compensation::compensation_message;
-use driftwatch_nc::offsets::{NcOptions, OffsetFormat, OffsetsError, nc_offsets};
+use driftwatch_nc::offsets::{NcOptions, OffsetFormat, OffsetsError, json_body, nc_offsets};
 
 use super::{ApiError, ErrorCode, Shared, handle};
 
@@ -162,22 +161,7 @@ pub(super) async fn in_format(
         )
             .into_response(),
         None => {
-            let mut body = compensation_message(&set);
-            if let (Some(m), Ok(serde_json::Value::Object(extra))) =
-                (body.as_object_mut(), serde_json::to_value(&o))
-            {
-                for key in [
-                    "previous_version",
-                    "variables",
-                    "not_written",
-                    "notes",
-                    "datum_shift",
-                ] {
-                    if let Some(v) = extra.get(key) {
-                        m.insert(key.to_string(), v.clone());
-                    }
-                }
-            }
+            let body = json_body(&set, &o);
             axum::Json(body).into_response()
         }
     };
