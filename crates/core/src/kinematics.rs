@@ -709,6 +709,17 @@ impl Kinematics {
         total
     }
 
+    /// The head-side transform (head frame -> machine frame, before the linear axes) at the
+    /// commanded angles; the identity on machines whose head does not turn.
+    pub fn head_transform_on(
+        &self,
+        lines: &AxisLines,
+        state: &MachineState,
+        angles_deg: &[f64],
+    ) -> Affine {
+        self.chain(Side::Head, lines, state, angles_deg)
+    }
+
     /// The axis that turns the table under the work (the innermost table axis, C on every
     /// built-in machine), if any: the one axis a pose may turn and stay "untilted".
     pub fn table_axis(&self) -> Option<usize> {

@@ -427,6 +427,12 @@ impl VirtualMachine {
         }
     }
 
+    /// The true machine state now, the spindle at `rpm`: what any instrument on this machine
+    /// (the tool setter, an R-test) measures.
+    pub fn state(&self, rpm: f64) -> MachineState {
+        self.vm.state(rpm)
+    }
+
     /// The truth now, the spindle at `rpm`.
     pub fn truth(&self, k: &Kinematics, rpm: f64, cycle: Option<i64>) -> TruthSample {
         self.vm.sample(k, self.now_ns(), rpm, cycle)
