@@ -23,6 +23,7 @@ mod model_cmd;
 mod nc_cmd;
 mod nc_program_cmd;
 mod plan_design_cmd;
+mod rtest_cmd;
 mod serve;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
@@ -129,6 +130,12 @@ enum Command {
     Nc {
         #[command(subcommand)]
         what: nc_cmd::NcCmd,
+    },
+    /// The R-test (ISO 10791-6; seed 002): simulate BK1, BK2 and XYC, process readings to
+    /// radial, axial and tangential deviations, identify the location errors.
+    Rtest {
+        #[command(subcommand)]
+        what: rtest_cmd::RtestCmd,
     },
     /// Turn a table from another tool into a contract recording.
     Import {
@@ -239,6 +246,8 @@ enum PlanWhat {
 enum ImportWhat {
     /// A CSV of a thermal test: spindle speed, temperatures, displacements per row.
     Csv(model_cmd::ImportCsvArgs),
+    /// An R-test device's export (angle and the three sensors per row) as `/rtest/*`.
+    RtestCsv(rtest_cmd::ImportArgs),
 }
 
 #[derive(clap::Args, Clone)]
@@ -371,6 +380,10 @@ fn run(cmd: Command) -> Result<ExitCode> {
         Command::Import {
             what: ImportWhat::Csv(a),
         } => model_cmd::cmd_import_csv(a),
+        Command::Import {
+            what: ImportWhat::RtestCsv(a),
+        } => rtest_cmd::cmd_import(a).map(|()| ExitCode::SUCCESS),
+        Command::Rtest { what } => rtest_cmd::cmd_rtest(what).map(|()| ExitCode::SUCCESS),
         Command::Nc { what } => nc_cmd::cmd_nc(what),
         Command::Fit(a) => model_cmd::cmd_fit(a),
         Command::Predict(a) => model_cmd::cmd_predict(a),

@@ -1023,3 +1023,145 @@ fn nc_program_writes_the_golden_file_and_checks_against_the_plan() {
     ]);
     assert!(!ok && err.contains("decimals"), "{err}");
 }
+
+/// `rtest simulate`, `process` and `identify`: the errors put into the virtual machine come
+/// back within their uncertainties, the report has its plots, and the reference measurement
+/// is the verification endpoint's body.
+#[test]
+fn rtest_simulates_processes_and_identifies_a_machine() {
+    let rec_path = tmp("rtest.mcap");
+    let p = rec_path.to_str().unwrap();
+    let (ok, out, err) = run(&[
+        "rtest",
+        "simulate",
+        "--machine",
+        "table_bc",
+        "--error",
+        "EX0C=10",
+        "--error",
+        "EZ0B=-5",
+        "--out",
+        p,
+    ]);
+    assert!(ok, "{out}{err}");
+    let report = tmp("rtest.html");
+    let (ok, out, err) = run(&[
+        "rtest",
+        "process",
+        "--from",
+        p,
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let xyc_radial = out
+        .lines()
+        .find(|l| l.starts_with("XYC") && l.contains("radial"))
+        .unwrap_or_else(|| panic!("{out}"));
+    let harmonic: f64 = xyc_radial
+        .split_whitespace()
+        .nth(6)
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((harmonic - 10.0).abs() < 0.2, "{xyc_radial}");
+    let html = std::fs::read_to_string(&report).unwrap();
+    assert_eq!(html.matches("<svg").count(), 6, "two plots per test");
+
+    let reference = tmp("rtest-reference.json");
+    let (ok, out, err) = run(&[
+        "rtest",
+        "identify",
+        "--from",
+        p,
+        "--reference",
+        reference.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let body: Value = serde_json::from_str(&std::fs::read_to_string(&reference).unwrap()).unwrap();
+    assert_eq!(body["instrument"], "rtest");
+    for (name, truth) in [("EX0C", 10.0), ("EZ0B", -5.0), ("EA0C", 0.0)] {
+        let (v, s) = (
+            body["errors"][name].as_f64().unwrap(),
+            body["sigma"][name].as_f64().unwrap(),
+        );
+        assert!((v - truth).abs() < 4.0 * s, "{name}: {v} +- {s}");
+    }
+    // Asked for every error, it names what these tests cannot separate instead of guessing.
+    let (ok, out, err) = run(&["rtest", "identify", "--from", p, "--errors", "all"]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("not identifiable: EC0C"), "{out}");
+}
+
+/// A device's CSV export (angle and the three sensors) imported and processed; a bad cell is
+/// refused by line.
+#[test]
+fn rtest_csv_exports_are_imported_and_bad_cells_refused_by_line() {
+    let rec_path = tmp("rtest-for-csv.mcap");
+    let p = rec_path.to_str().unwrap();
+    let (ok, out, err) = run(&[
+        "rtest",
+        "simulate",
+        "--machine",
+        "table_bc",
+        "--tests",
+        "xyc",
+        "--error",
+        "EX0C=10",
+        "--ideal",
+        "--uncalibrated",
+        "--out",
+        p,
+    ]);
+    assert!(ok, "{out}{err}");
+    let recording = read_file(
+        &rec_path,
+        &ReadOptions {
+            keep_raw: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut csv = String::from("angle_deg,u_um,v_um,w_um\n");
+    for m in recording.raw.iter().filter(|m| m.topic == "/rtest/reading") {
+        let r: Value = serde_json::from_slice(&m.data).unwrap();
+        csv += &format!("{},{},{},{}\n", r["c_deg"], r["u_um"], r["v_um"], r["w_um"]);
+    }
+    let csv_path = tmp("rtest.csv");
+    std::fs::write(&csv_path, &csv).unwrap();
+    let imported = tmp("rtest-imported.mcap");
+    let args = |csv: &Path| {
+        vec![
+            "import".to_string(),
+            "rtest-csv".into(),
+            "--csv".into(),
+            csv.display().to_string(),
+            "--machine".into(),
+            "table_bc".into(),
+            "--test".into(),
+            "xyc".into(),
+            "--setting".into(),
+            "e".into(),
+            "--out".into(),
+            imported.display().to_string(),
+        ]
+    };
+    let a = args(&csv_path);
+    let (ok, out, err) = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(ok, "{out}{err}");
+    let (ok, out, err) = run(&["rtest", "process", "--from", imported.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    let radial = out.lines().find(|l| l.contains("radial")).unwrap();
+    let harmonic: f64 = radial.split_whitespace().nth(6).unwrap().parse().unwrap();
+    assert!((harmonic - 10.0).abs() < 0.2, "{radial}");
+
+    let bad = tmp("rtest-bad.csv");
+    std::fs::write(&bad, csv.replacen("\n0.0,", "\nzero,", 1)).unwrap();
+    let a = args(&bad);
+    let (ok, _, err) = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!ok);
+    assert!(
+        err.contains("line 2") && err.contains("'zero' is not a number"),
+        "{err}"
+    );
+}

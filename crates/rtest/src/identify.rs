@@ -71,6 +71,25 @@ pub struct Identification {
     pub correlation: Vec<Vec<f64>>,
 }
 
+impl Identification {
+    /// The result as a reference measurement for the service's verification
+    /// (`POST /api/v1/machines/{id}/verifications`): errors and standard uncertainties by
+    /// name at the reference time.
+    pub fn reference_json(&self) -> serde_json::Value {
+        let errors: BTreeMap<&String, f64> =
+            self.errors.iter().map(|(n, e)| (n, e.value)).collect();
+        let sigma: BTreeMap<&String, f64> = self.errors.iter().map(|(n, e)| (n, e.sigma)).collect();
+        serde_json::json!({
+            "instrument": "rtest",
+            "t_ns": self.t_ns,
+            "errors": errors,
+            "sigma": sigma,
+            "frame_note": "apparent location errors relative to the spindle-side object (ball or nest), its calibration's uncertainty included",
+            "source": self.tests.join(", "),
+        })
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum IdentifyError {
     #[error("{0} is not a location error of this machine")]
@@ -103,11 +122,20 @@ impl Default for Options {
 
 /// Every location error of the machine that the model can carry (positions, orientations and
 /// zero angles of every axis), by name.
+/// The machine's identified errors come first: when two cannot be told apart, the one the
+/// tool setter also reports is kept and the other named.
 pub fn all_errors(k: &Kinematics) -> Vec<String> {
-    k.rotary
+    let mut out = k.identify_names();
+    for n in k
+        .rotary
         .iter()
         .flat_map(|ax| ax.error_names.iter().map(|n| n.to_string()))
-        .collect()
+    {
+        if !out.contains(&n) {
+            out.push(n);
+        }
+    }
+    out
 }
 
 fn state_with(k: &Kinematics, params: &[Param], x: &[f64]) -> (MachineState, Setup) {

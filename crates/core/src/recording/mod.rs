@@ -22,6 +22,9 @@ pub const TOPIC_RESULT: &str = "/cycle/result";
 pub const TOPIC_COMPENSATION: &str = "/compensation";
 /// The simulator's ground truth (a project topic; readers of the contract ignore it).
 pub const TOPIC_TRUTH: &str = "/sim/truth";
+/// R-test runs (an extension: `docs/recording-format.md`): one set-up per run, its readings.
+pub const TOPIC_RTEST_SETUP: &str = "/rtest/setup";
+pub const TOPIC_RTEST_READING: &str = "/rtest/reading";
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct MachineInfo {
@@ -360,6 +363,36 @@ pub fn schema(topic: &str) -> (String, Value) {
                 ],
             )
         }
+        TOPIC_RTEST_SETUP => {
+            let row = json!({"type": "array", "items": num, "minItems": 3, "maxItems": 3});
+            let m3 = json!({"type": "array", "items": row, "minItems": 3, "maxItems": 3});
+            s(
+                "driftwatch.RtestSetup",
+                json!({"run": {"type": "integer"}, "test": {"enum": ["BK1", "BK2", "XYC"]},
+                       "setting": {"enum": ["E", "J", "Es"]}, "axis": {"type": "string"},
+                       "ball_mm": row, "sensitivity": m3, "sensitivity_source": {"type": "string"},
+                       "sensitivity_row_cov": m3, "reading_sigma_um": num, "sphericity_um": num}),
+                &[
+                    "run",
+                    "test",
+                    "setting",
+                    "axis",
+                    "ball_mm",
+                    "sensitivity",
+                    "sensitivity_source",
+                    "reading_sigma_um",
+                ],
+            )
+        }
+        TOPIC_RTEST_READING => s(
+            "driftwatch.RtestReading",
+            json!({"run": {"type": "integer"}, "index": {"type": "integer", "minimum": 0},
+                   "b_deg": num, "c_deg": num, "x_mm": num, "y_mm": num, "z_mm": num,
+                   "u_um": num, "v_um": num, "w_um": num}),
+            &[
+                "run", "index", "b_deg", "c_deg", "x_mm", "y_mm", "z_mm", "u_um", "v_um", "w_um",
+            ],
+        ),
         _ => (
             format!("driftwatch{}", topic.replace('/', ".")),
             json!({"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object"}),
