@@ -70,6 +70,30 @@ pub enum RtestCmd {
     /// Location errors (apparent, relative to the spindle-side object) by least squares with
     /// uncertainties, and what these tests cannot separate.
     Identify(IdentifyArgs),
+    /// Tool setter and R-test on the same drifting virtual machine through a scenario: at each
+    /// cycle time a setter cycle, the R-test, a setter cycle; the setter moved to the R-test's
+    /// time by the thermal model; the six errors compared with their combined uncertainty.
+    Crosscheck(CrosscheckArgs),
+}
+
+#[derive(clap::Args)]
+pub struct CrosscheckArgs {
+    /// A built-in scenario or a scenario TOML.
+    #[arg(long, default_value = "patent")]
+    scenario: String,
+    #[arg(long, value_enum, default_value = "e")]
+    setting: SettingArg,
+    /// R-test tests of each session.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "bk1,xyc")]
+    tests: Vec<TestArg>,
+    /// Agreement bound, combined standard uncertainties.
+    #[arg(long, default_value_t = 2.0)]
+    k: f64,
+    #[arg(long, default_value_t = 18)]
+    seed: u64,
+    /// Print the whole comparison as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args)]
@@ -124,6 +148,10 @@ pub struct IdentifyArgs {
     /// against the tool reference point), um per axis.
     #[arg(long, default_value_t = 0.5)]
     head_sigma_um: f64,
+    /// Estimate the drifts while the tests ran (the ball's, linear and quadratic; each
+    /// error's, linear): for a machine that is warming or cooling.
+    #[arg(long)]
+    drift: bool,
     /// Write the result as a reference measurement (the body of
     /// `POST /api/v1/machines/{id}/verifications`) here.
     #[arg(long)]
@@ -187,7 +215,58 @@ pub fn cmd_rtest(cmd: RtestCmd) -> Result<()> {
             write_report(a.report.as_deref(), &k, &processed, None)
         }
         RtestCmd::Identify(a) => cmd_identify(a),
+        RtestCmd::Crosscheck(a) => cmd_crosscheck(a),
     }
+}
+
+fn cmd_crosscheck(a: CrosscheckArgs) -> Result<()> {
+    use driftwatch_core::plan::{Plan, PlanConfig};
+    use driftwatch_rtest::crosscheck::{CrossOptions, run};
+    let scn = driftwatch_sim::scenario::Scenario::load(&a.scenario)
+        .with_context(|| format!("scenario '{}'", a.scenario))?;
+    let k = Kinematics::load(&scn.machine).with_context(|| format!("machine '{}'", scn.machine))?;
+    let plan = Plan::build(&k, &PlanConfig::load(&scn.plan)?)?;
+    let opts = CrossOptions {
+        setting: a.setting.into(),
+        tests: a.tests.iter().map(|&t| t.into()).collect(),
+        k: a.k,
+        seed: a.seed,
+        ..CrossOptions::default()
+    };
+    let c = run(&k, &scn, &plan, &opts)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&c)?);
+        return Ok(());
+    }
+    for s in &c.sessions {
+        println!(
+            "{:5.0} min: setter {:.1} and {:.1}, R-test {:.1} min",
+            s.t_min, s.setter_min[0], s.setter_min[1], s.rtest_min
+        );
+        for (n, e) in &s.errors {
+            println!(
+                "  {n:<5} setter {:>9.3} -> {:>9.3} +- {:.3}  R-test {:>9.3} +- {:.3}  diff {:>+7.3} (z {:>+5.2})",
+                e.setter,
+                e.setter_at_rtest,
+                e.setter_at_rtest_sigma,
+                e.rtest,
+                e.rtest_sigma,
+                e.difference,
+                e.z
+            );
+        }
+    }
+    println!(
+        "beyond {} combined sigma: {} of {} (largest |z| {:.2}, RMS z {:.2}); with the setter's nearest cycle as it is: {} (RMS z {:.2})",
+        c.k,
+        c.beyond,
+        c.total,
+        c.max_abs_z,
+        c.rms_z,
+        c.beyond_without_transfer,
+        c.rms_z_without_transfer
+    );
+    Ok(())
 }
 
 fn cmd_simulate(a: SimulateArgs) -> Result<()> {
@@ -355,6 +434,7 @@ fn cmd_identify(a: IdentifyArgs) -> Result<()> {
         &Options {
             errors,
             head_sigma_um: a.head_sigma_um,
+            drift_rates: a.drift,
         },
     )?;
     println!("{:<6} {:>10} {:>8} unit", "error", "value", "u(k=1)");

@@ -37,6 +37,12 @@ enum Param {
     Error(ErrorId),
     Table(usize),
     Head(usize),
+    /// The spindle-side object's drift, head frame, um/min (thermal growth during the run),
+    /// and its change, um/min^2 (the growth's lag bends it within minutes of a start or stop).
+    HeadRate(usize),
+    HeadCurve(usize),
+    /// A location error's drift during the runs, its unit per minute.
+    ErrorRate(ErrorId),
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -59,6 +65,8 @@ pub struct Identification {
     pub table_object_um: [Estimate; 3],
     /// The spindle-side object's offset from the tool reference point (prior and data), um.
     pub head_object_um: [Estimate; 3],
+    /// The spindle-side object's drift during the runs (when asked for), um/min.
+    pub drift: BTreeMap<String, Estimate>,
     /// Parameters asked for that these tests cannot separate, with what they are tied to.
     pub not_identifiable: Vec<String>,
     pub n_readings: usize,
@@ -109,6 +117,10 @@ pub struct Options {
     pub errors: Vec<String>,
     /// Standard uncertainty of the spindle-side object's calibration, um (per component).
     pub head_sigma_um: f64,
+    /// Estimate drifts while the tests run, so that the errors refer to the readings' mean
+    /// time: the spindle-side object's, linear and quadratic in time (the spindle's growth),
+    /// and each estimated location error's, linear (the structure's).
+    pub drift_rates: bool,
 }
 
 impl Default for Options {
@@ -116,6 +128,7 @@ impl Default for Options {
         Options {
             errors: Vec::new(),
             head_sigma_um: 0.5,
+            drift_rates: false,
         }
     }
 }
@@ -138,26 +151,56 @@ pub fn all_errors(k: &Kinematics) -> Vec<String> {
     out
 }
 
-fn state_with(k: &Kinematics, params: &[Param], x: &[f64]) -> (MachineState, Setup) {
+fn state_with(
+    k: &Kinematics,
+    params: &[Param],
+    x: &[f64],
+) -> (MachineState, Setup, Vec3, Vec3, MachineState) {
     let mut s = k.nominal_state();
     let mut setup = Setup::default();
+    let mut rate = Vec3::zeros();
+    let mut curve = Vec3::zeros();
+    // The location errors' drift per minute, in the state's own slots.
+    let mut loc_rate = k.nominal_state();
+    loc_rate.loc = [[0.0; 5]; driftwatch_core::kinematics::MAX_ROTARY];
     for (p, v) in params.iter().zip(x) {
         match p {
             Param::Error(id) => s.loc[id.axis][id.slot] += v * id.scale(),
             Param::Table(j) => setup.table_object_mm[*j] += v * 1e-3,
             Param::Head(j) => setup.head_object_mm[*j] += v * 1e-3,
+            Param::HeadRate(j) => rate[*j] += v * 1e-3,
+            Param::HeadCurve(j) => curve[*j] += v * 1e-3,
+            Param::ErrorRate(id) => loc_rate.loc[id.axis][id.slot] += v * id.scale(),
         }
     }
-    (s, setup)
+    (s, setup, rate, curve, loc_rate)
 }
 
-fn model(k: &Kinematics, runs: &[Processed], params: &[Param], x: &[f64]) -> Vec<Vec3> {
-    let (s, setup) = state_with(k, params, x);
+/// The model's deviations (um, table frame), the drift referred to `t_ref_ns`.
+fn model(
+    k: &Kinematics,
+    runs: &[Processed],
+    params: &[Param],
+    x: &[f64],
+    t_ref_ns: i64,
+) -> Vec<Vec3> {
+    let (s, setup, rate, curve, loc_rate) = state_with(k, params, x);
     runs.iter()
         .flat_map(|r| {
             r.points
                 .iter()
-                .map(|d| deviation_table_um(k, &s, &d.angles_deg, &r.ball_mm, &setup))
+                .map(|d| {
+                    let mut at = setup;
+                    let dt_min = (d.t_ns - t_ref_ns) as f64 / 60e9;
+                    at.head_object_mm += rate * dt_min + curve * (dt_min * dt_min);
+                    let mut now = s;
+                    for (a, r) in now.loc.iter_mut().zip(&loc_rate.loc) {
+                        for (v, dv) in a.iter_mut().zip(r) {
+                            *v += dv * dt_min;
+                        }
+                    }
+                    deviation_table_um(k, &now, &d.angles_deg, &r.ball_mm, &at)
+                })
                 .collect::<Vec<_>>()
         })
         .collect()
@@ -189,6 +232,25 @@ pub fn identify(
             .ok_or_else(|| IdentifyError::UnknownError(n.clone()))?;
         candidates.push((Param::Error(id), n.clone()));
     }
+    if opts.drift_rates {
+        for j in 0..3 {
+            candidates.push((
+                Param::HeadRate(j),
+                format!("head_drift_{}_um_per_min", ["x", "y", "z"][j]),
+            ));
+        }
+        for j in 0..3 {
+            candidates.push((
+                Param::HeadCurve(j),
+                format!("head_drift_{}_um_per_min2", ["x", "y", "z"][j]),
+            ));
+        }
+        for n in &names {
+            if let Some(id) = k.error_id(n) {
+                candidates.push((Param::ErrorRate(id), format!("{n}_per_min")));
+            }
+        }
+    }
     let heads: Vec<Param> = (0..3).map(Param::Head).collect();
     let obs: Vec<(&crate::process::Deviation, Vec3)> = runs
         .iter()
@@ -208,8 +270,12 @@ pub fn identify(
         .map(|c| c.0)
         .chain(heads.iter().copied())
         .collect();
+    let t_ref_ns = {
+        let ts: Vec<i64> = obs.iter().map(|(d, _)| d.t_ns).collect();
+        driftwatch_core::identify::mean_time_ns(ts.iter().copied())
+    };
     let zero = vec![0.0; all.len()];
-    let base = model(k, runs, &all, &zero);
+    let base = model(k, runs, &all, &zero, t_ref_ns);
     let n = obs.len() * 3;
     let mut jac = DMatrix::zeros(n, all.len());
     for c in 0..all.len() {
@@ -217,7 +283,10 @@ pub fn identify(
         let mut xm = zero.clone();
         xp[c] = 1.0;
         xm[c] = -1.0;
-        let (mp, mm) = (model(k, runs, &all, &xp), model(k, runs, &all, &xm));
+        let (mp, mm) = (
+            model(k, runs, &all, &xp, t_ref_ns),
+            model(k, runs, &all, &xm, t_ref_ns),
+        );
         for (i, w) in whiten.iter().enumerate() {
             let col = w * (mp[i] - mm[i]) / 2.0;
             for r in 0..3 {
@@ -279,7 +348,7 @@ pub fn identify(
     for (j, &c) in cols.iter().enumerate() {
         xfull[c] = x[j];
     }
-    let fitted = model(k, runs, &all, &xfull);
+    let fitted = model(k, runs, &all, &xfull, t_ref_ns);
     let rms = (obs
         .iter()
         .zip(&fitted)
@@ -295,6 +364,7 @@ pub fn identify(
     let mut errors = BTreeMap::new();
     let mut order = Vec::new();
     let mut table = [0usize; 3];
+    let mut drift = BTreeMap::new();
     for (j, &c) in cols.iter().enumerate() {
         match all[c] {
             Param::Error(id) => {
@@ -302,6 +372,20 @@ pub fn identify(
                 order.push(j);
             }
             Param::Table(t) => table[t] = j,
+            Param::HeadRate(_) => {
+                drift.insert(candidates[c].1.clone(), est(j, "um/min"));
+            }
+            Param::HeadCurve(_) => {
+                drift.insert(candidates[c].1.clone(), est(j, "um/min^2"));
+            }
+            Param::ErrorRate(id) => {
+                let unit = if id.is_position() {
+                    "um/min"
+                } else {
+                    "urad/min"
+                };
+                drift.insert(candidates[c].1.clone(), est(j, unit));
+            }
             Param::Head(_) => {}
         }
     }
@@ -316,13 +400,10 @@ pub fn identify(
         })
         .collect();
     let all_table_kept = (0..3).all(|t| kept.contains(&t));
-    let t_ns = {
-        let ts: Vec<i64> = obs.iter().map(|(d, _)| d.t_ns).collect();
-        driftwatch_core::identify::mean_time_ns(ts.iter().copied())
-    };
     Ok(Identification {
         machine: k.name.clone(),
-        t_ns,
+        t_ns: t_ref_ns,
+        drift,
         tests: runs
             .iter()
             .map(|r| format!("{} ({})", r.test, r.setting.name()))

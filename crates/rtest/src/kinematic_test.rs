@@ -69,6 +69,8 @@ pub struct TestSpec {
     pub ball_mm: Vec3,
     /// Feed along the path, mm/min (sets the time between readings).
     pub feed_mm_min: f64,
+    /// Standstill at each reading, s.
+    pub dwell_s: f64,
 }
 
 /// Why a test cannot run on a machine.
@@ -143,6 +145,7 @@ impl TestSpec {
             bidirectional: true,
             ball_mm: ball,
             feed_mm_min: 500.0,
+            dwell_s: 1.0,
         };
         match kind {
             TestKind::Bk1 => {
@@ -326,7 +329,7 @@ fn nest_view(setting: Setting, pose: &Pose, setup: &Setup) -> (Vec3, Mat3) {
 }
 
 /// Runs a test on a machine whose true state at time `t_ns` is `state_at(t_ns)`; readings from
-/// `start_ns` on, spaced by the path over the feed plus a second's dwell.
+/// `start_ns` on, spaced by the path over the feed plus the dwell.
 pub fn simulate(
     k: &Kinematics,
     spec: &TestSpec,
@@ -350,7 +353,7 @@ pub fn simulate(
             * 100.0;
         let path = (cmd - last).norm().max(arc);
         if index > 0 {
-            t_ns += (path / spec.feed_mm_min * 60e9) as i64 + 1_000_000_000;
+            t_ns += (path / spec.feed_mm_min * 60e9 + spec.dwell_s * 1e9) as i64;
         }
         last = cmd;
         let state = state_at(t_ns);

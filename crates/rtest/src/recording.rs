@@ -218,6 +218,7 @@ pub fn from_messages(
             bidirectional: false,
             ball_mm: Vec3::new(s.ball_mm[0], s.ball_mm[1], s.ball_mm[2]),
             feed_mm_min: 0.0,
+            dwell_s: 0.0,
         };
         if TestKind::parse(&s.test).is_none() {
             return Err(bad(format!("test '{}' is not BK1, BK2 or XYC", s.test)));
