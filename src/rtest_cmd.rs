@@ -437,9 +437,9 @@ fn cmd_identify(a: IdentifyArgs) -> Result<()> {
             drift_rates: a.drift,
         },
     )?;
-    println!("{:<6} {:>10} {:>8} unit", "error", "value", "u(k=1)");
+    println!("{:<18} {:>10} {:>8} unit", "error", "value", "u(k=1)");
     for (n, e) in &id.errors {
-        println!("{n:<6} {:>10.3} {:>8.3} {}", e.value, e.sigma, e.unit);
+        println!("{n:<18} {:>10.3} {:>8.3} {}", e.value, e.sigma, e.unit);
     }
     let t = &id.table_object_um;
     println!(

@@ -43,7 +43,20 @@ enum Param {
     HeadCurve(usize),
     /// A location error's drift during the runs, its unit per minute.
     ErrorRate(ErrorId),
+    /// A linear-axis error of the tool side: scale X, Y, Z (ppm), squareness XY, XZ, YZ
+    /// (urad), as `kinematics::LinearErrors`.
+    Linear(usize),
 }
+
+/// The linear-axis errors the R-test can be asked for, by name.
+pub const LINEAR_ERRORS: [&str; 6] = [
+    "scale_x_ppm",
+    "scale_y_ppm",
+    "scale_z_ppm",
+    "squareness_xy_urad",
+    "squareness_xz_urad",
+    "squareness_yz_urad",
+];
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Estimate {
@@ -136,7 +149,8 @@ impl Default for Options {
 /// Every location error of the machine that the model can carry (positions, orientations and
 /// zero angles of every axis), by name.
 /// The machine's identified errors come first: when two cannot be told apart, the one the
-/// tool setter also reports is kept and the other named.
+/// tool setter also reports is kept and the other named. The linear axes' scale and
+/// squareness errors come last.
 pub fn all_errors(k: &Kinematics) -> Vec<String> {
     let mut out = k.identify_names();
     for n in k
@@ -148,6 +162,7 @@ pub fn all_errors(k: &Kinematics) -> Vec<String> {
             out.push(n);
         }
     }
+    out.extend(LINEAR_ERRORS.iter().map(|s| s.to_string()));
     out
 }
 
@@ -171,6 +186,12 @@ fn state_with(
             Param::HeadRate(j) => rate[*j] += v * 1e-3,
             Param::HeadCurve(j) => curve[*j] += v * 1e-3,
             Param::ErrorRate(id) => loc_rate.loc[id.axis][id.slot] += v * id.scale(),
+            Param::Linear(i) => match i {
+                0..=2 => s.linear.k[*i] += v * 1e-6,
+                3 => s.linear.sxy += v * 1e-6,
+                4 => s.linear.sxz += v * 1e-6,
+                _ => s.linear.syz += v * 1e-6,
+            },
         }
     }
     (s, setup, rate, curve, loc_rate)
@@ -227,6 +248,10 @@ pub fn identify(
         })
         .collect();
     for n in &names {
+        if let Some(i) = LINEAR_ERRORS.iter().position(|l| l == n) {
+            candidates.push((Param::Linear(i), n.clone()));
+            continue;
+        }
         let id = k
             .error_id(n)
             .ok_or_else(|| IdentifyError::UnknownError(n.clone()))?;
@@ -245,7 +270,10 @@ pub fn identify(
                 format!("head_drift_{}_um_per_min2", ["x", "y", "z"][j]),
             ));
         }
-        for n in &names {
+        for n in names
+            .iter()
+            .filter(|n| !LINEAR_ERRORS.contains(&n.as_str()))
+        {
             if let Some(id) = k.error_id(n) {
                 candidates.push((Param::ErrorRate(id), format!("{n}_per_min")));
             }
@@ -385,6 +413,11 @@ pub fn identify(
                     "urad/min"
                 };
                 drift.insert(candidates[c].1.clone(), est(j, unit));
+            }
+            Param::Linear(i) => {
+                let unit = if i < 3 { "ppm" } else { "urad" };
+                errors.insert(candidates[c].1.clone(), est(j, unit));
+                order.push(j);
             }
             Param::Head(_) => {}
         }

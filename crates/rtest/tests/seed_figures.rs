@@ -230,3 +230,50 @@ fn identified_errors_come_back_within_their_uncertainties_over_500_runs() {
         assert!(m.abs() < 4.0 * sd / (runs as f64).sqrt(), "{n}: bias {m}");
     }
 }
+
+/// What else the tests see: asked for every error, the R-test finds the linear axes'
+/// squareness and the rotary axes' orientations that the tool setter holds, and names what a
+/// single ball cannot separate instead of guessing.
+#[test]
+fn asked_for_everything_it_finds_squareness_and_names_what_it_cannot_separate() {
+    let k = Kinematics::builtin("table_bc").unwrap();
+    let mut truth = with_errors(&k, &[("EX0C", 10.0), ("EA0B", 30.0), ("EZ0B", -8.0)]);
+    truth.linear.sxy = 20e-6;
+    truth.linear.syz = -15e-6;
+    let mut rng = ChaCha8Rng::seed_from_u64(230);
+    let inst = Instrument::drawn(Setting::E, &Imperfections::seed(), &mut rng);
+    let cal = calibrate(&inst, 0.05, 3, 0.0, 0.13, &mut rng).unwrap();
+    let procs = run_all(&k, truth, &inst, &cal, &Setup::default(), &mut rng);
+    let opts = Options {
+        errors: driftwatch_rtest::identify::all_errors(&k),
+        ..Options::default()
+    };
+    let id = identify(&k, &procs, &opts).unwrap();
+    for (name, v) in [
+        ("EX0C", 10.0),
+        ("EA0B", 30.0),
+        ("EZ0B", -8.0),
+        ("squareness_xy_urad", 20.0),
+        ("squareness_yz_urad", -15.0),
+        ("squareness_xz_urad", 0.0),
+    ] {
+        let e = &id.errors[name];
+        println!("{name}: {:.3} +- {:.3} (true {v})", e.value, e.sigma);
+        assert!(
+            (e.value - v).abs() < 4.0 * e.sigma,
+            "{name}: {} +- {}",
+            e.value,
+            e.sigma
+        );
+    }
+    let tied: Vec<&str> = id
+        .not_identifiable
+        .iter()
+        .map(|m| m.split(':').next().unwrap())
+        .collect();
+    println!("not identifiable: {tied:?}");
+    assert!(
+        tied.contains(&"EC0C") && tied.contains(&"scale_z_ppm"),
+        "{tied:?}"
+    );
+}
