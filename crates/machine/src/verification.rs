@@ -49,6 +49,7 @@ pub const MAX_NOTE_CHARS: usize = 1024;
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ReferenceResult {
     /// The instrument, e.g. `rtest` (1 to 64 characters).
+    #[cfg_attr(feature = "openapi", schema(min_length = 1, max_length = 64))]
     pub instrument: String,
     /// The reference time: the mean time of its readings, ns since the Unix epoch (from
     /// 2000-01-01, at most 10 min ahead of the service clock).
@@ -59,11 +60,14 @@ pub struct ReferenceResult {
     pub errors: BTreeMap<String, f64>,
     /// One standard uncertainty of each error in `errors` (same names and units), > 0.
     pub sigma: BTreeMap<String, f64>,
-    /// How the reference's frame was brought to the tool setter's (free text).
+    /// How the reference's frame was brought to the tool setter's (free text, at most 1024
+    /// characters).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(max_length = 1024))]
     pub frame_note: Option<String>,
-    /// Where it comes from: a file, a test name (free text).
+    /// Where it comes from: a file, a test name (free text, at most 1024 characters).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(max_length = 1024))]
     pub source: Option<String>,
 }
 
