@@ -300,7 +300,7 @@ pub enum Input {
 pub struct VerificationInput {
     /// The reference time, ns since the Unix epoch.
     pub t_ns: i64,
-    /// The setter cycle nearest the reference time.
+    /// The latest setter cycle it compared with.
     pub cycle: i64,
     pub exceeds: bool,
     /// The largest |z| of its errors.
@@ -315,7 +315,7 @@ impl From<&crate::verification::Verification> for VerificationInput {
     fn from(v: &crate::verification::Verification) -> Self {
         VerificationInput {
             t_ns: v.t_ns,
-            cycle: v.nearest_cycle(),
+            cycle: v.latest_cycle(),
             exceeds: v.exceeds_any,
             worst_abs_z: v.worst_z.abs(),
             k: v.k,

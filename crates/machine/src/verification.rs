@@ -146,10 +146,9 @@ pub struct Verification {
 }
 
 impl Verification {
-    /// The setter cycle nearest the reference time (the cycle an alert names).
-    pub fn nearest_cycle(&self) -> i64 {
-        // Interpolated: [before, after]; the weights say which is nearer, but the later one
-        // is the state the machine is in now, and either is the verification's.
+    /// The latest setter cycle compared (the cycle an alert names): the nearest one, or the
+    /// one after the reference time when interpolated.
+    pub fn latest_cycle(&self) -> i64 {
         self.setter_cycles.last().copied().unwrap_or(0)
     }
 
@@ -167,7 +166,7 @@ impl Verification {
             ),
             Method::Nearest => format!(
                 "cycle {} ({:.1} min from it)",
-                self.nearest_cycle(),
+                self.latest_cycle(),
                 units::ns_to_min(self.gap_ns)
             ),
         };
@@ -390,7 +389,7 @@ pub fn compare(
     }
     for (name, v) in &reference.errors {
         let s = reference.sigma.get(name).copied().unwrap_or(f64::NAN);
-        if !v.is_finite() || !(units::positive(s) && s.is_finite()) {
+        if !(v.is_finite() && units::positive(s) && s.is_finite()) {
             return Err(bad(
                 format!("errors.{name}"),
                 format!("value {v} with sigma {s} cannot be compared"),
