@@ -58,7 +58,13 @@ values = [1, 2, 3]
 # each parameter it writes (`fanuc_nominal`, required with `format=fanuc` only: another
 # constraint between parameters), and a set whose step from the previous one exceeds the
 # validation limit is refused (409 offsets_refused: it depends on the served history).
-UNSTATABLE = ("bad_window", "before_last_input", "missing_nominal", "offsets_refused")
+# Two on a verification's reference: its error names must be the machine's identified ones
+# and each needs its sigma > 0 in a second map, its time not ahead of the service clock (400
+# bad_reference: constraints between a map's keys, another map and the service's state), and
+# an accepted tool-setter result must lie near its time (422 no_setter_result: the store's
+# state).
+UNSTATABLE = ("bad_window", "before_last_input", "missing_nominal", "offsets_refused",
+              "bad_reference", "no_setter_result")
 
 HOOKS = """\
 import schemathesis
@@ -169,8 +175,8 @@ def tally(report: str, stats: dict) -> None:
                     continue
                 f = (c.get("failure_info") or {}).get("failure") or {}
                 resp = ((inter.get(case_id) or {}).get("response")) or {}
-                # The two refusals OpenAPI cannot state (see HOOKS): phases that bypass the
-                # hooks still send them, and the API is right to refuse them.
+                # The refusals OpenAPI cannot state (see HOOKS and UNSTATABLE): phases that
+                # bypass the hooks still send them, and the API is right to refuse them.
                 if c["name"] == "positive_data_acceptance" and any(
                         f'"code":"{code}"' in body_text(resp) for code in UNSTATABLE):
                     stats["unstatable"] += 1

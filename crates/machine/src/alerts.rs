@@ -33,6 +33,10 @@
 //! [[rules]]
 //! kind = "clock_skew"  # the NC's events refused for their time stamps
 //! clear_after_min = 10.0
+//!
+//! [[rules]]
+//! kind = "verification" # a reference instrument disagrees with the tool setter
+//! critical_z = 4.0      # critical beyond this |z|
 //! ```
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -100,6 +104,12 @@ pub enum Rule {
     /// `clear_after_min` minutes without one. Its value is the largest skew seen, in s
     /// (positive: ahead of the service clock). Always a warning.
     ClockSkew { clear_after_min: f64 },
+    /// A verification against a reference instrument (an R-test result posted to
+    /// `/verifications`) in which any error differs from the tool setter's by more than k
+    /// combined standard uncertainties (`verification.k`) raises; the next verification with
+    /// every error within them resolves. Its value is the largest |z|; critical above
+    /// `critical_z` (> 0).
+    Verification { critical_z: f64 },
 }
 
 impl Rule {
@@ -112,6 +122,7 @@ impl Rule {
             Rule::RejectedInARow { .. } => "rejected_in_a_row".into(),
             Rule::Chi2 { .. } => "chi2".into(),
             Rule::ClockSkew { .. } => "clock_skew".into(),
+            Rule::Verification { .. } => "verification".into(),
         }
     }
 
@@ -119,7 +130,10 @@ impl Rule {
     pub fn error(&self) -> Option<&str> {
         match self {
             Rule::Threshold { error, .. } | Rule::Rate { error, .. } => Some(error),
-            Rule::RejectedInARow { .. } | Rule::Chi2 { .. } | Rule::ClockSkew { .. } => None,
+            Rule::RejectedInARow { .. }
+            | Rule::Chi2 { .. }
+            | Rule::ClockSkew { .. }
+            | Rule::Verification { .. } => None,
         }
     }
 
@@ -189,6 +203,11 @@ impl Rule {
                     ));
                 }
             }
+            Rule::Verification { critical_z } => {
+                if !(driftwatch_core::units::positive(*critical_z) && critical_z.is_finite()) {
+                    return invalid(format!("critical_z must be > 0, got {critical_z}"));
+                }
+            }
         }
         Ok(())
     }
@@ -196,7 +215,8 @@ impl Rule {
 
 /// The shipped rule set: EZ0B and EX0B 30 um from their reference (clear at 25 um), EZ0B
 /// drifting 3 um/min (clear at 2 um/min), 3 cycles rejected in a row, chi2/dof over 4, events
-/// refused for their time stamps (clear after 10 min without one).
+/// refused for their time stamps (clear after 10 min without one), a verification against a
+/// reference instrument that exceeds (critical beyond |z| 4).
 pub fn default_rules() -> Vec<Rule> {
     vec![
         Rule::Threshold {
@@ -221,6 +241,7 @@ pub fn default_rules() -> Vec<Rule> {
         Rule::ClockSkew {
             clear_after_min: 10.0,
         },
+        Rule::Verification { critical_z: 4.0 },
     ]
 }
 
@@ -271,6 +292,36 @@ impl AlertConfig {
 pub enum Input {
     Cycle(CycleInput),
     Clock(ClockInput),
+    Verification(VerificationInput),
+}
+
+/// A verification against a reference instrument, as the rules see it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VerificationInput {
+    /// The reference time, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// The latest setter cycle it compared with.
+    pub cycle: i64,
+    pub exceeds: bool,
+    /// The largest |z| of its errors.
+    pub worst_abs_z: f64,
+    /// Its coverage factor.
+    pub k: f64,
+    /// What it found, in words.
+    pub summary: String,
+}
+
+impl From<&crate::verification::Verification> for VerificationInput {
+    fn from(v: &crate::verification::Verification) -> Self {
+        VerificationInput {
+            t_ns: v.t_ns,
+            cycle: v.latest_cycle(),
+            exceeds: v.exceeds_any,
+            worst_abs_z: v.worst_z.abs(),
+            k: v.k,
+            summary: v.summary(),
+        }
+    }
 }
 
 /// What the machine link refused for its time stamps since the last look (`refused` may be
@@ -410,6 +461,8 @@ pub struct AlertState {
     rejected_in_a_row: u32,
     /// Service time of the last event refused for its time stamp.
     last_clock_refusal_ns: Option<i64>,
+    /// Reference time of the last verification evaluated.
+    last_verification_t_ns: Option<i64>,
     /// Open alerts by rule name.
     open: BTreeMap<String, Alert>,
 }
@@ -541,7 +594,44 @@ impl AlertEngine {
         match input {
             Input::Cycle(c) => self.evaluate_cycle(c, now),
             Input::Clock(c) => self.evaluate_clock(c, now),
+            Input::Verification(v) => self.evaluate_verification(v, now),
         }
+    }
+
+    /// A verification older (by its reference time) than the last one evaluated changes
+    /// nothing: it says nothing about the machine as it is now, so it must not resolve (nor
+    /// raise) an alert about a newer one.
+    fn evaluate_verification(&mut self, v: &VerificationInput, now: i64) -> Vec<AlertEvent> {
+        if self
+            .state
+            .last_verification_t_ns
+            .is_some_and(|t| v.t_ns < t)
+        {
+            return Vec::new();
+        }
+        self.state.last_verification_t_ns = Some(v.t_ns);
+        let mut events = Vec::new();
+        for i in 0..self.rules.len() {
+            let Rule::Verification { critical_z } = self.rules[i] else {
+                continue;
+            };
+            let name = self.rules[i].name();
+            let severity = if v.worst_abs_z > critical_z {
+                Severity::Critical
+            } else {
+                Severity::Warning
+            };
+            let obs = Observation {
+                value: v.worst_abs_z,
+                limit: v.k,
+                raise: v.exceeds,
+                resolve: !v.exceeds,
+                severity,
+                message: v.summary.clone(),
+            };
+            self.apply(name, obs, v.cycle, now, &mut events);
+        }
+        events
     }
 
     fn evaluate_clock(&mut self, c: &ClockInput, now: i64) -> Vec<AlertEvent> {
@@ -652,7 +742,7 @@ impl AlertEngine {
                     *count,
                 )),
                 Rule::Chi2 { factor } => chi2(c, *factor),
-                Rule::ClockSkew { .. } => None,
+                Rule::ClockSkew { .. } | Rule::Verification { .. } => None,
             };
             if let Some(obs) = obs {
                 let name = rule.name();
@@ -1271,6 +1361,10 @@ mod tests {
             },
             Rule::RejectedInARow { count: 0 },
             Rule::Chi2 { factor: -1.0 },
+            Rule::Verification { critical_z: 0.0 },
+            Rule::Verification {
+                critical_z: f64::NAN,
+            },
         ];
         for rule in bad {
             let err = AlertEngine::new(vec![rule.clone()]).unwrap_err();
@@ -1313,6 +1407,10 @@ mod tests {
         [[rules]]
         kind = "clock_skew"
         clear_after_min = 10
+
+        [[rules]]
+        kind = "verification"
+        critical_z = 4
     "#;
 
     #[test]
@@ -1437,5 +1535,52 @@ mod tests {
         assert!(e.open_alerts().is_empty());
         // Cycle inputs leave it alone, and it leaves the cycle rules alone.
         assert!(e.evaluate(&ok(1, &[("EZ0B", 1.0)]), T0).is_empty());
+    }
+
+    #[test]
+    fn a_verification_that_exceeds_raises_and_one_within_resolves() {
+        let mut e = engine(vec![Rule::Verification { critical_z: 4.0 }]);
+        let check = |t_min: i64, exceeds: bool, z: f64| {
+            Input::Verification(VerificationInput {
+                t_ns: T0 + t_min * MIN,
+                cycle: 7,
+                exceeds,
+                worst_abs_z: z,
+                k: 2.0,
+                summary: format!("rtest: z {z}"),
+            })
+        };
+        assert!(e.evaluate(&check(0, false, 1.0), T0).is_empty());
+        let ev = e.evaluate(&check(10, true, 3.0), T0 + 1);
+        assert_eq!(ev.len(), 1);
+        assert_eq!(
+            (ev[0].kind, ev[0].rule.as_str(), ev[0].severity, ev[0].cycle),
+            (EventKind::Raised, "verification", Severity::Warning, 7)
+        );
+        assert_eq!((ev[0].value, ev[0].message.as_str()), (3.0, "rtest: z 3"));
+        // Beyond critical_z: escalated.
+        let ev = e.evaluate(&check(20, true, 5.0), T0 + 2);
+        assert_eq!(
+            (ev[0].kind, ev[0].severity),
+            (EventKind::Updated, Severity::Critical)
+        );
+        // An older verification within k sigma says nothing of the machine now.
+        assert!(e.evaluate(&check(5, false, 0.5), T0 + 3).is_empty());
+        assert_eq!(e.open_alerts().len(), 1);
+        // A newer one does, and the state carries the order over a restart.
+        let json = serde_json::to_string(e.state()).unwrap();
+        let state: AlertState = serde_json::from_str(&json).unwrap();
+        let (mut r, _) =
+            AlertEngine::restore(vec![Rule::Verification { critical_z: 4.0 }], state, T0).unwrap();
+        assert!(r.evaluate(&check(15, false, 0.5), T0 + 4).is_empty());
+        let ev = r.evaluate(&check(30, false, 0.5), T0 + 5);
+        assert_eq!(ev[0].kind, EventKind::Resolved);
+        assert!(r.open_alerts().is_empty());
+        // Cycles and clock looks leave it alone.
+        let mut e = engine(vec![Rule::Verification { critical_z: 4.0 }]);
+        assert!(e.evaluate(&rejected_cycle(1), T0).is_empty());
+        assert!(e.evaluate(&check(0, true, 2.5), T0).len() == 1);
+        assert!(e.evaluate(&ok(2, &[("EZ0B", 1.0)]), T0).is_empty());
+        assert_eq!(e.open_alerts().len(), 1);
     }
 }

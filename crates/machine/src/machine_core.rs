@@ -73,6 +73,8 @@ pub enum Input {
     Request {
         by: String,
     },
+    /// A verification against a reference instrument was stored: its alert rules run on it.
+    Verification(Box<crate::verification::Verification>),
     /// An operator acknowledges an alert.
     Ack {
         alert: u64,
@@ -542,6 +544,7 @@ impl MachineCore {
                 raise(events, &mut out);
             }
             Input::Request { by } => self.sched.request(by, now_ns),
+            Input::Verification(v) => self.on_verification(&v, now_ns, &mut out),
             Input::Ack { alert, by } => match self.alerts.ack(alert, &by, now_ns) {
                 Ok(false) => {}
                 Ok(true) => {
@@ -572,6 +575,29 @@ impl MachineCore {
             Input::Shutdown => self.shutdown(now_ns, &mut out),
         }
         out
+    }
+
+    /// A stored verification: logged, and its alert rules run on it (the view shows the
+    /// alert at once).
+    fn on_verification(
+        &mut self,
+        v: &crate::verification::Verification,
+        now_ns: i64,
+        out: &mut Vec<Effect>,
+    ) {
+        let level = if v.exceeds_any {
+            Level::Warn
+        } else {
+            Level::Info
+        };
+        out.push(Effect::Log(level, format!("verification: {}", v.summary())));
+        let input = crate::alerts::Input::Verification(v.into());
+        let events = self.alerts.evaluate(&input, now_ns);
+        if !events.is_empty() {
+            raise(events, out);
+            self.view.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
+            out.push(Effect::PublishView);
+        }
     }
 
     fn on_spindle(&mut self, m: Timed<SpindleMsg>, out: &mut Vec<Effect>) {

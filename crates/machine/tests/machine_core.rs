@@ -388,3 +388,88 @@ fn samples_are_stored_in_ten_minute_batches_and_a_steady_temperature_as_a_heartb
     assert_eq!(temps, vec![0, beat, 2 * beat, 3 * beat]);
     // The one read at minute 40 is held for the next batch.
 }
+
+/// A verification that exceeds raises the `verification` alert (logged, stored, shown in the
+/// view); a later one within the combined sigma resolves it.
+#[test]
+fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
+    use driftwatch_core::error_name::ErrorName;
+    use driftwatch_core::recording::CycleResultMsg;
+    use driftwatch_machine::alerts::EventKind;
+    use driftwatch_machine::verification::{ReferenceResult, compare};
+    let mut rig = rig();
+    let setter = CycleResultMsg {
+        cycle: 3,
+        t_ns: min(10),
+        status: ResultStatus::Ok,
+        reason: None,
+        errors: Some([("EZ0B".to_string(), 12.0)].into()),
+        sigma: Some([("EZ0B".to_string(), 0.4)].into()),
+        residual_rms_um: None,
+        chi2: None,
+        dof: None,
+        n_detections: None,
+        nuisance: None,
+        redundancy_um: None,
+        chi2_point: None,
+        notes: None,
+    };
+    let verify = |t: i64, ez0b: f64| {
+        let r = ReferenceResult {
+            instrument: "rtest".into(),
+            t_ns: t,
+            errors: [("EZ0B".to_string(), ez0b)].into(),
+            sigma: [("EZ0B".to_string(), 0.3)].into(),
+            frame_note: None,
+            source: None,
+        };
+        let names = [ErrorName::parse("EZ0B").unwrap()];
+        r.validate(&names, min(30)).unwrap();
+        compare(
+            "m1",
+            &r,
+            std::slice::from_ref(&setter),
+            60 * NS_PER_MIN,
+            2.0,
+        )
+        .unwrap()
+    };
+    let out = rig.core.handle(
+        Input::Verification(Box::new(verify(min(12), 14.0))),
+        min(30),
+    );
+    let alerts: Vec<_> = out
+        .iter()
+        .filter_map(|e| match e {
+            Effect::Alert(a) => Some(a.clone()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(alerts.len(), 1, "{out:?}");
+    assert_eq!(
+        (alerts[0].rule.as_str(), alerts[0].kind),
+        ("verification", EventKind::Raised)
+    );
+    assert_eq!(alerts[0].cycle, 3);
+    assert!((alerts[0].value - 4.0).abs() < 1e-9, "{}", alerts[0].value);
+    assert!(
+        alerts[0].message.contains("EZ0B +2.00 um (z +4.00"),
+        "{}",
+        alerts[0].message
+    );
+    assert!(
+        matches!(out.first(), Some(Effect::Log(_, m)) if m.starts_with("verification: rtest differs"))
+    );
+    assert!(matches!(out.last(), Some(Effect::PublishView)));
+    assert_eq!(rig.core.view().open_alerts[0].rule, "verification");
+    let out = rig.core.handle(
+        Input::Verification(Box::new(verify(min(13), 12.2))),
+        min(31),
+    );
+    assert!(
+        out.iter()
+            .any(|e| matches!(e, Effect::Alert(a) if a.kind == EventKind::Resolved)),
+        "{out:?}"
+    );
+    assert!(rig.core.view().open_alerts.is_empty());
+}

@@ -273,6 +273,9 @@ pub struct ServiceConfig {
     pub thermal: driftwatch_machine::compensation::PredictionPolicy,
     #[serde(default = "default_rules")]
     pub alerts: Vec<Rule>,
+    /// How a reference instrument's result is compared with the tool setter's.
+    #[serde(default)]
+    pub verification: driftwatch_machine::verification::VerificationConfig,
     /// Where alert events are POSTed.
     #[serde(default)]
     pub webhooks: Vec<crate::webhook::WebhookConfig>,
@@ -399,7 +402,7 @@ impl ServiceConfig {
         if let Err(e) = self.thermal.validate() {
             return bad(e);
         }
-        if let Err(e) = self.thermal.validate() {
+        if let Err(e) = self.verification.validate() {
             return bad(e);
         }
         for w in &self.webhooks {
@@ -476,6 +479,9 @@ mod tests {
         assert!(
             matches!(&c.machines[0].link, LinkConfig::Simulated { scenario, .. } if scenario == "two_shift")
         );
+        // Every rule kind and setting is in the file, with its default.
+        assert_eq!(c.alerts, default_rules());
+        assert_eq!(c.verification, Default::default());
     }
 
     #[test]
@@ -487,6 +493,15 @@ mod tests {
         assert!(e.contains("time_scale"), "{e}");
         let text = DEFAULT_CONFIG.replace("data_dir", "data_folder");
         assert!(ServiceConfig::from_toml(&text, "t").is_err());
+        let text = DEFAULT_CONFIG.replace("max_gap_min = 60.0", "max_gap_min = 0.0");
+        assert_ne!(
+            text, DEFAULT_CONFIG,
+            "the default documents verification.max_gap_min"
+        );
+        let e = ServiceConfig::from_toml(&text, "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("verification.max_gap_min"), "{e}");
     }
 
     #[test]

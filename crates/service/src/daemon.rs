@@ -90,12 +90,14 @@ impl NcBody {
     }
 }
 
-/// Operator requests and alert acknowledgements waiting for the loop.
+/// Operator requests, alert acknowledgements and stored verifications waiting for the loop.
 #[derive(Debug, Default)]
 pub struct Inbox {
     pub requests: Vec<(String, i64)>,
     /// (alert id, who)
     pub acks: Vec<(u64, String)>,
+    /// Verifications stored by the API, for the alert rules.
+    pub verifications: Vec<driftwatch_machine::verification::Verification>,
 }
 
 /// The settings of a machine's decisions from the service's configuration.
@@ -333,15 +335,19 @@ impl MachineRuntime {
             },
             now_ns,
         );
-        let (requests, acks) = match self.inbox.lock() {
+        let (requests, acks, verifications) = match self.inbox.lock() {
             Ok(mut inbox) => (
                 std::mem::take(&mut inbox.requests),
                 std::mem::take(&mut inbox.acks),
+                std::mem::take(&mut inbox.verifications),
             ),
-            Err(_) => (Vec::new(), Vec::new()),
+            Err(_) => (Vec::new(), Vec::new(), Vec::new()),
         };
         for (alert, by) in acks {
             self.feed(Input::Ack { alert, by }, now_ns);
+        }
+        for v in verifications {
+            self.feed(Input::Verification(Box::new(v)), now_ns);
         }
         // Stamped with the loop's time: a simulated machine's clock is not the wall clock.
         for (by, _) in requests {

@@ -193,6 +193,7 @@ pub async fn launch_with(
     state.diagnoses_kept = cfg.http.diagnoses_kept;
     state.request_timeout = std::time::Duration::from_secs_f64(cfg.http.request_timeout_s);
     state.validation = cfg.validation.clone();
+    state.verification = cfg.verification.clone();
     // The loops hold the only senders from here: the deliveries end when the loops do.
     drop(notifier);
     let addr = listener.local_addr().map_err(LaunchError::Listener)?;

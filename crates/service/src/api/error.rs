@@ -54,6 +54,10 @@ pub enum ErrorCode {
     DiagnosisFailed,
     DiagnosisPanicked,
     NotNcPush,
+    /// A reference result that cannot be taken (the message names the field).
+    BadReference,
+    /// No accepted tool-setter result near enough in time to a reference.
+    NoSetterResult,
     BadEvent,
     ClockSkew,
     /// Too many NC events wait for the loop.
@@ -72,8 +76,12 @@ impl ErrorCode {
         use ErrorCode::*;
         match self {
             BadRequest | BadQuery | BadFormat | MissingNominal | BeforeLastInput | BadWindow
-            | BadEvery | BadSource | BadSigma | BadEvent | ClockSkew => StatusCode::BAD_REQUEST,
-            BadBody | NoDetections | DiagnosisFailed => StatusCode::UNPROCESSABLE_ENTITY,
+            | BadEvery | BadSource | BadSigma | BadEvent | ClockSkew | BadReference => {
+                StatusCode::BAD_REQUEST
+            }
+            BadBody | NoDetections | DiagnosisFailed | NoSetterResult => {
+                StatusCode::UNPROCESSABLE_ENTITY
+            }
             BodyTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,

@@ -1,5 +1,5 @@
 //! The HTTP API (axum, JSON under `/api/v1`): one router per resource (machines, cycles,
-//! diagnoses, alerts, the NC door, metrics), bearer tokens with roles (`auth`), one error type
+//! diagnoses, verifications, alerts, the NC door, metrics), bearer tokens with roles (`auth`), one error type
 //! (`error`). Reads may be anonymous by configuration. Shell code: it reads what the machine
 //! loops publish and the store, and never blocks on a running solve.
 
@@ -12,6 +12,7 @@ mod machines;
 mod metrics;
 mod nc;
 mod nc_offsets;
+mod verifications;
 
 pub use auth::Caller;
 use auth::for_caller;
@@ -66,6 +67,8 @@ pub struct ApiState {
     pub request_timeout: std::time::Duration,
     /// The step limits the compensation endpoint's NC forms hold a set to (`[validation]`).
     pub validation: driftwatch_machine::compensation::ValidationLimits,
+    /// How references are compared with the tool setter (`[verification]`).
+    pub verification: driftwatch_machine::verification::VerificationConfig,
 }
 
 impl ApiState {
@@ -80,6 +83,7 @@ impl ApiState {
             diagnoses_kept: 200,
             request_timeout: std::time::Duration::from_secs(120),
             validation: Default::default(),
+            verification: Default::default(),
         }
     }
 }
@@ -89,9 +93,9 @@ type Shared = Arc<ApiState>;
 /// The OpenAPI document of the API, generated from the handlers.
 #[derive(utoipa::OpenApi)]
 #[openapi(
-    info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, the nc_push link."),
-    paths(machines::healthz, machines::ready, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis),
-    components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
+    info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, verifications against a reference instrument, the nc_push link."),
+    paths(machines::healthz, machines::ready, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications),
+    components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, driftwatch_machine::verification::ReferenceResult, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth, &StandardErrors)
 )]
 pub struct ApiDoc;
@@ -187,6 +191,7 @@ pub fn router(state: Shared) -> Router {
         .merge(cycles::routes(&guard))
         .merge(alerts::routes(&guard))
         .merge(diagnoses::routes(&guard))
+        .merge(verifications::routes(&guard))
         .merge(nc::routes(&guard))
         .with_state(state.clone());
     use utoipa::OpenApi as _;

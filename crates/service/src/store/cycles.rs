@@ -344,6 +344,30 @@ impl Store {
         }
     }
 
+    /// The accepted (`ok`) results whose reference time lies in `[from_ns, to_ns]`, in time
+    /// order: what a verification compares a reference with.
+    pub async fn accepted_results_between(
+        &self,
+        machine: &str,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<CycleResultMsg>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT payload FROM results
+             WHERE machine_id = $1 AND status = $2 AND t_ns >= $3 AND t_ns <= $4
+             ORDER BY t_ns, cycle",
+        )
+        .bind(machine)
+        .bind(CycleStatus::Ok)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok(serde_json::from_str(&r.try_get::<String, _>(0)?)?))
+            .collect()
+    }
+
     /// Every stored detection of the cycles with a detection in `[from_ns, to_ns]` (whole
     /// cycles, so a window edge never leaves a partial one), in time order: `(t_ns, payload)`.
     pub async fn detections_between(

@@ -8,6 +8,7 @@ mod diagnoses;
 mod files;
 mod samples;
 mod sets;
+mod verifications;
 
 pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
 pub use cycles::{CycleRow, CycleStatus, DetectionRow};
@@ -15,6 +16,7 @@ pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis
 pub use files::FileStatus;
 pub use samples::Sample;
 pub use sets::NewCompensation;
+pub use verifications::StoredVerification;
 
 use std::path::Path;
 use std::str::FromStr;
@@ -398,5 +400,92 @@ mod tests {
             vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
         );
         assert_eq!(store.integrity_check().await.unwrap(), "ok");
+    }
+
+    #[tokio::test]
+    async fn verifications_round_trip_are_listed_by_reference_time_and_capped() {
+        use driftwatch_machine::verification::{ReferenceResult, compare};
+        let store = Store::open(&temp_db("verifications")).await.unwrap();
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        for (c, ok) in [(1, true), (2, false), (3, true)] {
+            store
+                .open_cycle("m1", c, 900 + c, "warm-up", 1)
+                .await
+                .unwrap();
+            store
+                .close_cycle("m1", &result(c, ok), 1_100)
+                .await
+                .unwrap();
+        }
+        // Accepted results only, by reference time (1001 and 1003).
+        let setter = store
+            .accepted_results_between("m1", 0, 1_002)
+            .await
+            .unwrap();
+        assert_eq!(setter, vec![result(1, true)]);
+        let setter = store
+            .accepted_results_between("m1", 0, 5_000)
+            .await
+            .unwrap();
+        assert_eq!(setter.iter().map(|r| r.cycle).collect::<Vec<_>>(), [1, 3]);
+        let verify = |t_ns: i64, ez0b: f64| {
+            let r = ReferenceResult {
+                instrument: "rtest".into(),
+                t_ns,
+                errors: [("EZ0B".to_string(), ez0b)].into(),
+                sigma: [("EZ0B".to_string(), 0.3)].into(),
+                frame_note: None,
+                source: Some("bench".into()),
+            };
+            compare("m1", &r, &setter, 10, 2.0).unwrap()
+        };
+        let a = verify(1_002, 12.5);
+        assert_eq!(a.setter_cycles, vec![1, 3]);
+        let b = verify(1_001, 20.0);
+        assert!(b.exceeds_any);
+        assert_eq!(
+            store.add_verification(&a, 5, "operator", 10).await.unwrap(),
+            1
+        );
+        assert_eq!(
+            store.add_verification(&b, 6, "operator", 10).await.unwrap(),
+            2
+        );
+        let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
+        assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [1, 2]);
+        assert_eq!(list[0].verification, a);
+        assert_eq!(
+            (list[1].created_ns, list[1].requested_by.as_str()),
+            (6, "operator")
+        );
+        let list = store.verifications("m1", 1_001, 1_001, 100).await.unwrap();
+        assert_eq!(list.len(), 1);
+        assert_eq!(list[0].verification, b);
+        assert_eq!(
+            store
+                .verifications("m1", 0, i64::MAX, 1)
+                .await
+                .unwrap()
+                .len(),
+            1
+        );
+        assert!(
+            store
+                .verifications("m2", 0, i64::MAX, 100)
+                .await
+                .unwrap()
+                .is_empty()
+        );
+        // Kept: the newest `keep` by number; numbers are not given again.
+        assert_eq!(
+            store.add_verification(&a, 7, "operator", 1).await.unwrap(),
+            3
+        );
+        let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
+        assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [3]);
+        // A machine that does not exist has no verification stored.
+        let mut c = a.clone();
+        c.machine_id = "nope".into();
+        assert!(store.add_verification(&c, 8, "operator", 10).await.is_err());
     }
 }
