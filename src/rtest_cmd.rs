@@ -454,8 +454,11 @@ fn cmd_identify(a: IdentifyArgs) -> Result<()> {
         println!("not identifiable: {n}");
     }
     if let Some(p) = &a.reference {
-        std::fs::write(p, serde_json::to_string_pretty(&id.reference_json())?)
-            .with_context(|| format!("writing {}", p.display()))?;
+        std::fs::write(
+            p,
+            serde_json::to_string_pretty(&id.reference_json(&k.identify_names()))?,
+        )
+        .with_context(|| format!("writing {}", p.display()))?;
         println!("reference measurement: {}", p.display());
     }
     write_report(a.from.report.as_deref(), &k, &processed, Some(&id))

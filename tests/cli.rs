@@ -1080,6 +1080,16 @@ fn rtest_simulates_processes_and_identifies_a_machine() {
     assert!(ok, "{out}{err}");
     let body: Value = serde_json::from_str(&std::fs::read_to_string(&reference).unwrap()).unwrap();
     assert_eq!(body["instrument"], "rtest");
+    // It is the verification endpoint's body, valid for this machine.
+    let k = driftwatch_core::kinematics::Kinematics::builtin("table_bc").unwrap();
+    let names: Vec<_> = k
+        .identify
+        .iter()
+        .map(|id| k.rotary[id.axis].error_names[id.slot].clone())
+        .collect();
+    let reference: driftwatch_machine::verification::ReferenceResult =
+        serde_json::from_value(body.clone()).unwrap();
+    reference.validate(&names, reference.t_ns).unwrap();
     for (name, truth) in [("EX0C", 10.0), ("EZ0B", -5.0), ("EA0C", 0.0)] {
         let (v, s) = (
             body["errors"][name].as_f64().unwrap(),
@@ -1088,9 +1098,23 @@ fn rtest_simulates_processes_and_identifies_a_machine() {
         assert!((v - truth).abs() < 4.0 * s, "{name}: {v} +- {s}");
     }
     // Asked for every error, it names what these tests cannot separate instead of guessing.
-    let (ok, out, err) = run(&["rtest", "identify", "--from", p, "--errors", "all"]);
+    let all_ref = tmp("rtest-reference-all.json");
+    let (ok, out, err) = run(&[
+        "rtest",
+        "identify",
+        "--from",
+        p,
+        "--errors",
+        "all",
+        "--reference",
+        all_ref.to_str().unwrap(),
+    ]);
     assert!(ok, "{out}{err}");
     assert!(out.contains("not identifiable: EC0C"), "{out}");
+    // The reference keeps only what the tool setter has to compare with.
+    let body: Value = serde_json::from_str(&std::fs::read_to_string(&all_ref).unwrap()).unwrap();
+    let keys: Vec<&String> = body["errors"].as_object().unwrap().keys().collect();
+    assert_eq!(keys, ["EA0C", "EB0C", "EX0B", "EX0C", "EY0C", "EZ0B"]);
 }
 
 /// A device's CSV export (angle and the three sensors) imported and processed; a bad cell is

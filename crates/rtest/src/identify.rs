@@ -95,11 +95,12 @@ pub struct Identification {
 impl Identification {
     /// The result as a reference measurement for the service's verification
     /// (`POST /api/v1/machines/{id}/verifications`): errors and standard uncertainties by
-    /// name at the reference time.
-    pub fn reference_json(&self) -> serde_json::Value {
-        let errors: BTreeMap<&String, f64> =
-            self.errors.iter().map(|(n, e)| (n, e.value)).collect();
-        let sigma: BTreeMap<&String, f64> = self.errors.iter().map(|(n, e)| (n, e.sigma)).collect();
+    /// name at the reference time, only those of `names` (the errors the tool setter
+    /// identifies: the others have nothing to be compared with).
+    pub fn reference_json(&self, names: &[String]) -> serde_json::Value {
+        let kept = self.errors.iter().filter(|(n, _)| names.contains(n));
+        let errors: BTreeMap<&String, f64> = kept.clone().map(|(n, e)| (n, e.value)).collect();
+        let sigma: BTreeMap<&String, f64> = kept.map(|(n, e)| (n, e.sigma)).collect();
         serde_json::json!({
             "instrument": "rtest",
             "t_ns": self.t_ns,
