@@ -377,12 +377,10 @@ fn run(cmd: Command) -> Result<ExitCode> {
             plan,
             days,
         } => cmd_simulate(&scenario, &out, plan.as_deref(), days),
-        Command::Import {
-            what: ImportWhat::Csv(a),
-        } => model_cmd::cmd_import_csv(a),
-        Command::Import {
-            what: ImportWhat::RtestCsv(a),
-        } => rtest_cmd::cmd_import(a).map(|()| ExitCode::SUCCESS),
+        Command::Import { what } => match what {
+            ImportWhat::Csv(a) => model_cmd::cmd_import_csv(a),
+            ImportWhat::RtestCsv(a) => rtest_cmd::cmd_import(a).map(|()| ExitCode::SUCCESS),
+        },
         Command::Rtest { what } => rtest_cmd::cmd_rtest(what).map(|()| ExitCode::SUCCESS),
         Command::Nc { what } => nc_cmd::cmd_nc(what),
         Command::Fit(a) => model_cmd::cmd_fit(a),

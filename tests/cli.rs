@@ -1085,7 +1085,7 @@ fn rtest_simulates_processes_and_identifies_a_machine() {
     let names: Vec<_> = k
         .identify
         .iter()
-        .map(|id| k.rotary[id.axis].error_names[id.slot].clone())
+        .map(|id| k.rotary[id.axis].error_names[id.slot])
         .collect();
     let reference: driftwatch_machine::verification::ReferenceResult =
         serde_json::from_value(body.clone()).unwrap();

@@ -249,45 +249,33 @@ fn rows_at(model: &ThermalModel, spindle: &[Event], times: &[i64]) -> Vec<nalgeb
     out
 }
 
-/// Runs the sessions of a scenario and compares the two instruments.
-pub fn run(
-    k: &Kinematics,
-    scn: &Scenario,
-    plan: &Plan,
-    opts: &CrossOptions,
-) -> Result<CrossCheck, CrossError> {
-    let vm = VirtualMachine::new(k, scn).map_err(|e| CrossError::Setup(e.to_string()))?;
-    let start = vm.start_ns();
-    let mut drive = Drive {
-        vm,
-        scn,
-        spindle: vec![Event::Spindle {
-            t_ns: start,
-            rpm: 0.0,
-        }],
-        rpm: 0.0,
-    };
-    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
-    let inst = Instrument::drawn(opts.setting, &opts.imperfections, &mut rng);
-    let cal = calibrate(
-        &inst,
-        0.05,
-        3,
-        0.0,
-        opts.imperfections.sphericity_um,
-        &mut rng,
-    )
-    .map_err(|e| CrossError::Setup(e.to_string()))?;
+/// One session's measurements.
+struct Raw {
+    t_min: f64,
+    setters: [SetterResult; 2],
+    rtest: crate::identify::Identification,
+    truth: BTreeMap<String, f64>,
+}
+
+/// The R-test device of the day and how it sits: drawn, calibrated, the ball's offset.
+struct Device {
+    inst: Instrument,
+    cal: crate::instrument::Calibration,
+    setup: Setup,
+    specs: Vec<TestSpec>,
+}
+
+fn device(k: &Kinematics, opts: &CrossOptions, rng: &mut ChaCha8Rng) -> Result<Device, CrossError> {
+    let inst = Instrument::drawn(opts.setting, &opts.imperfections, rng);
+    let cal = calibrate(&inst, 0.05, 3, 0.0, opts.imperfections.sphericity_um, rng)
+        .map_err(|e| CrossError::Setup(e.to_string()))?;
     // One ball, calibrated once: its offset from the tool is the same all day.
     let mut normal = || -> f64 {
-        let z: f64 = StandardNormal.sample(&mut rng);
+        let z: f64 = StandardNormal.sample(rng);
         z * opts.head_sigma_um * 1e-3
     };
-    let setup = Setup {
-        table_object_mm: Vec3::new(0.012, -0.008, 0.005),
-        head_object_mm: Vec3::new(normal(), normal(), normal()),
-    };
-    let specs: Vec<TestSpec> = opts
+    let head_object_mm = Vec3::new(normal(), normal(), normal());
+    let specs = opts
         .tests
         .iter()
         .map(|&t| {
@@ -300,14 +288,72 @@ pub fn run(
         })
         .collect::<Result<_, _>>()
         .map_err(|e| CrossError::Setup(e.to_string()))?;
-    let ns = |s: f64| (s * 1e9) as i64;
-    let to_min = |t: i64| (t - start) as f64 / 60e9;
-    struct Raw {
-        t_min: f64,
-        setters: [SetterResult; 2],
-        rtest: crate::identify::Identification,
-        truth: BTreeMap<String, f64>,
+    Ok(Device {
+        inst,
+        cal,
+        setup: Setup {
+            table_object_mm: Vec3::new(0.012, -0.008, 0.005),
+            head_object_mm,
+        },
+        specs,
+    })
+}
+
+impl Drive<'_> {
+    /// The R-test from now, the spindle stopped: its identification and the truth at its
+    /// reference time.
+    fn rtest(
+        &mut self,
+        k: &Kinematics,
+        dev: &Device,
+        opts: &CrossOptions,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(crate::identify::Identification, BTreeMap<String, f64>), String> {
+        let before = self.vm.clone();
+        let mut processed = Vec::new();
+        for spec in &dev.specs {
+            let t0 = self.vm.now_ns();
+            let vm = &mut self.vm;
+            let mut state_at = |t| {
+                vm.advance_to(t, 0.0);
+                vm.state(0.0)
+            };
+            let run = simulate(k, spec, &dev.inst, &mut state_at, t0, &dev.setup, rng)
+                .map_err(|e| e.to_string())?;
+            processed.push(process(k, &run, &dev.cal).map_err(|e| e.to_string())?);
+        }
+        let opts = Options {
+            head_sigma_um: opts.head_sigma_um,
+            drift_rates: opts.drift,
+            ..Options::default()
+        };
+        let id = identify(k, &processed, &opts).map_err(|e| e.to_string())?;
+        let truth = before.truth_at(k, id.t_ns, 0.0, None).apparent;
+        Ok((id, truth))
     }
+}
+
+/// Every session of the scenario, and the spindle history they made.
+fn measure(
+    k: &Kinematics,
+    scn: &Scenario,
+    plan: &Plan,
+    opts: &CrossOptions,
+) -> Result<(Vec<Raw>, Vec<Event>, i64), CrossError> {
+    let vm = VirtualMachine::new(k, scn).map_err(|e| CrossError::Setup(e.to_string()))?;
+    let start = vm.start_ns();
+    let mut drive = Drive {
+        vm,
+        scn,
+        spindle: vec![Event::Spindle {
+            t_ns: start,
+            rpm: 0.0,
+        }],
+        rpm: 0.0,
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    let dev = device(k, opts, &mut rng)?;
+    let change_ns = (opts.change_s * 1e9) as i64;
     let mut raws = Vec::new();
     let mut number = 0;
     for t_min in scn.cycle_times_min() {
@@ -316,61 +362,17 @@ pub fn run(
             continue;
         }
         drive.program_to(t_ns);
+        let cycle_error = |reason| CrossError::Cycle { t_min, reason };
         number += 1;
-        let first = drive
-            .setter_cycle(k, plan, number)
-            .map_err(|reason| CrossError::Cycle { t_min, reason })?;
+        let first = drive.setter_cycle(k, plan, number).map_err(cycle_error)?;
         drive.set_rpm(0.0);
-        drive
-            .vm
-            .advance_to(drive.vm.now_ns() + ns(opts.change_s), 0.0);
-        let before = drive.vm.clone();
-        let mut processed = Vec::new();
-        for spec in &specs {
-            let t0 = drive.vm.now_ns();
-            let vm = &mut drive.vm;
-            let run = simulate(
-                k,
-                spec,
-                &inst,
-                &mut |t| {
-                    vm.advance_to(t, 0.0);
-                    vm.state(0.0)
-                },
-                t0,
-                &setup,
-                &mut rng,
-            )
-            .map_err(|e| CrossError::Rtest {
-                t_min,
-                reason: e.to_string(),
-            })?;
-            processed.push(process(k, &run, &cal).map_err(|e| CrossError::Rtest {
-                t_min,
-                reason: e.to_string(),
-            })?);
-        }
-        let rtest = identify(
-            k,
-            &processed,
-            &Options {
-                head_sigma_um: opts.head_sigma_um,
-                drift_rates: opts.drift,
-                ..Options::default()
-            },
-        )
-        .map_err(|e| CrossError::Rtest {
-            t_min,
-            reason: e.to_string(),
-        })?;
-        let truth = before.truth_at(k, rtest.t_ns, 0.0, None).apparent;
-        drive
-            .vm
-            .advance_to(drive.vm.now_ns() + ns(opts.change_s), 0.0);
+        drive.vm.advance_to(drive.vm.now_ns() + change_ns, 0.0);
+        let (rtest, truth) = drive
+            .rtest(k, &dev, opts, &mut rng)
+            .map_err(|reason| CrossError::Rtest { t_min, reason })?;
+        drive.vm.advance_to(drive.vm.now_ns() + change_ns, 0.0);
         number += 1;
-        let second = drive
-            .setter_cycle(k, plan, number)
-            .map_err(|reason| CrossError::Cycle { t_min, reason })?;
+        let second = drive.setter_cycle(k, plan, number).map_err(cycle_error)?;
         raws.push(Raw {
             t_min,
             setters: [first, second],
@@ -379,10 +381,13 @@ pub fn run(
         });
     }
     drive.program_to(start + (scn.duration_min * 60e9) as i64);
+    Ok((raws, drive.spindle, start))
+}
 
-    // The thermal model on every tool-setter result, with the session's spindle history.
-    let mut events = drive.spindle.clone();
-    for r in &raws {
+/// The thermal model on every tool-setter result, with the sessions' spindle history.
+fn fit_setter(raws: &[Raw], spindle: &[Event]) -> Result<ThermalModel, CrossError> {
+    let mut events = spindle.to_vec();
+    for r in raws {
         for (t, errors) in &r.setters {
             for (name, (v, s, _)) in errors {
                 events.push(Event::Observation {
@@ -395,80 +400,101 @@ pub fn run(
         }
     }
     events.sort_by_key(Event::t_ns);
-    let cfg = ModelConfig::default();
-    let model = fit(&cfg, &events, None).map_err(|e| CrossError::Model(e.to_string()))?;
+    fit(&ModelConfig::default(), &events, None).map_err(|e| CrossError::Model(e.to_string()))
+}
 
-    let mut sessions = Vec::new();
-    let (mut zs, mut zs_plain) = (Vec::new(), Vec::new());
-    for r in &raws {
-        // Both setter cycles, each moved to the R-test's time by the model, then averaged
-        // with inverse-variance weights; the model's part is shared, so its variance is
-        // that of the weighted shift (not the sum of the two).
-        let times = [r.setters[0].0, r.setters[1].0, r.rtest.t_ns];
-        let rows = rows_at(&model, &drive.spindle, &times);
-        let dr = [&rows[2] - &rows[0], &rows[2] - &rows[1]];
-        let mut errors = BTreeMap::new();
-        for (name, est) in &r.rtest.errors {
-            let (Some(a), Some(b), Some(ch)) = (
-                r.setters[0].1.get(name),
-                r.setters[1].1.get(name),
-                model.channels.iter().find(|c| &c.name == name),
-            ) else {
-                continue;
-            };
-            let coef = nalgebra::DVector::from_column_slice(&ch.coef);
-            let (wa, wb) = (1.0 / (a.1 * a.1), 1.0 / (b.1 * b.1));
-            let (wa, wb) = (wa / (wa + wb), wb / (wa + wb));
-            let shift = &dr[0] * wa + &dr[1] * wb;
-            let moved = wa * (a.0 + dr[0].dot(&coef)) + wb * (b.0 + dr[1].dot(&coef));
-            let model_var = (shift.transpose() * ch.cov_matrix() * &shift)[(0, 0)].max(0.0);
-            let moved_sigma = ((wa * a.1).powi(2) + (wb * b.1).powi(2) + model_var).sqrt();
-            let combined = (moved_sigma.powi(2) + est.sigma.powi(2)).sqrt();
-            let z = (est.value - moved) / combined;
-            // Without the transfer: the nearer cycle as it is.
-            let near = if (times[0] - times[2]).abs() <= (times[1] - times[2]).abs() {
-                a
-            } else {
-                b
-            };
-            let plain = (est.value - near.0) / (near.1 * near.1 + est.sigma.powi(2)).sqrt();
-            zs.push(z);
-            zs_plain.push(plain);
-            errors.insert(
-                name.clone(),
-                Compared {
-                    setter: a.0,
-                    setter_sigma: a.1,
-                    setter_at_rtest: moved,
-                    setter_at_rtest_sigma: moved_sigma,
-                    rtest: est.value,
-                    rtest_sigma: est.sigma,
-                    difference: est.value - moved,
-                    combined_sigma: combined,
-                    z,
-                    truth: r.truth.get(name).copied().unwrap_or(f64::NAN),
-                    setter_truth: a.2,
-                },
-            );
-        }
-        sessions.push(Session {
-            t_min: r.t_min,
-            setter_min: [to_min(times[0]), to_min(times[1])],
-            rtest_min: to_min(r.rtest.t_ns),
-            errors,
-        });
+/// One session compared: both setter cycles, each moved to the R-test's time by the model,
+/// averaged with inverse-variance weights (the model's part is shared, so its variance is
+/// that of the weighted shift); and, for contrast, the nearer cycle as it is. The z scores
+/// (with and without the move) are appended.
+fn compare(
+    r: &Raw,
+    model: &ThermalModel,
+    spindle: &[Event],
+    z: &mut (Vec<f64>, Vec<f64>),
+) -> (BTreeMap<String, Compared>, [i64; 3]) {
+    let times = [r.setters[0].0, r.setters[1].0, r.rtest.t_ns];
+    let rows = rows_at(model, spindle, &times);
+    let dr = [&rows[2] - &rows[0], &rows[2] - &rows[1]];
+    let mut errors = BTreeMap::new();
+    for (name, est) in &r.rtest.errors {
+        let (Some(a), Some(b), Some(ch)) = (
+            r.setters[0].1.get(name),
+            r.setters[1].1.get(name),
+            model.channels.iter().find(|c| &c.name == name),
+        ) else {
+            continue;
+        };
+        let coef = nalgebra::DVector::from_column_slice(&ch.coef);
+        let (wa, wb) = (1.0 / (a.1 * a.1), 1.0 / (b.1 * b.1));
+        let (wa, wb) = (wa / (wa + wb), wb / (wa + wb));
+        let shift = &dr[0] * wa + &dr[1] * wb;
+        let moved = wa * (a.0 + dr[0].dot(&coef)) + wb * (b.0 + dr[1].dot(&coef));
+        let model_var = (shift.transpose() * ch.cov_matrix() * &shift)[(0, 0)].max(0.0);
+        let moved_sigma = ((wa * a.1).powi(2) + (wb * b.1).powi(2) + model_var).sqrt();
+        let combined = (moved_sigma.powi(2) + est.sigma.powi(2)).sqrt();
+        let near = if (times[0] - times[2]).abs() <= (times[1] - times[2]).abs() {
+            a
+        } else {
+            b
+        };
+        z.0.push((est.value - moved) / combined);
+        z.1.push((est.value - near.0) / (near.1 * near.1 + est.sigma.powi(2)).sqrt());
+        errors.insert(
+            name.clone(),
+            Compared {
+                setter: a.0,
+                setter_sigma: a.1,
+                setter_at_rtest: moved,
+                setter_at_rtest_sigma: moved_sigma,
+                rtest: est.value,
+                rtest_sigma: est.sigma,
+                difference: est.value - moved,
+                combined_sigma: combined,
+                z: (est.value - moved) / combined,
+                truth: r.truth.get(name).copied().unwrap_or(f64::NAN),
+                setter_truth: a.2,
+            },
+        );
     }
+    (errors, times)
+}
+
+/// Runs the sessions of a scenario and compares the two instruments.
+pub fn run(
+    k: &Kinematics,
+    scn: &Scenario,
+    plan: &Plan,
+    opts: &CrossOptions,
+) -> Result<CrossCheck, CrossError> {
+    let (raws, spindle, start) = measure(k, scn, plan, opts)?;
+    let model = fit_setter(&raws, &spindle)?;
+    let to_min = |t: i64| (t - start) as f64 / 60e9;
+    let mut z = (Vec::new(), Vec::new());
+    let sessions = raws
+        .iter()
+        .map(|r| {
+            let (errors, times) = compare(r, &model, &spindle, &mut z);
+            Session {
+                t_min: r.t_min,
+                setter_min: [to_min(times[0]), to_min(times[1])],
+                rtest_min: to_min(times[2]),
+                errors,
+            }
+        })
+        .collect();
     let rms = |z: &[f64]| (z.iter().map(|v| v * v).sum::<f64>() / z.len().max(1) as f64).sqrt();
+    let beyond = |z: &[f64]| z.iter().filter(|v| v.abs() > opts.k).count();
     Ok(CrossCheck {
         machine: k.name.clone(),
         scenario: scn.name.clone(),
         k: opts.k,
-        beyond: zs.iter().filter(|z| z.abs() > opts.k).count(),
-        total: zs.len(),
-        max_abs_z: zs.iter().map(|z| z.abs()).fold(0.0, f64::max),
-        rms_z: rms(&zs),
-        beyond_without_transfer: zs_plain.iter().filter(|z| z.abs() > opts.k).count(),
-        rms_z_without_transfer: rms(&zs_plain),
+        beyond: beyond(&z.0),
+        total: z.0.len(),
+        max_abs_z: z.0.iter().map(|v| v.abs()).fold(0.0, f64::max),
+        rms_z: rms(&z.0),
+        beyond_without_transfer: beyond(&z.1),
+        rms_z_without_transfer: rms(&z.1),
         sessions,
     })
 }

@@ -228,13 +228,9 @@ fn model(
         .collect()
 }
 
-/// Identifies location errors from one or more processed runs of one set-up (the same
-/// table-side object for all).
-pub fn identify(
-    k: &Kinematics,
-    runs: &[Processed],
-    opts: &Options,
-) -> Result<Identification, IdentifyError> {
+/// What a solve may estimate, in the order the rank test takes them (the table object
+/// first, then the errors asked for, then the drifts).
+fn candidates(k: &Kinematics, opts: &Options) -> Result<Vec<(Param, String)>, IdentifyError> {
     let names = if opts.errors.is_empty() {
         k.identify_names()
     } else {
@@ -280,6 +276,129 @@ pub fn identify(
             }
         }
     }
+    Ok(candidates)
+}
+
+/// The whitened design (the model's Jacobian at the nominal, central differences) and the
+/// whitened residual of the measurements from the nominal model.
+fn whitened_design(
+    k: &Kinematics,
+    runs: &[Processed],
+    all: &[Param],
+    whiten: &[driftwatch_core::geometry::Mat3],
+    t_ref_ns: i64,
+) -> (DMatrix<f64>, DVector<f64>) {
+    let zero = vec![0.0; all.len()];
+    let base = model(k, runs, all, &zero, t_ref_ns);
+    let n = base.len() * 3;
+    let mut jac = DMatrix::zeros(n, all.len());
+    for c in 0..all.len() {
+        let mut xp = zero.clone();
+        let mut xm = zero.clone();
+        xp[c] = 1.0;
+        xm[c] = -1.0;
+        let (mp, mm) = (
+            model(k, runs, all, &xp, t_ref_ns),
+            model(k, runs, all, &xm, t_ref_ns),
+        );
+        for (i, w) in whiten.iter().enumerate() {
+            let col = w * (mp[i] - mm[i]) / 2.0;
+            for r in 0..3 {
+                jac[(3 * i + r, c)] = col[r];
+            }
+        }
+    }
+    let meas = runs
+        .iter()
+        .flat_map(|r| r.points.iter().map(|d| d.table_um));
+    let mut y = DVector::zeros(n);
+    for (i, (m, w)) in meas.zip(whiten).enumerate() {
+        let r = w * (m - base[i]);
+        for j in 0..3 {
+            y[3 * i + j] = r[j];
+        }
+    }
+    (jac, y)
+}
+
+/// Keeps a candidate only if it raises the rank of the free part; names the others.
+fn select(jac: &DMatrix<f64>, candidates: &[(Param, String)]) -> (Vec<usize>, Vec<String>) {
+    let mut kept: Vec<usize> = Vec::new();
+    let mut not_identifiable = Vec::new();
+    for c in 0..candidates.len() {
+        let mut trial = kept.clone();
+        trial.push(c);
+        if rank(&scaled_columns(jac, &trial)) == trial.len() {
+            kept = trial;
+        } else {
+            not_identifiable.push(tie_message(jac, &kept, c, candidates));
+        }
+    }
+    (kept, not_identifiable)
+}
+
+/// The estimates by kind: errors (and their columns, for the correlation), the table
+/// object's columns, the drifts.
+struct Sorted {
+    errors: BTreeMap<String, Estimate>,
+    order: Vec<usize>,
+    table: [usize; 3],
+    drift: BTreeMap<String, Estimate>,
+}
+
+fn sort(
+    cols: &[usize],
+    all: &[Param],
+    candidates: &[(Param, String)],
+    est: &dyn Fn(usize, &'static str) -> Estimate,
+) -> Sorted {
+    let mut out = Sorted {
+        errors: BTreeMap::new(),
+        order: Vec::new(),
+        table: [0; 3],
+        drift: BTreeMap::new(),
+    };
+    for (j, &c) in cols.iter().enumerate() {
+        let name = || candidates[c].1.clone();
+        match all[c] {
+            Param::Error(id) => {
+                out.errors.insert(name(), est(j, id.unit()));
+                out.order.push(j);
+            }
+            Param::Linear(i) => {
+                out.errors
+                    .insert(name(), est(j, if i < 3 { "ppm" } else { "urad" }));
+                out.order.push(j);
+            }
+            Param::Table(t) => out.table[t] = j,
+            Param::HeadRate(_) => {
+                out.drift.insert(name(), est(j, "um/min"));
+            }
+            Param::HeadCurve(_) => {
+                out.drift.insert(name(), est(j, "um/min^2"));
+            }
+            Param::ErrorRate(id) => {
+                let unit = if id.is_position() {
+                    "um/min"
+                } else {
+                    "urad/min"
+                };
+                out.drift.insert(name(), est(j, unit));
+            }
+            Param::Head(_) => {}
+        }
+    }
+    out
+}
+
+/// Identifies location errors from one or more processed runs of one set-up (the same
+/// table-side object for all).
+pub fn identify(
+    k: &Kinematics,
+    runs: &[Processed],
+    opts: &Options,
+) -> Result<Identification, IdentifyError> {
+    let candidates = candidates(k, opts)?;
     let heads: Vec<Param> = (0..3).map(Param::Head).collect();
     let obs: Vec<(&crate::process::Deviation, Vec3)> = runs
         .iter()
@@ -303,46 +422,9 @@ pub fn identify(
         let ts: Vec<i64> = obs.iter().map(|(d, _)| d.t_ns).collect();
         driftwatch_core::identify::mean_time_ns(ts.iter().copied())
     };
-    let zero = vec![0.0; all.len()];
-    let base = model(k, runs, &all, &zero, t_ref_ns);
-    let n = obs.len() * 3;
-    let mut jac = DMatrix::zeros(n, all.len());
-    for c in 0..all.len() {
-        let mut xp = zero.clone();
-        let mut xm = zero.clone();
-        xp[c] = 1.0;
-        xm[c] = -1.0;
-        let (mp, mm) = (
-            model(k, runs, &all, &xp, t_ref_ns),
-            model(k, runs, &all, &xm, t_ref_ns),
-        );
-        for (i, w) in whiten.iter().enumerate() {
-            let col = w * (mp[i] - mm[i]) / 2.0;
-            for r in 0..3 {
-                jac[(3 * i + r, c)] = col[r];
-            }
-        }
-    }
-    let mut y = DVector::zeros(n);
-    for (i, ((_, meas), w)) in obs.iter().zip(&whiten).enumerate() {
-        let r = w * (meas - base[i]);
-        for j in 0..3 {
-            y[3 * i + j] = r[j];
-        }
-    }
-    // Keep a candidate only if it raises the rank of the free part.
-    let mut kept: Vec<usize> = Vec::new();
-    let mut not_identifiable = Vec::new();
-    for c in 0..candidates.len() {
-        let mut trial = kept.clone();
-        trial.push(c);
-        let sub = scaled_columns(&jac, &trial);
-        if rank(&sub) == trial.len() {
-            kept = trial;
-        } else {
-            not_identifiable.push(tie_message(&jac, &kept, c, &candidates));
-        }
-    }
+    let (jac, y) = whitened_design(k, runs, &all, &whiten, t_ref_ns);
+    let n = y.len();
+    let (kept, not_identifiable) = select(&jac, &candidates);
     // The head object: three more columns, each with its prior as one more row.
     let head_cols: Vec<usize> = (candidates.len()..all.len()).collect();
     let cols: Vec<usize> = kept.iter().copied().chain(head_cols.clone()).collect();
@@ -373,7 +455,7 @@ pub fn identify(
     // The scatter scales the readings' noise; the systematic parts are what they are.
     let cov = cov_random * (birge * birge) + systematic;
     // Residuals in um: the exact model at the solution.
-    let mut xfull = zero.clone();
+    let mut xfull = vec![0.0; all.len()];
     for (j, &c) in cols.iter().enumerate() {
         xfull[c] = x[j];
     }
@@ -390,39 +472,8 @@ pub fn identify(
         sigma: cov[(j, j)].sqrt(),
         unit,
     };
-    let mut errors = BTreeMap::new();
-    let mut order = Vec::new();
-    let mut table = [0usize; 3];
-    let mut drift = BTreeMap::new();
-    for (j, &c) in cols.iter().enumerate() {
-        match all[c] {
-            Param::Error(id) => {
-                errors.insert(candidates[c].1.clone(), est(j, id.unit()));
-                order.push(j);
-            }
-            Param::Table(t) => table[t] = j,
-            Param::HeadRate(_) => {
-                drift.insert(candidates[c].1.clone(), est(j, "um/min"));
-            }
-            Param::HeadCurve(_) => {
-                drift.insert(candidates[c].1.clone(), est(j, "um/min^2"));
-            }
-            Param::ErrorRate(id) => {
-                let unit = if id.is_position() {
-                    "um/min"
-                } else {
-                    "urad/min"
-                };
-                drift.insert(candidates[c].1.clone(), est(j, unit));
-            }
-            Param::Linear(i) => {
-                let unit = if i < 3 { "ppm" } else { "urad" };
-                errors.insert(candidates[c].1.clone(), est(j, unit));
-                order.push(j);
-            }
-            Param::Head(_) => {}
-        }
-    }
+    let sorted = sort(&cols, &all, &candidates, &est);
+    let (errors, order, table, drift) = (sorted.errors, sorted.order, sorted.table, sorted.drift);
     let head_j = |h: usize| cols.len() - 3 + h;
     let correlation = order
         .iter()
