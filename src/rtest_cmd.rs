@@ -257,14 +257,16 @@ fn cmd_crosscheck(a: CrosscheckArgs) -> Result<()> {
         }
     }
     println!(
-        "beyond {} combined sigma: {} of {} (largest |z| {:.2}, RMS z {:.2}); with the setter's nearest cycle as it is: {} (RMS z {:.2})",
+        "beyond {} combined sigma: {} of {} (largest |z| {:.2}, RMS z {:.2}); the setter's nearest cycle as it is: {} (RMS z {:.2}); its two cycles interpolated linearly: {} (RMS z {:.2})",
         c.k,
         c.beyond,
         c.total,
         c.max_abs_z,
         c.rms_z,
         c.beyond_without_transfer,
-        c.rms_z_without_transfer
+        c.rms_z_without_transfer,
+        c.beyond_interpolated,
+        c.rms_z_interpolated
     );
     Ok(())
 }

@@ -123,6 +123,10 @@ pub struct CrossCheck {
     /// The same without moving the setter to the R-test's time (nearest cycle as it is).
     pub beyond_without_transfer: usize,
     pub rms_z_without_transfer: f64,
+    /// The same with the two setter cycles interpolated linearly to the R-test's time (what
+    /// the service's verification does).
+    pub beyond_interpolated: usize,
+    pub rms_z_interpolated: f64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -406,12 +410,12 @@ fn fit_setter(raws: &[Raw], spindle: &[Event]) -> Result<ThermalModel, CrossErro
 /// One session compared: both setter cycles, each moved to the R-test's time by the model,
 /// averaged with inverse-variance weights (the model's part is shared, so its variance is
 /// that of the weighted shift); and, for contrast, the nearer cycle as it is. The z scores
-/// (with and without the move) are appended.
+/// (with the move, the nearer cycle as it is, the two interpolated linearly) are appended.
 fn compare(
     r: &Raw,
     model: &ThermalModel,
     spindle: &[Event],
-    z: &mut (Vec<f64>, Vec<f64>),
+    z: &mut [Vec<f64>; 3],
 ) -> (BTreeMap<String, Compared>, [i64; 3]) {
     let times = [r.setters[0].0, r.setters[1].0, r.rtest.t_ns];
     let rows = rows_at(model, spindle, &times);
@@ -438,8 +442,12 @@ fn compare(
         } else {
             b
         };
-        z.0.push((est.value - moved) / combined);
-        z.1.push((est.value - near.0) / (near.1 * near.1 + est.sigma.powi(2)).sqrt());
+        z[0].push((est.value - moved) / combined);
+        z[1].push((est.value - near.0) / (near.1 * near.1 + est.sigma.powi(2)).sqrt());
+        let f = (times[2] - times[0]) as f64 / (times[1] - times[0]).max(1) as f64;
+        let lin = a.0 + f * (b.0 - a.0);
+        let lin_var = ((1.0 - f) * a.1).powi(2) + (f * b.1).powi(2);
+        z[2].push((est.value - lin) / (lin_var + est.sigma.powi(2)).sqrt());
         errors.insert(
             name.clone(),
             Compared {
@@ -470,7 +478,7 @@ pub fn run(
     let (raws, spindle, start) = measure(k, scn, plan, opts)?;
     let model = fit_setter(&raws, &spindle)?;
     let to_min = |t: i64| (t - start) as f64 / 60e9;
-    let mut z = (Vec::new(), Vec::new());
+    let mut z = [Vec::new(), Vec::new(), Vec::new()];
     let sessions = raws
         .iter()
         .map(|r| {
@@ -489,12 +497,14 @@ pub fn run(
         machine: k.name.clone(),
         scenario: scn.name.clone(),
         k: opts.k,
-        beyond: beyond(&z.0),
-        total: z.0.len(),
-        max_abs_z: z.0.iter().map(|v| v.abs()).fold(0.0, f64::max),
-        rms_z: rms(&z.0),
-        beyond_without_transfer: beyond(&z.1),
-        rms_z_without_transfer: rms(&z.1),
+        beyond: beyond(&z[0]),
+        total: z[0].len(),
+        max_abs_z: z[0].iter().map(|v| v.abs()).fold(0.0, f64::max),
+        rms_z: rms(&z[0]),
+        beyond_without_transfer: beyond(&z[1]),
+        rms_z_without_transfer: rms(&z[1]),
+        beyond_interpolated: beyond(&z[2]),
+        rms_z_interpolated: rms(&z[2]),
         sessions,
     })
 }

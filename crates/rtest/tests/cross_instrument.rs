@@ -34,14 +34,16 @@ fn tool_setter_and_r_test_agree_on_the_patent_scenario() {
         );
     }
     println!(
-        "beyond {} sigma: {} of {} (max |z| {:.2}, RMS z {:.2}); without moving the setter to the R-test's time: {} (RMS z {:.2})",
+        "beyond {} sigma: {} of {} (max |z| {:.2}, RMS z {:.2}); without moving the setter to the R-test's time: {} (RMS z {:.2}); the two setter cycles interpolated linearly: {} (RMS z {:.2})",
         c.k,
         c.beyond,
         c.total,
         c.max_abs_z,
         c.rms_z,
         c.beyond_without_transfer,
-        c.rms_z_without_transfer
+        c.rms_z_without_transfer,
+        c.beyond_interpolated,
+        c.rms_z_interpolated
     );
     assert_eq!(c.sessions.len(), scn.cycle_times_min().len());
     assert_eq!(c.total, 90);
