@@ -277,3 +277,50 @@ fn asked_for_everything_it_finds_squareness_and_names_what_it_cannot_separate() 
         "{tied:?}"
     );
 }
+
+/// Every built-in family: its own six errors put in come back from BK1, BK2 and XYC within
+/// their uncertainties, each setting.
+#[test]
+fn every_family_identifies_its_six_errors_from_the_r_test() {
+    for name in [
+        "table_bc",
+        "table_d45_c",
+        "trunnion_ac",
+        "head_b_table_c",
+        "head_d45_table_c",
+    ] {
+        let k = Kinematics::builtin(name).unwrap();
+        let names = k.identify_names();
+        let values: Vec<(&str, f64)> = names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), [12.0, -7.0, 5.0, -9.0, 20.0, -15.0][i % 6]))
+            .collect();
+        let truth = with_errors(&k, &values);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for setting in Setting::ALL {
+            let inst = Instrument::drawn(setting, &Imperfections::seed(), &mut rng);
+            let cal = calibrate(&inst, 0.05, 3, 0.0, 0.13, &mut rng).unwrap();
+            let setup = Setup {
+                table_object_mm: Vec3::new(0.02, -0.01, 0.015),
+                head_object_mm: Vec3::zeros(),
+            };
+            let procs = run_all(&k, truth, &inst, &cal, &setup, &mut rng);
+            let id = identify(&k, &procs, &Options::default()).unwrap();
+            assert!(
+                id.not_identifiable.is_empty(),
+                "{name}: {:?}",
+                id.not_identifiable
+            );
+            for (n, v) in &values {
+                let e = &id.errors[*n];
+                assert!(
+                    (e.value - v).abs() < 4.0 * e.sigma,
+                    "{name} {setting:?} {n}: {} +- {} (true {v})",
+                    e.value,
+                    e.sigma
+                );
+            }
+        }
+    }
+}
