@@ -320,7 +320,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<()> {
             &k,
             &spec,
             &inst,
-            &mut |_| truth,
+            &mut |_, _| truth,
             t,
             &Setup::default(),
             &mut rng,

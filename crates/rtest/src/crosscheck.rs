@@ -318,7 +318,7 @@ impl Drive<'_> {
         for spec in &dev.specs {
             let t0 = self.vm.now_ns();
             let vm = &mut self.vm;
-            let mut state_at = |t| {
+            let mut state_at = |t, _: &[f64; driftwatch_core::kinematics::MAX_ROTARY]| {
                 vm.advance_to(t, 0.0);
                 vm.state(0.0)
             };

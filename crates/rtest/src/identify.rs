@@ -46,6 +46,41 @@ enum Param {
     /// A linear-axis error of the tool side: scale X, Y, Z (ppm), squareness XY, XZ, YZ
     /// (urad), as `kinematics::LinearErrors`.
     Linear(usize),
+    /// A rotary axis' angular positioning error, one harmonic of its commanded angle (urad):
+    /// `value * cos(n theta)` or `value * sin(n theta)`.
+    Index {
+        axis: usize,
+        harmonic: u32,
+        sine: bool,
+    },
+}
+
+/// The angular positioning harmonics `all_errors` asks for, per axis.
+const INDEX_HARMONICS: u32 = 2;
+
+/// The name of an angular positioning harmonic, e.g. `C_index_cos2_urad`.
+pub fn index_name(axis: &str, harmonic: u32, sine: bool) -> String {
+    format!(
+        "{axis}_index_{}{harmonic}_urad",
+        if sine { "sin" } else { "cos" }
+    )
+}
+
+fn parse_index(k: &Kinematics, name: &str) -> Option<Param> {
+    let (axis, rest) = name.split_once("_index_")?;
+    let rest = rest.strip_suffix("_urad")?;
+    let (sine, n) = if let Some(n) = rest.strip_prefix("sin") {
+        (true, n)
+    } else {
+        (false, rest.strip_prefix("cos")?)
+    };
+    let harmonic: u32 = n.parse().ok().filter(|h| *h >= 1)?;
+    let axis = k.rotary.iter().position(|a| a.name == axis)?;
+    Some(Param::Index {
+        axis,
+        harmonic,
+        sine,
+    })
 }
 
 /// The linear-axis errors the R-test can be asked for, by name.
@@ -151,7 +186,8 @@ impl Default for Options {
 /// zero angles of every axis), by name.
 /// The machine's identified errors come first: when two cannot be told apart, the one the
 /// tool setter also reports is kept and the other named. The linear axes' scale and
-/// squareness errors come last.
+/// squareness errors come next, then each rotary axis' angular positioning error as the
+/// first two harmonics of its angle.
 pub fn all_errors(k: &Kinematics) -> Vec<String> {
     let mut out = k.identify_names();
     for n in k
@@ -164,21 +200,36 @@ pub fn all_errors(k: &Kinematics) -> Vec<String> {
         }
     }
     out.extend(LINEAR_ERRORS.iter().map(|s| s.to_string()));
+    for ax in &k.rotary {
+        for n in 1..=INDEX_HARMONICS {
+            for sine in [false, true] {
+                out.push(index_name(&ax.name, n, sine));
+            }
+        }
+    }
     out
 }
 
-fn state_with(
-    k: &Kinematics,
-    params: &[Param],
-    x: &[f64],
-) -> (MachineState, Setup, Vec3, Vec3, MachineState) {
+/// The parameter values in the model's terms.
+struct Values {
+    state: MachineState,
+    setup: Setup,
+    /// The spindle-side object's drift, mm/min and mm/min^2.
+    rate: Vec3,
+    curve: Vec3,
+    /// The location errors' drift per minute, in the state's own slots.
+    loc_rate: [[f64; 5]; driftwatch_core::kinematics::MAX_ROTARY],
+    /// Angular positioning harmonics: axis, harmonic, sine, rad.
+    index: Vec<(usize, u32, bool, f64)>,
+}
+
+fn state_with(k: &Kinematics, params: &[Param], x: &[f64]) -> Values {
     let mut s = k.nominal_state();
     let mut setup = Setup::default();
     let mut rate = Vec3::zeros();
     let mut curve = Vec3::zeros();
-    // The location errors' drift per minute, in the state's own slots.
-    let mut loc_rate = k.nominal_state();
-    loc_rate.loc = [[0.0; 5]; driftwatch_core::kinematics::MAX_ROTARY];
+    let mut loc_rate = [[0.0; 5]; driftwatch_core::kinematics::MAX_ROTARY];
+    let mut index = Vec::new();
     for (p, v) in params.iter().zip(x) {
         match p {
             Param::Error(id) => s.loc[id.axis][id.slot] += v * id.scale(),
@@ -186,16 +237,28 @@ fn state_with(
             Param::Head(j) => setup.head_object_mm[*j] += v * 1e-3,
             Param::HeadRate(j) => rate[*j] += v * 1e-3,
             Param::HeadCurve(j) => curve[*j] += v * 1e-3,
-            Param::ErrorRate(id) => loc_rate.loc[id.axis][id.slot] += v * id.scale(),
+            Param::ErrorRate(id) => loc_rate[id.axis][id.slot] += v * id.scale(),
             Param::Linear(i) => match i {
                 0..=2 => s.linear.k[*i] += v * 1e-6,
                 3 => s.linear.sxy += v * 1e-6,
                 4 => s.linear.sxz += v * 1e-6,
                 _ => s.linear.syz += v * 1e-6,
             },
+            Param::Index {
+                axis,
+                harmonic,
+                sine,
+            } => index.push((*axis, *harmonic, *sine, v * 1e-6)),
         }
     }
-    (s, setup, rate, curve, loc_rate)
+    Values {
+        state: s,
+        setup,
+        rate,
+        curve,
+        loc_rate,
+        index,
+    }
 }
 
 /// The model's deviations (um, table frame), the drift referred to `t_ref_ns`.
@@ -206,7 +269,14 @@ fn model(
     x: &[f64],
     t_ref_ns: i64,
 ) -> Vec<Vec3> {
-    let (s, setup, rate, curve, loc_rate) = state_with(k, params, x);
+    let Values {
+        state: s,
+        setup,
+        rate,
+        curve,
+        loc_rate,
+        index,
+    } = state_with(k, params, x);
     runs.iter()
         .flat_map(|r| {
             r.points
@@ -216,10 +286,14 @@ fn model(
                     let dt_min = (d.t_ns - t_ref_ns) as f64 / 60e9;
                     at.head_object_mm += rate * dt_min + curve * (dt_min * dt_min);
                     let mut now = s;
-                    for (a, r) in now.loc.iter_mut().zip(&loc_rate.loc) {
+                    for (a, r) in now.loc.iter_mut().zip(&loc_rate) {
                         for (v, dv) in a.iter_mut().zip(r) {
                             *v += dv * dt_min;
                         }
+                    }
+                    for (axis, n, sine, v) in &index {
+                        let t = d.angles_deg[*axis].to_radians() * f64::from(*n);
+                        now.angle_error[*axis] += v * if *sine { t.sin() } else { t.cos() };
                     }
                     deviation_table_um(k, &now, &d.angles_deg, &r.ball_mm, &at)
                 })
@@ -249,6 +323,10 @@ fn candidates(k: &Kinematics, opts: &Options) -> Result<Vec<(Param, String)>, Id
             candidates.push((Param::Linear(i), n.clone()));
             continue;
         }
+        if let Some(p) = parse_index(k, n) {
+            candidates.push((p, n.clone()));
+            continue;
+        }
         let id = k
             .error_id(n)
             .ok_or_else(|| IdentifyError::UnknownError(n.clone()))?;
@@ -269,7 +347,7 @@ fn candidates(k: &Kinematics, opts: &Options) -> Result<Vec<(Param, String)>, Id
         }
         for n in names
             .iter()
-            .filter(|n| !LINEAR_ERRORS.contains(&n.as_str()))
+            .filter(|n| !LINEAR_ERRORS.contains(&n.as_str()) && parse_index(k, n).is_none())
         {
             if let Some(id) = k.error_id(n) {
                 candidates.push((Param::ErrorRate(id), format!("{n}_per_min")));
@@ -368,6 +446,10 @@ fn sort(
             Param::Linear(i) => {
                 out.errors
                     .insert(name(), est(j, if i < 3 { "ppm" } else { "urad" }));
+                out.order.push(j);
+            }
+            Param::Index { .. } => {
+                out.errors.insert(name(), est(j, "urad"));
                 out.order.push(j);
             }
             Param::Table(t) => out.table[t] = j,

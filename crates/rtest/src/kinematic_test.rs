@@ -328,13 +328,15 @@ fn nest_view(setting: Setting, pose: &Pose, setup: &Setup) -> (Vec3, Mat3) {
     }
 }
 
-/// Runs a test on a machine whose true state at time `t_ns` is `state_at(t_ns)`; readings from
+/// Runs a test on a machine whose true state at time `t_ns` and commanded angles `a` is
+/// `state_at(t_ns, a)` (the pose lets a truth put in what depends on where the axes stand:
+/// indexing errors, backlash); readings from
 /// `start_ns` on, spaced by the path over the feed plus the dwell.
 pub fn simulate(
     k: &Kinematics,
     spec: &TestSpec,
     inst: &Instrument,
-    state_at: &mut dyn FnMut(i64) -> MachineState,
+    state_at: &mut dyn FnMut(i64, &[f64; MAX_ROTARY]) -> MachineState,
     start_ns: i64,
     setup: &Setup,
     rng: &mut impl Rng,
@@ -356,7 +358,7 @@ pub fn simulate(
             t_ns += (path / spec.feed_mm_min * 60e9 + spec.dwell_s * 1e9) as i64;
         }
         last = cmd;
-        let state = state_at(t_ns);
+        let state = state_at(t_ns, a);
         let p = pose(k, &state, a, &spec.ball_mm);
         let (b, rot) = nest_view(inst.setting, &p, setup);
         let readings_um = inst

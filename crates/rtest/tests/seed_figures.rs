@@ -31,7 +31,7 @@ fn run_all(
         .iter()
         .map(|&kind| {
             let spec = TestSpec::default_for(k, kind).unwrap();
-            let run = simulate(k, &spec, inst, &mut |_| truth, 0, setup, rng).unwrap();
+            let run = simulate(k, &spec, inst, &mut |_, _| truth, 0, setup, rng).unwrap();
             process(k, &run, cal).unwrap()
         })
         .collect()
@@ -152,7 +152,7 @@ fn a_10_um_c_axis_offset_is_a_once_per_revolution_radial_component_of_10_um() {
                 &k,
                 &spec,
                 &inst,
-                &mut |_| truth,
+                &mut |_, _| truth,
                 0,
                 &Setup::default(),
                 &mut rng,
@@ -232,18 +232,43 @@ fn identified_errors_come_back_within_their_uncertainties_over_500_runs() {
 }
 
 /// What else the tests see: asked for every error, the R-test finds the linear axes'
-/// squareness and the rotary axes' orientations that the tool setter holds, and names what a
-/// single ball cannot separate instead of guessing.
+/// squareness, the rotary axes' orientations that the tool setter holds and the C axis'
+/// angular positioning error (its harmonics), and names what a single ball cannot separate
+/// instead of guessing.
 #[test]
-fn asked_for_everything_it_finds_squareness_and_names_what_it_cannot_separate() {
+fn asked_for_everything_it_finds_squareness_and_indexing_and_names_what_it_cannot_separate() {
     let k = Kinematics::builtin("table_bc").unwrap();
     let mut truth = with_errors(&k, &[("EX0C", 10.0), ("EA0B", 30.0), ("EZ0B", -8.0)]);
     truth.linear.sxy = 20e-6;
     truth.linear.syz = -15e-6;
+    let c = k.table_axis().unwrap();
+    // C positions 20 urad cos(2 C) + 10 urad sin(C) off its command.
+    let mut state_at = |_: i64, a: &[f64; 3]| {
+        let mut s = truth;
+        let t = a[c].to_radians();
+        s.angle_error[c] = 20e-6 * (2.0 * t).cos() + 10e-6 * t.sin();
+        s
+    };
     let mut rng = ChaCha8Rng::seed_from_u64(230);
     let inst = Instrument::drawn(Setting::E, &Imperfections::seed(), &mut rng);
     let cal = calibrate(&inst, 0.05, 3, 0.0, 0.13, &mut rng).unwrap();
-    let procs = run_all(&k, truth, &inst, &cal, &Setup::default(), &mut rng);
+    let procs: Vec<Processed> = TestKind::ALL
+        .iter()
+        .map(|&kind| {
+            let spec = TestSpec::default_for(&k, kind).unwrap();
+            let run = simulate(
+                &k,
+                &spec,
+                &inst,
+                &mut state_at,
+                0,
+                &Setup::default(),
+                &mut rng,
+            )
+            .unwrap();
+            process(&k, &run, &cal).unwrap()
+        })
+        .collect();
     let opts = Options {
         errors: driftwatch_rtest::identify::all_errors(&k),
         ..Options::default()
@@ -256,6 +281,9 @@ fn asked_for_everything_it_finds_squareness_and_names_what_it_cannot_separate() 
         ("squareness_xy_urad", 20.0),
         ("squareness_yz_urad", -15.0),
         ("squareness_xz_urad", 0.0),
+        ("C_index_cos2_urad", 20.0),
+        ("C_index_sin2_urad", 0.0),
+        ("C_index_sin1_urad", 10.0),
     ] {
         let e = &id.errors[name];
         println!("{name}: {:.3} +- {:.3} (true {v})", e.value, e.sigma);
@@ -271,7 +299,7 @@ fn asked_for_everything_it_finds_squareness_and_names_what_it_cannot_separate() 
         .iter()
         .map(|m| m.split(':').next().unwrap())
         .collect();
-    println!("not identifiable: {tied:?}");
+    println!("not identifiable: {:?}", id.not_identifiable);
     assert!(
         tied.contains(&"EC0C") && tied.contains(&"scale_z_ppm"),
         "{tied:?}"
