@@ -268,6 +268,11 @@ fn cmd_crosscheck(a: CrosscheckArgs) -> Result<()> {
         c.beyond_interpolated,
         c.rms_z_interpolated
     );
+    println!(
+        "sessions whose errors disagree jointly (sum of z^2 beyond the chi-square point of the same coverage): {} of {}",
+        c.sessions_beyond_joint,
+        c.sessions.len()
+    );
     Ok(())
 }
 

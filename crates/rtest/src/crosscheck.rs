@@ -127,6 +127,10 @@ pub struct CrossCheck {
     /// the service's verification does).
     pub beyond_interpolated: usize,
     pub rms_z_interpolated: f64,
+    /// Sessions whose errors disagree jointly: the sum of their z^2 beyond the chi-square
+    /// quantile of as many degrees of freedom at the coverage of `k` sigma (95.45 % for 2;
+    /// the errors taken as independent, which the setter's are not quite).
+    pub sessions_beyond_joint: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -479,7 +483,7 @@ pub fn run(
     let model = fit_setter(&raws, &spindle)?;
     let to_min = |t: i64| (t - start) as f64 / 60e9;
     let mut z = [Vec::new(), Vec::new(), Vec::new()];
-    let sessions = raws
+    let sessions: Vec<Session> = raws
         .iter()
         .map(|r| {
             let (errors, times) = compare(r, &model, &spindle, &mut z);
@@ -491,6 +495,14 @@ pub fn run(
             }
         })
         .collect();
+    let coverage = erf(opts.k / std::f64::consts::SQRT_2);
+    let sessions_beyond_joint = sessions
+        .iter()
+        .filter(|s: &&Session| {
+            let chi2: f64 = s.errors.values().map(|e| e.z * e.z).sum();
+            chi2 > driftwatch_core::stats::chi2_quantile(coverage, s.errors.len())
+        })
+        .count();
     let rms = |z: &[f64]| (z.iter().map(|v| v * v).sum::<f64>() / z.len().max(1) as f64).sqrt();
     let beyond = |z: &[f64]| z.iter().filter(|v| v.abs() > opts.k).count();
     Ok(CrossCheck {
@@ -505,6 +517,28 @@ pub fn run(
         rms_z_without_transfer: rms(&z[1]),
         beyond_interpolated: beyond(&z[2]),
         rms_z_interpolated: rms(&z[2]),
+        sessions_beyond_joint,
         sessions,
     })
+}
+
+/// The error function (Abramowitz and Stegun 7.1.26, |error| < 1.5e-7): the coverage of
+/// `k` sigma is `erf(k / sqrt 2)`.
+fn erf(x: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let y = 1.0
+        - (((((1.061_405_429 * t - 1.453_152_027) * t) + 1.421_413_741) * t - 0.284_496_736) * t
+            + 0.254_829_592)
+            * t
+            * (-x * x).exp();
+    if x >= 0.0 { y } else { -y }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn two_sigma_covers_95_45_percent() {
+        assert!((super::erf(2.0 / std::f64::consts::SQRT_2) - 0.954_499_7).abs() < 1e-6);
+        assert!((super::erf(-1.0) + 0.842_700_8).abs() < 1e-6);
+    }
 }

@@ -45,6 +45,11 @@ fn tool_setter_and_r_test_agree_on_the_patent_scenario() {
         c.beyond_interpolated,
         c.rms_z_interpolated
     );
+    println!(
+        "sessions whose six errors disagree jointly (sum of z^2 beyond the chi-square 95.45 % point of 6): {} of {}",
+        c.sessions_beyond_joint,
+        c.sessions.len()
+    );
     assert_eq!(c.sessions.len(), scn.cycle_times_min().len());
     assert_eq!(c.total, 90);
     assert!(
