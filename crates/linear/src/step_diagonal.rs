@@ -1,0 +1,387 @@
+//! The laser step diagonal measurement (seed 004, Kyoto University).
+//!
+//! A laser interferometer along a body diagonal of the work volume reads a flat mirror at the
+//! tool point while the machine moves in steps of `a`: X, then Y, then Z, to the far corner;
+//! the same on the four diagonals `ppp`, `npp`, `pnp`, `ppn` (the signs of their X, Y, Z
+//! directions).
+//!
+//! **The reading.** A flat mirror reads the tool's displacement along its own normal, not
+//! along the beam: `R = m . d` to first order (a beam off the mirror normal by a small angle
+//! costs only its cosine). With the mirror normal `m = L + mu`, `L = (s_x, s_y, s_z)/sqrt 3`
+//! and `mu` across `L` (the set-up error: nobody can square a mirror to a diagonal that only
+//! the machine's own, erroneous motion defines), a step of `s_j a` along axis `j` reads
+//!
+//! ```text
+//! sqrt3 dR_j = a + dE_jj + sum_{i != j} s_j s_i dE_ij + c_j,     c_j = sqrt3 s_j mu_j a
+//! ```
+//!
+//! where `dE_ij` is the error increment in direction `i` over the step of axis `j` (taken in
+//! the positive sense). `mu . L = 0` makes `c_x + c_y + c_z = 0` on every diagonal, and the
+//! `c` are the same at every step: about 1.7 um per 10 mm step for a 100 urad mirror tilt,
+//! which adds up to some 20 um over 12 steps.
+//!
+//! **Conventional formulation** (Wang 2000): three diagonals give nine equations per step for
+//! the nine `dE`, with `c` taken as zero; every `c` goes straight into the estimates.
+//!
+//! **Set-up-robust formulation** (the seed's proposal, derived here for these conventions):
+//! the positioning errors `dE_jj` are measured directly (the interferometer along each axis)
+//! and known; the unknowns are the six transverse increments of every step and each
+//! diagonal's two free `c`. Least squares over all steps of the four diagonals. The sum of a
+//! diagonal's three readings at a step cancels its `c`; what differences across steps leave
+//! identifiable is each transverse profile's shape, and the sums `dE_xy + dE_yx` etc. carry
+//! the squareness. The gauge is the convention of `kinematics::LinearErrors`: X is the
+//! reference (its straightness in y and z has zero end-point slope), Y's straightness in z
+//! likewise; the squareness `sxy`, `sxz`, `syz` is then the mean slope of Y's x, Z's x and
+//! Z's y errors.
+
+use driftwatch_core::geometry::Vec3;
+use nalgebra::{DMatrix, DVector};
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::axis_errors::AxisErrors;
+
+/// The four body diagonals by the signs of their X, Y, Z directions.
+pub const DIAGONALS: [[f64; 3]; 4] = [
+    [1.0, 1.0, 1.0],
+    [-1.0, 1.0, 1.0],
+    [1.0, -1.0, 1.0],
+    [1.0, 1.0, -1.0],
+];
+
+pub fn diagonal_name(s: &[f64; 3]) -> String {
+    s.iter().map(|v| if *v > 0.0 { 'p' } else { 'n' }).collect()
+}
+
+/// How the measurement is set up and disturbed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Setup {
+    /// Step, mm, and number of steps per axis (the cube's side is their product).
+    pub step_mm: f64,
+    pub steps: usize,
+    /// Mirror normal off the diagonal, urad, per diagonal (two components across it).
+    pub mirror_tilt_urad: [[f64; 2]; 4],
+    /// Interferometer noise per reading, um.
+    pub noise_um: f64,
+    /// Noise of the direct positioning measurement, um per reading.
+    pub positioning_noise_um: f64,
+    /// Thermal drift of the tool point during the runs, um/min, and the time per step, s.
+    pub drift_um_per_min: Vec3,
+    pub step_time_s: f64,
+}
+
+impl Setup {
+    /// The seed's: 10 mm steps over 120 mm, mirror tilts of `tilt_urad` in random directions,
+    /// 0.1 um noise, no drift, 5 s per step.
+    pub fn seed(tilt_urad: f64, rng: &mut impl Rng) -> Setup {
+        let mut mirror_tilt_urad = [[0.0; 2]; 4];
+        for t in &mut mirror_tilt_urad {
+            let phi = 2.0 * std::f64::consts::PI * rng.random::<f64>();
+            *t = [tilt_urad * phi.cos(), tilt_urad * phi.sin()];
+        }
+        Setup {
+            step_mm: 10.0,
+            steps: 12,
+            mirror_tilt_urad,
+            noise_um: 0.1,
+            positioning_noise_um: 0.1,
+            drift_um_per_min: Vec3::zeros(),
+            step_time_s: 5.0,
+        }
+    }
+}
+
+/// One diagonal's readings: after each of the `3 n` moves (X, Y, Z of step 1, ...), um.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DiagonalRun {
+    pub signs: [f64; 3],
+    pub readings_um: Vec<f64>,
+}
+
+/// The direct positioning measurement: each axis' own error at the end of each step from its
+/// start (um, X, Y, Z), as an interferometer along the axis reads it.
+pub type Positioning = [Vec<f64>; 3];
+
+/// Two unit vectors across the diagonal `l`.
+fn across(l: &Vec3) -> (Vec3, Vec3) {
+    let u = l.cross(&Vec3::z()).normalize();
+    (u, l.cross(&u))
+}
+
+/// The staircase of a diagonal: the commanded positions after each move, from its start
+/// corner, mm (positions within `[0, side]` on each axis).
+pub fn staircase(signs: &[f64; 3], step_mm: f64, steps: usize) -> Vec<Vec3> {
+    let side = step_mm * steps as f64;
+    let mut p = Vec3::new(
+        if signs[0] > 0.0 { 0.0 } else { side },
+        if signs[1] > 0.0 { 0.0 } else { side },
+        if signs[2] > 0.0 { 0.0 } else { side },
+    );
+    let mut out = vec![p];
+    for _ in 0..steps {
+        for (j, s) in signs.iter().enumerate() {
+            p[j] += s * step_mm;
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// Simulates the four diagonals and the direct positioning measurement.
+pub fn simulate(
+    errors: &AxisErrors,
+    setup: &Setup,
+    rng: &mut impl Rng,
+) -> ([DiagonalRun; 4], Positioning) {
+    let mut noise = |s: f64| -> f64 {
+        let z: f64 = StandardNormal.sample(rng);
+        s * z
+    };
+    let runs = std::array::from_fn(|d| {
+        let signs = DIAGONALS[d];
+        let l = Vec3::new(signs[0], signs[1], signs[2]) / 3f64.sqrt();
+        let (u, v) = across(&l);
+        let [t1, t2] = setup.mirror_tilt_urad[d];
+        let m = (l + u * (t1 * 1e-6) + v * (t2 * 1e-6)).normalize();
+        let path = staircase(&signs, setup.step_mm, setup.steps);
+        let actual = |p: &Vec3, k: usize| {
+            let t_min = k as f64 * setup.step_time_s / 60.0;
+            p * 1e3 + errors.error_um(p) + setup.drift_um_per_min * t_min
+        };
+        let start = actual(&path[0], 0);
+        let readings_um = path[1..]
+            .iter()
+            .enumerate()
+            .map(|(k, p)| m.dot(&(actual(p, k + 1) - start)) + noise(setup.noise_um))
+            .collect();
+        DiagonalRun { signs, readings_um }
+    });
+    // Along each axis, the others at their start (0): its own error at each step's end.
+    let positioning = std::array::from_fn(|j| {
+        (1..=setup.steps)
+            .map(|k| {
+                let mut b = Vec3::zeros();
+                b[j] = k as f64 * setup.step_mm;
+                errors.error_um(&b)[j] + noise(setup.positioning_noise_um)
+            })
+            .collect()
+    });
+    (runs, positioning)
+}
+
+/// What a formulation found: the profiles of `actual - commanded` along each axis from its
+/// start (um at each step's end), the squareness (urad) and the positioning (um).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Estimate {
+    /// Positioning error of X, Y, Z along their own travel, um at 1..=n steps.
+    pub positioning_um: [Vec<f64>; 3],
+    /// Straightness (end-point reference): Syx, Szx, Sxy, Szy, Sxz, Syz, um at 1..=n steps.
+    pub straightness_um: [Vec<f64>; 6],
+    /// Squareness sxy, sxz, syz, urad, and its standard uncertainty.
+    pub squareness_urad: [f64; 3],
+    pub squareness_sigma_urad: [f64; 3],
+}
+
+impl Estimate {
+    /// A squareness as the seed tabulates it: um over the measured range.
+    pub fn squareness_um_over(&self, i: usize, range_mm: f64) -> f64 {
+        self.squareness_urad[i] * range_mm * 1e-3
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    #[error("diagonal {0}: {1} readings, expected {2}")]
+    Readings(String, usize, usize),
+    #[error("the least-squares system is singular")]
+    Singular,
+}
+
+/// Reading increments of each move, `sqrt3 dR - a`, per diagonal and move.
+fn increments(runs: &[DiagonalRun], a: f64, n: usize) -> Result<Vec<Vec<f64>>, SolveError> {
+    runs.iter()
+        .map(|r| {
+            if r.readings_um.len() != 3 * n {
+                return Err(SolveError::Readings(
+                    diagonal_name(&r.signs),
+                    r.readings_um.len(),
+                    3 * n,
+                ));
+            }
+            let mut prev = 0.0;
+            Ok(r.readings_um
+                .iter()
+                .map(|v| {
+                    let d = 3f64.sqrt() * (v - prev) - a * 1e3;
+                    prev = *v;
+                    d
+                })
+                .collect())
+        })
+        .collect()
+}
+
+/// The interval a diagonal's move along axis `j` at its step `k` covers: the same in the
+/// positive sense, `n - 1 - k` in the negative (it starts from the far end).
+fn interval(signs: &[f64; 3], j: usize, k: usize, n: usize) -> usize {
+    if signs[j] > 0.0 { k } else { n - 1 - k }
+}
+
+/// Profiles (cumulative, um at 1..=n) from increments.
+fn cumulative(inc: &[f64]) -> Vec<f64> {
+    inc.iter()
+        .scan(0.0, |acc, v| {
+            *acc += v;
+            Some(*acc)
+        })
+        .collect()
+}
+
+/// The conventional formulation: per step, the nine increments from the nine readings of
+/// three diagonals (`ppp`, `npp`, `pnp`), set-up errors taken as zero.
+pub fn conventional(runs: &[DiagonalRun; 4], setup: &Setup) -> Result<Estimate, SolveError> {
+    let (a, n) = (setup.step_mm, setup.steps);
+    let inc = increments(&runs[..3], a, n)?;
+    let mut de: [[Vec<f64>; 3]; 3] = std::array::from_fn(|_| std::array::from_fn(|_| vec![0.0; n]));
+    for j in 0..3 {
+        for k in 0..n {
+            // Rows: the three diagonals' moves of axis j over interval k (a diagonal that
+            // runs negatively along j covers it at its step n-1-k); columns dE_xj, dE_yj, dE_zj.
+            let mut m = nalgebra::Matrix3::zeros();
+            let mut y = nalgebra::Vector3::zeros();
+            for (row, r) in runs[..3].iter().enumerate() {
+                let s = r.signs;
+                // The move of axis j covering interval k.
+                let kk = interval(&s, j, k, n);
+                for i in 0..3 {
+                    m[(row, i)] = s[j] * s[i];
+                }
+                y[row] = inc[row][3 * kk + j];
+            }
+            let sol = m.try_inverse().ok_or(SolveError::Singular)? * y;
+            for (row, v) in de.iter_mut().zip(sol.iter()) {
+                row[j][k] = *v;
+            }
+        }
+    }
+    Ok(profiles(&de, a, n, None))
+}
+
+/// Turns increments `de[i][j][k]` into the estimate's profiles and squareness.
+fn profiles(de: &[[Vec<f64>; 3]; 3], a: f64, n: usize, sigma: Option<[f64; 3]>) -> Estimate {
+    let range = a * n as f64;
+    let slope = |v: &[f64]| v.iter().sum::<f64>() / (range * 1e-3); // urad
+    let detrend = |v: &[f64]| {
+        let c = cumulative(v);
+        let end = c.last().copied().unwrap_or(0.0);
+        c.iter()
+            .enumerate()
+            .map(|(k, x)| x - end * (k + 1) as f64 / n as f64)
+            .collect::<Vec<_>>()
+    };
+    let order = [(1, 0), (2, 0), (0, 1), (2, 1), (0, 2), (1, 2)];
+    Estimate {
+        positioning_um: std::array::from_fn(|j| cumulative(&de[j][j])),
+        straightness_um: order.map(|(i, j)| detrend(&de[i][j])),
+        // The angle between two axes' mean lines, X the reference: Y's x slope plus X's y
+        // slope, and so on.
+        squareness_urad: [
+            slope(&de[0][1]) + slope(&de[1][0]),
+            slope(&de[0][2]) + slope(&de[2][0]),
+            slope(&de[1][2]) + slope(&de[2][1]),
+        ],
+        squareness_sigma_urad: sigma.unwrap_or([f64::NAN; 3]),
+    }
+}
+
+/// The set-up-robust formulation: the nine increments of every step (the positioning ones
+/// observed by the direct measurement as well) and each diagonal's set-up offsets, estimated
+/// by weighted least squares on the readings themselves (each reading the sum of the moves
+/// before it, its own noise), in the gauge of `LinearErrors`.
+pub fn robust(
+    runs: &[DiagonalRun; 4],
+    positioning: &Positioning,
+    setup: &Setup,
+) -> Result<Estimate, SolveError> {
+    let (a, n) = (setup.step_mm, setup.steps);
+    for (j, p) in positioning.iter().enumerate() {
+        if p.len() != n {
+            return Err(SolveError::Readings(["x", "y", "z"][j].into(), p.len(), n));
+        }
+    }
+    increments(runs, a, n)?;
+    // Unknowns: dE_ij of interval k at (3 i + j) n + k, then per diagonal c_x, c_y
+    // (c_z = -c_x - c_y).
+    let nd = 9 * n;
+    let nu = nd + 8;
+    let at = |i: usize, j: usize, k: usize| (3 * i + j) * n + k;
+    let rows = 12 * n + 3 * n + 3;
+    let mut m = DMatrix::zeros(rows, nu);
+    let mut y = DVector::zeros(rows);
+    let w = 1.0 / (3f64.sqrt() * setup.noise_um.max(1e-6));
+    let mut r = 0;
+    for (d, run) in runs.iter().enumerate() {
+        let s = run.signs;
+        // sqrt3 R after a move = the sum of the moves so far: a + sum_i s_j s_i dE_ij + c_j each.
+        let mut row = DVector::<f64>::zeros(nu);
+        let mut moves = 0.0;
+        for k in 0..n {
+            for j in 0..3 {
+                let kk = interval(&s, j, k, n);
+                for i in 0..3 {
+                    row[at(i, j, kk)] += s[j] * s[i];
+                }
+                match j {
+                    0 => row[nd + 2 * d] += 1.0,
+                    1 => row[nd + 2 * d + 1] += 1.0,
+                    _ => {
+                        row[nd + 2 * d] -= 1.0;
+                        row[nd + 2 * d + 1] -= 1.0;
+                    }
+                }
+                moves += 1.0;
+                m.set_row(r, &(row.transpose() * w));
+                y[r] = (3f64.sqrt() * run.readings_um[3 * k + j] - moves * a * 1e3) * w;
+                r += 1;
+            }
+        }
+    }
+    // The direct positioning readings: each the sum of its axis' increments so far.
+    let wp = 1.0 / setup.positioning_noise_um.max(1e-6);
+    for (j, p) in positioning.iter().enumerate() {
+        for (k, v) in p.iter().enumerate() {
+            for kk in 0..=k {
+                m[(r, at(j, j, kk))] = wp;
+            }
+            y[r] = v * wp;
+            r += 1;
+        }
+    }
+    // Gauge: X's straightness in y and z, and Y's in z, have no end-point slope.
+    let big = 1e4 * w.max(wp);
+    for (i, j) in [(1, 0), (2, 0), (2, 1)] {
+        for k in 0..n {
+            m[(r, at(i, j, k))] = big;
+        }
+        r += 1;
+    }
+    let mtm = m.transpose() * &m;
+    let cov = mtm.try_inverse().ok_or(SolveError::Singular)?;
+    let x = &cov * (m.transpose() * &y);
+    let de: [[Vec<f64>; 3]; 3] =
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..n).map(|k| x[at(i, j, k)]).collect()));
+    // A squareness is the sum of one profile's increments over the range (the other's is
+    // held at zero by the gauge).
+    let range = a * n as f64 * 1e-3;
+    let sig = |i: usize, j: usize| {
+        let idx: Vec<usize> = (0..n).map(|k| at(i, j, k)).collect();
+        let v: f64 = idx
+            .iter()
+            .flat_map(|&p| idx.iter().map(move |&q| (p, q)))
+            .map(|(p, q)| cov[(p, q)])
+            .sum();
+        v.max(0.0).sqrt() / range
+    };
+    Ok(profiles(&de, a, n, Some([sig(0, 1), sig(0, 2), sig(1, 2)])))
+}
