@@ -5,7 +5,9 @@
 //! model of the three axes' errors (positioning, straightness, squareness, as functions of the
 //! commanded position); [`step_diagonal`] simulates the measurement on the four body diagonals
 //! with set-up errors, noise and drift, and solves it with the conventional nine-unknown
-//! formulation and with the set-up-robust one.
+//! formulation and with the set-up-robust one; [`correction_table`] is seed 003's in-process
+//! correction table of a faced part and its cut-measure-correct loop.
 
 pub mod axis_errors;
+pub mod correction_table;
 pub mod step_diagonal;
