@@ -19,6 +19,7 @@ use driftwatch_sim::simulator::simulate;
 
 mod bench;
 mod diagnose_cmd;
+mod linear_cmd;
 mod model_cmd;
 mod nc_cmd;
 mod nc_program_cmd;
@@ -137,6 +138,15 @@ enum Command {
         #[command(subcommand)]
         what: rtest_cmd::RtestCmd,
     },
+    /// The laser step diagonal (seed 004): simulate an interferometer log, or solve one
+    /// with the conventional and the set-up-robust formulations.
+    Diagonal {
+        #[command(subcommand)]
+        what: linear_cmd::DiagonalCmd,
+    },
+    /// Seed 003's correction table of a faced part: from a measured section, or the
+    /// cut-measure-correct loop on a simulated face.
+    CorrectionTable(linear_cmd::CorrectionArgs),
     /// Turn a table from another tool into a contract recording.
     Import {
         #[command(subcommand)]
@@ -382,6 +392,8 @@ fn run(cmd: Command) -> Result<ExitCode> {
             ImportWhat::RtestCsv(a) => rtest_cmd::cmd_import(a).map(|()| ExitCode::SUCCESS),
         },
         Command::Rtest { what } => rtest_cmd::cmd_rtest(what).map(|()| ExitCode::SUCCESS),
+        Command::Diagonal { what } => linear_cmd::cmd_diagonal(what),
+        Command::CorrectionTable(a) => linear_cmd::cmd_correction_table(a),
         Command::Nc { what } => nc_cmd::cmd_nc(what),
         Command::Fit(a) => model_cmd::cmd_fit(a),
         Command::Predict(a) => model_cmd::cmd_predict(a),

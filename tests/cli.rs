@@ -1189,3 +1189,77 @@ fn rtest_csv_exports_are_imported_and_bad_cells_refused_by_line() {
         "{err}"
     );
 }
+
+/// `diagonal simulate` and `solve` (seed 004): mirror tilts push the conventional squareness
+/// far off, the set-up-robust one stays on the truth; `correction-table` (seed 003) loops to
+/// GOOD and builds a table from a measured section, refusing a bad cell by line.
+#[test]
+fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
+    let log = tmp("diagonal.csv");
+    let (ok, out, err) = run(&["diagonal", "simulate", "--out", log.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    let truth: Vec<f64> = out
+        .lines()
+        .find(|l| l.starts_with("truth:"))
+        .unwrap()
+        .split([',', ';'])
+        .take(3)
+        .map(|part| {
+            part.split_whitespace()
+                .find_map(|w| w.parse().ok())
+                .unwrap()
+        })
+        .collect();
+    let (ok, out, err) = run(&["diagonal", "solve", "--from", log.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    for (i, t) in truth.iter().enumerate() {
+        let line = out
+            .lines()
+            .filter(|l| l.starts_with("squareness"))
+            .nth(i)
+            .unwrap();
+        let nums: Vec<f64> = line
+            .split_whitespace()
+            .filter_map(|w| w.parse().ok())
+            .collect();
+        let (conventional, robust, sigma) = (nums[0], nums[1], nums[2]);
+        assert!(
+            (robust - t).abs() < 4.0 * sigma + 0.05,
+            "{line} against {t}"
+        );
+        assert!((conventional - t).abs() > 1.0, "{line} against {t}");
+    }
+
+    let (ok, out, err) = run(&["correction-table", "--simulate"]);
+    assert!(ok, "{out}{err}");
+    assert!(
+        out.contains("n_max = D / (2 resolution) = 100 / (2 x 0.1 um) = 500000"),
+        "{out}"
+    );
+    assert_eq!(
+        out.lines().filter(|l| l.trim() == "GOOD").count(),
+        1,
+        "{out}"
+    );
+    let profile = tmp("profile.csv");
+    std::fs::write(&profile, "x_mm,dz_um\n50,1.0\n25,2.5\n0,0.5\n").unwrap();
+    let table = tmp("table.csv");
+    let (ok, out, err) = run(&[
+        "correction-table",
+        "--profile",
+        profile.to_str().unwrap(),
+        "--out",
+        table.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    assert_eq!(
+        std::fs::read_to_string(&table).unwrap(),
+        "x_mm,dz_um\n50.0000,-0.0000\n25.0000,-1.5000\n0.0000,0.5000\n"
+    );
+    std::fs::write(&profile, "x_mm,dz_um\n50,1.0\n25,two\n").unwrap();
+    let (ok, _, err) = run(&["correction-table", "--profile", profile.to_str().unwrap()]);
+    assert!(
+        !ok && err.contains("line 3") && err.contains("'two'"),
+        "{err}"
+    );
+}

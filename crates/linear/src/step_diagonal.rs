@@ -385,3 +385,104 @@ pub fn robust(
     };
     Ok(profiles(&de, a, n, Some([sig(0, 1), sig(0, 2), sig(1, 2)])))
 }
+
+/// An interferometer log as CSV: `diagonal,step,axis,reading_um`, one row per move; `diagonal`
+/// is `ppp`, `npp`, `pnp` or `ppn` (the moves of a diagonal in the order X, Y, Z of each step,
+/// the reading after the move, from the start corner) or `line` for the direct positioning
+/// measurement along `axis` (the reading at each step's end from the axis' start).
+pub fn to_csv(runs: &[DiagonalRun; 4], positioning: &Positioning) -> String {
+    let mut s = String::from("diagonal,step,axis,reading_um\n");
+    for r in runs {
+        let name = diagonal_name(&r.signs);
+        for (m, v) in r.readings_um.iter().enumerate() {
+            s += &format!("{name},{},{},{v:.4}\n", m / 3 + 1, ["x", "y", "z"][m % 3]);
+        }
+    }
+    for (j, p) in positioning.iter().enumerate() {
+        for (k, v) in p.iter().enumerate() {
+            s += &format!("line,{},{},{v:.4}\n", k + 1, ["x", "y", "z"][j]);
+        }
+    }
+    s
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ParseError {
+    #[error("line {line}: {detail}")]
+    Line { line: usize, detail: String },
+    #[error("{0}")]
+    Missing(String),
+}
+
+/// Reads an interferometer log (`to_csv`'s layout; rows in any order) of `n` steps.
+pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning), ParseError> {
+    let mut runs: [Vec<Option<f64>>; 4] = std::array::from_fn(|_| vec![None; 3 * n]);
+    let mut pos: [Vec<Option<f64>>; 3] = std::array::from_fn(|_| vec![None; n]);
+    for (i, raw) in text.lines().enumerate().skip(1) {
+        let line = i + 1;
+        if raw.trim().is_empty() {
+            continue;
+        }
+        let bad = |detail: String| ParseError::Line { line, detail };
+        let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
+        let [diag, step, axis, value] = cells[..] else {
+            return Err(bad(format!("{} cells, expected 4", cells.len())));
+        };
+        let step: usize = step
+            .parse()
+            .ok()
+            .filter(|s| (1..=n).contains(s))
+            .ok_or_else(|| bad(format!("step '{step}' is not 1..{n}")))?;
+        let j = ["x", "y", "z"]
+            .iter()
+            .position(|a| a.eq_ignore_ascii_case(axis))
+            .ok_or_else(|| bad(format!("axis '{axis}' is not x, y or z")))?;
+        let v: f64 = value
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite())
+            .ok_or_else(|| bad(format!("reading '{value}' is not a finite number")))?;
+        let slot = if diag.eq_ignore_ascii_case("line") {
+            &mut pos[j][step - 1]
+        } else {
+            let d = DIAGONALS
+                .iter()
+                .position(|s| diagonal_name(s).eq_ignore_ascii_case(diag))
+                .ok_or_else(|| {
+                    bad(format!(
+                        "diagonal '{diag}' is not ppp, npp, pnp, ppn or line"
+                    ))
+                })?;
+            &mut runs[d][3 * (step - 1) + j]
+        };
+        if slot.replace(v).is_some() {
+            return Err(bad(format!("{diag} step {step} {axis} is given twice")));
+        }
+    }
+    let complete = |v: &[Option<f64>], what: String| -> Result<Vec<f64>, ParseError> {
+        v.iter()
+            .enumerate()
+            .map(|(k, x)| {
+                x.ok_or_else(|| {
+                    ParseError::Missing(format!("{what}: reading {} is missing", k + 1))
+                })
+            })
+            .collect()
+    };
+    let mut out = Vec::new();
+    for (d, r) in runs.iter().enumerate() {
+        out.push(DiagonalRun {
+            signs: DIAGONALS[d],
+            readings_um: complete(r, diagonal_name(&DIAGONALS[d]))?,
+        });
+    }
+    let positioning = [
+        complete(&pos[0], "line x".into())?,
+        complete(&pos[1], "line y".into())?,
+        complete(&pos[2], "line z".into())?,
+    ];
+    let runs: [DiagonalRun; 4] = out
+        .try_into()
+        .map_err(|_| ParseError::Missing("diagonals".into()))?;
+    Ok((runs, positioning))
+}

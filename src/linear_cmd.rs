@@ -1,0 +1,271 @@
+//! `driftwatch diagonal simulate|solve` and `driftwatch correction-table`: the linear axes
+//! (issue 19; seeds 004 and 003). The library (`driftwatch-linear`) computes; this reads and
+//! writes the files.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use clap::Subcommand;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use driftwatch_linear::axis_errors::{AxisErrors, Profile};
+use driftwatch_linear::correction_table::{Face, LoopSettings, Table, n_max, run};
+use driftwatch_linear::step_diagonal::{
+    Estimate, Setup, conventional, from_csv, robust, simulate, to_csv,
+};
+
+#[derive(Subcommand)]
+pub enum DiagonalCmd {
+    /// Simulate the laser step diagonal on a machine with random linear-axis errors and
+    /// mirror tilts; write the interferometer log (CSV) and print the truth.
+    Simulate(SimulateArgs),
+    /// Solve an interferometer log both ways: the conventional nine-unknown formulation and
+    /// the set-up-robust one (positioning measured directly).
+    Solve(SolveArgs),
+}
+
+#[derive(clap::Args)]
+pub struct StepArgs {
+    /// Step, mm.
+    #[arg(long, default_value_t = 10.0)]
+    step_mm: f64,
+    /// Steps per axis.
+    #[arg(long, default_value_t = 12)]
+    steps: usize,
+    /// Interferometer noise per reading, um (weights and uncertainties).
+    #[arg(long, default_value_t = 0.1)]
+    noise_um: f64,
+}
+
+#[derive(clap::Args)]
+pub struct SimulateArgs {
+    #[command(flatten)]
+    step: StepArgs,
+    /// Mirror tilt off each diagonal, urad (random direction per diagonal).
+    #[arg(long, default_value_t = 150.0)]
+    tilt_urad: f64,
+    #[arg(long, default_value_t = 4)]
+    seed: u64,
+    #[arg(long, default_value = "diagonal.csv")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args)]
+pub struct SolveArgs {
+    #[command(flatten)]
+    step: StepArgs,
+    /// The log: `diagonal,step,axis,reading_um` (diagonal ppp|npp|pnp|ppn, or `line` for the
+    /// direct positioning along the axis).
+    #[arg(long)]
+    from: PathBuf,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+pub struct CorrectionArgs {
+    /// Workpiece diameter, mm.
+    #[arg(long, default_value_t = 100.0)]
+    diameter_mm: f64,
+    /// The NC's resolution, um (bounds the divisions: n_max = D / 2 resolution).
+    #[arg(long, default_value_t = 0.1)]
+    resolution_um: f64,
+    /// Radial divisions of the table.
+    #[arg(long, default_value_t = 50)]
+    divisions: usize,
+    /// A measured profile through the centre (CSV `x_mm,dz_um`, edge first): build its table.
+    #[arg(long, conflicts_with = "simulate")]
+    profile: Option<PathBuf>,
+    /// Run the cut-measure-correct loop on a simulated face instead.
+    #[arg(long)]
+    simulate: bool,
+    /// Tolerance dz_a, um, and the iteration cap (with --simulate).
+    #[arg(long, default_value_t = 0.5)]
+    tolerance_um: f64,
+    #[arg(long, default_value_t = 6)]
+    max_iterations: usize,
+    /// Measurement noise per point, um (with --simulate).
+    #[arg(long, default_value_t = 0.05)]
+    noise_um: f64,
+    #[arg(long, default_value_t = 3)]
+    seed: u64,
+    /// Write the table the NC loads (CSV `x_mm,dz_um`) here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+fn setup_of(s: &StepArgs) -> Result<Setup> {
+    if !(s.step_mm > 0.0 && s.noise_um > 0.0) || s.steps < 2 {
+        bail!("--step-mm and --noise-um must be positive and --steps at least 2");
+    }
+    Ok(Setup {
+        step_mm: s.step_mm,
+        steps: s.steps,
+        mirror_tilt_urad: [[0.0; 2]; 4],
+        noise_um: s.noise_um,
+        positioning_noise_um: s.noise_um,
+        drift_um_per_min: Default::default(),
+        step_time_s: 5.0,
+    })
+}
+
+pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
+    match cmd {
+        DiagonalCmd::Simulate(a) => {
+            let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
+            let range = a.step.step_mm * a.step.steps as f64;
+            let errors = AxisErrors::random(range, &mut rng);
+            let mut setup = Setup::seed(a.tilt_urad, &mut rng);
+            let base = setup_of(&a.step)?;
+            setup.step_mm = base.step_mm;
+            setup.steps = base.steps;
+            setup.noise_um = base.noise_um;
+            setup.positioning_noise_um = base.noise_um;
+            let (runs, pos) = simulate(&errors, &setup, &mut rng);
+            std::fs::write(&a.out, to_csv(&runs, &pos))
+                .with_context(|| format!("writing {}", a.out.display()))?;
+            let [sxy, sxz, syz] = errors.squareness_urad.map(|v| v * range * 1e-3);
+            println!(
+                "truth: squareness X-Y {sxy:.2}, X-Z {sxz:.2}, Y-Z {syz:.2} um over {range} mm; scale {:.2}, {:.2}, {:.2} ppm; mirror tilts {} urad",
+                errors.scale_ppm[0], errors.scale_ppm[1], errors.scale_ppm[2], a.tilt_urad
+            );
+            println!("wrote {}", a.out.display());
+        }
+        DiagonalCmd::Solve(a) => {
+            let setup = setup_of(&a.step)?;
+            let text = std::fs::read_to_string(&a.from)
+                .with_context(|| format!("reading {}", a.from.display()))?;
+            let (runs, pos) =
+                from_csv(&text, setup.steps).with_context(|| format!("{}", a.from.display()))?;
+            let c = conventional(&runs, &setup)?;
+            let r = robust(&runs, &pos, &setup)?;
+            if a.json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(
+                        &serde_json::json!({"conventional": c, "robust": r})
+                    )?
+                );
+            } else {
+                print_estimates(&c, &r, setup.step_mm * setup.steps as f64);
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_estimates(c: &Estimate, r: &Estimate, range: f64) {
+    println!("{:<22} {:>14} {:>22}", "", "conventional", "set-up-robust");
+    for (i, name) in ["squareness X-Y", "squareness X-Z", "squareness Y-Z"]
+        .iter()
+        .enumerate()
+    {
+        println!(
+            "{name:<22} {:>11.2} um {:>11.2} +- {:.2} um   (over {range} mm)",
+            c.squareness_um_over(i, range),
+            r.squareness_um_over(i, range),
+            r.squareness_sigma_urad[i] * range * 1e-3
+        );
+    }
+    for (j, axis) in ["X", "Y", "Z"].iter().enumerate() {
+        let end = |e: &Estimate| e.positioning_um[j].last().copied().unwrap_or(f64::NAN);
+        println!(
+            "positioning {axis} at end {:>11.2} um {:>11.2} um   (robust: measured directly)",
+            end(c),
+            end(r)
+        );
+    }
+    let names = ["Y of X", "Z of X", "X of Y", "Z of Y", "X of Z", "Y of Z"];
+    for (k, name) in names.iter().enumerate() {
+        let peak = |e: &Estimate| {
+            e.straightness_um[k]
+                .iter()
+                .map(|v| v.abs())
+                .fold(0.0, f64::max)
+        };
+        println!(
+            "straightness {name:<9} {:>11.2} um {:>11.2} um   (largest from the end-point line)",
+            peak(c),
+            peak(r)
+        );
+    }
+}
+
+pub fn cmd_correction_table(a: CorrectionArgs) -> Result<ExitCode> {
+    let limit = n_max(a.diameter_mm, a.resolution_um);
+    println!(
+        "n_max = D / (2 resolution) = {} / (2 x {} um) = {limit}",
+        a.diameter_mm, a.resolution_um
+    );
+    let table = if let Some(p) = &a.profile {
+        let text =
+            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        let (mut xs, mut dz) = (Vec::new(), Vec::new());
+        for (i, line) in text.lines().enumerate().skip(1) {
+            if line.trim().is_empty() {
+                continue;
+            }
+            let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+            let num = |c: Option<&&str>| -> Result<f64> {
+                let s = c.with_context(|| format!("line {}: two cells expected", i + 1))?;
+                s.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .with_context(|| format!("line {}: '{s}' is not a number", i + 1))
+            };
+            xs.push(num(cells.first())?);
+            dz.push(num(cells.get(1))?);
+        }
+        if xs.len() < 2 || xs.len() - 1 > limit {
+            bail!(
+                "{} points: at least 2 and at most n_max + 1 = {}",
+                xs.len(),
+                limit + 1
+            );
+        }
+        let t = Table::from_profile(&xs, &dz);
+        println!(
+            "table of {} points, referenced at x = {} mm; largest correction {:.3} um",
+            xs.len(),
+            xs[0],
+            t.max_abs_um()
+        );
+        t
+    } else if a.simulate {
+        let face = Face {
+            diameter_mm: a.diameter_mm,
+            straightness: Profile {
+                amplitudes_um: vec![4.0, 0.0, 1.0],
+            },
+            feed_mm_min: 20.0,
+            drift_um_per_min: 0.8,
+            drift_sd_um_per_min: 0.02,
+            noise_um: a.noise_um,
+        };
+        let settings = LoopSettings {
+            divisions: a.divisions,
+            resolution_um: a.resolution_um,
+            tolerance_um: a.tolerance_um,
+            max_iterations: a.max_iterations,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
+        let r = run(&face, &settings, &mut rng)?;
+        for c in &r.cuts {
+            println!(
+                "cut {}: dz_max {:.3} um (true flatness {:.3} um)",
+                c.iteration, c.dz_max_um, c.true_flatness_um
+            );
+        }
+        println!("{}", r.verdict);
+        r.table
+    } else {
+        bail!("give --profile F.csv (a measured section) or --simulate");
+    };
+    if let Some(out) = &a.out {
+        std::fs::write(out, table.csv()).with_context(|| format!("writing {}", out.display()))?;
+        println!("table: {}", out.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
