@@ -49,6 +49,17 @@ pub struct AxisErrors {
 }
 
 impl AxisErrors {
+    /// The errors a machine state's `LinearErrors` describe (scale and squareness, nothing
+    /// else) over a range: what a step diagonal on the virtual machine sees.
+    pub fn from_linear(l: &driftwatch_core::kinematics::LinearErrors, range_mm: f64) -> Self {
+        AxisErrors {
+            range_mm,
+            scale_ppm: l.k.map(|v| v * 1e6),
+            squareness_urad: [l.sxy * 1e6, l.sxz * 1e6, l.syz * 1e6],
+            ..AxisErrors::default()
+        }
+    }
+
     /// `actual - commanded`, um, at a commanded position (mm, from the range's start).
     pub fn error_um(&self, p: &Vec3) -> Vec3 {
         let r = self.range_mm;

@@ -184,6 +184,18 @@ pub struct Estimate {
 }
 
 impl Estimate {
+    /// The scale (end-point slope of each positioning profile) and squareness as the
+    /// kinematics' `LinearErrors`: what a machine's geometry takes from this measurement.
+    pub fn linear_errors(&self, range_mm: f64) -> driftwatch_core::kinematics::LinearErrors {
+        let slope = |p: &[f64]| p.last().copied().unwrap_or(0.0) * 1e-3 / range_mm;
+        driftwatch_core::kinematics::LinearErrors {
+            k: std::array::from_fn(|j| slope(&self.positioning_um[j])),
+            sxy: self.squareness_urad[0] * 1e-6,
+            sxz: self.squareness_urad[1] * 1e-6,
+            syz: self.squareness_urad[2] * 1e-6,
+        }
+    }
+
     /// A squareness as the seed tabulates it: um over the measured range.
     pub fn squareness_um_over(&self, i: usize, range_mm: f64) -> f64 {
         self.squareness_urad[i] * range_mm * 1e-3

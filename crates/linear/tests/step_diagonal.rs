@@ -111,3 +111,42 @@ fn interferometer_logs_round_trip_through_csv() {
             .contains("missing")
     );
 }
+
+/// A machine state's linear-axis errors (the virtual machine's `LinearErrors`) come back from
+/// the step diagonal as the same `LinearErrors`: what a geometry version would store.
+#[test]
+fn the_virtual_machines_linear_errors_come_back_as_linear_errors() {
+    use driftwatch_core::kinematics::LinearErrors;
+    let truth = LinearErrors {
+        k: [5e-6, -3e-6, 8e-6],
+        sxy: 20e-6,
+        sxz: -12e-6,
+        syz: 7e-6,
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(19);
+    let errors = AxisErrors::from_linear(&truth, 120.0);
+    let setup = Setup::seed(150.0, &mut rng);
+    let (runs, pos) = simulate(&errors, &setup, &mut rng);
+    let r = robust(&runs, &pos, &setup).unwrap();
+    let got = r.linear_errors(120.0);
+    println!("{got:?}");
+    for (g, t, s) in [
+        (got.sxy, truth.sxy, r.squareness_sigma_urad[0]),
+        (got.sxz, truth.sxz, r.squareness_sigma_urad[1]),
+        (got.syz, truth.syz, r.squareness_sigma_urad[2]),
+    ] {
+        assert!(
+            (g - t).abs() * 1e6 < 4.0 * s,
+            "{g} against {t} (sigma {s} urad)"
+        );
+    }
+    for j in 0..3 {
+        // The positioning readings' noise (0.1 um) over 120 mm: about 1 ppm.
+        assert!(
+            (got.k[j] - truth.k[j]).abs() < 3e-6,
+            "scale {j}: {} against {}",
+            got.k[j],
+            truth.k[j]
+        );
+    }
+}
