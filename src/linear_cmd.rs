@@ -186,9 +186,10 @@ fn print_estimates(c: &Estimate, r: &Estimate, range: f64) {
                 .fold(0.0, f64::max)
         };
         println!(
-            "straightness {name:<9} {:>11.2} um {:>11.2} um   (largest from the end-point line)",
+            "straightness {name:<9} {:>11.2} um {:>11.2} +- {:.2} um   (largest from the end-point line; its point's largest sigma)",
             peak(c),
-            peak(r)
+            peak(r),
+            r.straightness_sigma_um[k]
         );
     }
 }

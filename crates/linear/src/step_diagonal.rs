@@ -181,6 +181,9 @@ pub struct Estimate {
     /// Squareness sxy, sxz, syz, urad, and its standard uncertainty.
     pub squareness_urad: [f64; 3],
     pub squareness_sigma_urad: [f64; 3],
+    /// The largest standard uncertainty of a straightness profile's points, um (same order
+    /// as `straightness_um`).
+    pub straightness_sigma_um: [f64; 6],
 }
 
 impl Estimate {
@@ -304,6 +307,7 @@ fn profiles(de: &[[Vec<f64>; 3]; 3], a: f64, n: usize, sigma: Option<[f64; 3]>) 
             slope(&de[1][2]) + slope(&de[2][1]),
         ],
         squareness_sigma_urad: sigma.unwrap_or([f64::NAN; 3]),
+        straightness_sigma_um: [f64::NAN; 6],
     }
 }
 
@@ -395,7 +399,26 @@ pub fn robust(
             .sum();
         v.max(0.0).sqrt() / range
     };
-    Ok(profiles(&de, a, n, Some([sig(0, 1), sig(0, 2), sig(1, 2)])))
+    let mut est = profiles(&de, a, n, Some([sig(0, 1), sig(0, 2), sig(1, 2)]));
+    // A straightness point p is sum_{k<=p} dE_k - (p+1)/n sum_k dE_k: its variance g' C g.
+    let order = [(1, 0), (2, 0), (0, 1), (2, 1), (0, 2), (1, 2)];
+    for (t, (i, j)) in order.iter().enumerate() {
+        let mut worst: f64 = 0.0;
+        for p in 0..n {
+            let g: Vec<f64> = (0..n)
+                .map(|k| f64::from(u8::from(k <= p)) - (p + 1) as f64 / n as f64)
+                .collect();
+            let mut v = 0.0;
+            for (k1, g1) in g.iter().enumerate() {
+                for (k2, g2) in g.iter().enumerate() {
+                    v += g1 * g2 * cov[(at(*i, *j, k1), at(*i, *j, k2))];
+                }
+            }
+            worst = worst.max(v.max(0.0).sqrt());
+        }
+        est.straightness_sigma_um[t] = worst;
+    }
+    Ok(est)
 }
 
 /// An interferometer log as CSV: `diagonal,step,axis,reading_um`, one row per move; `diagonal`

@@ -35,6 +35,7 @@ fn set_up_errors_ruin_the_conventional_estimates_and_not_the_robust_ones() {
     let range = 120.0;
     let (mut conv_pos, mut conv_sq, mut rob_sq, mut z) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut str_z = Vec::new();
     for _ in 0..runs_n {
         let errors = AxisErrors::random(range, &mut rng);
         let setup = Setup::seed(150.0, &mut rng);
@@ -48,6 +49,11 @@ fn set_up_errors_ruin_the_conventional_estimates_and_not_the_robust_ones() {
             let truth = errors.error_um(&p)[j];
             conv_pos.push((c.positioning_um[j][setup.steps - 1] - truth).abs());
         }
+        // Straightness of X in y at mid-range against the truth, in its sigma.
+        let mid = setup.steps / 2 - 1;
+        let p = driftwatch_core::geometry::Vec3::new((mid + 1) as f64 * setup.step_mm, 0.0, 0.0);
+        let truth_mid = errors.straightness[0].at(p.x, range);
+        str_z.push((r.straightness_um[0][mid] - truth_mid) / r.straightness_sigma_um[0]);
         for i in 0..3 {
             let um = |v: f64| v * range * 1e-3;
             conv_sq.push(um(c.squareness_urad[i] - errors.squareness_urad[i]).abs());
@@ -82,6 +88,12 @@ fn set_up_errors_ruin_the_conventional_estimates_and_not_the_robust_ones() {
         (rms_z - 1.0).abs() < 0.15,
         "the robust uncertainty: RMS z {rms_z}"
     );
+    // The largest point sigma bounds the mid-range point's error (the mid point has about it).
+    let rms_str = (str_z.iter().map(|v| v * v).sum::<f64>() / str_z.len() as f64).sqrt();
+    println!(
+        "  robust straightness of X in y at mid-range: RMS error / largest point sigma {rms_str:.2}"
+    );
+    assert!(rms_str > 0.5 && rms_str < 1.15, "{rms_str}");
 }
 
 /// An interferometer log written as CSV reads back to the same solve; bad rows are refused by
