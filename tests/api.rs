@@ -7,22 +7,13 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
 use serde_json::Value;
 
-use common::{MIN, TestService, config, launch_test, scratch};
-use driftwatch_service::config::LinkConfig;
+use common::{MIN, TestService, launch_test, patent_m1, scratch};
 
 /// The patent's simulated day as machine `m1` on the service's shipped settings, with a read
 /// and a write token; reads without a token when `anonymous_read`.
 async fn service(name: &str, anonymous_read: bool) -> TestService {
-    let mut cfg = config(&scratch(&format!("api-{name}")));
+    let mut cfg = patent_m1(&scratch(&format!("api-{name}")));
     cfg.http.anonymous_read = anonymous_read;
-    let m = &mut cfg.machines[0];
-    m.id = "m1".into();
-    m.machine = "table_bc".into();
-    m.plan = Some("patent".into());
-    m.link = LinkConfig::Simulated {
-        scenario: "patent".into(),
-        seed: None,
-    };
     launch_test(cfg, None).await
 }
 

@@ -7,20 +7,12 @@ mod common;
 use axum::http::{StatusCode, header};
 use serde_json::Value;
 
-use common::{MIN, TestService, config, launch_test, scratch};
+use common::{MIN, TestService, config, launch_test, patent_m1, scratch};
 use driftwatch_service::config::LinkConfig;
 
 async fn service(name: &str) -> TestService {
-    let mut cfg = config(&scratch(&format!("nc-offsets-{name}")));
+    let mut cfg = patent_m1(&scratch(&format!("nc-offsets-{name}")));
     cfg.http.anonymous_read = true;
-    let m = &mut cfg.machines[0];
-    m.id = "m1".into();
-    m.machine = "table_bc".into();
-    m.plan = Some("patent".into());
-    m.link = LinkConfig::Simulated {
-        scenario: "patent".into(),
-        seed: None,
-    };
     launch_test(cfg, None).await
 }
 

@@ -9,21 +9,12 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
 use serde_json::{Value, json};
 
-use common::{MIN, TestService, config, launch_test, scratch};
+use common::{MIN, TestService, launch_test, patent_m1, scratch};
 use driftwatch_core::recording::CycleResultMsg;
-use driftwatch_service::config::LinkConfig;
 
 /// The patent's simulated day as machine `m1` (table_bc) on the shipped settings.
 async fn service(name: &str) -> TestService {
-    let mut cfg = config(&scratch(&format!("verification-{name}")));
-    let m = &mut cfg.machines[0];
-    m.id = "m1".into();
-    m.machine = "table_bc".into();
-    m.plan = Some("patent".into());
-    m.link = LinkConfig::Simulated {
-        scenario: "patent".into(),
-        seed: None,
-    };
+    let cfg = patent_m1(&scratch(&format!("verification-{name}")));
     launch_test(cfg, None).await
 }
 

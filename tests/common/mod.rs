@@ -48,6 +48,21 @@ pub fn config(dir: &std::path::Path) -> ServiceConfig {
     cfg
 }
 
+/// [`config`] with its one machine as `m1`: `table_bc` running the patent plan on the
+/// simulated patent day (the API tests' machine).
+pub fn patent_m1(dir: &std::path::Path) -> ServiceConfig {
+    let mut cfg = config(dir);
+    let m = &mut cfg.machines[0];
+    m.id = "m1".into();
+    m.machine = "table_bc".into();
+    m.plan = Some("patent".into());
+    m.link = driftwatch_service::config::LinkConfig::Simulated {
+        scenario: "patent".into(),
+        seed: None,
+    };
+    cfg
+}
+
 pub struct TestService {
     pub svc: Service,
     client: reqwest::Client,
