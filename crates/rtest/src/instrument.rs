@@ -343,20 +343,14 @@ impl Instrument {
 
     /// The noiseless readings (um) for the ball centre at `b_mm` from the nest centre (nest
     /// frame), with `ball_to_nest` turning the ball's own frame into the nest frame (the form
-    /// error is where the contact touches the ball) and `ball_to_nest_zero` the same at the
-    /// zeroing.
-    pub fn exact(
-        &self,
-        b_mm: &Vec3,
-        ball_to_nest: &Mat3,
-        ball_to_nest_zero: &Mat3,
-    ) -> Result<[f64; 3], ReadingError> {
+    /// error is where the contact touches the ball). The readings are absolute: zero with the
+    /// ball at the nest centre in its calibration orientation (the ball frame the nest frame).
+    pub fn exact(&self, b_mm: &Vec3, ball_to_nest: &Mat3) -> Result<[f64; 3], ReadingError> {
         let mut out = [0.0; 3];
         for (i, s) in self.sensors.iter().enumerate() {
             // The contact's outward normal on the ball, in the ball's frame, now and at zero.
-            let contact = |rot: &Mat3| rot.transpose() * s.face;
-            let form_um = self.form.deviation_um(&contact(ball_to_nest))
-                - self.form.deviation_um(&contact(ball_to_nest_zero));
+            let form_um = self.form.deviation_um(&(ball_to_nest.transpose() * s.face))
+                - self.form.deviation_um(&s.face);
             let along = s.stem.dot(b_mm);
             let across = (b_mm - s.stem * along).norm();
             let travel_mm = match s.tip {
@@ -392,10 +386,9 @@ impl Instrument {
         &self,
         b_mm: &Vec3,
         ball_to_nest: &Mat3,
-        ball_to_nest_zero: &Mat3,
         rng: &mut impl Rng,
     ) -> Result<[f64; 3], ReadingError> {
-        let mut r = self.exact(b_mm, ball_to_nest, ball_to_nest_zero)?;
+        let mut r = self.exact(b_mm, ball_to_nest)?;
         for v in &mut r {
             let z: f64 = StandardNormal.sample(rng);
             *v += self.noise_um * z;
@@ -490,7 +483,7 @@ pub fn calibrate(
                 let mut cmd = Vec3::zeros();
                 cmd[axis] = sign * step_mm;
                 let actual = cmd * (1.0 + axis_error_ppm * 1e-6);
-                let r = inst.read(&actual, &same, &same, rng)?;
+                let r = inst.read(&actual, &same, rng)?;
                 rows.push((cmd * 1e3, r));
             }
         }
@@ -557,10 +550,10 @@ mod tests {
         let mut inst = Instrument::ideal(Setting::J);
         let id = Mat3::identity();
         let b = Vec3::new(0.05, -0.03, 0.02);
-        let r = inst.exact(&b, &id, &id).unwrap();
+        let r = inst.exact(&b, &id).unwrap();
         assert!((r[0] - 50.0).abs() < 1e-9 && (r[1] + 30.0).abs() < 1e-9);
         inst.sensors[0].tip = Tip::Sphere { radius_mm: 2.0 };
-        let r = inst.exact(&b, &id, &id).unwrap();
+        let r = inst.exact(&b, &id).unwrap();
         let rho: f64 = 14.7;
         let lat2 = 0.03f64.powi(2) + 0.02f64.powi(2);
         assert!(
@@ -570,7 +563,7 @@ mod tests {
         // A face 0.5 deg off perpendicular: gain 1/cos and a cross sensitivity.
         inst.sensors[0].tip = Tip::Flat { radius_mm: 4.0 };
         inst.sensors[0].face = rotation(&Vec3::y(), 0.5f64.to_radians()) * Vec3::x();
-        let r = inst.exact(&Vec3::new(0.0, 0.0, 0.05), &id, &id).unwrap();
+        let r = inst.exact(&Vec3::new(0.0, 0.0, 0.05), &id).unwrap();
         assert!(
             (r[0] + 50.0 * 0.5f64.to_radians().tan()).abs() < 1e-6,
             "{r:?}"
@@ -584,7 +577,7 @@ mod tests {
         let cal = calibrate(&inst, 0.05, 3, 0.0, 0.13, &mut rng).unwrap();
         let b = Vec3::new(0.03, -0.02, 0.04);
         let id = Mat3::identity();
-        let r = inst.exact(&b, &id, &id).unwrap();
+        let r = inst.exact(&b, &id).unwrap();
         let got = cal.displacement(&r).unwrap();
         assert!((got - b * 1e3).norm() < 0.05, "{got}");
         let design = Calibration::design(Setting::E, 0.05, 0.5, 0.13)

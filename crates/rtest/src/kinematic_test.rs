@@ -362,7 +362,7 @@ pub fn simulate(
         let p = pose(k, &state, a, &spec.ball_mm);
         let (b, rot) = nest_view(inst.setting, &p, setup);
         let readings_um = inst
-            .read(&b, &rot, &Mat3::identity(), rng)
+            .read(&b, &rot, rng)
             .map_err(|source| TestError::Reading {
                 test: spec.kind.name(),
                 angle_deg: a[spec.axis],

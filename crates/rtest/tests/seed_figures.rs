@@ -105,7 +105,7 @@ fn a_50_um_move_is_read_within_1_um_and_calibration_removes_the_misalignment() {
             for sign in [-1.0, 1.0] {
                 let mut b = Vec3::zeros();
                 b[axis] = sign * 0.05;
-                let r = inst.read(&b, &id, &id, &mut rng).unwrap();
+                let r = inst.read(&b, &id, &mut rng).unwrap();
                 let e_design = (design.displacement(&r).unwrap() - b * 1e3).abs().max();
                 let e_cal = (cal.displacement(&r).unwrap() - b * 1e3).abs().max();
                 this = this.max(e_design);
