@@ -485,6 +485,33 @@ fn simulator_effects_switch_on_with_their_signatures() {
             assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
         }
     }
+    // ISO 230-1 components: X's straightness along Z (EZX, 3 um at 100 mm squared) moves the
+    // z readings by -EZX(x); X's pitch about Y (EBX, 40 urad per 100 mm) turns the carried Z
+    // slide, so the x readings move by -EBX(x) * z (X carries Y and Z, the tip at the point
+    // the components were measured at).
+    let ezx = Channel {
+        offset: 3.0,
+        ..Default::default()
+    };
+    let ebx = Channel {
+        offset: 40.0,
+        ..Default::default()
+    };
+    let mut moved = 0;
+    for (d, s) in shift(&|s| {
+        s.truth.channels.insert("EZX2".into(), ezx.clone());
+        s.truth.channels.insert("EBX1".into(), ebx.clone());
+    }) {
+        let u = d.x_mm / 100.0;
+        let expect = match d.axis {
+            Axis::Z => -3.0 * u * u,
+            Axis::X => -40e-6 * u * d.z_mm * 1e3,
+            Axis::Y => 0.0,
+        };
+        assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
+        moved += usize::from(expect.abs() > 0.1);
+    }
+    assert!(moved > 0, "no reading was moved: the test would pin nothing");
     // Outliers: every reading off by 5 to 30 um.
     for (d, s) in shift(&|s| s.noise.outlier_rate = 1.0) {
         assert!((5.0..=30.0).contains(&s.abs()), "{}: {s}", d.step);
@@ -496,6 +523,41 @@ fn simulator_effects_switch_on_with_their_signatures() {
             .iter()
             .all(|d| d.status == Some(driftwatch_core::recording::DetectionStatus::NoTrip))
     );
+}
+
+/// The solve starts from the machine's known linear geometry: squareness and an ISO 230-1
+/// straightness the NC does not know bias the six location errors well beyond their
+/// uncertainty; with the geometry loaded the same readings solve to the truth.
+#[test]
+fn the_solve_uses_the_machines_linear_geometry() {
+    use driftwatch_core::linear_axes::LinearGeometry;
+    let k = table_bc();
+    let p = plan(&k, "patent");
+    let geometry: LinearGeometry = toml::from_str(
+        r#"
+        squareness_urad = { xz = 60.0, yz = -40.0 }
+        components = { EZX = [0.0, 4.0, 0.0], EYZ = [0.0, -3.0, 0.0] }
+        "#,
+    )
+    .unwrap();
+    let known = k.clone().with_geometry(&geometry).unwrap();
+    let vals = [10.0, 40.0, 3.0, 1.0, 60.0, -150.0];
+    let mut truth = known.nominal_state();
+    set_errors(&k, &mut truth, &vals);
+    let mut rng = ChaCha8Rng::seed_from_u64(19);
+    let obs = observe(&k, &p, &truth, 0.3, &mut rng);
+    let worst_z = |kin: &Kinematics| {
+        let sol = identify(kin, &obs, &SolveOptions::new(0.3)).unwrap();
+        sol.errors
+            .iter()
+            .zip(&vals)
+            .map(|(e, v)| ((e.value - v) / e.sigma).abs())
+            .fold(0.0, f64::max)
+    };
+    let (naive, with) = (worst_z(&k), worst_z(&known));
+    println!("worst |error - truth| / sigma: without the geometry {naive:.1}, with it {with:.1}");
+    assert!(naive > 10.0, "the geometry should matter: {naive}");
+    assert!(with < 4.0, "{with}");
 }
 
 #[test]

@@ -18,7 +18,8 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::error_name::{ErrorKind, ErrorName};
-use crate::geometry::{Affine, Mat3, Vec3, deg_to_rad, rotation};
+use crate::geometry::{Affine, Vec3, deg_to_rad, rotation};
+use crate::linear_axes::LinearGeometry;
 
 /// Most rotary axes a chain may have (keeps states on the stack).
 pub const MAX_ROTARY: usize = 3;
@@ -219,6 +220,10 @@ pub struct MachineConfig {
     /// What the machine can report; the NC door refuses anything outside.
     #[serde(default)]
     pub limits: Limits,
+    /// The linear axes' measured geometry (e.g. from a laser step diagonal), used by every
+    /// solve on this machine. Absent: the axes are taken as perfect.
+    #[serde(default)]
+    pub linear: Option<LinearGeometry>,
 }
 
 /// What a machine can report: an event outside is refused at the NC door (a gateway's unit
@@ -309,34 +314,14 @@ pub struct Kinematics {
     pub motion: MotionConfig,
     pub identify: Vec<ErrorId>,
     pub held: Vec<(ErrorId, f64)>,
+    /// The linear axes' known geometry (scale, squareness, ISO 230-1 components): part of the
+    /// state the NC's model and every solve start from. Zero unless the machine file's
+    /// `[linear]` section or a stored geometry version gives it.
+    pub linear: LinearErrors,
     pub config: MachineConfig,
 }
 
-/// Linear-axis errors of the tool side: `actual = A * commanded + s`,
-/// `A = I + [[kx, Sxy, Sxz], [0, ky, Syz], [0, 0, kz]]` (dimensionless and rad).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct LinearErrors {
-    pub k: [f64; 3],
-    pub sxy: f64,
-    pub sxz: f64,
-    pub syz: f64,
-}
-
-impl LinearErrors {
-    pub fn matrix(&self) -> Mat3 {
-        Mat3::new(
-            1.0 + self.k[0],
-            self.sxy,
-            self.sxz,
-            0.0,
-            1.0 + self.k[1],
-            self.syz,
-            0.0,
-            0.0,
-            1.0 + self.k[2],
-        )
-    }
-}
+pub use crate::linear_axes::LinearErrors;
 
 /// Everything a reading depends on, in model units (mm, rad, s).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -582,6 +567,10 @@ impl Kinematics {
             motion: cfg.motion.clone(),
             identify: Vec::new(),
             held: Vec::new(),
+            linear: match &cfg.linear {
+                Some(g) => g.errors().map_err(|e| invalid(format!("[linear]: {e}")))?,
+                None => LinearErrors::default(),
+            },
             config: cfg.clone(),
         };
         for name in &cfg.identify {
@@ -606,6 +595,17 @@ impl Kinematics {
             k.held.push((id, *v));
         }
         Ok(k)
+    }
+
+    /// This machine with another known linear-axis geometry (a stored geometry version):
+    /// every solve from then on starts from it.
+    pub fn with_geometry(mut self, g: &LinearGeometry) -> Result<Self, MachineError> {
+        self.linear = g.errors().map_err(|e| MachineError::Invalid {
+            machine: self.name.clone(),
+            message: format!("linear geometry: {e}"),
+        })?;
+        self.config.linear = (!g.is_zero()).then(|| g.clone());
+        Ok(self)
     }
 
     pub fn error_id(&self, name: &str) -> Option<ErrorId> {
@@ -634,7 +634,7 @@ impl Kinematics {
         let mut s = MachineState {
             loc: [[0.0; 5]; MAX_ROTARY],
             angle_error: [0.0; MAX_ROTARY],
-            linear: LinearErrors::default(),
+            linear: self.linear,
             tool_tip: Vec3::zeros(),
             beam_point: self.setter.point,
             beam_dir: self.setter.direction,
@@ -902,6 +902,7 @@ pub struct PoseGeometry {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::Mat3;
 
     fn table_bc() -> Kinematics {
         Kinematics::builtin("table_bc").unwrap()

@@ -13,6 +13,7 @@ pub mod families;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;
+pub mod linear_axes;
 pub mod measurement;
 pub mod patent_relations;
 pub mod plan;

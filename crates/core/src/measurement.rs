@@ -162,6 +162,36 @@ pub fn latched_at(
     commanded: &Vec3,
     travel: Option<Travel>,
 ) -> Result<f64, NoTrip> {
+    let v = if s.linear.has_components() {
+        // The ISO 230-1 component errors move the tip by `e(p)`, slowly along the travel:
+        // taken at the trip point found with them at the previous guess, three times, the
+        // trip is off by their slope cubed times the distance (far below a nanometre).
+        let i = approach.axis.index();
+        let mut p = commanded - pose.tool.nominal;
+        p[i] = travel.map(|t| t.start).unwrap_or(commanded[i]) - pose.tool.nominal[i];
+        let mut v = 0.0;
+        for _ in 0..3 {
+            let e = s.linear.component_error(&p, &pose.tool.actual);
+            v = trip(s, pose, approach, commanded, travel, &e)?;
+            p[i] = v - pose.tool.nominal[i];
+        }
+        v
+    } else {
+        trip(s, pose, approach, commanded, travel, &Vec3::zeros())?
+    };
+    Ok(v + approach.latency_shift(s.latency_s))
+}
+
+/// The commanded coordinate of the moving axis where the tool, displaced further by `extra`
+/// (mm), meets the beam (no latency).
+fn trip(
+    s: &MachineState,
+    pose: &PoseGeometry,
+    approach: &Approach,
+    commanded: &Vec3,
+    travel: Option<Travel>,
+    extra: &Vec3,
+) -> Result<f64, NoTrip> {
     let (beam_p, beam_e) = (&pose.beam_point, &pose.beam_dir);
     let w = pose.tool.axis;
     let a_mat = s.linear.matrix();
@@ -171,7 +201,7 @@ pub fn latched_at(
     c0[i] = 0.0;
     // Actual tool-tip position as an affine function of the moving coordinate v: the linear
     // axes stand at the commanded position less the NC's head offset.
-    let a0 = a_mat * (c0 - pose.tool.nominal) + pose.tool.actual;
+    let a0 = a_mat * (c0 - pose.tool.nominal) + pose.tool.actual + extra;
     let e_perp = beam_e - w * beam_e.dot(&w);
     let e_perp_norm = e_perp.norm();
     if e_perp_norm < 1e-12 {
@@ -242,7 +272,7 @@ pub fn latched_at(
             });
         }
     }
-    Ok(v + approach.latency_shift(s.latency_s))
+    Ok(v)
 }
 
 #[cfg(test)]

@@ -196,6 +196,7 @@ impl Estimate {
             sxy: self.squareness_urad[0] * 1e-6,
             sxz: self.squareness_urad[1] * 1e-6,
             syz: self.squareness_urad[2] * 1e-6,
+            ..Default::default()
         }
     }
 

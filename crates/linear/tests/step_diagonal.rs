@@ -134,6 +134,7 @@ fn the_virtual_machines_linear_errors_come_back_as_linear_errors() {
         sxy: 20e-6,
         sxz: -12e-6,
         syz: 7e-6,
+        ..Default::default()
     };
     let mut rng = ChaCha8Rng::seed_from_u64(19);
     let errors = AxisErrors::from_linear(&truth, 120.0);

@@ -280,7 +280,7 @@ fn pose(k: &Kinematics, state: &MachineState, angles: &[f64; MAX_ROTARY], p: &Ve
     let cmd = target - k.tool_pose_on(&nl, &nominal, angles).nominal;
     let lines = k.lines(state);
     let tool = k.tool_pose_on(&lines, state, angles);
-    let tip = state.linear.matrix() * cmd + tool.actual;
+    let tip = state.linear.tip(&cmd, &tool.actual) + tool.actual;
     let t = k.pose_transform_on(&lines, state, angles);
     Pose {
         tool_rel: tip - t.point(p),

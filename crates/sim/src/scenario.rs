@@ -191,7 +191,9 @@ pub struct TruthConfig {
     pub t_ref_c: f64,
     /// Location errors (um, urad), tool-tip drift sx, sy, sz (um), setter shift in the table
     /// frame setter_x, setter_y, setter_z (um), effective radius change `radius` (um), scale
-    /// errors kx, ky, kz (ppm) and squareness errors sxy, sxz, syz (urad).
+    /// errors kx, ky, kz (ppm), squareness errors sxy, sxz, syz (urad) and ISO 230-1 component
+    /// coefficients, named by the component and the power of `p / 100 mm` (`EZX2`: X's
+    /// straightness along Z, um at 100 mm; `EAY1`: Y's rotation about X per 100 mm, urad).
     pub channels: BTreeMap<String, Channel>,
     /// Temperature sensors (deg C), written to `/temperature` unless listed in `unlogged`.
     pub sensors: BTreeMap<String, Channel>,

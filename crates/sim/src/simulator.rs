@@ -128,6 +128,23 @@ enum Target {
     Sxy,
     Sxz,
     Syz,
+    /// An ISO 230-1 component coefficient: axis, rotation?, direction, power of `p / 100 mm`.
+    Component(usize, bool, usize, usize),
+}
+
+/// A truth channel naming one coefficient of an ISO 230-1 component error: the component's
+/// name and the power of `p / 100 mm` (`EZX2`: X's straightness along Z, the `u^2` term, um;
+/// `EBX1`: X's rotation about Y per 100 mm, urad).
+fn component(name: &str) -> Option<(usize, bool, usize, usize)> {
+    let (iso, power) = name.split_at_checked(3)?;
+    let n = match power {
+        "1" => 1,
+        "2" => 2,
+        "3" => 3,
+        _ => return None,
+    };
+    let (j, rot, i) = driftwatch_core::linear_axes::parse_component(iso)?;
+    Some((j, rot, i, n))
 }
 
 /// The virtual machine: thermal state plus the map from channels to the machine state.
@@ -165,9 +182,10 @@ impl Virtual {
                 "sxy" => Target::Sxy,
                 "sxz" => Target::Sxz,
                 "syz" => Target::Syz,
-                other => match k.error_id(other) {
-                    Some(id) => Target::Location(id.axis, id.slot, id.scale()),
-                    None => return Err(SimError::UnknownChannel(other.to_string())),
+                other => match (component(other), k.error_id(other)) {
+                    (Some((j, rot, i, n)), _) => Target::Component(j, rot, i, n),
+                    (None, Some(id)) => Target::Location(id.axis, id.slot, id.scale()),
+                    (None, None) => return Err(SimError::UnknownChannel(other.to_string())),
                 },
             })
         };
@@ -188,6 +206,12 @@ impl Virtual {
         let mut base = k.nominal_state();
         // The NC's held values are its belief, not the truth: the truth starts from zero.
         base.loc = [[0.0; 5]; driftwatch_core::kinematics::MAX_ROTARY];
+        // So is a measured linear geometry: the truth's comes from its channels alone.
+        base.linear = driftwatch_core::kinematics::LinearErrors {
+            stack: k.linear.stack,
+            abbe_mm: k.linear.abbe_mm,
+            ..Default::default()
+        };
         base.latency_s = scn.skip.latency_ms * 1e-3;
         Ok(Virtual {
             model: LagModel::new(inputs, channels),
@@ -233,6 +257,10 @@ impl Virtual {
                 Target::Sxy => s.linear.sxy += v * 1e-6,
                 Target::Sxz => s.linear.sxz += v * 1e-6,
                 Target::Syz => s.linear.syz += v * 1e-6,
+                Target::Component(j, rot, i, n) => match rot {
+                    true => s.linear.axes[j].rotation_urad[i][n - 1] += v,
+                    false => s.linear.axes[j].translation_um[i][n - 1] += v,
+                },
             }
         }
         s
