@@ -9,6 +9,7 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
 use driftwatch_core::kinematics::Kinematics;
+use driftwatch_core::linear_axes::LinearGeometry;
 use driftwatch_core::recording::Recording;
 use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_core::thermal_model::ThermalModel;
@@ -32,6 +33,10 @@ pub struct DiagnoseArgs {
     /// baseline.
     #[arg(long)]
     model: Option<PathBuf>,
+    /// The machine's measured linear-axis geometry (JSON or TOML, e.g. from `driftwatch
+    /// diagonal solve --geometry-out`): the model the readings are compared with.
+    #[arg(long)]
+    geometry: Option<PathBuf>,
     /// Where diagnosis.json and report.html go.
     #[arg(long, default_value = "out/diagnosis")]
     out: PathBuf,
@@ -67,6 +72,21 @@ pub struct DiagnosisFile<'a> {
 }
 
 pub const DIAGNOSIS_FORMAT: &str = "driftwatch-diagnosis/1";
+
+/// A linear-axis geometry file: JSON (`.json`, as the API takes it under `geometry`) or TOML
+/// (a machine file's `[linear]` section), checked.
+pub fn read_geometry(path: &std::path::Path) -> Result<LinearGeometry> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let g: LinearGeometry = if path.extension().is_some_and(|e| e == "json") {
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
+    } else {
+        toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
+    };
+    g.errors()
+        .with_context(|| format!("geometry {}", path.display()))?;
+    Ok(g)
+}
 
 fn list(json: bool) -> Result<ExitCode> {
     if json {
@@ -122,7 +142,13 @@ pub fn cmd_diagnose(a: DiagnoseArgs) -> Result<ExitCode> {
         .machine
         .clone()
         .context("--machine is required for recordings of measurement cycles")?;
-    let k = Kinematics::load(&machine).with_context(|| format!("machine '{machine}'"))?;
+    let mut k = Kinematics::load(&machine).with_context(|| format!("machine '{machine}'"))?;
+    if let Some(path) = &a.geometry {
+        let g = read_geometry(path)?;
+        k = k
+            .with_geometry(&g, &path.display().to_string())
+            .with_context(|| format!("geometry {}", path.display()))?;
+    }
     let mut opts = DiagnoseOptions::new(a.sigma_um.unwrap_or(k.setter.sigma_um));
     // The model version the accepted terms extend: the given one's configuration, else the
     // service's default.

@@ -250,6 +250,7 @@ async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
         "/api/v1/machines/{id}/diagnoses",
         "/api/v1/machines/{id}/diagnoses/{n}",
         "/api/v1/machines/{id}/verifications",
+        "/api/v1/machines/{id}/geometry",
         "/metrics",
     ] {
         assert!(

@@ -511,7 +511,10 @@ fn simulator_effects_switch_on_with_their_signatures() {
         assert!((s - expect).abs() < 0.01, "{}: {s} vs {expect}", d.step);
         moved += usize::from(expect.abs() > 0.1);
     }
-    assert!(moved > 0, "no reading was moved: the test would pin nothing");
+    assert!(
+        moved > 0,
+        "no reading was moved: the test would pin nothing"
+    );
     // Outliers: every reading off by 5 to 30 um.
     for (d, s) in shift(&|s| s.noise.outlier_rate = 1.0) {
         assert!((5.0..=30.0).contains(&s.abs()), "{}: {s}", d.step);
@@ -540,7 +543,7 @@ fn the_solve_uses_the_machines_linear_geometry() {
         "#,
     )
     .unwrap();
-    let known = k.clone().with_geometry(&geometry).unwrap();
+    let known = k.clone().with_geometry(&geometry, "test").unwrap();
     let vals = [10.0, 40.0, 3.0, 1.0, 60.0, -150.0];
     let mut truth = known.nominal_state();
     set_errors(&k, &mut truth, &vals);

@@ -1042,3 +1042,92 @@ fn clean_recordings_of_every_family_select_at_most_one_in_twenty() {
     }
     assert!(over.is_empty(), "{over:?}");
 }
+
+/// Issue 19's round trip: a static X-Z squareness in the virtual machine is blamed on
+/// `squareness` by the diagnosis of its setter cycles, measured independently by the laser
+/// step diagonal (the seed's set-up, mirror tilts and all), the two agree within their
+/// uncertainties, and once the measured geometry is the machine's the diagnosis of the same
+/// recording no longer finds it.
+#[test]
+fn a_squareness_is_blamed_measured_by_the_step_diagonal_and_gone_once_loaded() {
+    use driftwatch_core::linear_axes::LinearGeometry;
+    use driftwatch_linear::axis_errors::AxisErrors;
+    use driftwatch_linear::step_diagonal::{Setup, robust, simulate};
+    use rand::SeedableRng;
+    const SXZ_URAD: f64 = 40.0;
+    let mut scn = three_days(19);
+    scn.truth
+        .channels
+        .insert("sxz".into(), channel(&format!("offset = {SXZ_URAD}")));
+    let inputs = record(&scn, false);
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let run = |k: &Kinematics| {
+        let rows = detection_rows(k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+        diagnose(
+            &rows,
+            &inputs.spindle,
+            &inputs.temperatures,
+            &DiagnoseOptions::new(0.5),
+        )
+        .unwrap()
+    };
+    let sxz_terms = |d: &Diagnosis| -> Vec<(String, f64, f64)> {
+        d.accepted
+            .iter()
+            .filter(|a| a.effect == "squareness" && a.term.contains("sxz"))
+            .flat_map(|a| {
+                a.parameters
+                    .iter()
+                    .map(|p| (a.term.clone(), p.value, p.sigma))
+            })
+            .collect()
+    };
+    let before = run(&k);
+    let blamed = sxz_terms(&before);
+    println!("diagnosis before: {blamed:?}");
+    let constant = blamed
+        .iter()
+        .find(|(t, _, _)| t.contains("constant"))
+        .unwrap_or_else(|| {
+            panic!(
+                "no constant sxz term; accepted {:?}",
+                before.accepted.iter().map(|a| &a.term).collect::<Vec<_>>()
+            )
+        });
+    // The step diagonal on the same truth (its linear errors), the seed's set-up.
+    let truth = driftwatch_core::kinematics::LinearErrors {
+        sxz: SXZ_URAD * 1e-6,
+        ..Default::default()
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(19);
+    let setup = Setup::seed(150.0, &mut rng);
+    let (runs, pos) = simulate(&AxisErrors::from_linear(&truth, 120.0), &setup, &mut rng);
+    let measured = robust(&runs, &pos, &setup).unwrap();
+    let (m, ms) = (
+        measured.squareness_urad[1],
+        measured.squareness_sigma_urad[1],
+    );
+    println!(
+        "step diagonal: sxz {m:.2} +- {ms:.2} urad; diagnosis {:.2} +- {:.2} urad; truth {SXZ_URAD}",
+        constant.1, constant.2
+    );
+    assert!(
+        (m - SXZ_URAD).abs() < 3.0 * ms,
+        "step diagonal off the truth"
+    );
+    let combined = ms.hypot(constant.2);
+    assert!(
+        (m - constant.1).abs() < 3.0 * combined,
+        "the two disagree: {m} vs {}",
+        constant.1
+    );
+    // The measured geometry becomes the machine's: the same recording, diagnosed again.
+    let g = LinearGeometry::of(&measured.linear_errors(120.0));
+    let loaded = k.clone().with_geometry(&g, "step diagonal (test)").unwrap();
+    let after = run(&loaded);
+    println!("diagnosis after: {:?}", sxz_terms(&after));
+    assert!(
+        sxz_terms(&after).is_empty(),
+        "still blamed after the geometry was loaded"
+    );
+}

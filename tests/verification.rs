@@ -306,3 +306,95 @@ async fn per_json(app: &TestService, t_ns: i64) -> Value {
         .unwrap();
     serde_json::to_value(&rows[0].verification.per_error).unwrap()
 }
+
+/// A measured linear-axis geometry posted as a version: refused when it cannot be taken,
+/// stored, listed, named by every cycle result solved after it, and still the machine's after
+/// a restart.
+#[tokio::test]
+async fn a_geometry_version_is_stored_used_by_the_solves_and_restored() {
+    const GEOMETRY: &str = "/api/v1/machines/m1/geometry";
+    let dir = scratch("verification-geometry");
+    let app = launch_test(patent_m1(&dir), None).await;
+    let t0 = app.t0();
+    app.run_to(t0 + 100 * MIN).await;
+    let store = app.store().clone();
+    let before = store
+        .accepted_results_between("m1", i64::MIN, i64::MAX)
+        .await
+        .unwrap();
+    assert!(!before.is_empty() && before.iter().all(|r| r.geometry.is_none()));
+    let posting = |token: &str, body: Value| {
+        Request::post(GEOMETRY)
+            .header(header::CONTENT_TYPE, "application/json")
+            .header(header::AUTHORIZATION, format!("Bearer {token}"))
+            .body(Body::from(body.to_string()))
+            .unwrap()
+    };
+    let geometry = json!({
+        "source": "laser step diagonal 2026-11-26",
+        "geometry": { "squareness_urad": { "xz": 4.0 }, "components": { "EZX": [0.0, 0.5, 0.0] } }
+    });
+    // Refused: a unit slip, an unknown component, no source, a reader's token.
+    for (body, code) in [
+        (
+            json!({"source": "x", "geometry": {"scale_ppm": [3e6, 0, 0]}}),
+            "bad_geometry",
+        ),
+        (
+            json!({"source": "x", "geometry": {"components": {"EQX": [1, 0, 0]}}}),
+            "bad_geometry",
+        ),
+        (json!({"source": " ", "geometry": {}}), "bad_geometry"),
+    ] {
+        let (s, _, v) = app.call(posting("write-token", body)).await;
+        assert_eq!(
+            (s, v["code"].as_str()),
+            (StatusCode::BAD_REQUEST, Some(code)),
+            "{v}"
+        );
+        assert!(v["message"].as_str().is_some_and(|m| !m.is_empty()));
+    }
+    let (s, _, _) = app.call(posting("read-token", geometry.clone())).await;
+    assert_eq!(s, StatusCode::FORBIDDEN);
+    let (s, _, v) = app.call(posting("write-token", geometry.clone())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(
+        (v["version"].as_i64(), v["requested_by"].as_str()),
+        (Some(1), Some("operator"))
+    );
+    assert_eq!(v["geometry"]["squareness_urad"]["xz"], 4.0);
+    let (s, _, listed) = app.call(read(GEOMETRY)).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{listed}");
+    let label = "version 1: laser step diagonal 2026-11-26";
+    app.run_to(t0 + 300 * MIN).await;
+    let after = store
+        .accepted_results_between("m1", before.last().unwrap().t_ns + 1, i64::MAX)
+        .await
+        .unwrap();
+    assert!(!after.is_empty(), "no cycle after the geometry was posted");
+    assert!(
+        after.iter().all(|r| r.geometry.as_deref() == Some(label)),
+        "{:?}",
+        after.iter().map(|r| &r.geometry).collect::<Vec<_>>()
+    );
+    let stop_ns = t0 + 300 * MIN;
+    app.stop().await;
+    // Restarted on the same store: the solves still start from version 1.
+    let app = launch_test(patent_m1(&dir), Some(stop_ns)).await;
+    app.run_to(stop_ns + 200 * MIN).await;
+    let later = app
+        .store()
+        .accepted_results_between("m1", stop_ns + 1, i64::MAX)
+        .await
+        .unwrap();
+    println!(
+        "results: {} before the geometry, {} after, {} after the restart",
+        before.len(),
+        after.len(),
+        later.len()
+    );
+    assert!(!later.is_empty(), "no cycle after the restart");
+    assert!(later.iter().all(|r| r.geometry.as_deref() == Some(label)));
+    app.stop().await;
+}

@@ -125,6 +125,8 @@ pub struct CycleOutcome {
     /// What was set aside without rejecting the cycle (a failed approach its retry replaced,
     /// a message received twice).
     pub notes: Vec<String>,
+    /// The linear-axis geometry the solve started from (`Kinematics::linear_source`).
+    pub geometry: Option<String>,
     #[serde(skip)]
     pub solution: Option<Solution>,
 }
@@ -165,6 +167,7 @@ impl CycleOutcome {
             redundancy_um: s.map(|s| s.redundancy_um.clone()),
             chi2_point: None,
             notes: (!self.notes.is_empty()).then(|| self.notes.clone()),
+            geometry: self.geometry.clone(),
         }
     }
 }
@@ -271,6 +274,7 @@ pub fn process_cycle(
         reason: None,
         n_detections: entries.len(),
         notes,
+        geometry: k.linear_source.clone(),
         solution: None,
     };
     if !reasons.is_empty() {

@@ -318,6 +318,9 @@ pub struct Kinematics {
     /// state the NC's model and every solve start from. Zero unless the machine file's
     /// `[linear]` section or a stored geometry version gives it.
     pub linear: LinearErrors,
+    /// Where `linear` came from ("machine file", or a stored version's label); `None` when
+    /// the axes are taken as perfect. Every cycle result names it.
+    pub linear_source: Option<String>,
     pub config: MachineConfig,
 }
 
@@ -571,6 +574,11 @@ impl Kinematics {
                 Some(g) => g.errors().map_err(|e| invalid(format!("[linear]: {e}")))?,
                 None => LinearErrors::default(),
             },
+            linear_source: cfg
+                .linear
+                .as_ref()
+                .filter(|g| !g.is_zero())
+                .map(|_| "machine file".to_string()),
             config: cfg.clone(),
         };
         for name in &cfg.identify {
@@ -599,12 +607,14 @@ impl Kinematics {
 
     /// This machine with another known linear-axis geometry (a stored geometry version):
     /// every solve from then on starts from it.
-    pub fn with_geometry(mut self, g: &LinearGeometry) -> Result<Self, MachineError> {
+    /// `source` names it in every result ("version 3: step diagonal ...").
+    pub fn with_geometry(mut self, g: &LinearGeometry, source: &str) -> Result<Self, MachineError> {
         self.linear = g.errors().map_err(|e| MachineError::Invalid {
             machine: self.name.clone(),
             message: format!("linear geometry: {e}"),
         })?;
         self.config.linear = (!g.is_zero()).then(|| g.clone());
+        self.linear_source = (!g.is_zero()).then(|| source.to_string());
         Ok(self)
     }
 

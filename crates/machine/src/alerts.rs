@@ -1483,6 +1483,7 @@ mod tests {
             nuisance: None,
             redundancy_um: None,
             chi2_point: None,
+            geometry: None,
             notes: None,
         };
         let Input::Cycle(c) = Input::from(&msg) else {

@@ -1070,6 +1070,7 @@ mod tests {
             nuisance: None,
             redundancy_um: None,
             chi2_point: None,
+            geometry: None,
             notes: None,
         }
     }

@@ -48,6 +48,8 @@ pub enum CoreError {
     Phase(#[from] PhaseError),
     #[error("alert rules: {0}")]
     Alerts(String),
+    #[error("the stored linear geometry cannot be taken: {0}")]
+    Geometry(String),
 }
 
 /// What the machine core is told.
@@ -75,6 +77,12 @@ pub enum Input {
     },
     /// A verification against a reference instrument was stored: its alert rules run on it.
     Verification(Box<crate::verification::Verification>),
+    /// A linear-axis geometry version was stored: the solves from now on start from it;
+    /// `label` names it in their results.
+    Geometry {
+        label: String,
+        geometry: Box<driftwatch_core::linear_axes::LinearGeometry>,
+    },
     /// An operator acknowledges an alert.
     Ack {
         alert: u64,
@@ -91,7 +99,7 @@ pub enum Input {
     /// failed), and the seconds the solve took.
     Solved {
         number: i64,
-        outcome: Result<CycleOutcome, String>,
+        outcome: Box<Result<CycleOutcome, String>>,
         seconds: f64,
     },
     /// The service stops: give up the open cycle, store what is held.
@@ -545,6 +553,25 @@ impl MachineCore {
             }
             Input::Request { by } => self.sched.request(by, now_ns),
             Input::Verification(v) => self.on_verification(&v, now_ns, &mut out),
+            Input::Geometry { label, geometry } => {
+                match (*self.k).clone().with_geometry(&geometry, &label) {
+                    Ok(k) => {
+                        self.k = Arc::new(k);
+                        out.push(Effect::Log(
+                            Level::Info,
+                            format!(
+                                "linear geometry {label}: the solves from now on start from it"
+                            ),
+                        ));
+                    }
+                    // The API checks a geometry before it stores it; one that fails here
+                    // is refused and the solves keep the geometry they had.
+                    Err(e) => out.push(Effect::Log(
+                        Level::Error,
+                        format!("linear geometry {label} refused, the previous one kept: {e}"),
+                    )),
+                }
+            }
             Input::Ack { alert, by } => match self.alerts.ack(alert, &by, now_ns) {
                 Ok(false) => {}
                 Ok(true) => {
@@ -571,7 +598,7 @@ impl MachineCore {
                 number,
                 outcome,
                 seconds,
-            } => self.solved(number, outcome, seconds, &mut out),
+            } => self.solved(number, *outcome, seconds, &mut out),
             Input::Shutdown => self.shutdown(now_ns, &mut out),
         }
         out

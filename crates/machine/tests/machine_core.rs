@@ -166,7 +166,7 @@ fn run_cycle(rig: &mut Rig, number: i64, at: i64) -> (Vec<Effect>, Vec<Effect>) 
     let after = rig.core.handle(
         Input::Solved {
             number,
-            outcome: Ok(job.run()),
+            outcome: Box::new(Ok(job.run())),
             seconds: 0.01,
         },
         now + NS_PER_MIN,
@@ -252,7 +252,7 @@ fn a_failed_solve_abandons_the_cycle_with_its_reason_and_a_retry_follows() {
     let fx = rig.core.handle(
         Input::Solved {
             number: 1,
-            outcome: Err("the solver panicked".into()),
+            outcome: Box::new(Err("the solver panicked".into())),
             seconds: 0.0,
         },
         min(2),
@@ -412,6 +412,7 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
         nuisance: None,
         redundancy_um: None,
         chi2_point: None,
+        geometry: None,
         notes: None,
     };
     let verify = |t: i64, ez0b: f64| {

@@ -98,6 +98,8 @@ pub struct Inbox {
     pub acks: Vec<(u64, String)>,
     /// Verifications stored by the API, for the alert rules.
     pub verifications: Vec<driftwatch_machine::verification::Verification>,
+    /// Geometry versions stored by the API: (label, geometry).
+    pub geometries: Vec<(String, driftwatch_core::linear_axes::LinearGeometry)>,
 }
 
 /// The settings of a machine's decisions from the service's configuration.
@@ -247,6 +249,22 @@ impl MachineRuntime {
                 .await?;
         }
         let restored = restore(&store, id, settings, now_ns).await?;
+        // The newest stored geometry version, not the machine file's, is what the solves
+        // start from.
+        let k = match store.latest_geometry(id).await? {
+            Some(g) => {
+                let label = g.label();
+                info!(machine = id, geometry = %label, "linear geometry restored from the store");
+                k.with_geometry(&g.geometry, &label)
+                    .map_err(|e| DaemonError::Core {
+                        machine: id.to_string(),
+                        source: driftwatch_machine::machine_core::CoreError::Geometry(
+                            e.to_string(),
+                        ),
+                    })?
+            }
+            None => k,
+        };
         let mut checks = CycleChecks::new(&k);
         checks.expected = Some(driftwatch_core::cycle::plan_measurements(&plan));
         let kin_name = k.name.clone();
@@ -335,14 +353,24 @@ impl MachineRuntime {
             },
             now_ns,
         );
-        let (requests, acks, verifications) = match self.inbox.lock() {
+        let (requests, acks, verifications, geometries) = match self.inbox.lock() {
             Ok(mut inbox) => (
                 std::mem::take(&mut inbox.requests),
                 std::mem::take(&mut inbox.acks),
                 std::mem::take(&mut inbox.verifications),
+                std::mem::take(&mut inbox.geometries),
             ),
-            Err(_) => (Vec::new(), Vec::new(), Vec::new()),
+            Err(_) => Default::default(),
         };
+        for (label, g) in geometries {
+            self.feed(
+                Input::Geometry {
+                    label,
+                    geometry: Box::new(g),
+                },
+                now_ns,
+            );
+        }
         for (alert, by) in acks {
             self.feed(Input::Ack { alert, by }, now_ns);
         }
@@ -525,12 +553,12 @@ impl MachineRuntime {
         match solved {
             Ok((outcome, seconds)) => Input::Solved {
                 number,
-                outcome: Ok(outcome),
+                outcome: Box::new(Ok(outcome)),
                 seconds,
             },
             Err(e) => Input::Solved {
                 number,
-                outcome: Err(e.to_string()),
+                outcome: Box::new(Err(e.to_string())),
                 seconds: 0.0,
             },
         }

@@ -134,6 +134,10 @@ pub struct CycleResultMsg {
     /// What was set aside without rejecting the cycle (a retried approach, a duplicate).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub notes: Option<Vec<String>>,
+    /// The linear-axis geometry the solve started from (a stored geometry version, or the
+    /// machine file's); absent when the axes were taken as perfect.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry: Option<String>,
 }
 
 /// A message with its log time (ns since the Unix epoch).

@@ -64,6 +64,17 @@ pub(super) async fn request_diagnosis(
             format!("machine '{id}' has no kinematics in this service"),
         )
     })?;
+    // The machine's newest geometry version is the model the diagnosis compares with.
+    let k = match st.store.latest_geometry(&id).await? {
+        Some(g) => std::sync::Arc::new(
+            (*k).clone()
+                .with_geometry(&g.geometry, &g.label())
+                .map_err(|e| {
+                    ApiError::new(ErrorCode::Error, format!("the stored geometry: {e}"))
+                })?,
+        ),
+        None => k,
+    };
     let requested_ns = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let req = body.map(|b| b.0).unwrap_or_default();
     let (from, to) = requested_window(&st, &id, &req).await?;

@@ -56,6 +56,8 @@ pub enum ErrorCode {
     NotNcPush,
     /// A reference result that cannot be taken (the message names the field).
     BadReference,
+    /// A linear-axis geometry that cannot be taken (the message names the field).
+    BadGeometry,
     /// No accepted tool-setter result near enough in time to a reference.
     NoSetterResult,
     BadEvent,
@@ -76,9 +78,8 @@ impl ErrorCode {
         use ErrorCode::*;
         match self {
             BadRequest | BadQuery | BadFormat | MissingNominal | BeforeLastInput | BadWindow
-            | BadEvery | BadSource | BadSigma | BadEvent | ClockSkew | BadReference => {
-                StatusCode::BAD_REQUEST
-            }
+            | BadEvery | BadSource | BadSigma | BadEvent | ClockSkew | BadReference
+            | BadGeometry => StatusCode::BAD_REQUEST,
             BadBody | NoDetections | DiagnosisFailed | NoSetterResult => {
                 StatusCode::UNPROCESSABLE_ENTITY
             }

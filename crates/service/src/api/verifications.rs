@@ -19,7 +19,7 @@ use crate::store::StoredVerification;
 
 /// The service clock as the machine's loop last saw it (the wall clock before its first
 /// step): a simulated machine's time is not the wall clock's.
-fn service_now(h: &super::MachineHandle) -> i64 {
+pub(super) fn service_now(h: &super::MachineHandle) -> i64 {
     h.view
         .lock()
         .ok()

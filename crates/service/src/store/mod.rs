@@ -6,6 +6,7 @@ mod alerts;
 mod cycles;
 mod diagnoses;
 mod files;
+mod geometries;
 mod samples;
 mod sets;
 mod verifications;
@@ -14,6 +15,7 @@ pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
 pub use cycles::{CycleRow, CycleStatus, DetectionRow};
 pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis};
 pub use files::FileStatus;
+pub use geometries::StoredGeometry;
 pub use samples::Sample;
 pub use sets::NewCompensation;
 pub use verifications::StoredVerification;
@@ -170,6 +172,7 @@ mod tests {
             nuisance: None,
             redundancy_um: None,
             chi2_point: None,
+            geometry: None,
             notes: None,
         }
     }
