@@ -10,11 +10,14 @@ use clap::Subcommand;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use driftwatch_core::geometry::Vec3;
 use driftwatch_linear::axis_errors::{AxisErrors, Profile};
 use driftwatch_linear::correction_table::{Face, LoopSettings, Table, n_max, run};
 use driftwatch_linear::step_diagonal::{
-    Estimate, Setup, conventional, from_csv, robust, simulate, to_csv,
+    DIAGONALS, Estimate, Setup, conventional, diagonal_name, from_csv, robust, simulate, to_csv,
 };
+use driftwatch_nc::dialect::Dialect;
+use driftwatch_nc::facing::{FacingPass, facing_program, x_is_diameter};
 
 #[derive(Subcommand)]
 pub enum DiagonalCmd {
@@ -37,6 +40,9 @@ pub struct StepArgs {
     /// Interferometer noise per reading, um (weights and uncertainties).
     #[arg(long, default_value_t = 0.1)]
     noise_um: f64,
+    /// Time per move (one reading), s: the clock of the drift model.
+    #[arg(long, default_value_t = 5.0)]
+    step_time_s: f64,
 }
 
 #[derive(clap::Args)]
@@ -46,6 +52,19 @@ pub struct SimulateArgs {
     /// Mirror tilt off each diagonal, urad (random direction per diagonal).
     #[arg(long, default_value_t = 150.0)]
     tilt_urad: f64,
+    /// Linear drift of the tool point during the runs, um/min along X, Y, Z.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 1,
+        allow_negative_numbers = true,
+        default_value = "0,0,0"
+    )]
+    drift_um_per_min: Vec<f64>,
+    /// Run each diagonal out and back (the return leg reads the same points): the solve then
+    /// estimates each diagonal's drift.
+    #[arg(long)]
+    out_and_back: bool,
     #[arg(long, default_value_t = 4)]
     seed: u64,
     #[arg(long, default_value = "diagonal.csv")]
@@ -57,7 +76,8 @@ pub struct SolveArgs {
     #[command(flatten)]
     step: StepArgs,
     /// The log: `diagonal,step,axis,reading_um` (diagonal ppp|npp|pnp|ppn, or `line` for the
-    /// direct positioning along the axis).
+    /// direct positioning along the axis); steps past --steps are the return leg of an
+    /// out-and-back log, detected from them.
     #[arg(long)]
     from: PathBuf,
     #[arg(long)]
@@ -94,11 +114,25 @@ pub struct CorrectionArgs {
     /// Write the table the NC loads (CSV `x_mm,dz_um`) here.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Write the corrected facing pass as a lathe program in this dialect (for a control
+    /// without a built-in correction table): X as the diameter for fanuc, siemens (DIAMON)
+    /// and heidenhain (turning mode), as the radius for iso (G8).
+    #[arg(long, requires = "program_out", value_parser = ["fanuc", "siemens", "heidenhain", "iso"])]
+    program: Option<String>,
+    /// The program file.
+    #[arg(long, requires = "program")]
+    program_out: Option<PathBuf>,
+    /// The face's nominal Z, mm: the program's Z is this minus the table's d1.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    z0_mm: f64,
+    /// The facing feed of the program, mm/min.
+    #[arg(long, default_value_t = 20.0)]
+    feed_mm_min: f64,
 }
 
 fn setup_of(s: &StepArgs) -> Result<Setup> {
-    if !(s.step_mm > 0.0 && s.noise_um > 0.0) || s.steps < 2 {
-        bail!("--step-mm and --noise-um must be positive and --steps at least 2");
+    if !(s.step_mm > 0.0 && s.noise_um > 0.0 && s.step_time_s > 0.0) || s.steps < 2 {
+        bail!("--step-mm, --noise-um and --step-time-s must be positive and --steps at least 2");
     }
     Ok(Setup {
         step_mm: s.step_mm,
@@ -107,7 +141,8 @@ fn setup_of(s: &StepArgs) -> Result<Setup> {
         noise_um: s.noise_um,
         positioning_noise_um: s.noise_um,
         drift_um_per_min: Default::default(),
-        step_time_s: 5.0,
+        step_time_s: s.step_time_s,
+        out_and_back: false,
     })
 }
 
@@ -123,6 +158,15 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
             setup.steps = base.steps;
             setup.noise_um = base.noise_um;
             setup.positioning_noise_um = base.noise_um;
+            setup.step_time_s = base.step_time_s;
+            let [dx, dy, dz] = a.drift_um_per_min[..] else {
+                bail!("--drift-um-per-min takes three numbers, X,Y,Z");
+            };
+            if !(dx.is_finite() && dy.is_finite() && dz.is_finite()) {
+                bail!("--drift-um-per-min must be finite");
+            }
+            setup.drift_um_per_min = Vec3::new(dx, dy, dz);
+            setup.out_and_back = a.out_and_back;
             let (runs, pos) = simulate(&errors, &setup, &mut rng);
             std::fs::write(&a.out, to_csv(&runs, &pos))
                 .with_context(|| format!("writing {}", a.out.display()))?;
@@ -130,6 +174,24 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
             println!(
                 "truth: squareness X-Y {sxy:.2}, X-Z {sxz:.2}, Y-Z {syz:.2} um over {range} mm; scale {:.2}, {:.2}, {:.2} ppm; mirror tilts {} urad",
                 errors.scale_ppm[0], errors.scale_ppm[1], errors.scale_ppm[2], a.tilt_urad
+            );
+            // Along each beam (the diagonal; the mirror's tilt changes it by its cosine).
+            let along: Vec<String> = DIAGONALS
+                .iter()
+                .map(|s| {
+                    let l = Vec3::new(s[0], s[1], s[2]) / 3f64.sqrt();
+                    format!("{} {:.3}", diagonal_name(s), l.dot(&setup.drift_um_per_min))
+                })
+                .collect();
+            println!(
+                "drift {dx}, {dy}, {dz} um/min (along the beams: {} um/min); {} runs, {} s per move",
+                along.join(", "),
+                if a.out_and_back {
+                    "out-and-back"
+                } else {
+                    "one-way"
+                },
+                setup.step_time_s
             );
             println!("wrote {}", a.out.display());
         }
@@ -157,6 +219,11 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
 }
 
 fn print_estimates(c: &Estimate, r: &Estimate, range: f64) {
+    if r.drift_um_per_min.is_some() {
+        println!("runs: out-and-back, a drift rate estimated per diagonal");
+    } else {
+        println!("runs: one-way, a drift of the tool point is in the geometry below");
+    }
     println!("{:<22} {:>14} {:>22}", "", "conventional", "set-up-robust");
     for (i, name) in ["squareness X-Y", "squareness X-Z", "squareness Y-Z"]
         .iter()
@@ -191,6 +258,21 @@ fn print_estimates(c: &Estimate, r: &Estimate, range: f64) {
             peak(r),
             r.straightness_sigma_um[k]
         );
+    }
+    if let (Some(cd), Some(rd), Some(rs)) = (
+        c.drift_um_per_min,
+        r.drift_um_per_min,
+        r.drift_sigma_um_per_min,
+    ) {
+        for (d, s) in DIAGONALS.iter().enumerate() {
+            println!(
+                "drift along {:<10} {:>11.3} um/min {:>7.3} +- {:.3} um/min",
+                diagonal_name(s),
+                cd[d],
+                rd[d],
+                rs[d]
+            );
+        }
     }
 }
 
@@ -268,5 +350,58 @@ pub fn cmd_correction_table(a: CorrectionArgs) -> Result<ExitCode> {
         std::fs::write(out, table.csv()).with_context(|| format!("writing {}", out.display()))?;
         println!("table: {}", out.display());
     }
+    if let (Some(d), Some(out)) = (&a.program, &a.program_out) {
+        let d = Dialect::parse(d).with_context(|| format!("dialect '{d}'"))?;
+        let name = match &a.profile {
+            Some(p) => format!("from the section {}", p.display()),
+            None => format!("from the simulated loop, seed {}", a.seed),
+        };
+        let text = facing_program(d, &facing_pass(&table, &name, &a)?)?;
+        std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+        println!(
+            "facing pass ({d}, X as the {}): {}",
+            if x_is_diameter(d) {
+                "diameter"
+            } else {
+                "radius"
+            },
+            out.display()
+        );
+    }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The corrected facing pass: the table's radial points from the edge to the centre, Z the
+/// nominal face minus the table's `d1` (the `dz` of `Table::csv` added), rounded to the NC's
+/// resolution.
+fn facing_pass(table: &Table, name: &str, a: &CorrectionArgs) -> Result<FacingPass> {
+    if !(a.z0_mm.is_finite() && a.feed_mm_min > 0.0) {
+        bail!("--z0-mm must be finite and --feed-mm-min positive");
+    }
+    let res = a.resolution_um;
+    // The decimals that resolve the resolution (0.1 um: 4, 0.0001 mm).
+    let decimals = (-(res * 1e-3).log10() - 1e-9).ceil().max(1.0) as usize;
+    let points = table
+        .x_mm
+        .iter()
+        .zip(&table.d1_um)
+        .map(|(x, d1)| (*x, a.z0_mm - (d1 / res).round() * res * 1e-3))
+        .collect();
+    Ok(FacingPass {
+        number: 9200,
+        comments: vec![
+            format!("correction table {name}"),
+            format!(
+                "{} points, x {} to {} mm, resolution {res} um, z = z0 - d1, z0 {} mm",
+                table.x_mm.len(),
+                table.x_mm.first().copied().unwrap_or(f64::NAN),
+                table.x_mm.last().copied().unwrap_or(f64::NAN),
+                a.z0_mm
+            ),
+        ],
+        points,
+        feed_mm_min: a.feed_mm_min,
+        clearance_mm: 1.0,
+        decimals,
+    })
 }

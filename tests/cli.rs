@@ -1229,6 +1229,89 @@ fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
         );
         assert!((conventional - t).abs() > 1.0, "{line} against {t}");
     }
+    assert!(out.contains("runs: one-way"), "{out}");
+
+    // Out and back with a drift: the log's return leg is detected and each diagonal's drift
+    // along its beam estimated, the squareness still within its uncertainty.
+    let log2 = tmp("diagonal-oab.csv");
+    let (ok, out, err) = run(&[
+        "diagonal",
+        "simulate",
+        "--drift-um-per-min",
+        "0.3,-0.2,1.0",
+        "--out-and-back",
+        "--out",
+        log2.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let beams: Vec<f64> = out
+        .lines()
+        .find(|l| l.starts_with("drift "))
+        .and_then(|l| l.split_once("along the beams: "))
+        .unwrap()
+        .1
+        .split(')')
+        .next()
+        .unwrap()
+        .split([',', ' '])
+        .filter_map(|w| w.parse().ok())
+        .collect();
+    assert_eq!(beams.len(), 4, "{out}");
+    let truth: Vec<f64> = out
+        .lines()
+        .find(|l| l.starts_with("truth:"))
+        .unwrap()
+        .split([',', ';'])
+        .take(3)
+        .map(|part| {
+            part.split_whitespace()
+                .find_map(|w| w.parse().ok())
+                .unwrap()
+        })
+        .collect();
+    let (ok, out, err) = run(&["diagonal", "solve", "--from", log2.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("runs: out-and-back"), "{out}");
+    let drift_lines: Vec<&str> = out
+        .lines()
+        .filter(|l| l.starts_with("drift along"))
+        .collect();
+    assert_eq!(drift_lines.len(), 4, "{out}");
+    for (line, t) in drift_lines.iter().zip(&beams) {
+        let nums: Vec<f64> = line
+            .split_whitespace()
+            .filter_map(|w| w.parse().ok())
+            .collect();
+        let (robust, sigma) = (nums[1], nums[2]);
+        assert!(
+            (robust - t).abs() < 4.0 * sigma + 0.001,
+            "{line} against {t}"
+        );
+    }
+    for (i, t) in truth.iter().enumerate() {
+        let line = out
+            .lines()
+            .filter(|l| l.starts_with("squareness"))
+            .nth(i)
+            .unwrap();
+        let nums: Vec<f64> = line
+            .split_whitespace()
+            .filter_map(|w| w.parse().ok())
+            .collect();
+        assert!(
+            (nums[1] - t).abs() < 4.0 * nums[2] + 0.05,
+            "{line} against {t}"
+        );
+    }
+    let (ok, _, err) = run(&[
+        "diagonal",
+        "simulate",
+        "--drift-um-per-min",
+        "1,2",
+        "--out",
+        log2.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("three numbers"), "{err}");
 
     let (ok, out, err) = run(&["correction-table", "--simulate"]);
     assert!(ok, "{out}{err}");
@@ -1256,10 +1339,91 @@ fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
         std::fs::read_to_string(&table).unwrap(),
         "x_mm,dz_um\n50.0000,-0.0000\n25.0000,-1.5000\n0.0000,0.5000\n"
     );
+    // The corrected facing pass as a program: its feed moves read back to the table's points,
+    // Z = z0 - d1 (the table CSV's dz added), within the 0.1 um resolution.
+    let table_rows: Vec<(f64, f64)> = std::fs::read_to_string(&table)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let (x, dz) = l.split_once(',').unwrap();
+            (x.parse().unwrap(), dz.parse().unwrap())
+        })
+        .collect();
+    for (dialect, diameter) in [
+        ("fanuc", true),
+        ("siemens", true),
+        ("heidenhain", true),
+        ("iso", false),
+    ] {
+        let program = tmp(&format!("facing-{dialect}.txt"));
+        let (ok, out, err) = run(&[
+            "correction-table",
+            "--profile",
+            profile.to_str().unwrap(),
+            "--z0-mm",
+            "-2",
+            "--program",
+            dialect,
+            "--program-out",
+            program.to_str().unwrap(),
+        ]);
+        assert!(ok, "{out}{err}");
+        let text = std::fs::read_to_string(&program).unwrap();
+        assert!(
+            text.contains("LATHE FACING PASS") && text.contains("PROFILE.CSV"),
+            "{text}"
+        );
+        assert!(text.contains("RESOLUTION 0.1 UM"), "{text}");
+        let points = facing_points(&text, diameter);
+        assert_eq!(points.len(), table_rows.len(), "{dialect}: {text}");
+        for ((x, dz), (r, z)) in table_rows.iter().zip(&points) {
+            assert!((x - r).abs() < 1e-4, "{dialect}: x {r} for {x}");
+            let back = (z + 2.0) * 1e3;
+            assert!(
+                (back - dz).abs() < 0.1,
+                "{dialect}: dz {back} for {dz} at {x}"
+            );
+        }
+    }
+
     std::fs::write(&profile, "x_mm,dz_um\n50,1.0\n25,two\n").unwrap();
     let (ok, _, err) = run(&["correction-table", "--profile", profile.to_str().unwrap()]);
     assert!(
         !ok && err.contains("line 3") && err.contains("'two'"),
         "{err}"
     );
+}
+
+/// The (radius, Z) points of a facing program's feed moves: `G01`/`G1` (modal) or a
+/// HEIDENHAIN `L` block without `FMAX`; X halved when it is the diameter. Comments skipped.
+fn facing_points(text: &str, diameter: bool) -> Vec<(f64, f64)> {
+    let (mut x, mut z, mut feed) = (f64::NAN, f64::NAN, false);
+    let mut out = Vec::new();
+    for line in text.lines() {
+        let code = line.split([';', '(']).next().unwrap_or("");
+        let words: Vec<&str> = code.split_whitespace().collect();
+        let mut moved = false;
+        for w in &words {
+            match *w {
+                "G00" | "G0" | "FMAX" => feed = false,
+                "G01" | "G1" => feed = true,
+                "L" => feed = !words.contains(&"FMAX"),
+                _ => {
+                    if let Some(v) = w.strip_prefix('X').and_then(|v| v.parse::<f64>().ok()) {
+                        x = v;
+                        moved = true;
+                    }
+                    if let Some(v) = w.strip_prefix('Z').and_then(|v| v.parse::<f64>().ok()) {
+                        z = v;
+                        moved = true;
+                    }
+                }
+            }
+        }
+        if moved && feed {
+            out.push((if diameter { x / 2.0 } else { x }, z));
+        }
+    }
+    out
 }

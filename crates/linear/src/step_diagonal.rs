@@ -33,6 +33,13 @@
 //! reference (its straightness in y and z has zero end-point slope), Y's straightness in z
 //! likewise; the squareness `sxy`, `sxz`, `syz` is then the mean slope of Y's x, Z's x and
 //! Z's y errors.
+//!
+//! **Drift.** A linear drift `D` of the tool point (um/min) adds `m . D t` to a reading taken
+//! at time `t` after the run's start: on a one-way run the same amount per move, which the
+//! solves take for geometry (it lands mostly in the squareness). Run out and back
+//! (`Setup::out_and_back`), each diagonal reads every point twice, at `t` and later on the
+//! way back; the geometry is the same both times and the drift is not, so each diagonal's
+//! rate along its beam, `m . D`, is estimated with the rest (`Estimate::drift_um_per_min`).
 
 use driftwatch_core::geometry::Vec3;
 use nalgebra::{DMatrix, DVector};
@@ -66,9 +73,15 @@ pub struct Setup {
     pub noise_um: f64,
     /// Noise of the direct positioning measurement, um per reading.
     pub positioning_noise_um: f64,
-    /// Thermal drift of the tool point during the runs, um/min, and the time per step, s.
+    /// Thermal drift of the tool point during the runs, um/min, and the time per move (one
+    /// reading), s.
     pub drift_um_per_min: Vec3,
     pub step_time_s: f64,
+    /// Each diagonal out and back: after the far corner the machine returns along the same
+    /// staircase (Z, Y, X back in each step), reading at the same points, the clock running
+    /// on; the last reading is at the start corner.
+    #[serde(default)]
+    pub out_and_back: bool,
 }
 
 impl Setup {
@@ -88,11 +101,14 @@ impl Setup {
             positioning_noise_um: 0.1,
             drift_um_per_min: Vec3::zeros(),
             step_time_s: 5.0,
+            out_and_back: false,
         }
     }
 }
 
-/// One diagonal's readings: after each of the `3 n` moves (X, Y, Z of step 1, ...), um.
+/// One diagonal's readings: after each of the `3 n` moves (X, Y, Z of step 1, ...), um; out and
+/// back, `6 n`: then the `3 n` moves of the return (Z, Y, X back of each step from the far
+/// corner), the last one ending at the start corner.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DiagonalRun {
     pub signs: [f64; 3],
@@ -128,7 +144,15 @@ pub fn staircase(signs: &[f64; 3], step_mm: f64, steps: usize) -> Vec<Vec3> {
     out
 }
 
-/// Simulates the four diagonals and the direct positioning measurement.
+/// Where reading `r` (0-based) of a run of `n` steps is taken: its index in the staircase
+/// (`3 n` the far corner). The forward leg's reading `r` is after move `r + 1`; the return
+/// leg's comes back down the same points to the start corner (index 0).
+pub fn position(r: usize, n: usize) -> usize {
+    if r < 3 * n { r + 1 } else { 6 * n - r - 1 }
+}
+
+/// Simulates the four diagonals (out and back with `setup.out_and_back`) and the direct
+/// positioning measurement. Reading `r` is taken `(r + 1) step_time_s` after the run's start.
 pub fn simulate(
     errors: &AxisErrors,
     setup: &Setup,
@@ -150,10 +174,12 @@ pub fn simulate(
             p * 1e3 + errors.error_um(p) + setup.drift_um_per_min * t_min
         };
         let start = actual(&path[0], 0);
-        let readings_um = path[1..]
-            .iter()
-            .enumerate()
-            .map(|(k, p)| m.dot(&(actual(p, k + 1) - start)) + noise(setup.noise_um))
+        let moves = if setup.out_and_back { 6 } else { 3 } * setup.steps;
+        let readings_um = (0..moves)
+            .map(|r| {
+                let p = &path[position(r, setup.steps)];
+                m.dot(&(actual(p, r + 1) - start)) + noise(setup.noise_um)
+            })
             .collect();
         DiagonalRun { signs, readings_um }
     });
@@ -184,6 +210,11 @@ pub struct Estimate {
     /// The largest standard uncertainty of a straightness profile's points, um (same order
     /// as `straightness_um`).
     pub straightness_sigma_um: [f64; 6],
+    /// Out-and-back runs only: each diagonal's drift of the tool point along its beam (the
+    /// mirror normal), um/min, in the order of `DIAGONALS`, and its standard uncertainty.
+    /// `None` for one-way runs: a drift then goes into the geometry.
+    pub drift_um_per_min: Option<[f64; 4]>,
+    pub drift_sigma_um_per_min: Option<[f64; 4]>,
 }
 
 impl Estimate {
@@ -210,32 +241,94 @@ impl Estimate {
 pub enum SolveError {
     #[error("diagonal {0}: {1} readings, expected {2}")]
     Readings(String, usize, usize),
+    #[error(
+        "diagonal {0}: {1} readings where the others have {2}: all one-way (3 n) or all out and back (6 n)"
+    )]
+    MixedLegs(String, usize, usize),
     #[error("the least-squares system is singular")]
     Singular,
 }
 
-/// Reading increments of each move, `sqrt3 dR - a`, per diagonal and move.
-fn increments(runs: &[DiagonalRun], a: f64, n: usize) -> Result<Vec<Vec<f64>>, SolveError> {
-    runs.iter()
-        .map(|r| {
-            if r.readings_um.len() != 3 * n {
-                return Err(SolveError::Readings(
-                    diagonal_name(&r.signs),
-                    r.readings_um.len(),
-                    3 * n,
-                ));
+/// Whether the runs are out and back (`6 n` readings each) or one-way (`3 n`); all alike.
+pub fn out_and_back(runs: &[DiagonalRun], n: usize) -> Result<bool, SolveError> {
+    let first = runs.first().map_or(3 * n, |r| r.readings_um.len());
+    if first != 3 * n && first != 6 * n {
+        return Err(SolveError::Readings(
+            diagonal_name(&runs[0].signs),
+            first,
+            3 * n,
+        ));
+    }
+    for r in runs {
+        if r.readings_um.len() != first {
+            return Err(SolveError::MixedLegs(
+                diagonal_name(&r.signs),
+                r.readings_um.len(),
+                first,
+            ));
+        }
+    }
+    Ok(first == 6 * n)
+}
+
+/// A drift rate along the beam from an out-and-back run: both legs read the same points, so
+/// `R_back(p) - R_out(p) = rate (t_back - t_out)`; least squares over the points `0..3n`
+/// (the start corner's outward reading is the zero at `t = 0`). Returns the rate (um/min), its
+/// standard uncertainty for reading noise `noise_um`, and the forward readings with the drift
+/// taken out (both legs averaged where both read).
+fn drift_of_run(run: &DiagonalRun, n: usize, step_min: f64, noise_um: f64) -> (f64, f64, Vec<f64>) {
+    let r = &run.readings_um;
+    // The return reading at staircase point p is r[6n - 1 - p], taken at (6n - p) steps.
+    let back = |p: usize| (r[6 * n - 1 - p], (6 * n - p) as f64 * step_min);
+    let out = |p: usize| {
+        if p == 0 {
+            (0.0, 0.0)
+        } else {
+            (r[p - 1], p as f64 * step_min)
+        }
+    };
+    let (mut num, mut den, mut var) = (0.0, 0.0, 0.0);
+    for p in 0..3 * n {
+        let ((vb, tb), (vo, to)) = (back(p), out(p));
+        let tau = tb - to;
+        num += (vb - vo) * tau;
+        den += tau * tau;
+        // The difference carries two readings' noise, one at the start corner.
+        var += tau * tau * if p == 0 { 1.0 } else { 2.0 } * noise_um * noise_um;
+    }
+    let rate = num / den;
+    let sigma = var.sqrt() / den;
+    let forward = (1..=3 * n)
+        .map(|p| {
+            let (vo, to) = out(p);
+            if p < 3 * n {
+                let (vb, tb) = back(p);
+                0.5 * ((vo - rate * to) + (vb - rate * tb))
+            } else {
+                vo - rate * to
             }
+        })
+        .collect();
+    (rate, sigma, forward)
+}
+
+/// Reading increments of each move, `sqrt3 dR - a`, per diagonal and move (the forward leg).
+fn increments(runs: &[DiagonalRun], a: f64, n: usize) -> Result<Vec<Vec<f64>>, SolveError> {
+    out_and_back(runs, n)?;
+    Ok(runs
+        .iter()
+        .map(|r| {
             let mut prev = 0.0;
-            Ok(r.readings_um
+            r.readings_um[..3 * n]
                 .iter()
                 .map(|v| {
                     let d = 3f64.sqrt() * (v - prev) - a * 1e3;
                     prev = *v;
                     d
                 })
-                .collect())
+                .collect()
         })
-        .collect()
+        .collect())
 }
 
 /// The interval a diagonal's move along axis `j` at its step `k` covers: the same in the
@@ -255,9 +348,29 @@ fn cumulative(inc: &[f64]) -> Vec<f64> {
 }
 
 /// The conventional formulation: per step, the nine increments from the nine readings of
-/// three diagonals (`ppp`, `npp`, `pnp`), set-up errors taken as zero.
+/// three diagonals (`ppp`, `npp`, `pnp`), set-up errors taken as zero. Out-and-back runs
+/// first lose their drift: each diagonal's rate from the differences between its legs
+/// (`drift_um_per_min` of the estimate, all four diagonals), then the legs averaged.
 pub fn conventional(runs: &[DiagonalRun; 4], setup: &Setup) -> Result<Estimate, SolveError> {
     let (a, n) = (setup.step_mm, setup.steps);
+    let mut drift = None;
+    let corrected;
+    let runs: &[DiagonalRun; 4] = if out_and_back(runs, n)? {
+        let step_min = setup.step_time_s / 60.0;
+        let d: [(f64, f64, Vec<f64>); 4] =
+            std::array::from_fn(|i| drift_of_run(&runs[i], n, step_min, setup.noise_um));
+        drift = Some((
+            std::array::from_fn(|i| d[i].0),
+            std::array::from_fn(|i| d[i].1),
+        ));
+        corrected = std::array::from_fn(|i| DiagonalRun {
+            signs: runs[i].signs,
+            readings_um: d[i].2.clone(),
+        });
+        &corrected
+    } else {
+        runs
+    };
     let inc = increments(&runs[..3], a, n)?;
     let mut de: [[Vec<f64>; 3]; 3] = std::array::from_fn(|_| std::array::from_fn(|_| vec![0.0; n]));
     for j in 0..3 {
@@ -281,7 +394,12 @@ pub fn conventional(runs: &[DiagonalRun; 4], setup: &Setup) -> Result<Estimate, 
             }
         }
     }
-    Ok(profiles(&de, a, n, None))
+    let mut est = profiles(&de, a, n, None);
+    if let Some((rate, sigma)) = drift {
+        est.drift_um_per_min = Some(rate);
+        est.drift_sigma_um_per_min = Some(sigma);
+    }
+    Ok(est)
 }
 
 /// Turns increments `de[i][j][k]` into the estimate's profiles and squareness.
@@ -309,13 +427,18 @@ fn profiles(de: &[[Vec<f64>; 3]; 3], a: f64, n: usize, sigma: Option<[f64; 3]>) 
         ],
         squareness_sigma_urad: sigma.unwrap_or([f64::NAN; 3]),
         straightness_sigma_um: [f64::NAN; 6],
+        drift_um_per_min: None,
+        drift_sigma_um_per_min: None,
     }
 }
 
 /// The set-up-robust formulation: the nine increments of every step (the positioning ones
 /// observed by the direct measurement as well) and each diagonal's set-up offsets, estimated
 /// by weighted least squares on the readings themselves (each reading the sum of the moves
-/// before it, its own noise), in the gauge of `LinearErrors`.
+/// before it, its own noise), in the gauge of `LinearErrors`. Out-and-back runs add one
+/// unknown per diagonal, its drift rate along the beam (`reading = geometry + rate t`, `t`
+/// from the reading's index and `step_time_s`): the two legs read the same geometry at
+/// different times, so a linear drift separates from it. One-way runs estimate no drift.
 pub fn robust(
     runs: &[DiagonalRun; 4],
     positioning: &Positioning,
@@ -327,24 +450,27 @@ pub fn robust(
             return Err(SolveError::Readings(["x", "y", "z"][j].into(), p.len(), n));
         }
     }
-    increments(runs, a, n)?;
+    let oab = out_and_back(runs, n)?;
     // Unknowns: dE_ij of interval k at (3 i + j) n + k, then per diagonal c_x, c_y
-    // (c_z = -c_x - c_y).
+    // (c_z = -c_x - c_y), then, out and back, per diagonal its drift rate along the beam.
     let nd = 9 * n;
-    let nu = nd + 8;
+    let nu = nd + 8 + if oab { 4 } else { 0 };
     let at = |i: usize, j: usize, k: usize| (3 * i + j) * n + k;
-    let rows = 12 * n + 3 * n + 3;
+    let per_run = if oab { 6 * n } else { 3 * n };
+    let rows = 4 * per_run + 3 * n + 3;
     let mut m = DMatrix::zeros(rows, nu);
     let mut y = DVector::zeros(rows);
     let w = 1.0 / (3f64.sqrt() * setup.noise_um.max(1e-6));
+    let step_min = setup.step_time_s / 60.0;
     let mut r = 0;
     for (d, run) in runs.iter().enumerate() {
         let s = run.signs;
-        // sqrt3 R after a move = the sum of the moves so far: a + sum_i s_j s_i dE_ij + c_j each.
-        let mut row = DVector::<f64>::zeros(nu);
-        let mut moves = 0.0;
+        // sqrt3 R at staircase point p = the sum of the moves to it: a + sum_i s_j s_i dE_ij
+        // + c_j each (`geometry[p]`), plus sqrt3 times the drift since the start.
+        let mut geometry = vec![DVector::<f64>::zeros(nu)];
         for k in 0..n {
             for j in 0..3 {
+                let mut row = geometry[geometry.len() - 1].clone();
                 let kk = interval(&s, j, k, n);
                 for i in 0..3 {
                     row[at(i, j, kk)] += s[j] * s[i];
@@ -357,11 +483,18 @@ pub fn robust(
                         row[nd + 2 * d + 1] -= 1.0;
                     }
                 }
-                moves += 1.0;
-                m.set_row(r, &(row.transpose() * w));
-                y[r] = (3f64.sqrt() * run.readings_um[3 * k + j] - moves * a * 1e3) * w;
-                r += 1;
+                geometry.push(row);
             }
+        }
+        for (q, v) in run.readings_um.iter().enumerate() {
+            let p = position(q, n);
+            let mut row = geometry[p].clone();
+            if oab {
+                row[nd + 8 + d] = 3f64.sqrt() * (q + 1) as f64 * step_min;
+            }
+            m.set_row(r, &(row.transpose() * w));
+            y[r] = (3f64.sqrt() * v - p as f64 * a * 1e3) * w;
+            r += 1;
         }
     }
     // The direct positioning readings: each the sum of its axis' increments so far.
@@ -419,19 +552,42 @@ pub fn robust(
         }
         est.straightness_sigma_um[t] = worst;
     }
+    if oab {
+        est.drift_um_per_min = Some(std::array::from_fn(|d| x[nd + 8 + d]));
+        est.drift_sigma_um_per_min = Some(std::array::from_fn(|d| {
+            cov[(nd + 8 + d, nd + 8 + d)].max(0.0).sqrt()
+        }));
+    }
     Ok(est)
+}
+
+/// The log's `step` and `axis` of a diagonal's reading `m` (0-based) in a run of `n` steps.
+fn csv_row(m: usize, n: usize) -> (usize, &'static str) {
+    if m < 3 * n {
+        (m / 3 + 1, ["x", "y", "z"][m % 3])
+    } else {
+        let b = m - 3 * n;
+        (n + b / 3 + 1, ["z", "y", "x"][b % 3])
+    }
 }
 
 /// An interferometer log as CSV: `diagonal,step,axis,reading_um`, one row per move; `diagonal`
 /// is `ppp`, `npp`, `pnp` or `ppn` (the moves of a diagonal in the order X, Y, Z of each step,
 /// the reading after the move, from the start corner) or `line` for the direct positioning
 /// measurement along `axis` (the reading at each step's end from the axis' start).
+///
+/// Out and back, the return leg continues the step numbers: step `n + k` is the `k`-th step
+/// back from the far corner, its moves in the order Z, Y, X, so that step `2 n`'s `x` row is
+/// the reading back at the start corner. A one-way log is the same layout as before the
+/// return leg existed. `n` is the positioning's length.
 pub fn to_csv(runs: &[DiagonalRun; 4], positioning: &Positioning) -> String {
+    let n = positioning[0].len();
     let mut s = String::from("diagonal,step,axis,reading_um\n");
     for r in runs {
         let name = diagonal_name(&r.signs);
         for (m, v) in r.readings_um.iter().enumerate() {
-            s += &format!("{name},{},{},{v:.4}\n", m / 3 + 1, ["x", "y", "z"][m % 3]);
+            let (step, axis) = csv_row(m, n);
+            s += &format!("{name},{step},{axis},{v:.4}\n");
         }
     }
     for (j, p) in positioning.iter().enumerate() {
@@ -450,9 +606,11 @@ pub enum ParseError {
     Missing(String),
 }
 
-/// Reads an interferometer log (`to_csv`'s layout; rows in any order) of `n` steps.
+/// Reads an interferometer log (`to_csv`'s layout; rows in any order) of `n` steps: one-way
+/// when no diagonal has a step past `n`, else out and back (every diagonal's return leg
+/// complete).
 pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning), ParseError> {
-    let mut runs: [Vec<Option<f64>>; 4] = std::array::from_fn(|_| vec![None; 3 * n]);
+    let mut runs: [Vec<Option<f64>>; 4] = std::array::from_fn(|_| vec![None; 6 * n]);
     let mut pos: [Vec<Option<f64>>; 3] = std::array::from_fn(|_| vec![None; n]);
     for (i, raw) in text.lines().enumerate().skip(1) {
         let line = i + 1;
@@ -464,11 +622,13 @@ pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning),
         let [diag, step, axis, value] = cells[..] else {
             return Err(bad(format!("{} cells, expected 4", cells.len())));
         };
+        let line_row = diag.eq_ignore_ascii_case("line");
+        let last = if line_row { n } else { 2 * n };
         let step: usize = step
             .parse()
             .ok()
-            .filter(|s| (1..=n).contains(s))
-            .ok_or_else(|| bad(format!("step '{step}' is not 1..{n}")))?;
+            .filter(|s| (1..=last).contains(s))
+            .ok_or_else(|| bad(format!("step '{step}' is not 1..{last}")))?;
         let j = ["x", "y", "z"]
             .iter()
             .position(|a| a.eq_ignore_ascii_case(axis))
@@ -478,7 +638,7 @@ pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning),
             .ok()
             .filter(|v: &f64| v.is_finite())
             .ok_or_else(|| bad(format!("reading '{value}' is not a finite number")))?;
-        let slot = if diag.eq_ignore_ascii_case("line") {
+        let slot = if line_row {
             &mut pos[j][step - 1]
         } else {
             let d = DIAGONALS
@@ -489,7 +649,12 @@ pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning),
                         "diagonal '{diag}' is not ppp, npp, pnp, ppn or line"
                     ))
                 })?;
-            &mut runs[d][3 * (step - 1) + j]
+            if step <= n {
+                &mut runs[d][3 * (step - 1) + j]
+            } else {
+                // The return: Z, Y, X back in each step.
+                &mut runs[d][3 * n + 3 * (step - n - 1) + 2 - j]
+            }
         };
         if slot.replace(v).is_some() {
             return Err(bad(format!("{diag} step {step} {axis} is given twice")));
@@ -500,16 +665,24 @@ pub fn from_csv(text: &str, n: usize) -> Result<([DiagonalRun; 4], Positioning),
             .enumerate()
             .map(|(k, x)| {
                 x.ok_or_else(|| {
-                    ParseError::Missing(format!("{what}: reading {} is missing", k + 1))
+                    let at = if what.starts_with("line") {
+                        format!("step {}", k + 1)
+                    } else {
+                        let (step, axis) = csv_row(k, n);
+                        format!("step {step} {axis}")
+                    };
+                    ParseError::Missing(format!("{what} {at}: the reading is missing"))
                 })
             })
             .collect()
     };
+    let back = runs.iter().any(|r| r[3 * n..].iter().any(Option::is_some));
+    let len = if back { 6 * n } else { 3 * n };
     let mut out = Vec::new();
     for (d, r) in runs.iter().enumerate() {
         out.push(DiagonalRun {
             signs: DIAGONALS[d],
-            readings_um: complete(r, diagonal_name(&DIAGONALS[d]))?,
+            readings_um: complete(&r[..len], diagonal_name(&DIAGONALS[d]))?,
         });
     }
     let positioning = [
