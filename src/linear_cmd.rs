@@ -11,7 +11,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use driftwatch_core::geometry::Vec3;
-use driftwatch_linear::axis_errors::{AxisErrors, Profile};
+use driftwatch_linear::axis_errors::{AxisErrors, Placed, Profile};
 use driftwatch_linear::correction_table::{Face, LoopSettings, Table, n_max, run};
 use driftwatch_linear::step_diagonal::{
     DIAGONALS, Estimate, Setup, conventional, diagonal_name, from_csv, robust, simulate, to_csv,
@@ -69,6 +69,19 @@ pub struct SimulateArgs {
     seed: u64,
     #[arg(long, default_value = "diagonal.csv")]
     out: PathBuf,
+    /// Measure the virtual machine of this scenario (built-in name or TOML) at its start, its
+    /// linear axes as the kinematics model them (scale, squareness, ISO 230-1 components),
+    /// instead of random errors.
+    #[arg(long)]
+    scenario: Option<String>,
+    /// With --scenario: the cube's start corner in machine coordinates, mm (X,Y,Z).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_negative_numbers = true,
+        default_value = "0,0,0"
+    )]
+    origin_mm: Vec<f64>,
 }
 
 #[derive(clap::Args)]
@@ -82,6 +95,14 @@ pub struct SolveArgs {
     from: PathBuf,
     #[arg(long)]
     json: bool,
+    /// Write the set-up-robust result as a machine geometry (JSON: the body's `geometry` for
+    /// `POST /api/v1/machines/{id}/geometry`, or `driftwatch diagnose --geometry`).
+    #[arg(long)]
+    geometry_out: Option<PathBuf>,
+    /// The measured cube's start corner in machine coordinates, mm (X,Y,Z): where the
+    /// component polynomials are placed.
+    #[arg(long, value_delimiter = ',', default_value = "0,0,0")]
+    origin_mm: Vec<f64>,
 }
 
 #[derive(clap::Args)]
@@ -152,6 +173,10 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
             let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
             let range = a.step.step_mm * a.step.steps as f64;
             let errors = AxisErrors::random(range, &mut rng);
+            let scenario_truth = match &a.scenario {
+                Some(name) => Some(scenario_linear(name)?),
+                None => None,
+            };
             let mut setup = Setup::seed(a.tilt_urad, &mut rng);
             let base = setup_of(&a.step)?;
             setup.step_mm = base.step_mm;
@@ -167,13 +192,30 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
             }
             setup.drift_um_per_min = Vec3::new(dx, dy, dz);
             setup.out_and_back = a.out_and_back;
-            let (runs, pos) = simulate(&errors, &setup, &mut rng);
+            let (runs, pos, square, scale) = match &scenario_truth {
+                Some(linear) => {
+                    let [ox, oy, oz] = a.origin_mm[..] else {
+                        bail!("--origin-mm takes three numbers, X,Y,Z");
+                    };
+                    let field = Placed {
+                        errors: linear,
+                        origin_mm: Vec3::new(ox, oy, oz),
+                    };
+                    let (runs, pos) = simulate(&field, &setup, &mut rng);
+                    let square = [linear.sxy, linear.sxz, linear.syz].map(|v| v * 1e6);
+                    (runs, pos, square, linear.k.map(|v| v * 1e6))
+                }
+                None => {
+                    let (runs, pos) = simulate(&errors, &setup, &mut rng);
+                    (runs, pos, errors.squareness_urad, errors.scale_ppm)
+                }
+            };
             std::fs::write(&a.out, to_csv(&runs, &pos))
                 .with_context(|| format!("writing {}", a.out.display()))?;
-            let [sxy, sxz, syz] = errors.squareness_urad.map(|v| v * range * 1e-3);
+            let [sxy, sxz, syz] = square.map(|v| v * range * 1e-3);
             println!(
                 "truth: squareness X-Y {sxy:.2}, X-Z {sxz:.2}, Y-Z {syz:.2} um over {range} mm; scale {:.2}, {:.2}, {:.2} ppm; mirror tilts {} urad",
-                errors.scale_ppm[0], errors.scale_ppm[1], errors.scale_ppm[2], a.tilt_urad
+                scale[0], scale[1], scale[2], a.tilt_urad
             );
             // Along each beam (the diagonal; the mirror's tilt changes it by its cosine).
             let along: Vec<String> = DIAGONALS
@@ -213,9 +255,34 @@ pub fn cmd_diagonal(cmd: DiagonalCmd) -> Result<ExitCode> {
             } else {
                 print_estimates(&c, &r, setup.step_mm * setup.steps as f64);
             }
+            if let Some(path) = &a.geometry_out {
+                let [ox, oy, oz] = a.origin_mm[..] else {
+                    bail!("--origin-mm takes three numbers, X,Y,Z");
+                };
+                let g = r.geometry(setup.step_mm, &Vec3::new(ox, oy, oz));
+                g.errors()
+                    .context("the measured geometry is beyond what a machine can have")?;
+                std::fs::write(path, serde_json::to_string_pretty(&g)? + "\n")
+                    .with_context(|| format!("writing {}", path.display()))?;
+                println!(
+                    "wrote the set-up-robust geometry to {} (post it as a geometry version, or pass it to diagnose --geometry)",
+                    path.display()
+                );
+            }
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The linear axes of a scenario's virtual machine at its start.
+fn scenario_linear(name: &str) -> Result<driftwatch_core::kinematics::LinearErrors> {
+    let scn = driftwatch_sim::scenario::Scenario::load(name)
+        .with_context(|| format!("scenario '{name}'"))?;
+    let k = driftwatch_core::kinematics::Kinematics::load(&scn.machine)
+        .with_context(|| format!("machine '{}'", scn.machine))?;
+    let s = driftwatch_sim::simulator::initial_state(&scn, &k)
+        .with_context(|| format!("scenario '{name}'"))?;
+    Ok(s.linear)
 }
 
 fn print_estimates(c: &Estimate, r: &Estimate, range: f64) {

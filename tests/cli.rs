@@ -769,32 +769,51 @@ fn the_thermal_model_fits_the_six_errors_of_a_simulated_recording() {
     );
 }
 
-#[test]
-fn diagnose_names_a_skip_latency_that_cancels_in_the_sums_and_writes_its_report() {
-    // One day: the skip lags 2.4 ms beyond the calibration and the probing feed is raised
-    // from 100 to 200 mm/min halfway. The patent's sums cancel it; the diagnosis names it.
-    let scn = tmp("latency.toml");
+/// `driftwatch diagnose` of a `table_bc` recording into `tmp(dir)` with `extra` arguments:
+/// its standard output and `diagnosis.json`.
+fn diagnose_table_bc(rec: &Path, dir: &str, extra: &[&str]) -> (String, Value) {
+    let dir = tmp(dir);
+    let mut args = vec![
+        "diagnose",
+        "--machine",
+        "table_bc",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    let (ok, out, err) = run(&args);
+    assert!(ok, "{out}{err}");
+    let j = serde_json::from_str(&std::fs::read_to_string(dir.join("diagnosis.json")).unwrap())
+        .unwrap();
+    (out, j)
+}
+
+/// One simulated day of the patent plan on `table_bc` (a cycle every 20 min, 0.5 um noise, the
+/// spindle at 20000 min^-1 for the first five hours) with `extra` TOML appended (its own
+/// sections); returns the scenario file and the recording `driftwatch simulate` wrote.
+fn one_day(name: &str, seed: u64, extra: &str) -> (PathBuf, PathBuf) {
+    let scn = tmp(&format!("{name}.toml"));
     std::fs::write(
         &scn,
-        r#"
-name = "latency"
+        format!(
+            r#"
+name = "{name}"
 machine = "table_bc"
 plan = "patent"
-seed = 5
+seed = {seed}
 start_utc = "2026-03-02T06:00:00Z"
 duration_min = 600.0
-spindle = [{ at_min = 0.0, rpm = 20000.0, state = "idle" }, { at_min = 300.0, rpm = 0.0, state = "idle" }]
-[cycles]
-every_min = 20.0
-feed_changes = [{ at_min = 300.0, feed_mm_min = 200.0 }]
+spindle = [{{ at_min = 0.0, rpm = 20000.0, state = "idle" }}, {{ at_min = 300.0, rpm = 0.0, state = "idle" }}]
 [noise]
 sigma_um = 0.5
-[skip]
-latency_ms = 2.4
-"#,
+{extra}
+"#
+        ),
     )
     .unwrap();
-    let rec = tmp("latency.mcap");
+    let rec = tmp(&format!("{name}.mcap"));
     let (ok, out, err) = run(&[
         "simulate",
         "--scenario",
@@ -803,21 +822,21 @@ latency_ms = 2.4
         rec.to_str().unwrap(),
     ]);
     assert!(ok, "{out}{err}");
+    (scn, rec)
+}
+
+#[test]
+fn diagnose_names_a_skip_latency_that_cancels_in_the_sums_and_writes_its_report() {
+    // One day: the skip lags 2.4 ms beyond the calibration and the probing feed is raised
+    // from 100 to 200 mm/min halfway. The patent's sums cancel it; the diagnosis names it.
+    let (_, rec) = one_day(
+        "latency",
+        5,
+        "[cycles]\nevery_min = 20.0\nfeed_changes = [{ at_min = 300.0, feed_mm_min = 200.0 }]\n[skip]\nlatency_ms = 2.4",
+    );
+    let (out, j) = diagnose_table_bc(&rec, "diagnosis", &[]);
     let dir = tmp("diagnosis");
-    let (ok, out, err) = run(&[
-        "diagnose",
-        "--machine",
-        "table_bc",
-        "--recording",
-        rec.to_str().unwrap(),
-        "--out",
-        dir.to_str().unwrap(),
-    ]);
-    assert!(ok, "{out}{err}");
     assert!(out.contains("skip latency"), "{out}");
-    let j: Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("diagnosis.json")).unwrap())
-            .unwrap();
     assert_eq!(j["format"], "driftwatch-diagnosis/1");
     assert!(
         j["baseline"]["chi2_dof"].as_f64().unwrap() > 1.2,
@@ -1193,6 +1212,80 @@ fn rtest_csv_exports_are_imported_and_bad_cells_refused_by_line() {
 /// `diagonal simulate` and `solve` (seed 004): mirror tilts push the conventional squareness
 /// far off, the set-up-robust one stays on the truth; `correction-table` (seed 003) loops to
 /// GOOD and builds a table from a measured section, refusing a bad cell by line.
+/// Issue 19's round trip from the command line: a static X-Z squareness of 40 urad in the
+/// virtual machine; `diagnose` blames `squareness`; `diagonal simulate --scenario` measures the
+/// same machine's axes and `diagonal solve --geometry-out` writes the geometry; `diagnose
+/// --geometry` with it no longer finds the squareness.
+#[test]
+fn a_squareness_is_blamed_measured_and_gone_once_its_geometry_is_loaded() {
+    let (scn, rec) = one_day(
+        "square",
+        19,
+        "[cycles]\nevery_min = 20.0\n[truth.channels.sxz]\noffset = 40.0",
+    );
+    let diagnose = |dir: &str, extra: &[&str]| -> Vec<Value> {
+        let (_, j) = diagnose_table_bc(&rec, dir, extra);
+        j["accepted"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|a| a["effect"] == "squareness" && a["term"].as_str().unwrap().contains("sxz"))
+            .cloned()
+            .collect()
+    };
+    let before = diagnose("square-before", &[]);
+    assert!(!before.is_empty(), "the squareness is not blamed");
+    let blamed = &before[0]["parameters"][0];
+    let log = tmp("square-diagonal.csv");
+    let (ok, out, err) = run(&[
+        "diagonal",
+        "simulate",
+        "--scenario",
+        scn.to_str().unwrap(),
+        "--out",
+        log.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let g = tmp("square-geometry.json");
+    let (ok, out, err) = run(&[
+        "diagonal",
+        "solve",
+        "--from",
+        log.to_str().unwrap(),
+        "--geometry-out",
+        g.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    let geometry: Value = serde_json::from_str(&std::fs::read_to_string(&g).unwrap()).unwrap();
+    let measured = geometry["squareness_urad"]["xz"].as_f64().unwrap();
+    let (value, sigma) = (
+        blamed["value"].as_f64().unwrap(),
+        blamed["sigma"].as_f64().unwrap(),
+    );
+    let (ok, out, err) = run(&[
+        "diagonal",
+        "solve",
+        "--from",
+        log.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{out}{err}");
+    let solved: Value = serde_json::from_str(&out).unwrap();
+    let diag_sigma = solved["robust"]["squareness_sigma_urad"][1]
+        .as_f64()
+        .unwrap();
+    println!(
+        "diagnosis: sxz {value:.2} +- {sigma:.2} urad; step diagonal {measured:.2} +- {diag_sigma:.2} urad; truth 40"
+    );
+    assert!((measured - 40.0).abs() < 3.0 * diag_sigma, "{measured}");
+    assert!(
+        (measured - value).abs() < 3.0 * sigma.hypot(diag_sigma),
+        "{measured} vs {value} +- {sigma}"
+    );
+    let after = diagnose("square-after", &["--geometry", g.to_str().unwrap()]);
+    assert!(after.is_empty(), "still blamed: {after:?}");
+}
+
 #[test]
 fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
     let log = tmp("diagonal.csv");

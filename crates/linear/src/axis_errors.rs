@@ -14,6 +14,7 @@
 //! through) are not modelled: the step diagonal's mirror sits at the tool point.
 
 use driftwatch_core::geometry::Vec3;
+use driftwatch_core::kinematics::LinearErrors;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -34,6 +35,35 @@ impl Profile {
     }
 }
 
+/// What an instrument on the linear axes sees: `actual - commanded` of the tool point, um, at
+/// a commanded position (mm) from the measured volume's start corner.
+pub trait ErrorField {
+    fn error_um(&self, p: &Vec3) -> Vec3;
+}
+
+impl ErrorField for AxisErrors {
+    fn error_um(&self, p: &Vec3) -> Vec3 {
+        AxisErrors::error_um(self, p)
+    }
+}
+
+/// The kinematics' own model of the linear axes (scale, squareness, ISO 230-1 components with
+/// their Abbe levers) with the measured volume's start corner at `origin_mm` in machine
+/// coordinates: a step diagonal on the virtual machine's truth. The tool point is where the
+/// components are referred to (`abbe_mm` of the errors).
+#[derive(Debug, Clone, Copy)]
+pub struct Placed<'a> {
+    pub errors: &'a LinearErrors,
+    pub origin_mm: Vec3,
+}
+
+impl ErrorField for Placed<'_> {
+    fn error_um(&self, p: &Vec3) -> Vec3 {
+        let tip = |q: &Vec3| self.errors.tip(&(self.origin_mm + q), &Vec3::zeros());
+        (tip(p) - tip(&Vec3::zeros()) - p) * 1e3
+    }
+}
+
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct AxisErrors {
     /// Measured range of each axis from its start, mm (the profiles' span).
@@ -51,7 +81,7 @@ pub struct AxisErrors {
 impl AxisErrors {
     /// The errors a machine state's `LinearErrors` describe (scale and squareness, nothing
     /// else) over a range: what a step diagonal on the virtual machine sees.
-    pub fn from_linear(l: &driftwatch_core::kinematics::LinearErrors, range_mm: f64) -> Self {
+    pub fn from_linear(l: &LinearErrors, range_mm: f64) -> Self {
         AxisErrors {
             range_mm,
             scale_ppm: l.k.map(|v| v * 1e6),

@@ -47,7 +47,8 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::axis_errors::AxisErrors;
+use crate::axis_errors::ErrorField;
+use driftwatch_core::linear_axes::{COMPONENT_UNIT_MM, LinearGeometry};
 
 /// The four body diagonals by the signs of their X, Y, Z directions.
 pub const DIAGONALS: [[f64; 3]; 4] = [
@@ -154,7 +155,7 @@ pub fn position(r: usize, n: usize) -> usize {
 /// Simulates the four diagonals (out and back with `setup.out_and_back`) and the direct
 /// positioning measurement. Reading `r` is taken `(r + 1) step_time_s` after the run's start.
 pub fn simulate(
-    errors: &AxisErrors,
+    errors: &impl ErrorField,
     setup: &Setup,
     rng: &mut impl Rng,
 ) -> ([DiagonalRun; 4], Positioning) {
@@ -229,6 +230,45 @@ impl Estimate {
             syz: self.squareness_urad[2] * 1e-6,
             ..Default::default()
         }
+    }
+
+    /// The measurement as a machine geometry (what `POST .../geometry` and a machine file's
+    /// `[linear]` take), the volume's start corner at `origin_mm` in machine coordinates:
+    /// scales and squareness from the end-point lines, and each straightness and each
+    /// positioning error beyond its scale as an ISO 230-1 component, a cubic through the
+    /// measured points (least squares with a free constant, which no reading can see: a
+    /// constant offset of the tool is the setter's). Angular errors are not measured by the
+    /// step diagonal and stay zero.
+    pub fn geometry(&self, step_mm: f64, origin_mm: &Vec3) -> LinearGeometry {
+        let n = self.positioning_um[0].len();
+        let range = step_mm * n as f64;
+        let linear = self.linear_errors(range);
+        let mut g = LinearGeometry::of(&linear);
+        let fit = |j: usize, values: &[f64], slope: f64| -> [f64; 3] {
+            let u = |k: usize| (origin_mm[j] + k as f64 * step_mm) / COMPONENT_UNIT_MM;
+            let a = DMatrix::from_fn(n + 1, 4, |k, c| u(k).powi(c as i32));
+            let b = DVector::from_fn(n + 1, |k, _| {
+                let v = if k == 0 { 0.0 } else { values[k - 1] };
+                v - slope * k as f64 * step_mm * 1e3
+            });
+            match a.svd(true, true).solve(&b, 1e-12) {
+                Ok(c) => [c[1], c[2], c[3]],
+                Err(_) => [0.0; 3],
+            }
+        };
+        const AXES: [char; 3] = ['X', 'Y', 'Z'];
+        for (j, axis) in AXES.iter().enumerate() {
+            let c = fit(j, &self.positioning_um[j], linear.k[j]);
+            g.components.insert(format!("E{axis}{axis}"), c);
+        }
+        // Syx, Szx, Sxy, Szy, Sxz, Syz: (direction, axis).
+        let names = [(1, 0), (2, 0), (0, 1), (2, 1), (0, 2), (1, 2)];
+        for (i, (dir, axis)) in names.into_iter().enumerate() {
+            let c = fit(axis, &self.straightness_um[i], 0.0);
+            g.components
+                .insert(format!("E{}{}", AXES[dir], AXES[axis]), c);
+        }
+        g
     }
 
     /// A squareness as the seed tabulates it: um over the measured range.

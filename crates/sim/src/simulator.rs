@@ -645,6 +645,13 @@ fn close_cycle(
     cy
 }
 
+/// The virtual machine's true state at the scenario's start, the spindle off (each channel
+/// at its starting value): what an instrument on the cold machine measures, e.g. the linear
+/// axes for `driftwatch diagonal simulate --scenario`.
+pub fn initial_state(scn: &Scenario, k: &Kinematics) -> Result<MachineState, SimError> {
+    Ok(Virtual::new(k, scn)?.state(0.0))
+}
+
 /// Run a scenario.
 pub fn simulate(scn: &Scenario, k: &Kinematics, plan: &Plan) -> Result<Simulation, SimError> {
     let mut vm = VirtualMachine::new(k, scn)?;

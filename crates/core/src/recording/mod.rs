@@ -354,7 +354,8 @@ pub fn schema(topic: &str) -> (String, Value) {
                     "nuisance": {"type": "object", "additionalProperties": num},
                     "redundancy_um": {"type": "array", "items": num},
                     "chi2_point": num,
-                    "notes": {"type": "array", "items": {"type": "string"}}
+                    "notes": {"type": "array", "items": {"type": "string"}},
+                    "geometry": {"type": "string"}
                 }),
                 &[
                     "cycle",
