@@ -3,7 +3,7 @@
 -- is what every solve of the machine starts from; each cycle result names the version.
 CREATE TABLE geometries (
     machine_id    TEXT NOT NULL REFERENCES machines(id),
-    version       INTEGER NOT NULL,
+    version       BIGINT NOT NULL,
     created_ns    BIGINT NOT NULL,     -- the service clock when it was posted
     requested_by  TEXT NOT NULL,
     source        TEXT NOT NULL,       -- what measured it, in the poster's words

@@ -164,6 +164,7 @@ fn setup_of(s: &StepArgs) -> Result<Setup> {
         drift_um_per_min: Default::default(),
         step_time_s: s.step_time_s,
         out_and_back: false,
+        beam_tilt_urad: [0.0; 4],
     })
 }
 
