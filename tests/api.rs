@@ -189,6 +189,55 @@ async fn alerts_can_be_listed_and_acknowledged_and_metrics_count_cycles() {
     assert_eq!(count("/api/v1/machines/{id}/alerts/{alert}/ack"), 4.0);
     assert!(!text.contains("route=\"/api/v1/machines/m1"));
     assert!(text.contains("driftwatch_webhook_events_total{outcome=\"delivered\"} 0"));
+    // The served set, each error with its unit: what the Grafana dashboard plots.
+    let (_, _, comp) = call(&app, get("/api/v1/machines/m1/compensation")).await;
+    let ez0b = comp["errors"]["EZ0B"].as_f64().unwrap();
+    let line = text
+        .lines()
+        .find(|l| {
+            l.starts_with("driftwatch_served_error{")
+                && l.contains("error=\"EZ0B\"")
+                && l.contains("unit=\"um\"")
+        })
+        .unwrap_or_else(|| panic!("no served EZ0B in {text}"));
+    let v: f64 = line.rsplit(' ').next().unwrap().parse().unwrap();
+    assert!((v - ez0b).abs() < 1e-9, "{line} against {ez0b}");
+    grafana_queries_only_exported_metrics(&text);
+}
+
+/// Every metric the provisioned Grafana dashboard (`deploy/grafana/dashboards`) queries is one
+/// the service exports, and its panels use the provisioned Prometheus data source.
+fn grafana_queries_only_exported_metrics(metrics_text: &str) {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/grafana");
+    let dash: Value = serde_json::from_str(
+        &std::fs::read_to_string(root.join("dashboards/driftwatch.json")).unwrap(),
+    )
+    .unwrap();
+    let datasources =
+        std::fs::read_to_string(root.join("provisioning/datasources/prometheus.yaml")).unwrap();
+    let exported: std::collections::BTreeSet<&str> = metrics_text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| l.split(['{', ' ']).next())
+        .collect();
+    let mut queried = 0;
+    for panel in dash["panels"].as_array().unwrap() {
+        let uid = panel["datasource"]["uid"].as_str().unwrap();
+        assert!(datasources.contains(&format!("uid: {uid}")), "{uid}");
+        for t in panel["targets"].as_array().unwrap() {
+            let expr = t["expr"].as_str().unwrap();
+            let names: Vec<&str> = expr
+                .split(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                .filter(|w| w.starts_with("driftwatch_"))
+                .collect();
+            assert!(!names.is_empty(), "{expr}");
+            for n in names {
+                assert!(exported.contains(n), "{n} (in {expr}) is not exported");
+                queried += 1;
+            }
+        }
+    }
+    assert!(queried >= 10, "{queried}");
 }
 
 /// The OpenAPI document is pinned: a change to the API shows in `docs/openapi.json` (rewrite

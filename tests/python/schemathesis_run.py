@@ -63,8 +63,11 @@ values = [1, 2, 3]
 # bad_reference: constraints between a map's keys, another map and the service's state), and
 # an accepted tool-setter result must lie near its time (422 no_setter_result: the store's
 # state).
+# One on a linear-axis geometry: each coefficient's limit inside its array, the component
+# names (a map's keys) and the stack naming X, Y and Z once each (400 bad_geometry; the
+# source's length and the stack's letters are in the document).
 UNSTATABLE = ("bad_window", "before_last_input", "missing_nominal", "offsets_refused",
-              "bad_reference", "no_setter_result")
+              "bad_reference", "no_setter_result", "bad_geometry")
 
 HOOKS = """\
 import schemathesis
@@ -227,7 +230,7 @@ def main() -> int:
     nf = len(stats["failures"])
     print(f"schemathesis: {stats['requests']} requests, {stats['5xx']} 5xx, {nf} failures"
           + (f" ({detail})" if detail else "")
-          + f"; {stats['unstatable']} refusals of reversed windows or past times (not failures)")
+          + f"; {stats['unstatable']} refusals OpenAPI cannot state (not failures)")
     return 1 if stats["5xx"] or nf else 0
 
 

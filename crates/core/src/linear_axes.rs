@@ -144,16 +144,20 @@ const ROTATIONS: [char; 3] = ['A', 'B', 'C'];
 #[serde(deny_unknown_fields, default)]
 pub struct LinearGeometry {
     /// Scale errors of X, Y, Z, ppm.
+    #[cfg_attr(feature = "openapi", schema(min_items = 3, max_items = 3))]
     pub scale_ppm: [f64; 3],
     /// Squareness, urad, in the kinematics' convention: `xy` (X moves with Y), `xz`, `yz`.
     pub squareness_urad: Squareness,
     /// Component errors beyond scale and squareness by ISO 230-1 name (`EZX`: X's
     /// straightness along Z; `EBX`: X's rotation about Y; `EXX`: X's positioning), each
-    /// `[c1, c2, c3]` of `u = p / 100 mm`, um or urad.
-    pub components: BTreeMap<String, [f64; 3]>,
+    /// `[c1, c2, c3]` of `u = p / 100 mm`, um or urad (three numbers: checked with the
+    /// names, so that a wrong count is named like a wrong name).
+    pub components: BTreeMap<String, Vec<f64>>,
     /// The axes from the bed up to the spindle, e.g. "XYZ" (X carries Y, which carries Z).
+    #[cfg_attr(feature = "openapi", schema(pattern = "^[XYZxyz]{3}$"))]
     pub stack: Option<String>,
     /// The tool tip at the zero pose relative to where the components were measured, mm.
+    #[cfg_attr(feature = "openapi", schema(min_items = 3, max_items = 3))]
     pub abbe_mm: [f64; 3],
 }
 
@@ -172,6 +176,8 @@ pub enum GeometryError {
         "unknown component '{0}': ISO 230-1 names E<direction><axis>, direction X|Y|Z (translation) or A|B|C (rotation), axis X|Y|Z"
     )]
     UnknownComponent(String),
+    #[error("component '{0}' has {1} coefficients: it takes three, [c1, c2, c3]")]
+    Coefficients(String, usize),
     #[error("stack '{0}' must name X, Y and Z once each, from the bed up")]
     Stack(String),
     #[error(
@@ -218,13 +224,17 @@ impl LinearGeometry {
         for (name, c) in &self.components {
             let (j, rotation, i) = parse_component(name)
                 .ok_or_else(|| GeometryError::UnknownComponent(name.clone()))?;
+            let c: [f64; 3] = c
+                .as_slice()
+                .try_into()
+                .map_err(|_| GeometryError::Coefficients(name.clone(), c.len()))?;
             for v in c {
-                check(name, *v, LIMITS[2], if rotation { "urad" } else { "um" })?;
+                check(name, v, LIMITS[2], if rotation { "urad" } else { "um" })?;
             }
             let a = &mut e.axes[j];
             match rotation {
-                true => a.rotation_urad[i] = *c,
-                false => a.translation_um[i] = *c,
+                true => a.rotation_urad[i] = c,
+                false => a.translation_um[i] = c,
             }
         }
         if let Some(st) = &self.stack {
@@ -252,10 +262,16 @@ impl LinearGeometry {
         for (j, a) in e.axes.iter().enumerate() {
             for i in 0..3 {
                 if a.translation_um[i] != [0.0; 3] {
-                    components.insert(format!("E{}{}", AXES[i], AXES[j]), a.translation_um[i]);
+                    components.insert(
+                        format!("E{}{}", AXES[i], AXES[j]),
+                        a.translation_um[i].to_vec(),
+                    );
                 }
                 if a.rotation_urad[i] != [0.0; 3] {
-                    components.insert(format!("E{}{}", ROTATIONS[i], AXES[j]), a.rotation_urad[i]);
+                    components.insert(
+                        format!("E{}{}", ROTATIONS[i], AXES[j]),
+                        a.rotation_urad[i].to_vec(),
+                    );
                 }
             }
         }
@@ -364,6 +380,10 @@ mod tests {
             GeometryError::UnknownComponent(_)
         ));
         assert!(matches!(bad("stack = \"XXZ\""), GeometryError::Stack(_)));
+        assert!(matches!(
+            bad("components = { EZX = [1, 0] }"),
+            GeometryError::Coefficients(_, 2)
+        ));
         assert!(g.errors().is_ok() && !g.is_zero() && LinearGeometry::default().is_zero());
     }
 }

@@ -267,14 +267,14 @@ impl Estimate {
         const AXES: [char; 3] = ['X', 'Y', 'Z'];
         for (j, axis) in AXES.iter().enumerate() {
             let c = fit(j, &self.positioning_um[j], linear.k[j]);
-            g.components.insert(format!("E{axis}{axis}"), c);
+            g.components.insert(format!("E{axis}{axis}"), c.to_vec());
         }
         // Syx, Szx, Sxy, Szy, Sxz, Syz: (direction, axis).
         let names = [(1, 0), (2, 0), (0, 1), (2, 1), (0, 2), (1, 2)];
         for (i, (dir, axis)) in names.into_iter().enumerate() {
             let c = fit(axis, &self.straightness_um[i], 0.0);
             g.components
-                .insert(format!("E{}{}", AXES[dir], AXES[axis]), c);
+                .insert(format!("E{}{}", AXES[dir], AXES[axis]), c.to_vec());
         }
         g
     }

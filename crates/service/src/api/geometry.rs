@@ -21,6 +21,7 @@ use crate::store::StoredGeometry;
 #[serde(deny_unknown_fields)]
 pub struct GeometryPost {
     /// What measured it (instrument, date, report): named in every result solved with it.
+    #[schema(min_length = 1, max_length = 200, pattern = r"\S")]
     pub source: String,
     pub geometry: LinearGeometry,
 }

@@ -69,6 +69,22 @@ fn describe() {
         "Version of the compensation set served to the NC (0: none)."
     );
     describe_gauge!("driftwatch_open_alerts", "Alerts open now.");
+    describe_gauge!(
+        "driftwatch_served_error",
+        "Each error of the compensation set served to the NC, in its unit (um or urad)."
+    );
+    describe_gauge!(
+        "driftwatch_served_error_sigma",
+        "The standard uncertainty of each served error, in its unit (um or urad)."
+    );
+    describe_gauge!(
+        "driftwatch_served_valid_from_seconds",
+        "When the served set became valid, s since the Unix epoch (its age: time() minus this)."
+    );
+    describe_gauge!(
+        "driftwatch_served_measured",
+        "1 when the served set was measured by a cycle, 0 when the thermal model predicted it."
+    );
     describe_counter!(
         "driftwatch_nc_events_refused_clock_skew_total",
         "NC events refused because their time lay beyond the tolerance from the service clock."
@@ -119,7 +135,25 @@ fn record_state(st: &super::ApiState) {
             .absolute(v.health.faults);
         gauge!("driftwatch_compensation_version", "machine" => id.clone())
             .set(v.compensation.as_ref().map_or(0.0, |c| c.version as f64));
-        gauge!("driftwatch_open_alerts", "machine" => id).set(v.open_alerts.len() as f64);
+        gauge!("driftwatch_open_alerts", "machine" => id.clone()).set(v.open_alerts.len() as f64);
+        if let Some(c) = &v.compensation {
+            for (name, value) in &c.errors {
+                let labels = [
+                    ("machine", id.clone()),
+                    ("error", name.to_string()),
+                    ("unit", name.unit().to_string()),
+                ];
+                gauge!("driftwatch_served_error", &labels).set(*value);
+                if let Some(s) = c.sigma.get(name) {
+                    gauge!("driftwatch_served_error_sigma", &labels).set(*s);
+                }
+            }
+            gauge!("driftwatch_served_valid_from_seconds", "machine" => id.clone())
+                .set(c.valid_from_ns as f64 * 1e-9);
+            let measured = matches!(c.source, driftwatch_machine::compensation::Source::Measured);
+            gauge!("driftwatch_served_measured", "machine" => id)
+                .set(f64::from(u8::from(measured)));
+        }
     }
     for (id, h) in &st.machines {
         if let Some(nc) = &h.nc {
@@ -141,7 +175,7 @@ fn record_state(st: &super::ApiState) {
 }
 
 /// Prometheus text: cycles by status, solve time, compensation version, open alerts.
-#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Prometheus text: cycles by outcome, solve time, compensation version, open alerts, machine-loop faults, webhook outcomes, request latency by route", body = String, content_type = "text/plain")))]
+#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Prometheus text: cycles by outcome, solve time, compensation version, the served set's errors and uncertainties (by machine, error and unit), when it became valid and whether it was measured, open alerts, machine-loop faults, webhook outcomes, request latency by route", body = String, content_type = "text/plain")))]
 pub(super) async fn metrics(State(st): State<Shared>) -> Response {
     st.metrics.with(|| record_state(&st));
     let out = st.metrics.handle.render();
