@@ -741,6 +741,8 @@ fn the_thermal_model_fits_the_six_errors_of_a_simulated_recording() {
             "serve-data-{}",
             model.file_stem().unwrap().to_str().unwrap()
         ));
+        // A store left by an earlier run would be restored: each run starts empty.
+        let _ = std::fs::remove_dir_all(&data);
         run(&[
             "serve",
             "--config",
