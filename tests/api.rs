@@ -2,6 +2,9 @@
 //! ETag and 304, operator requests and their authorisation, errors as JSON.
 
 mod common;
+// The dashboard in headless Chromium (in this binary: no link of its own).
+#[path = "api/dashboard.rs"]
+mod dashboard;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};

@@ -1,11 +1,12 @@
 //! The HTTP API (axum, JSON under `/api/v1`): one router per resource (machines, cycles,
 //! diagnoses, verifications, alerts, the NC door, metrics), bearer tokens with roles (`auth`), one error type
-//! (`error`). Reads may be anonymous by configuration. Shell code: it reads what the machine
+//! (`error`); and the dashboard's static files at `/` (`dashboard`), the API's first client. Reads may be anonymous by configuration. Shell code: it reads what the machine
 //! loops publish and the store, and never blocks on a running solve.
 
 mod alerts;
 mod auth;
 mod cycles;
+mod dashboard;
 mod diagnoses;
 mod error;
 mod geometry;
@@ -216,6 +217,9 @@ pub fn router(state: Shared) -> Router {
             state.clone(),
             metrics::timed,
         ))
+        // The dashboard's files: no token (its data calls follow the API's rules), not timed,
+        // and not in the OpenAPI document (they are not JSON).
+        .merge(dashboard::routes())
         .with_state(state)
         .fallback(|| async { ApiError::new(ErrorCode::NotFound, "no such endpoint") });
     edges(app, timeout)
