@@ -257,6 +257,10 @@ impl MachineConfigEntry {
 pub struct ServiceConfig {
     /// Where the database and the recordings go.
     pub data_dir: PathBuf,
+    /// The database: absent, the SQLite file `driftwatch.db` in `data_dir`; `postgres://...`,
+    /// a PostgreSQL database (the recordings stay in `data_dir`).
+    #[serde(default)]
+    pub database_url: Option<String>,
     /// Simulated seconds per wall second (1 for real machines).
     pub time_scale: f64,
     /// Largest MCAP file before a new one is started, MiB.
@@ -319,6 +323,15 @@ impl ServiceConfig {
         }
         if self.machines.is_empty() {
             return bad("no machines configured".into());
+        }
+        if let Some(url) = &self.database_url
+            && crate::store::Backend::of_url(url).is_none()
+        {
+            return bad(
+                "database_url must be a postgres:// (or sqlite://) URL; leave it out for the \
+                 SQLite file in data_dir"
+                    .into(),
+            );
         }
         if self.http.diagnoses_kept < 1 {
             return bad(format!(
@@ -493,6 +506,25 @@ mod tests {
         assert!(e.contains("time_scale"), "{e}");
         let text = DEFAULT_CONFIG.replace("data_dir", "data_folder");
         assert!(ServiceConfig::from_toml(&text, "t").is_err());
+        // The database: the SQLite file unless a PostgreSQL URL is given.
+        assert_eq!(
+            ServiceConfig::from_toml(DEFAULT_CONFIG, "t")
+                .unwrap()
+                .database_url,
+            None
+        );
+        let text = DEFAULT_CONFIG.replace("# database_url = ", "database_url = ");
+        assert_ne!(text, DEFAULT_CONFIG, "the default documents database_url");
+        let c = ServiceConfig::from_toml(&text, "t").unwrap();
+        assert!(c.database_url.unwrap().starts_with("postgres://"));
+        let text = DEFAULT_CONFIG.replace(
+            "data_dir = \"./data\"",
+            "data_dir = \"./data\"\ndatabase_url = \"mysql://db/x\"",
+        );
+        let e = ServiceConfig::from_toml(&text, "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("database_url"), "{e}");
         let text = DEFAULT_CONFIG.replace("max_gap_min = 60.0", "max_gap_min = 0.0");
         assert_ne!(
             text, DEFAULT_CONFIG,

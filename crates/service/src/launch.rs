@@ -131,7 +131,10 @@ pub async fn launch_with(
         path: cfg.data_dir.clone(),
         source,
     })?;
-    let store = Store::open(&cfg.data_dir.join("driftwatch.db")).await?;
+    let store = match &cfg.database_url {
+        Some(url) => Store::connect(url).await?,
+        None => Store::open(&cfg.data_dir.join("driftwatch.db")).await?,
+    };
     let (links, t0) = links(&cfg, &store).await?;
     let t0 = opts.start_ns.unwrap_or(t0);
     let (clock, manual_clock) = match opts.clock {

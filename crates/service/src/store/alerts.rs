@@ -9,14 +9,37 @@ use super::{Store, StoreError};
 
 /// What happened to an alert (stored as its lowercase name): the engine's events and the
 /// operator's acknowledgement.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
-#[sqlx(rename_all = "lowercase")]
 pub enum AlertEventKind {
     Raised,
     Updated,
     Resolved,
     Acknowledged,
+}
+
+impl AlertEventKind {
+    /// The stored text.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AlertEventKind::Raised => "raised",
+            AlertEventKind::Updated => "updated",
+            AlertEventKind::Resolved => "resolved",
+            AlertEventKind::Acknowledged => "acknowledged",
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Self, StoreError> {
+        match s {
+            "raised" => Ok(AlertEventKind::Raised),
+            "updated" => Ok(AlertEventKind::Updated),
+            "resolved" => Ok(AlertEventKind::Resolved),
+            "acknowledged" => Ok(AlertEventKind::Acknowledged),
+            other => Err(StoreError::Corrupt(format!(
+                "alert event kind '{other}' is none of raised, updated, resolved, acknowledged"
+            ))),
+        }
+    }
 }
 
 impl From<EventKind> for AlertEventKind {
@@ -109,7 +132,7 @@ impl Store {
         .bind(machine)
         .bind(ev.alert)
         .bind(ev.t_ns)
-        .bind(ev.kind)
+        .bind(ev.kind.as_str())
         .bind(ev.rule)
         .bind(AlertSeverity::column(ev.severity))
         .bind(ev.message)
@@ -147,9 +170,9 @@ impl Store {
                     alert: r.try_get(0)?,
                     seq: r.try_get(1)?,
                     t_ns: r.try_get(2)?,
-                    kind: r.try_get(3)?,
+                    kind: AlertEventKind::of_column(&r.try_get::<String, _>(3)?)?,
                     rule: r.try_get(4)?,
-                    severity: AlertSeverity::of_column(r.try_get::<&str, _>(5)?)?,
+                    severity: AlertSeverity::of_column(&r.try_get::<String, _>(5)?)?,
                     message: r.try_get(6)?,
                     value: r.try_get(7)?,
                 })

@@ -11,9 +11,8 @@ use super::sets::insert_set;
 use super::{ErrorSample, NewCompensation, Store, StoreError};
 
 /// A cycle's state in the `cycles` table (stored as its lowercase name).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
-#[sqlx(rename_all = "lowercase")]
 pub enum CycleStatus {
     /// Started, no result yet (or left by a crash until the restart abandons it).
     Open,
@@ -25,14 +24,33 @@ pub enum CycleStatus {
     Abandoned,
 }
 
-impl std::fmt::Display for CycleStatus {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
+impl CycleStatus {
+    /// The stored text (both engines store the states as text).
+    pub fn as_str(self) -> &'static str {
+        match self {
             CycleStatus::Open => "open",
             CycleStatus::Ok => "ok",
             CycleStatus::Rejected => "rejected",
             CycleStatus::Abandoned => "abandoned",
-        })
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Self, StoreError> {
+        match s {
+            "open" => Ok(CycleStatus::Open),
+            "ok" => Ok(CycleStatus::Ok),
+            "rejected" => Ok(CycleStatus::Rejected),
+            "abandoned" => Ok(CycleStatus::Abandoned),
+            other => Err(StoreError::Corrupt(format!(
+                "cycle status '{other}' is none of open, ok, rejected, abandoned"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for CycleStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
     }
 }
 
@@ -45,13 +63,13 @@ impl From<ResultStatus> for CycleStatus {
     }
 }
 
-fn cycle_row(r: &sqlx::sqlite::SqliteRow) -> Result<CycleRow, StoreError> {
+fn cycle_row(r: &sqlx::any::AnyRow) -> Result<CycleRow, StoreError> {
     Ok(CycleRow {
         cycle: r.try_get(0)?,
         started_ns: r.try_get(1)?,
         trigger: r.try_get(2)?,
         attempt: r.try_get(3)?,
-        status: r.try_get(4)?,
+        status: CycleStatus::of_column(&r.try_get::<String, _>(4)?)?,
         finished_ns: r.try_get(5)?,
         reason: r.try_get(6)?,
     })
@@ -105,7 +123,7 @@ impl Store {
         .bind(started_ns)
         .bind(trigger)
         .bind(attempt)
-        .bind(CycleStatus::Open)
+        .bind(CycleStatus::Open.as_str())
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -124,18 +142,21 @@ impl Store {
             .map(|(i, r)| (i as i64, r))
             .collect();
         for chunk in numbered.chunks(1000) {
-            let mut q = sqlx::QueryBuilder::new(
-                "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload) ",
+            let sql = format!(
+                "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload) {}",
+                super::values_placeholders(chunk.len(), 6)
             );
-            q.push_values(chunk, |mut b, (seq, r)| {
-                b.push_bind(machine)
-                    .push_bind(cycle)
-                    .push_bind(*seq)
-                    .push_bind(r.t_ns)
-                    .push_bind(r.step)
-                    .push_bind(r.payload.as_str());
-            });
-            q.build().execute(&self.pool).await?;
+            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            for (seq, r) in chunk {
+                q = q
+                    .bind(machine)
+                    .bind(cycle)
+                    .bind(*seq)
+                    .bind(r.t_ns)
+                    .bind(r.step)
+                    .bind(r.payload.as_str());
+            }
+            q.execute(&self.pool).await?;
         }
         Ok(())
     }
@@ -170,7 +191,7 @@ impl Store {
         )
         .bind(machine)
         .bind(result.cycle)
-        .bind(status)
+        .bind(status.as_str())
         .bind(finished_ns)
         .bind(result.reason.as_deref())
         .execute(&mut *tx)
@@ -182,7 +203,7 @@ impl Store {
         .bind(machine)
         .bind(result.cycle)
         .bind(result.t_ns)
-        .bind(status)
+        .bind(status.as_str())
         .bind(result.reason.as_deref())
         .bind(result.residual_rms_um)
         .bind(result.chi2)
@@ -234,7 +255,7 @@ impl Store {
              FROM cycles WHERE machine_id = $1",
         )
         .bind(machine)
-        .bind(CycleStatus::Ok)
+        .bind(CycleStatus::Ok.as_str())
         .fetch_one(&self.pool)
         .await?;
         Ok((row.try_get(0)?, row.try_get(1)?))
@@ -255,8 +276,8 @@ impl Store {
         .bind(cycle)
         .bind(now_ns)
         .bind(reason)
-        .bind(CycleStatus::Abandoned)
-        .bind(CycleStatus::Open)
+        .bind(CycleStatus::Abandoned.as_str())
+        .bind(CycleStatus::Open.as_str())
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -268,7 +289,7 @@ impl Store {
             "SELECT cycle FROM cycles WHERE machine_id = $1 AND status = $2 ORDER BY cycle",
         )
         .bind(machine)
-        .bind(CycleStatus::Open)
+        .bind(CycleStatus::Open.as_str())
         .fetch_all(&self.pool)
         .await?;
         rows.iter().map(|r| Ok(r.try_get::<i64, _>(0)?)).collect()
@@ -358,7 +379,7 @@ impl Store {
              ORDER BY t_ns, cycle",
         )
         .bind(machine)
-        .bind(CycleStatus::Ok)
+        .bind(CycleStatus::Ok.as_str())
         .bind(from_ns)
         .bind(to_ns)
         .fetch_all(&self.pool)
@@ -422,7 +443,7 @@ impl Store {
             .bind(machine)
             .bind(from_ns)
             .bind(to_ns)
-            .bind(CycleStatus::Ok)
+            .bind(CycleStatus::Ok.as_str())
             .fetch_all(&self.pool)
             .await?;
             for r in &rows {

@@ -7,12 +7,31 @@ use sqlx::Row;
 use super::{Store, StoreError};
 
 /// How a diagnosis run ended (stored as its lowercase name).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type, utoipa::ToSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
-#[sqlx(rename_all = "lowercase")]
 pub enum DiagnosisStatus {
     Done,
     Failed,
+}
+
+impl DiagnosisStatus {
+    /// The stored text.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DiagnosisStatus::Done => "done",
+            DiagnosisStatus::Failed => "failed",
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Self, StoreError> {
+        match s {
+            "done" => Ok(DiagnosisStatus::Done),
+            "failed" => Ok(DiagnosisStatus::Failed),
+            other => Err(StoreError::Corrupt(format!(
+                "diagnosis status '{other}' is none of done, failed"
+            ))),
+        }
+    }
 }
 
 /// A diagnosis run's columns 0-6 (id .. summary) as JSON.
@@ -38,14 +57,14 @@ pub struct StoredDiagnosis {
     pub result: Option<Value>,
 }
 
-fn diagnosis_row(r: &sqlx::sqlite::SqliteRow) -> Result<DiagnosisRow, StoreError> {
+fn diagnosis_row(r: &sqlx::any::AnyRow) -> Result<DiagnosisRow, StoreError> {
     Ok(DiagnosisRow {
         id: r.try_get(0)?,
         requested_ns: r.try_get(1)?,
         requested_by: r.try_get(2)?,
         from_ns: r.try_get(3)?,
         to_ns: r.try_get(4)?,
-        status: r.try_get(5)?,
+        status: DiagnosisStatus::of_column(&r.try_get::<String, _>(5)?)?,
         summary: r.try_get(6)?,
     })
 }
@@ -78,7 +97,7 @@ impl Store {
         .bind(d.requested_by)
         .bind(d.from_ns)
         .bind(d.to_ns)
-        .bind(d.status)
+        .bind(d.status.as_str())
         .bind(d.summary)
         .bind(d.result)
         .fetch_one(&self.pool)

@@ -6,9 +6,8 @@ use sqlx::Row;
 use super::{Store, StoreError};
 
 /// An MCAP file's state in the `mcap_files` table (stored as its lowercase name).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, sqlx::Type)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
-#[sqlx(rename_all = "lowercase")]
 pub enum FileStatus {
     /// Being written (`.partial`).
     Open,
@@ -16,6 +15,28 @@ pub enum FileStatus {
     Closed,
     /// Rescued up to its last flush after a crash.
     Recovered,
+}
+
+impl FileStatus {
+    /// The stored text.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FileStatus::Open => "open",
+            FileStatus::Closed => "closed",
+            FileStatus::Recovered => "recovered",
+        }
+    }
+
+    fn of_column(s: &str) -> Result<Self, StoreError> {
+        match s {
+            "open" => Ok(FileStatus::Open),
+            "closed" => Ok(FileStatus::Closed),
+            "recovered" => Ok(FileStatus::Recovered),
+            other => Err(StoreError::Corrupt(format!(
+                "file status '{other}' is none of open, closed, recovered"
+            ))),
+        }
+    }
 }
 
 impl Store {
@@ -32,7 +53,7 @@ impl Store {
         .bind(machine)
         .bind(path)
         .bind(opened_ns)
-        .bind(FileStatus::Open)
+        .bind(FileStatus::Open.as_str())
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -57,7 +78,7 @@ impl Store {
         .bind(machine)
         .bind(partial)
         .bind(closed_ns)
-        .bind(FileStatus::Open)
+        .bind(FileStatus::Open.as_str())
         .execute(&mut *tx)
         .await?;
         sqlx::query(
@@ -66,7 +87,7 @@ impl Store {
         .bind(partial)
         .bind(path)
         .bind(closed_ns)
-        .bind(status)
+        .bind(status.as_str())
         .bind(messages)
         .execute(&mut *tx)
         .await?;
@@ -83,7 +104,12 @@ impl Store {
         .fetch_all(&self.pool)
         .await?;
         rows.iter()
-            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+            .map(|r| {
+                Ok((
+                    r.try_get(0)?,
+                    FileStatus::of_column(&r.try_get::<String, _>(1)?)?,
+                ))
+            })
             .collect()
     }
 }

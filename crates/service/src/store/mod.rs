@@ -1,8 +1,12 @@
-//! Storage of the service: SQLite through sqlx, schema in `migrations/` (embedded, applied at
-//! open), WAL with synchronous NORMAL, foreign keys on. Runtime queries in portable SQL.
-//! Shell code, with `recorder` and `recording::mcap_io` the only modules that touch files.
+//! Storage of the service: SQLite (the default, one file in the data directory) or PostgreSQL
+//! (`database_url = "postgres://..."`) through sqlx's `Any` driver, one implementation of the
+//! queries in portable SQL; what differs between the engines (connecting, migrations, SQLite's
+//! pragmas) is in [`backend`]. Schemas in `migrations/sqlite/` and `migrations/postgres/`
+//! (embedded, applied at open). Shell code, with `recorder` and `recording::mcap_io` the only
+//! modules that touch files.
 
 mod alerts;
+mod backend;
 mod cycles;
 mod diagnoses;
 mod files;
@@ -11,7 +15,11 @@ mod samples;
 mod sets;
 mod verifications;
 
+#[cfg(test)]
+pub(crate) mod pg_test;
+
 pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
+pub use backend::Backend;
 pub use cycles::{CycleRow, CycleStatus, DetectionRow};
 pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis};
 pub use files::FileStatus;
@@ -21,19 +29,16 @@ pub use sets::NewCompensation;
 pub use verifications::StoredVerification;
 
 use std::path::Path;
-use std::str::FromStr;
-use std::time::Duration;
 
-use sqlx::Row;
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
+use sqlx::AnyPool;
 use thiserror::Error;
 
 #[derive(Debug, Error)]
 pub enum StoreError {
     #[error("cannot open database {path}: {source}")]
     Open { path: String, source: sqlx::Error },
+    #[error("database URL {0}: neither sqlite:// nor postgres://")]
+    Url(String),
     #[error("cannot apply the database migrations: {0}")]
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("database: {0}")]
@@ -48,50 +53,60 @@ pub use driftwatch_core::series::ErrorSample;
 
 #[derive(Clone)]
 pub struct Store {
-    pool: SqlitePool,
+    pool: AnyPool,
+    backend: Backend,
+}
+
+/// `VALUES ($1, $2, ...), (...)` for `rows` rows of `cols` columns: a multi-row insert in the
+/// placeholders both engines read (the `Any` driver's query builder writes `?`, which
+/// PostgreSQL does not).
+fn values_placeholders(rows: usize, cols: usize) -> String {
+    let mut s = String::from("VALUES ");
+    for r in 0..rows {
+        if r > 0 {
+            s.push_str(", ");
+        }
+        s.push('(');
+        for c in 0..cols {
+            if c > 0 {
+                s.push_str(", ");
+            }
+            s.push_str(&format!("${}", r * cols + c + 1));
+        }
+        s.push(')');
+    }
+    s
 }
 
 impl Store {
-    /// Open (creating if needed) the database file and apply the migrations.
+    /// Open (creating if needed) the SQLite database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, StoreError> {
-        let url = format!("sqlite://{}", path.display());
-        let opts = SqliteConnectOptions::from_str(&url)
-            .map_err(|source| StoreError::Open {
-                path: path.display().to_string(),
-                source,
-            })?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            // NORMAL in WAL mode never corrupts and keeps every commit through a process crash;
-            // only a power loss can take the last commits.
-            .synchronous(SqliteSynchronous::Normal)
-            .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(5));
-        let pool = SqlitePoolOptions::new()
-            .max_connections(4)
-            .connect_with(opts)
-            .await
-            .map_err(|source| StoreError::Open {
-                path: path.display().to_string(),
-                source,
-            })?;
-        sqlx::migrate!("../../migrations").run(&pool).await?;
-        Ok(Store { pool })
+        Self::connect(&Backend::sqlite_url(path)).await
     }
 
-    /// `PRAGMA integrity_check`: "ok" for a sound database.
+    /// Connect to `sqlite://PATH` (created if missing) or `postgres://...` and apply that
+    /// engine's migrations.
+    pub async fn connect(url: &str) -> Result<Self, StoreError> {
+        let backend =
+            Backend::of_url(url).ok_or_else(|| StoreError::Url(backend::redacted(url)))?;
+        let pool = backend.connect(url).await?;
+        Ok(Store { pool, backend })
+    }
+
+    /// The engine this store runs on.
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
+    /// SQLite's `PRAGMA integrity_check`: "ok" for a sound database (on PostgreSQL, which
+    /// checks its own pages, it says it does not apply).
     pub async fn integrity_check(&self) -> Result<String, StoreError> {
-        let row = sqlx::query("PRAGMA integrity_check")
-            .fetch_one(&self.pool)
-            .await?;
-        Ok(row.try_get::<String, _>(0)?)
+        self.backend.integrity_check(&self.pool).await
     }
 
+    /// SQLite's journal mode, "wal" as opened (PostgreSQL always logs ahead: "wal").
     pub async fn journal_mode(&self) -> Result<String, StoreError> {
-        let row = sqlx::query("PRAGMA journal_mode")
-            .fetch_one(&self.pool)
-            .await?;
-        Ok(row.try_get::<String, _>(0)?)
+        self.backend.journal_mode(&self.pool).await
     }
 
     pub async fn close(&self) {
@@ -126,7 +141,7 @@ impl Store {
                 UNION ALL SELECT MAX(COALESCE(finished_ns, started_ns)) FROM cycles WHERE machine_id = $1
                 UNION ALL SELECT MAX(valid_from_ns) FROM compensation_sets WHERE machine_id = $1
                 UNION ALL SELECT MAX(t_ns) FROM alert_events WHERE machine_id = $1
-            )",
+            ) AS latest",
         )
         .bind(machine)
         .fetch_one(&self.pool)
@@ -141,12 +156,48 @@ mod tests {
     use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
     use std::collections::BTreeMap;
 
-    fn temp_db(name: &str) -> std::path::PathBuf {
+    /// A fresh SQLite file's URL.
+    fn sqlite_db(name: &str) -> String {
         let dir =
             std::env::temp_dir().join(format!("driftwatch-store-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        dir.join("driftwatch.db")
+        Backend::sqlite_url(&dir.join("driftwatch.db"))
+    }
+
+    /// `integrity_check`'s answer on a sound database of `store`'s engine.
+    fn sound(store: &Store) -> &'static str {
+        match store.backend() {
+            Backend::Sqlite => "ok",
+            Backend::Postgres => "not applicable (PostgreSQL)",
+        }
+    }
+
+    /// Each test body runs twice, on a fresh database of each engine: `sqlite::NAME` on a new
+    /// file, `postgres::NAME` on a new database of the test server (`pg_test`).
+    macro_rules! on_both_backends {
+        ($(async fn $name:ident($db:ident: &str) $body:block)*) => {
+            mod sqlite {
+                use super::*;
+                $(
+                    #[tokio::test]
+                    async fn $name() {
+                        let $db: &str = &sqlite_db(stringify!($name));
+                        $body
+                    }
+                )*
+            }
+            mod postgres {
+                use super::*;
+                $(
+                    #[tokio::test]
+                    async fn $name() {
+                        let $db: &str = &crate::store::pg_test::database().await;
+                        $body
+                    }
+                )*
+            }
+        };
     }
 
     fn result(cycle: i64, ok: bool) -> CycleResultMsg {
@@ -177,318 +228,315 @@ mod tests {
         }
     }
 
-    #[tokio::test]
-    async fn a_cycle_round_trips_with_its_detections_result_and_series() {
-        let store = Store::open(&temp_db("cycle")).await.unwrap();
-        assert_eq!(store.journal_mode().await.unwrap(), "wal");
-        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
-        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 1);
-        store.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
-        store
-            .add_detections(
-                "m1",
-                1,
-                &[DetectionRow {
-                    t_ns: 11,
-                    step: "B0C0/z",
-                    payload: r#"{"step":"B0C0/z"}"#.into(),
-                }],
-            )
-            .await
-            .unwrap();
-        assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
-        store.close_cycle("m1", &result(1, true), 20).await.unwrap();
-        assert!(store.open_cycles("m1").await.unwrap().is_empty());
-        assert_eq!(
-            store.result("m1", 1).await.unwrap().unwrap(),
-            result(1, true)
-        );
-        let d = store.detections("m1", 1).await.unwrap();
-        assert_eq!(d[0].1["step"], "B0C0/z");
-        store
-            .open_cycle("m1", 2, 30, "after stop", 1)
-            .await
-            .unwrap();
-        store
-            .close_cycle("m1", &result(2, false), 40)
-            .await
-            .unwrap();
-        // Only validated values make the series.
-        let series = store
-            .error_series("m1", 0, i64::MAX, true, true)
-            .await
-            .unwrap();
-        assert_eq!(series.len(), 2);
-        assert!(series.iter().all(|s| s.cycle == 1));
-        let cycles = store.cycles("m1", 10, None).await.unwrap();
-        assert_eq!(cycles[0].status, CycleStatus::Rejected);
-        assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
-        assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);
-        assert_eq!(store.integrity_check().await.unwrap(), "ok");
-    }
+    on_both_backends! {
+        async fn a_cycle_round_trips_with_its_detections_result_and_series(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            assert_eq!(store.journal_mode().await.unwrap(), "wal");
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            assert_eq!(store.next_cycle_number("m1").await.unwrap(), 1);
+            store.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
+            store
+                .add_detections(
+                    "m1",
+                    1,
+                    &[DetectionRow {
+                        t_ns: 11,
+                        step: "B0C0/z",
+                        payload: r#"{"step":"B0C0/z"}"#.into(),
+                    }],
+                )
+                .await
+                .unwrap();
+            assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
+            store.close_cycle("m1", &result(1, true), 20).await.unwrap();
+            assert!(store.open_cycles("m1").await.unwrap().is_empty());
+            assert_eq!(
+                store.result("m1", 1).await.unwrap().unwrap(),
+                result(1, true)
+            );
+            let d = store.detections("m1", 1).await.unwrap();
+            assert_eq!(d[0].1["step"], "B0C0/z");
+            store
+                .open_cycle("m1", 2, 30, "after stop", 1)
+                .await
+                .unwrap();
+            store
+                .close_cycle("m1", &result(2, false), 40)
+                .await
+                .unwrap();
+            // Only validated values make the series.
+            let series = store
+                .error_series("m1", 0, i64::MAX, true, true)
+                .await
+                .unwrap();
+            assert_eq!(series.len(), 2);
+            assert!(series.iter().all(|s| s.cycle == 1));
+            let cycles = store.cycles("m1", 10, None).await.unwrap();
+            assert_eq!(cycles[0].status, CycleStatus::Rejected);
+            assert_eq!(cycles[0].reason.as_deref(), Some("missing steps"));
+            assert_eq!(store.next_cycle_number("m1").await.unwrap(), 3);
+            assert_eq!(store.integrity_check().await.unwrap(), sound(&store));
+        }
 
-    #[tokio::test]
-    async fn foreign_keys_and_versions_are_enforced() {
-        let store = Store::open(&temp_db("fk")).await.unwrap();
-        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
-        // A detection of a cycle that was never opened is refused.
-        let row = DetectionRow {
-            t_ns: 1,
-            step: "x",
-            payload: "{}".into(),
-        };
-        assert!(store.add_detections("m1", 9, &[row]).await.is_err());
-        let v = || r#"{"errors": {"EZ0B": 1.0}, "sigma": {"EZ0B": 0.5}}"#.to_string();
-        store
-            .insert_compensation(
-                "m1",
-                &NewCompensation {
-                    version: 1,
-                    valid_from_ns: 5,
-                    source: "measured",
-                    cycle: Some(1),
-                    reason: "cycle 1",
-                    values: v(),
-                },
-            )
-            .await
-            .unwrap();
-        assert!(
+        async fn foreign_keys_and_versions_are_enforced(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            // A detection of a cycle that was never opened is refused.
+            let row = DetectionRow {
+                t_ns: 1,
+                step: "x",
+                payload: "{}".into(),
+            };
+            assert!(store.add_detections("m1", 9, &[row]).await.is_err());
+            let v = || r#"{"errors": {"EZ0B": 1.0}, "sigma": {"EZ0B": 0.5}}"#.to_string();
             store
                 .insert_compensation(
                     "m1",
                     &NewCompensation {
                         version: 1,
-                        valid_from_ns: 6,
+                        valid_from_ns: 5,
                         source: "measured",
-                        cycle: Some(2),
-                        reason: "again",
-                        values: v()
-                    }
+                        cycle: Some(1),
+                        reason: "cycle 1",
+                        values: v(),
+                    },
                 )
                 .await
-                .is_err()
-        );
-        store
-            .insert_compensation(
-                "m1",
-                &NewCompensation {
-                    version: 2,
-                    valid_from_ns: 7,
-                    source: "measured",
-                    cycle: Some(2),
-                    reason: "cycle 2",
-                    values: v(),
-                },
-            )
-            .await
-            .unwrap();
-        let latest = store.latest_compensation("m1").await.unwrap().unwrap();
-        assert_eq!(
-            (latest.version, latest.errors["EZ0B"], latest.sigma["EZ0B"]),
-            (2, 1.0, 0.5)
-        );
-        // Offsets are the machine's layout's, filled in by its core, not the store's.
-        assert!(latest.offsets.is_empty());
-        assert!(
+                .unwrap();
+            assert!(
+                store
+                    .insert_compensation(
+                        "m1",
+                        &NewCompensation {
+                            version: 1,
+                            valid_from_ns: 6,
+                            source: "measured",
+                            cycle: Some(2),
+                            reason: "again",
+                            values: v()
+                        }
+                    )
+                    .await
+                    .is_err()
+            );
             store
                 .insert_compensation(
                     "m1",
                     &NewCompensation {
-                        version: 3,
-                        valid_from_ns: 8,
-                        source: "guessed",
-                        cycle: None,
-                        reason: "bad source",
-                        values: v()
+                        version: 2,
+                        valid_from_ns: 7,
+                        source: "measured",
+                        cycle: Some(2),
+                        reason: "cycle 2",
+                        values: v(),
+                    },
+                )
+                .await
+                .unwrap();
+            let latest = store.latest_compensation("m1").await.unwrap().unwrap();
+            assert_eq!(
+                (latest.version, latest.errors["EZ0B"], latest.sigma["EZ0B"]),
+                (2, 1.0, 0.5)
+            );
+            // Offsets are the machine's layout's, filled in by its core, not the store's.
+            assert!(latest.offsets.is_empty());
+            assert!(
+                store
+                    .insert_compensation(
+                        "m1",
+                        &NewCompensation {
+                            version: 3,
+                            valid_from_ns: 8,
+                            source: "guessed",
+                            cycle: None,
+                            reason: "bad source",
+                            values: v()
+                        }
+                    )
+                    .await
+                    .is_err()
+            );
+        }
+
+        async fn data_survives_reopening(db: &str) {
+                    {
+                let store = Store::connect(db).await.unwrap();
+                store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+                let rows = [
+                    Sample::Spindle {
+                        t_ns: 60,
+                        rpm: 20000.0,
+                    },
+                    Sample::Temperature {
+                        t_ns: 60,
+                        sensor: "ambient".into(),
+                        celsius: 20.5,
+                    },
+                    // A repeated time replaces the value rather than failing the batch.
+                    Sample::Spindle {
+                        t_ns: 60,
+                        rpm: 18000.0,
+                    },
+                ];
+                store.add_samples("m1", &rows).await.unwrap();
+                store
+                    .mcap_file_opened("m1", "m1/2026-03-02.mcap.partial", 1)
+                    .await
+                    .unwrap();
+                store
+                    .add_alert_event(
+                        "m1",
+                        &NewAlertEvent {
+                            alert: 1,
+                            t_ns: 5,
+                            kind: AlertEventKind::Raised,
+                            rule: "threshold:EZ0B",
+                            severity: Some(AlertSeverity::Warning),
+                            message: "EZ0B high",
+                            value: Some(31.0),
+                        },
+                    )
+                    .await
+                    .unwrap();
+                store
+                    .add_alert_event(
+                        "m1",
+                        &NewAlertEvent {
+                            alert: 1,
+                            t_ns: 6,
+                            kind: AlertEventKind::Resolved,
+                            rule: "threshold:EZ0B",
+                            severity: Some(AlertSeverity::Warning),
+                            message: "EZ0B back",
+                            value: Some(20.0),
+                        },
+                    )
+                    .await
+                    .unwrap();
+                store.close().await;
+            }
+            let store = Store::connect(db).await.unwrap();
+            assert_eq!(
+                store.samples("m1", 0, 100).await.unwrap(),
+                vec![
+                    Sample::Spindle {
+                        t_ns: 60,
+                        rpm: 18000.0
+                    },
+                    Sample::Temperature {
+                        t_ns: 60,
+                        sensor: "ambient".into(),
+                        celsius: 20.5
                     }
+                ]
+            );
+            assert!(store.samples("m1", 61, 100).await.unwrap().is_empty());
+            assert_eq!(
+                store.mcap_files("m1").await.unwrap(),
+                vec![("m1/2026-03-02.mcap.partial".to_string(), FileStatus::Open)]
+            );
+            store
+                .mcap_file_closed(
+                    "m1",
+                    "m1/2026-03-02.mcap.partial",
+                    "m1/2026-03-02.mcap",
+                    9,
+                    FileStatus::Recovered,
+                    42,
                 )
                 .await
-                .is_err()
-        );
-    }
+                .unwrap();
+            assert_eq!(
+                store.mcap_files("m1").await.unwrap(),
+                vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
+            );
+            assert_eq!(store.integrity_check().await.unwrap(), sound(&store));
+        }
 
-    #[tokio::test]
-    async fn data_survives_reopening() {
-        let path = temp_db("reopen");
-        {
-            let store = Store::open(&path).await.unwrap();
+        async fn verifications_round_trip_are_listed_by_reference_time_and_capped(db: &str) {
+            use driftwatch_machine::verification::{ReferenceResult, compare};
+            let store = Store::connect(db).await.unwrap();
             store.ensure_machine("m1", "table_bc", 0).await.unwrap();
-            let rows = [
-                Sample::Spindle {
-                    t_ns: 60,
-                    rpm: 20000.0,
-                },
-                Sample::Temperature {
-                    t_ns: 60,
-                    sensor: "ambient".into(),
-                    celsius: 20.5,
-                },
-                // A repeated time replaces the value rather than failing the batch.
-                Sample::Spindle {
-                    t_ns: 60,
-                    rpm: 18000.0,
-                },
-            ];
-            store.add_samples("m1", &rows).await.unwrap();
-            store
-                .mcap_file_opened("m1", "m1/2026-03-02.mcap.partial", 1)
+            for (c, ok) in [(1, true), (2, false), (3, true)] {
+                store
+                    .open_cycle("m1", c, 900 + c, "warm-up", 1)
+                    .await
+                    .unwrap();
+                store
+                    .close_cycle("m1", &result(c, ok), 1_100)
+                    .await
+                    .unwrap();
+            }
+            // Accepted results only, by reference time (1001 and 1003).
+            let setter = store
+                .accepted_results_between("m1", 0, 1_002)
                 .await
                 .unwrap();
-            store
-                .add_alert_event(
-                    "m1",
-                    &NewAlertEvent {
-                        alert: 1,
-                        t_ns: 5,
-                        kind: AlertEventKind::Raised,
-                        rule: "threshold:EZ0B",
-                        severity: Some(AlertSeverity::Warning),
-                        message: "EZ0B high",
-                        value: Some(31.0),
-                    },
-                )
+            assert_eq!(setter, vec![result(1, true)]);
+            let setter = store
+                .accepted_results_between("m1", 0, 5_000)
                 .await
                 .unwrap();
-            store
-                .add_alert_event(
-                    "m1",
-                    &NewAlertEvent {
-                        alert: 1,
-                        t_ns: 6,
-                        kind: AlertEventKind::Resolved,
-                        rule: "threshold:EZ0B",
-                        severity: Some(AlertSeverity::Warning),
-                        message: "EZ0B back",
-                        value: Some(20.0),
-                    },
-                )
-                .await
-                .unwrap();
-            store.close().await;
-        }
-        let store = Store::open(&path).await.unwrap();
-        assert_eq!(
-            store.samples("m1", 0, 100).await.unwrap(),
-            vec![
-                Sample::Spindle {
-                    t_ns: 60,
-                    rpm: 18000.0
-                },
-                Sample::Temperature {
-                    t_ns: 60,
-                    sensor: "ambient".into(),
-                    celsius: 20.5
-                }
-            ]
-        );
-        assert!(store.samples("m1", 61, 100).await.unwrap().is_empty());
-        assert_eq!(
-            store.mcap_files("m1").await.unwrap(),
-            vec![("m1/2026-03-02.mcap.partial".to_string(), FileStatus::Open)]
-        );
-        store
-            .mcap_file_closed(
-                "m1",
-                "m1/2026-03-02.mcap.partial",
-                "m1/2026-03-02.mcap",
-                9,
-                FileStatus::Recovered,
-                42,
-            )
-            .await
-            .unwrap();
-        assert_eq!(
-            store.mcap_files("m1").await.unwrap(),
-            vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
-        );
-        assert_eq!(store.integrity_check().await.unwrap(), "ok");
-    }
-
-    #[tokio::test]
-    async fn verifications_round_trip_are_listed_by_reference_time_and_capped() {
-        use driftwatch_machine::verification::{ReferenceResult, compare};
-        let store = Store::open(&temp_db("verifications")).await.unwrap();
-        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
-        for (c, ok) in [(1, true), (2, false), (3, true)] {
-            store
-                .open_cycle("m1", c, 900 + c, "warm-up", 1)
-                .await
-                .unwrap();
-            store
-                .close_cycle("m1", &result(c, ok), 1_100)
-                .await
-                .unwrap();
-        }
-        // Accepted results only, by reference time (1001 and 1003).
-        let setter = store
-            .accepted_results_between("m1", 0, 1_002)
-            .await
-            .unwrap();
-        assert_eq!(setter, vec![result(1, true)]);
-        let setter = store
-            .accepted_results_between("m1", 0, 5_000)
-            .await
-            .unwrap();
-        assert_eq!(setter.iter().map(|r| r.cycle).collect::<Vec<_>>(), [1, 3]);
-        let verify = |t_ns: i64, ez0b: f64| {
-            let r = ReferenceResult {
-                instrument: "rtest".into(),
-                t_ns,
-                errors: [("EZ0B".to_string(), ez0b)].into(),
-                sigma: [("EZ0B".to_string(), 0.3)].into(),
-                frame_note: None,
-                source: Some("bench".into()),
+            assert_eq!(setter.iter().map(|r| r.cycle).collect::<Vec<_>>(), [1, 3]);
+            let verify = |t_ns: i64, ez0b: f64| {
+                let r = ReferenceResult {
+                    instrument: "rtest".into(),
+                    t_ns,
+                    errors: [("EZ0B".to_string(), ez0b)].into(),
+                    sigma: [("EZ0B".to_string(), 0.3)].into(),
+                    frame_note: None,
+                    source: Some("bench".into()),
+                };
+                compare("m1", &r, &setter, 10, 2.0).unwrap()
             };
-            compare("m1", &r, &setter, 10, 2.0).unwrap()
-        };
-        let a = verify(1_002, 12.5);
-        assert_eq!(a.setter_cycles, vec![1, 3]);
-        let b = verify(1_001, 20.0);
-        assert!(b.exceeds_any);
-        assert_eq!(
-            store.add_verification(&a, 5, "operator", 10).await.unwrap(),
-            1
-        );
-        assert_eq!(
-            store.add_verification(&b, 6, "operator", 10).await.unwrap(),
-            2
-        );
-        let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
-        assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [1, 2]);
-        assert_eq!(list[0].verification, a);
-        assert_eq!(
-            (list[1].created_ns, list[1].requested_by.as_str()),
-            (6, "operator")
-        );
-        let list = store.verifications("m1", 1_001, 1_001, 100).await.unwrap();
-        assert_eq!(list.len(), 1);
-        assert_eq!(list[0].verification, b);
-        assert_eq!(
-            store
-                .verifications("m1", 0, i64::MAX, 1)
-                .await
-                .unwrap()
-                .len(),
-            1
-        );
-        assert!(
-            store
-                .verifications("m2", 0, i64::MAX, 100)
-                .await
-                .unwrap()
-                .is_empty()
-        );
-        // Kept: the newest `keep` by number; numbers are not given again.
-        assert_eq!(
-            store.add_verification(&a, 7, "operator", 1).await.unwrap(),
-            3
-        );
-        let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
-        assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [3]);
-        // A machine that does not exist has no verification stored.
-        let mut c = a.clone();
-        c.machine_id = "nope".into();
-        assert!(store.add_verification(&c, 8, "operator", 10).await.is_err());
+            let a = verify(1_002, 12.5);
+            assert_eq!(a.setter_cycles, vec![1, 3]);
+            let b = verify(1_001, 20.0);
+            assert!(b.exceeds_any);
+            assert_eq!(
+                store.add_verification(&a, 5, "operator", 10).await.unwrap(),
+                1
+            );
+            assert_eq!(
+                store.add_verification(&b, 6, "operator", 10).await.unwrap(),
+                2
+            );
+            let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
+            assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [1, 2]);
+            assert_eq!(list[0].verification, a);
+            assert_eq!(
+                (list[1].created_ns, list[1].requested_by.as_str()),
+                (6, "operator")
+            );
+            let list = store.verifications("m1", 1_001, 1_001, 100).await.unwrap();
+            assert_eq!(list.len(), 1);
+            assert_eq!(list[0].verification, b);
+            assert_eq!(
+                store
+                    .verifications("m1", 0, i64::MAX, 1)
+                    .await
+                    .unwrap()
+                    .len(),
+                1
+            );
+            assert!(
+                store
+                    .verifications("m2", 0, i64::MAX, 100)
+                    .await
+                    .unwrap()
+                    .is_empty()
+            );
+            // Kept: the newest `keep` by number; numbers are not given again.
+            assert_eq!(
+                store.add_verification(&a, 7, "operator", 1).await.unwrap(),
+                3
+            );
+            let list = store.verifications("m1", 0, i64::MAX, 100).await.unwrap();
+            assert_eq!(list.iter().map(|v| v.id).collect::<Vec<_>>(), [3]);
+            // A machine that does not exist has no verification stored.
+            let mut c = a.clone();
+            c.machine_id = "nope".into();
+            assert!(store.add_verification(&c, 8, "operator", 10).await.is_err());
+        }
     }
 }

@@ -39,29 +39,29 @@ impl Store {
         // SQLite allows 32766 bound values per statement: chunks of 1000 rows stay far below.
         let spindle: Vec<_> = spindle.into_iter().collect();
         for chunk in spindle.chunks(1000) {
-            let mut q =
-                sqlx::QueryBuilder::new("INSERT INTO spindle_samples (machine_id, t_ns, rpm) ");
-            q.push_values(chunk, |mut b, (t, rpm)| {
-                b.push_bind(machine).push_bind(*t).push_bind(*rpm);
-            });
-            q.push(" ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm");
-            q.build().execute(&mut *tx).await?;
+            let sql = format!(
+                "INSERT INTO spindle_samples (machine_id, t_ns, rpm) {}
+                 ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm",
+                super::values_placeholders(chunk.len(), 3)
+            );
+            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            for (t, rpm) in chunk {
+                q = q.bind(machine).bind(*t).bind(*rpm);
+            }
+            q.execute(&mut *tx).await?;
         }
         let temps: Vec<_> = temps.into_iter().collect();
         for chunk in temps.chunks(1000) {
-            let mut q = sqlx::QueryBuilder::new(
-                "INSERT INTO temperature_samples (machine_id, t_ns, sensor, celsius) ",
+            let sql = format!(
+                "INSERT INTO temperature_samples (machine_id, t_ns, sensor, celsius) {}
+                 ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
+                super::values_placeholders(chunk.len(), 4)
             );
-            q.push_values(chunk, |mut b, ((sensor, t), c)| {
-                b.push_bind(machine)
-                    .push_bind(*t)
-                    .push_bind(*sensor)
-                    .push_bind(*c);
-            });
-            q.push(
-                " ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
-            );
-            q.build().execute(&mut *tx).await?;
+            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            for ((sensor, t), c) in chunk {
+                q = q.bind(machine).bind(*t).bind(*sensor).bind(*c);
+            }
+            q.execute(&mut *tx).await?;
         }
         tx.commit().await?;
         Ok(())

@@ -7,7 +7,7 @@ use sqlx::Row;
 use super::{Store, StoreError};
 
 pub(super) async fn insert_set(
-    conn: &mut sqlx::SqliteConnection,
+    conn: &mut sqlx::AnyConnection,
     machine: &str,
     c: &NewCompensation<'_>,
 ) -> Result<(), StoreError> {

@@ -1,0 +1,166 @@
+//! The two database engines behind the store, SQLite (the default, one file in the data
+//! directory) and PostgreSQL (`database_url = "postgres://..."`): what differs between them is
+//! here, the queries themselves are one portable implementation over sqlx's `Any` driver.
+//!
+//! What stays SQLite's: the connection's pragmas (WAL, synchronous NORMAL, foreign keys, busy
+//! timeout), creating the file, `WITHOUT ROWID` tables (in its migrations only) and
+//! `PRAGMA integrity_check` / `journal_mode`.
+
+use std::path::Path;
+use std::sync::Once;
+
+use sqlx::AnyPool;
+use sqlx::any::AnyPoolOptions;
+use sqlx::migrate::Migrator;
+
+use super::StoreError;
+
+/// The SQLite schema (`migrations/sqlite/`).
+static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("../../migrations/sqlite");
+/// The same schema in PostgreSQL's types (`migrations/postgres/`).
+static POSTGRES_MIGRATIONS: Migrator = sqlx::migrate!("../../migrations/postgres");
+
+/// Which engine a store runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    Sqlite,
+    Postgres,
+}
+
+fn install_drivers() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(sqlx::any::install_default_drivers);
+}
+
+/// A database URL with its password (if any) left out, for messages and logs.
+pub fn redacted(url: &str) -> String {
+    match (url.find("://"), url.rfind('@')) {
+        (Some(s), Some(at)) if at > s + 3 => {
+            let user_info = &url[s + 3..at];
+            let user = user_info.split(':').next().unwrap_or("");
+            format!("{}{user}@{}", &url[..s + 3], &url[at + 1..])
+        }
+        _ => url.to_string(),
+    }
+}
+
+impl Backend {
+    /// The engine a URL names: `sqlite://PATH` or `postgres://...` (`postgresql://...`).
+    pub fn of_url(url: &str) -> Option<Backend> {
+        if url.starts_with("sqlite:") {
+            Some(Backend::Sqlite)
+        } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            Some(Backend::Postgres)
+        } else {
+            None
+        }
+    }
+
+    /// The URL of the SQLite file at `path`.
+    pub fn sqlite_url(path: &Path) -> String {
+        format!("sqlite://{}", path.display())
+    }
+
+    /// Connect a pool and apply this engine's migrations.
+    pub(super) async fn connect(self, url: &str) -> Result<AnyPool, StoreError> {
+        install_drivers();
+        let open_error = |source| StoreError::Open {
+            path: redacted(url),
+            source,
+        };
+        let pool = match self {
+            Backend::Sqlite => {
+                // Created if missing (mode=rwc). Each connection: a 5 s wait on a lock instead
+                // of failing, foreign keys enforced, the write-ahead log, and synchronous NORMAL,
+                // which in WAL mode never corrupts and keeps every commit through a process
+                // crash (only a power loss can take the last commits).
+                let sep = if url.contains('?') { '&' } else { '?' };
+                let url = format!("{url}{sep}mode=rwc");
+                AnyPoolOptions::new()
+                    .max_connections(4)
+                    .after_connect(|conn, _meta| {
+                        Box::pin(async move {
+                            for pragma in [
+                                "PRAGMA busy_timeout = 5000",
+                                "PRAGMA foreign_keys = ON",
+                                "PRAGMA journal_mode = WAL",
+                                "PRAGMA synchronous = NORMAL",
+                            ] {
+                                sqlx::query(pragma).execute(&mut *conn).await?;
+                            }
+                            Ok(())
+                        })
+                    })
+                    .connect(&url)
+                    .await
+                    .map_err(open_error)?
+            }
+            Backend::Postgres => AnyPoolOptions::new()
+                .max_connections(8)
+                .connect(url)
+                .await
+                .map_err(open_error)?,
+        };
+        self.migrator().run(&pool).await?;
+        Ok(pool)
+    }
+
+    fn migrator(self) -> &'static Migrator {
+        match self {
+            Backend::Sqlite => &SQLITE_MIGRATIONS,
+            Backend::Postgres => &POSTGRES_MIGRATIONS,
+        }
+    }
+
+    /// SQLite's `PRAGMA integrity_check` ("ok" for a sound file). PostgreSQL has no such
+    /// statement (it checks its pages itself): the answer says so.
+    pub(super) async fn integrity_check(self, pool: &AnyPool) -> Result<String, StoreError> {
+        match self {
+            Backend::Sqlite => Ok(sqlx::query_scalar("PRAGMA integrity_check")
+                .fetch_one(pool)
+                .await?),
+            Backend::Postgres => {
+                // The server answers: the connection and the schema are there.
+                sqlx::query("SELECT 1 FROM machines LIMIT 1")
+                    .fetch_optional(pool)
+                    .await?;
+                Ok("not applicable (PostgreSQL)".to_string())
+            }
+        }
+    }
+
+    /// SQLite's journal mode ("wal" as opened). PostgreSQL always writes ahead to its log:
+    /// "wal".
+    pub(super) async fn journal_mode(self, pool: &AnyPool) -> Result<String, StoreError> {
+        match self {
+            Backend::Sqlite => Ok(sqlx::query_scalar("PRAGMA journal_mode")
+                .fetch_one(pool)
+                .await?),
+            Backend::Postgres => Ok("wal".to_string()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_name_their_engine_and_hide_passwords() {
+        assert_eq!(Backend::of_url("sqlite://x.db"), Some(Backend::Sqlite));
+        assert_eq!(
+            Backend::of_url("postgres://u:p@h/db"),
+            Some(Backend::Postgres)
+        );
+        assert_eq!(
+            Backend::of_url("postgresql://h/db"),
+            Some(Backend::Postgres)
+        );
+        assert_eq!(Backend::of_url("mysql://h/db"), None);
+        assert_eq!(
+            redacted("postgres://u:secret@h:5/db"),
+            "postgres://u@h:5/db"
+        );
+        assert_eq!(redacted("postgres://h/db"), "postgres://h/db");
+    }
+}
