@@ -14,10 +14,9 @@
 //! - **HEIDENHAIN** TNC 640: `FUNCTION MODE TURN`, where X values are diameters.
 //! - **ISO** (LinuxCNC): `G8`, radius mode (its default), is commanded.
 
-use std::fmt::Write as _;
-
 use thiserror::Error;
 
+use crate::blocks::{Blocks, fmt_plain};
 use crate::dialect::Dialect;
 
 #[derive(Debug, Error, PartialEq)]
@@ -69,45 +68,15 @@ fn max_decimals(d: Dialect) -> usize {
     }
 }
 
-struct Out {
-    d: Dialect,
-    text: String,
-    block: usize,
-    decimals: usize,
-}
-
-impl Out {
-    fn emit(&mut self, s: &str) {
-        if self.d == Dialect::Heidenhain {
-            let _ = writeln!(self.text, "{} {s}", self.block);
-            self.block += 1;
-        } else {
-            let _ = writeln!(self.text, "{s}");
-        }
-    }
-
-    fn comment(&mut self, s: &str) {
-        // Upper case without the characters that end a comment on some control.
-        let s: String = s
-            .to_uppercase()
-            .chars()
-            .map(|c| if matches!(c, '(' | ')' | ';') { ' ' } else { c })
-            .collect();
-        let s = s.split_whitespace().collect::<Vec<_>>().join(" ");
-        match self.d {
-            Dialect::Fanuc | Dialect::Iso => self.emit(&format!("({s})")),
-            Dialect::Siemens | Dialect::Heidenhain => self.emit(&format!("; {s}")),
-        }
-    }
-
-    fn word(&self, letter: char, v: f64) -> String {
-        let scale = 10f64.powi(self.decimals as i32);
-        let v = (v * scale).round() / scale + 0.0;
-        match self.d {
-            Dialect::Heidenhain => format!("{letter}{v:+.*}", self.decimals),
-            _ => format!("{letter}{v:.*}", self.decimals),
-        }
-    }
+/// A free text as a comment's: upper case, without the characters that end a comment on
+/// some control.
+fn comment_text(s: &str) -> String {
+    let s: String = s
+        .to_uppercase()
+        .chars()
+        .map(|c| if matches!(c, '(' | ')' | ';') { ' ' } else { c })
+        .collect();
+    s.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
 /// The program text of the facing pass in dialect `d`.
@@ -133,12 +102,7 @@ pub fn facing_program(d: Dialect, pass: &FacingPass) -> Result<String, FacingErr
     if !(pass.feed_mm_min > 0.0 && pass.clearance_mm > 0.0) {
         return Err(FacingError::NotPositive);
     }
-    let mut o = Out {
-        d,
-        text: String::new(),
-        block: 0,
-        decimals: pass.decimals,
-    };
+    let mut o = Blocks::new(d, pass.decimals);
     let title = "DRIFTWATCH LATHE FACING PASS - GENERATED, DO NOT EDIT";
     let name = format!("DW{}", pass.number);
     match d {
@@ -157,7 +121,7 @@ pub fn facing_program(d: Dialect, pass: &FacingPass) -> Result<String, FacingErr
         }
     }
     for c in &pass.comments {
-        o.comment(c);
+        o.comment(&comment_text(c));
     }
     let mode = match d {
         Dialect::Fanuc => "X IS THE DIAMETER - FANUC LATHE, G-CODE SYSTEM A",
@@ -229,15 +193,4 @@ pub fn facing_program(d: Dialect, pass: &FacingPass) -> Result<String, FacingErr
         }
     }
     Ok(o.text)
-}
-
-/// A number without trailing zeros (`20`, `0.5`).
-fn fmt_plain(v: f64) -> String {
-    let s = format!("{v:.4}");
-    let s = s.trim_end_matches('0').trim_end_matches('.');
-    if s.is_empty() || s == "-" {
-        "0".into()
-    } else {
-        s.to_string()
-    }
 }

@@ -4,6 +4,7 @@
 //! the program text that writes them (`offsets`); a lathe facing pass through given points
 //! (`facing`: a correction table as a program). No I/O: text in, text out.
 
+mod blocks;
 pub mod check;
 pub mod dialect;
 pub mod facing;

@@ -24,8 +24,6 @@
 //!   `#5061`-`#5063` hold the latched position; `(LOG,...)` writes a line per approach; the
 //!   program claims `G59.3` with a zero origin.
 
-use std::fmt::Write as _;
-
 use thiserror::Error;
 
 use driftwatch_core::geometry::wrap_deg;
@@ -33,6 +31,7 @@ use driftwatch_core::kinematics::{Kinematics, MAX_ROTARY};
 use driftwatch_core::measurement::Axis;
 use driftwatch_core::plan::{MoveKind, Plan};
 
+use crate::blocks::{Blocks, fmt_plain};
 use crate::dialect::Dialect;
 
 #[derive(Debug, Error, PartialEq)]
@@ -151,10 +150,7 @@ pub fn write(
     }
     let addresses = rotary_addresses(k)?;
     let mut w = Writer {
-        d,
-        out: String::new(),
-        line: 0,
-        decimals: opts.decimals,
+        b: Blocks::new(d, opts.decimals),
         addresses,
     };
     let step_var = variable(d, opts.first_result - 1);
@@ -184,7 +180,7 @@ pub fn write(
             MoveKind::Rotary => w.index(&mut angles, &m.angles_deg, k.rotary.len(), opts),
             MoveKind::Dwell => {
                 if let Some(i) = m.step {
-                    w.comment(&format!("STEP {} {}", i + 1, plan.steps[i].label));
+                    w.b.comment(&format!("STEP {} {}", i + 1, plan.steps[i].label));
                 }
                 w.dwell(m.duration_s);
             }
@@ -213,7 +209,7 @@ pub fn write(
     w.footer(&done_var, &step_var, opts.number);
     Ok(Program {
         dialect: d,
-        text: w.out,
+        text: w.b.text,
         results,
         step_variable: step_var,
         done_variable: done_var,
@@ -221,42 +217,11 @@ pub fn write(
 }
 
 struct Writer {
-    d: Dialect,
-    out: String,
-    /// HEIDENHAIN block number.
-    line: usize,
-    decimals: usize,
+    b: Blocks,
     addresses: Vec<char>,
 }
 
 impl Writer {
-    fn emit(&mut self, text: &str) {
-        if self.d == Dialect::Heidenhain {
-            let _ = writeln!(self.out, "{} {text}", self.line);
-            self.line += 1;
-        } else {
-            let _ = writeln!(self.out, "{text}");
-        }
-    }
-
-    fn comment(&mut self, text: &str) {
-        match self.d {
-            Dialect::Fanuc | Dialect::Iso => self.emit(&format!("({text})")),
-            Dialect::Siemens | Dialect::Heidenhain => self.emit(&format!("; {text}")),
-        }
-    }
-
-    /// A coordinate word: `X12.345`, HEIDENHAIN `X+12.345`.
-    fn word(&self, letter: char, v: f64) -> String {
-        // Negative zero after rounding reads as "-0.000"; print it as zero.
-        let scale = 10f64.powi(self.decimals as i32);
-        let v = (v * scale).round() / scale + 0.0;
-        match self.d {
-            Dialect::Heidenhain => format!("{letter}{v:+.*}", self.decimals),
-            _ => format!("{letter}{v:.*}", self.decimals),
-        }
-    }
-
     fn header(
         &mut self,
         k: &Kinematics,
@@ -270,74 +235,76 @@ impl Writer {
             "DRIFTWATCH PLAN {} ON {} - GENERATED, DO NOT EDIT",
             plan.name, k.name
         );
-        match self.d {
+        match self.b.d {
             Dialect::Fanuc => {
-                self.emit("%");
-                self.emit(&format!("O{:04} ({title})", opts.number));
+                self.b.emit("%");
+                self.b.emit(&format!("O{:04} ({title})", opts.number));
             }
-            Dialect::Heidenhain => self.emit(&format!("BEGIN PGM DW{} MM", opts.number)),
-            Dialect::Siemens => self.comment(&format!("DW{} {title}", opts.number)),
+            Dialect::Heidenhain => self.b.emit(&format!("BEGIN PGM DW{} MM", opts.number)),
+            Dialect::Siemens => self.b.comment(&format!("DW{} {title}", opts.number)),
             Dialect::Iso => {
-                self.emit("%");
-                self.comment(&format!("DW{} {title}", opts.number));
+                self.b.emit("%");
+                self.b.comment(&format!("DW{} {title}", opts.number));
             }
         }
-        self.comment(&format!(
+        self.b.comment(&format!(
             "TOOL {} IN THE SPINDLE, SETTER BEAM CLEAR; MACHINE TIME {:.1} S",
             k.tool_id, plan.machine_time_s
         ));
-        self.comment(&format!(
+        self.b.comment(&format!(
             "RESULTS {}..{} LATCHED COORDINATE PER STEP, {step_var} STEP RUNNING, {done_var} 1 WHEN DONE",
             results.first().map_or("", |r| r.variable.as_str()),
             results.last().map_or("", |r| r.variable.as_str()),
         ));
         let travel = plan.steps.first().map_or(0.0, |s| s.max_travel_mm);
-        match self.d {
+        match self.b.d {
             Dialect::Fanuc => {
-                self.emit("G21 G90 G17 G40 G49 G80 G94");
-                self.comment("WORK OFFSET G54.1 P48 IS SET TO ZERO: COORDINATES ARE MACHINE");
+                self.b.emit("G21 G90 G17 G40 G49 G80 G94");
+                self.b
+                    .comment("WORK OFFSET G54.1 P48 IS SET TO ZERO: COORDINATES ARE MACHINE");
                 let rot: String = self.addresses.iter().map(|a| format!(" {a}0")).collect();
-                self.emit(&format!("G10 L20 P48 X0 Y0 Z0{rot}"));
-                self.emit("G54.1 P48");
-                self.emit(&format!("{done_var}=0"));
+                self.b.emit(&format!("G10 L20 P48 X0 Y0 Z0{rot}"));
+                self.b.emit("G54.1 P48");
+                self.b.emit(&format!("{done_var}=0"));
             }
             Dialect::Siemens => {
-                self.emit("DEF INT DW_ERR");
-                self.emit("G71 G90 G17 G40 G94 G500");
-                self.emit(&format!("{done_var}=0"));
+                self.b.emit("DEF INT DW_ERR");
+                self.b.emit("G71 G90 G17 G40 G94 G500");
+                self.b.emit(&format!("{done_var}=0"));
             }
             Dialect::Heidenhain => {
-                self.comment(&format!(
+                self.b.comment(&format!(
                     "PROBE TABLE F{} DIST{}",
                     fmt_plain(plan.config.feed_mm_min),
                     fmt_plain(travel)
                 ));
-                self.comment("ACTIVE PRESET ALL ZERO: COORDINATES ARE MACHINE");
-                self.emit(&format!("FN 0: {done_var} = +0"));
+                self.b
+                    .comment("ACTIVE PRESET ALL ZERO: COORDINATES ARE MACHINE");
+                self.b.emit(&format!("FN 0: {done_var} = +0"));
             }
             Dialect::Iso => {
-                self.emit("G21 G90 G17 G40 G49 G94");
+                self.b.emit("G21 G90 G17 G40 G49 G94");
                 let rot: String = self.addresses.iter().map(|a| format!(" {a}0")).collect();
-                self.emit(&format!("G10 L2 P9 X0 Y0 Z0{rot}"));
-                self.emit("G59.3");
-                self.emit(&format!(
+                self.b.emit(&format!("G10 L2 P9 X0 Y0 Z0{rot}"));
+                self.b.emit("G59.3");
+                self.b.emit(&format!(
                     "(LOGOPEN,dw{}_{}.log)",
                     opts.number,
                     plan.name.replace(['/', ' '], "_")
                 ));
-                self.emit(&format!("{done_var}=0"));
+                self.b.emit(&format!("{done_var}=0"));
             }
         }
     }
 
     fn spindle(&mut self, rpm: f64) {
         let rpm = rpm.round() as i64;
-        match self.d {
-            Dialect::Fanuc => self.emit(&format!("S{rpm} M03")),
-            Dialect::Siemens | Dialect::Iso => self.emit(&format!("S{rpm} M3")),
+        match self.b.d {
+            Dialect::Fanuc => self.b.emit(&format!("S{rpm} M03")),
+            Dialect::Siemens | Dialect::Iso => self.b.emit(&format!("S{rpm} M3")),
             Dialect::Heidenhain => {
-                self.emit(&format!("TOOL CALL Z S{rpm}"));
-                self.emit("L M3");
+                self.b.emit(&format!("TOOL CALL Z S{rpm}"));
+                self.b.emit("L M3");
             }
         }
     }
@@ -347,9 +314,9 @@ impl Writer {
         let mut words = Vec::new();
         for (i, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
             if let Some(v) = to[i] {
-                let moved = self.word(letter, v) != self.word(letter, pos[i]);
+                let moved = self.b.word(letter, v) != self.b.word(letter, pos[i]);
                 if moved || pos[i].is_nan() {
-                    words.push(self.word(letter, v));
+                    words.push(self.b.word(letter, v));
                 }
                 pos[i] = v;
             }
@@ -358,10 +325,10 @@ impl Writer {
             return;
         }
         let w = words.join(" ");
-        match self.d {
-            Dialect::Fanuc => self.emit(&format!("G00 {w}")),
-            Dialect::Siemens | Dialect::Iso => self.emit(&format!("G0 {w}")),
-            Dialect::Heidenhain => self.emit(&format!("L {w} R0 FMAX")),
+        match self.b.d {
+            Dialect::Fanuc => self.b.emit(&format!("G00 {w}")),
+            Dialect::Siemens | Dialect::Iso => self.b.emit(&format!("G0 {w}")),
+            Dialect::Heidenhain => self.b.emit(&format!("L {w} R0 FMAX")),
         }
     }
 
@@ -372,24 +339,24 @@ impl Writer {
             return;
         }
         let words: Vec<String> = (0..n)
-            .map(|i| self.word(self.addresses[i], to[i]))
+            .map(|i| self.b.word(self.addresses[i], to[i]))
             .collect();
         angles[..n].copy_from_slice(&to[..n]);
         let m = |s: &mut Self, code: &str| {
             if code.is_empty() {
                 return;
             }
-            match s.d {
-                Dialect::Heidenhain => s.emit(&format!("L {code}")),
-                _ => s.emit(code),
+            match s.b.d {
+                Dialect::Heidenhain => s.b.emit(&format!("L {code}")),
+                _ => s.b.emit(code),
             }
         };
         m(self, &opts.unclamp);
         let w = words.join(" ");
-        match self.d {
-            Dialect::Fanuc => self.emit(&format!("G00 {w}")),
-            Dialect::Siemens | Dialect::Iso => self.emit(&format!("G0 {w}")),
-            Dialect::Heidenhain => self.emit(&format!("L {w} R0 FMAX")),
+        match self.b.d {
+            Dialect::Fanuc => self.b.emit(&format!("G00 {w}")),
+            Dialect::Siemens | Dialect::Iso => self.b.emit(&format!("G0 {w}")),
+            Dialect::Heidenhain => self.b.emit(&format!("L {w} R0 FMAX")),
         }
         m(self, &opts.clamp);
     }
@@ -399,13 +366,13 @@ impl Writer {
             return;
         }
         let s = fmt_plain(s);
-        match self.d {
-            Dialect::Fanuc => self.emit(&format!("G04 X{s}")),
-            Dialect::Siemens => self.emit(&format!("G4 F{s}")),
-            Dialect::Iso => self.emit(&format!("G4 P{s}")),
+        match self.b.d {
+            Dialect::Fanuc => self.b.emit(&format!("G04 X{s}")),
+            Dialect::Siemens => self.b.emit(&format!("G4 F{s}")),
+            Dialect::Iso => self.b.emit(&format!("G4 P{s}")),
             Dialect::Heidenhain => {
-                self.emit("CYCL DEF 9.0 DWELL TIME");
-                self.emit(&format!("CYCL DEF 9.1 DWELL {s}"));
+                self.b.emit("CYCL DEF 9.0 DWELL TIME");
+                self.b.emit(&format!("CYCL DEF 9.1 DWELL {s}"));
             }
         }
     }
@@ -423,96 +390,88 @@ impl Writer {
     ) {
         let letter = axis.name().to_ascii_uppercase();
         let l = letter.chars().next().unwrap_or('Z');
-        let target = self.word(l, end[axis.index()]);
+        let target = self.b.word(l, end[axis.index()]);
         let f = fmt_plain(feed);
         let var = slot.variable.clone();
-        match self.d {
+        match self.b.d {
             Dialect::Fanuc => {
-                self.emit(&format!("{step_var}={number}"));
-                self.emit(&format!("G31 {target} F{f}"));
+                self.b.emit(&format!("{step_var}={number}"));
+                self.b.emit(&format!("G31 {target} F{f}"));
                 let sys = 5061 + axis.index();
-                self.emit(&format!("{var}=#{sys}"));
+                self.b.emit(&format!("{var}=#{sys}"));
                 // Without a skip signal the block ends at its end point.
                 let end_v = &target[1..];
-                self.emit(&format!("IF[ABS[#{sys}-[{end_v}]]LT0.0005]GOTO9001"));
+                self.b
+                    .emit(&format!("IF[ABS[#{sys}-[{end_v}]]LT0.0005]GOTO9001"));
             }
             Dialect::Siemens => {
-                self.emit(&format!("{step_var}={number}"));
-                self.emit(&format!("MEAS=1 G1 {target} F{f}"));
-                self.emit("STOPRE");
-                self.emit("IF $AC_MEA[1]==0 GOTO NOTRIP");
-                self.emit(&format!("{var}=$AA_MM[{letter}]"));
-                self.emit(&format!(
+                self.b.emit(&format!("{step_var}={number}"));
+                self.b.emit(&format!("MEAS=1 G1 {target} F{f}"));
+                self.b.emit("STOPRE");
+                self.b.emit("IF $AC_MEA[1]==0 GOTO NOTRIP");
+                self.b.emit(&format!("{var}=$AA_MM[{letter}]"));
+                self.b.emit(&format!(
                     "WRITE(DW_ERR,\"DRIFTWATCH_LOG\",\"{} {} \"<<{var})",
                     number, slot.label
                 ));
             }
             Dialect::Heidenhain => {
                 let sign = if direction > 0 { '+' } else { '-' };
-                self.emit(&format!("FN 0: {step_var} = +{number}"));
-                self.emit(&format!("TCH PROBE 0.0 REF. PLANE {var} {letter}{sign}"));
+                self.b.emit(&format!("FN 0: {step_var} = +{number}"));
+                self.b
+                    .emit(&format!("TCH PROBE 0.0 REF. PLANE {var} {letter}{sign}"));
                 let pre: Vec<String> = ['X', 'Y', 'Z']
                     .into_iter()
                     .enumerate()
-                    .map(|(i, c)| self.word(c, start[i]))
+                    .map(|(i, c)| self.b.word(c, start[i]))
                     .collect();
-                self.emit(&format!("TCH PROBE 0.1 {}", pre.join(" ")));
+                self.b.emit(&format!("TCH PROBE 0.1 {}", pre.join(" ")));
             }
             Dialect::Iso => {
-                self.emit(&format!("{step_var}={number}"));
-                self.emit(&format!("G38.2 {target} F{f}"));
+                self.b.emit(&format!("{step_var}={number}"));
+                self.b.emit(&format!("G38.2 {target} F{f}"));
                 let sys = 5061 + axis.index();
-                self.emit(&format!("{var}=#{sys}"));
-                self.emit(&format!("(LOG,{number} {} #{sys})", slot.label));
+                self.b.emit(&format!("{var}=#{sys}"));
+                self.b
+                    .emit(&format!("(LOG,{number} {} #{sys})", slot.label));
             }
         }
     }
 
     fn footer(&mut self, done_var: &str, step_var: &str, number: u32) {
-        match self.d {
+        match self.b.d {
             Dialect::Fanuc => {
-                self.emit(&format!("{done_var}=1"));
-                self.emit("M05");
-                self.emit("M30");
-                self.emit(&format!(
+                self.b.emit(&format!("{done_var}=1"));
+                self.b.emit("M05");
+                self.b.emit("M30");
+                self.b.emit(&format!(
                     "N9001 #3000=1(DRIFTWATCH NO TRIP - STEP IN {step_var})"
                 ));
-                self.emit("%");
+                self.b.emit("%");
             }
             Dialect::Siemens => {
-                self.emit(&format!("{done_var}=1"));
-                self.emit("M5");
-                self.emit("M30");
-                self.emit("NOTRIP:");
-                self.emit(&format!(
+                self.b.emit(&format!("{done_var}=1"));
+                self.b.emit("M5");
+                self.b.emit("M30");
+                self.b.emit("NOTRIP:");
+                self.b.emit(&format!(
                     "MSG(\"DRIFTWATCH: NO TRIP AT STEP \"<<{step_var})"
                 ));
-                self.emit("SETAL(65100)");
-                self.emit("M30");
+                self.b.emit("SETAL(65100)");
+                self.b.emit("M30");
             }
             Dialect::Heidenhain => {
-                self.emit(&format!("FN 0: {done_var} = +1"));
-                self.emit("L M5");
-                self.emit(&format!("END PGM DW{number} MM"));
+                self.b.emit(&format!("FN 0: {done_var} = +1"));
+                self.b.emit("L M5");
+                self.b.emit(&format!("END PGM DW{number} MM"));
             }
             Dialect::Iso => {
-                self.emit(&format!("{done_var}=1"));
-                self.emit("(LOGCLOSE)");
-                self.emit("M5");
-                self.emit("M2");
-                self.emit("%");
+                self.b.emit(&format!("{done_var}=1"));
+                self.b.emit("(LOGCLOSE)");
+                self.b.emit("M5");
+                self.b.emit("M2");
+                self.b.emit("%");
             }
         }
-    }
-}
-
-/// A number without trailing zeros (`100`, `0.5`, `2.5`).
-fn fmt_plain(v: f64) -> String {
-    let s = format!("{v:.4}");
-    let s = s.trim_end_matches('0').trim_end_matches('.');
-    if s.is_empty() || s == "-" {
-        "0".into()
-    } else {
-        s.to_string()
     }
 }
