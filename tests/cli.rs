@@ -1288,15 +1288,23 @@ fn a_squareness_is_blamed_measured_and_gone_once_its_geometry_is_loaded() {
     assert!(after.is_empty(), "still blamed: {after:?}");
 }
 
-#[test]
-fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
-    let log = tmp("diagonal.csv");
-    let (ok, out, err) = run(&["diagonal", "simulate", "--out", log.to_str().unwrap()]);
-    assert!(ok, "{out}{err}");
-    let truth: Vec<f64> = out
-        .lines()
-        .find(|l| l.starts_with("truth:"))
-        .unwrap()
+/// The numbers among a line's words.
+fn numbers(line: &str) -> Vec<f64> {
+    line.split_whitespace()
+        .filter_map(|w| w.parse().ok())
+        .collect()
+}
+
+/// The lines of `out` that start with `prefix`.
+fn lines_starting<'a>(out: &'a str, prefix: &str) -> Vec<&'a str> {
+    out.lines().filter(|l| l.starts_with(prefix)).collect()
+}
+
+/// The simulated squareness X-Y, X-Z, Y-Z (um) from `diagonal simulate`'s `truth:` line.
+fn simulated_squareness(out: &str) -> Vec<f64> {
+    let line = lines_starting(out, "truth:");
+    assert_eq!(line.len(), 1, "{out}");
+    line[0]
         .split([',', ';'])
         .take(3)
         .map(|part| {
@@ -1304,19 +1312,21 @@ fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
                 .find_map(|w| w.parse().ok())
                 .unwrap()
         })
-        .collect();
+        .collect()
+}
+
+#[test]
+fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
+    let log = tmp("diagonal.csv");
+    let (ok, out, err) = run(&["diagonal", "simulate", "--out", log.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    let truth = simulated_squareness(&out);
     let (ok, out, err) = run(&["diagonal", "solve", "--from", log.to_str().unwrap()]);
     assert!(ok, "{out}{err}");
-    for (i, t) in truth.iter().enumerate() {
-        let line = out
-            .lines()
-            .filter(|l| l.starts_with("squareness"))
-            .nth(i)
-            .unwrap();
-        let nums: Vec<f64> = line
-            .split_whitespace()
-            .filter_map(|w| w.parse().ok())
-            .collect();
+    let squareness = lines_starting(&out, "squareness");
+    assert_eq!(squareness.len(), 3, "{out}");
+    for (line, t) in squareness.iter().zip(&truth) {
+        let nums = numbers(line);
         let (conventional, robust, sigma) = (nums[0], nums[1], nums[2]);
         assert!(
             (robust - t).abs() < 4.0 * sigma + 0.05,
@@ -1352,47 +1362,24 @@ fn the_step_diagonal_and_the_correction_table_from_the_command_line() {
         .filter_map(|w| w.parse().ok())
         .collect();
     assert_eq!(beams.len(), 4, "{out}");
-    let truth: Vec<f64> = out
-        .lines()
-        .find(|l| l.starts_with("truth:"))
-        .unwrap()
-        .split([',', ';'])
-        .take(3)
-        .map(|part| {
-            part.split_whitespace()
-                .find_map(|w| w.parse().ok())
-                .unwrap()
-        })
-        .collect();
+    let truth = simulated_squareness(&out);
     let (ok, out, err) = run(&["diagonal", "solve", "--from", log2.to_str().unwrap()]);
     assert!(ok, "{out}{err}");
     assert!(out.contains("runs: out-and-back"), "{out}");
-    let drift_lines: Vec<&str> = out
-        .lines()
-        .filter(|l| l.starts_with("drift along"))
-        .collect();
+    let drift_lines = lines_starting(&out, "drift along");
     assert_eq!(drift_lines.len(), 4, "{out}");
     for (line, t) in drift_lines.iter().zip(&beams) {
-        let nums: Vec<f64> = line
-            .split_whitespace()
-            .filter_map(|w| w.parse().ok())
-            .collect();
+        let nums = numbers(line);
         let (robust, sigma) = (nums[1], nums[2]);
         assert!(
             (robust - t).abs() < 4.0 * sigma + 0.001,
             "{line} against {t}"
         );
     }
-    for (i, t) in truth.iter().enumerate() {
-        let line = out
-            .lines()
-            .filter(|l| l.starts_with("squareness"))
-            .nth(i)
-            .unwrap();
-        let nums: Vec<f64> = line
-            .split_whitespace()
-            .filter_map(|w| w.parse().ok())
-            .collect();
+    let squareness = lines_starting(&out, "squareness");
+    assert_eq!(squareness.len(), 3, "{out}");
+    for (line, t) in squareness.iter().zip(&truth) {
+        let nums = numbers(line);
         assert!(
             (nums[1] - t).abs() < 4.0 * nums[2] + 0.05,
             "{line} against {t}"
