@@ -14,5 +14,6 @@ pub mod mtconnect_link;
 pub mod nc_push;
 pub mod opcua;
 pub mod recorder;
+pub mod scratch_pg;
 pub mod store;
 pub mod webhook;

@@ -15,8 +15,6 @@ mod samples;
 mod sets;
 mod verifications;
 
-#[cfg(test)]
-pub(crate) mod pg_test;
 
 pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
 pub use backend::Backend;
@@ -174,7 +172,7 @@ mod tests {
     }
 
     /// Each test body runs twice, on a fresh database of each engine: `sqlite::NAME` on a new
-    /// file, `postgres::NAME` on a new database of the test server (`pg_test`).
+    /// file, `postgres::NAME` on a new database of the test server (`scratch_pg`).
     macro_rules! on_both_backends {
         ($(async fn $name:ident($db:ident: &str) $body:block)*) => {
             mod sqlite {
@@ -192,7 +190,7 @@ mod tests {
                 $(
                     #[tokio::test]
                     async fn $name() {
-                        let $db: &str = &crate::store::pg_test::database().await;
+                        let $db: &str = &crate::scratch_pg::test_database().await;
                         $body
                     }
                 )*
