@@ -112,6 +112,24 @@ impl Backend {
         }
     }
 
+    /// The database's clock, ms since the Unix epoch, as an SQL expression: the one clock
+    /// every process of a fleet compares its leases with.
+    pub(super) fn now_ms_sql(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "CAST((julianday('now') - 2440587.5) * 86400000.0 AS BIGINT)",
+            Backend::Postgres => "CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)",
+        }
+    }
+
+    /// What keeps a row read in a transaction from changing until it commits: PostgreSQL's
+    /// `FOR SHARE`; SQLite has one writer at a time and no such clause.
+    pub(super) fn share_lock(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR SHARE",
+        }
+    }
+
     /// SQLite's `PRAGMA integrity_check` ("ok" for a sound file). PostgreSQL has no such
     /// statement (it checks its pages itself): the answer says so.
     pub(super) async fn integrity_check(self, pool: &AnyPool) -> Result<String, StoreError> {

@@ -114,9 +114,11 @@ impl Store {
         trigger: &str,
         attempt: i64,
     ) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
-            "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status)
-             VALUES ($1, $2, $3, $4, $5, $6)",
+            "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status, lease_term)
+             VALUES ($1, $2, $3, $4, $5, $6, $7)",
         )
         .bind(machine)
         .bind(cycle)
@@ -124,8 +126,10 @@ impl Store {
         .bind(trigger)
         .bind(attempt)
         .bind(CycleStatus::Open.as_str())
-        .execute(&self.pool)
+        .bind(term)
+        .execute(&mut *tx)
         .await?;
+        tx.commit().await?;
         Ok(())
     }
 
@@ -185,6 +189,7 @@ impl Store {
         let status = CycleStatus::from(result.status);
         let payload = serde_json::to_string(result)?;
         let mut tx = self.pool.begin().await?;
+        let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $3, finished_ns = $4, reason = $5
              WHERE machine_id = $1 AND cycle = $2",
@@ -228,7 +233,7 @@ impl Store {
             }
         }
         if let Some(c) = compensation {
-            insert_set(&mut tx, machine, c).await?;
+            insert_set(&mut tx, machine, c, term).await?;
         }
         tx.commit().await?;
         Ok(())
@@ -268,6 +273,8 @@ impl Store {
         now_ns: i64,
         reason: &str,
     ) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $5, finished_ns = $3, reason = $4
              WHERE machine_id = $1 AND cycle = $2 AND status = $6",
@@ -278,8 +285,9 @@ impl Store {
         .bind(reason)
         .bind(CycleStatus::Abandoned.as_str())
         .bind(CycleStatus::Open.as_str())
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?;
+        tx.commit().await?;
         Ok(())
     }
 

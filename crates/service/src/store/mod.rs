@@ -11,6 +11,7 @@ mod cycles;
 mod diagnoses;
 mod files;
 mod geometries;
+mod leases;
 mod samples;
 mod sets;
 mod verifications;
@@ -22,6 +23,7 @@ pub use cycles::{CycleRow, CycleStatus, DetectionRow};
 pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis};
 pub use files::FileStatus;
 pub use geometries::StoredGeometry;
+pub use leases::{Lease, LeaseAudit, LeaseRow, TermRow};
 pub use samples::Sample;
 pub use sets::NewCompensation;
 pub use verifications::StoredVerification;
@@ -45,6 +47,15 @@ pub enum StoreError {
     Json(#[from] serde_json::Error),
     #[error("stored value: {0}")]
     Corrupt(String),
+    /// A fenced write refused: this process no longer holds the machine's lease.
+    #[error("machine {machine}: lease term {term} is no longer held ({why}); nothing was written")]
+    LeaseLost {
+        machine: String,
+        term: i64,
+        why: String,
+    },
+    #[error("fleet: {0}")]
+    Fleet(String),
 }
 
 pub use driftwatch_core::series::ErrorSample;
@@ -53,6 +64,9 @@ pub use driftwatch_core::series::ErrorSample;
 pub struct Store {
     pool: AnyPool,
     backend: Backend,
+    /// The lease a machine's loop holds in a fleet: its cycle and compensation writes are
+    /// checked against it ([`Store::fenced`]).
+    fence: Option<std::sync::Arc<Lease>>,
 }
 
 /// `VALUES ($1, $2, ...), (...)` for `rows` rows of `cols` columns: a multi-row insert in the
@@ -88,7 +102,11 @@ impl Store {
         let backend =
             Backend::of_url(url).ok_or_else(|| StoreError::Url(backend::redacted(url)))?;
         let pool = backend.connect(url).await?;
-        Ok(Store { pool, backend })
+        Ok(Store {
+            pool,
+            backend,
+            fence: None,
+        })
     }
 
     /// The engine this store runs on.
@@ -535,6 +553,79 @@ mod tests {
             let mut c = a.clone();
             c.machine_id = "nope".into();
             assert!(store.add_verification(&c, 8, "operator", 10).await.is_err());
+        }
+        async fn leases_give_a_machine_to_one_holder_at_a_time_and_fence_its_writes(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            let set = |version: i64, at: i64| NewCompensation {
+                version,
+                valid_from_ns: at,
+                source: "measured",
+                cycle: None,
+                reason: "test",
+                values: r#"{"errors":{},"sigma":{}}"#.into(),
+            };
+            let a = store
+                .acquire_lease("m1", "a", Some("http://a:8080"), 60_000)
+                .await
+                .unwrap()
+                .expect("a free machine is taken");
+            assert_eq!(a.term, 1);
+            // Held and unexpired: nobody else, not even twice by its holder.
+            assert!(store.acquire_lease("m1", "b", None, 60_000).await.unwrap().is_none());
+            assert!(store.acquire_lease("m1", "a", None, 60_000).await.unwrap().is_none());
+            assert!(store.renew_lease(&a, 60_000).await.unwrap());
+            let fa = store.fenced(&a);
+            fa.open_cycle("m1", 1, 10, "warm-up", 1).await.unwrap();
+            fa.insert_compensation("m1", &set(1, 10)).await.unwrap();
+            // Expired (renewed for no time): a's writes are refused and nothing is written.
+            assert!(store.renew_lease(&a, -1).await.unwrap());
+            let refused = fa.insert_compensation("m1", &set(2, 20)).await.unwrap_err();
+            assert!(matches!(refused, StoreError::LeaseLost { term: 1, .. }), "{refused}");
+            assert!(matches!(
+                fa.open_cycle("m1", 2, 20, "warm-up", 1).await,
+                Err(StoreError::LeaseLost { .. })
+            ));
+            assert_eq!(store.open_cycles("m1").await.unwrap(), vec![1]);
+            // b takes it over in a new term; a can no longer renew or write.
+            let b = store
+                .acquire_lease("m1", "b", None, 60_000)
+                .await
+                .unwrap()
+                .expect("an expired lease is taken over");
+            assert_eq!(b.term, 2);
+            assert!(!store.renew_lease(&a, 60_000).await.unwrap());
+            let fb = store.fenced(&b);
+            fb.abandon_cycle("m1", 1, 30, "its holder stopped").await.unwrap();
+            fb.insert_compensation("m1", &set(2, 30)).await.unwrap();
+            let err = fa.abandon_cycle("m1", 1, 40, "late").await.unwrap_err();
+            assert!(err.to_string().contains("held by 'b' in term 2"), "{err}");
+            assert_eq!(store.leases().await.unwrap()[0].holder, "b");
+            // Released: taken at once, in term 3.
+            store.release_lease(&b).await.unwrap();
+            let a3 = store.acquire_lease("m1", "a", None, 60_000).await.unwrap().unwrap();
+            assert_eq!(a3.term, 3);
+            let audit = store.lease_audit("m1").await.unwrap();
+            assert_eq!(
+                audit.terms.iter().map(|t| t.holder.as_str()).collect::<Vec<_>>(),
+                ["a", "b", "a"]
+            );
+            assert!(audit.terms[1].released_ms.is_some());
+            assert_eq!(audit.sets, vec![(1, 10, Some(1)), (2, 30, Some(2))]);
+            assert_eq!(audit.cycles[0].3, Some(1));
+            assert!(audit.problems().is_empty(), "{:?}", audit.problems());
+            // The audit sees a breach: a set of an older term after a newer one.
+            let mut bad = audit.clone();
+            bad.sets.push((3, 40, Some(1)));
+            assert_eq!(bad.problems().len(), 1, "{:?}", bad.problems());
+            // A fleet's clock is set by its first process and followed by the others.
+            let t = store.fleet_clock_now(1_000_000_000_000, 60.0).await.unwrap();
+            let u = store.fleet_clock_now(5, 60.0).await.unwrap();
+            assert!(t >= 1_000_000_000_000 && u >= t && u - t < 60 * 10_000_000_000, "{t} {u}");
+            assert!(matches!(
+                store.fleet_clock_now(5, 1.0).await,
+                Err(StoreError::Fleet(_))
+            ));
         }
     }
 }

@@ -10,10 +10,11 @@ pub(super) async fn insert_set(
     conn: &mut sqlx::AnyConnection,
     machine: &str,
     c: &NewCompensation<'_>,
+    lease_term: Option<i64>,
 ) -> Result<(), StoreError> {
     sqlx::query(
-        "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload)
-         VALUES ($1, $2, $3, $4, $5, $6, $7)",
+        "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload, lease_term)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
     )
     .bind(machine)
     .bind(c.version)
@@ -22,6 +23,7 @@ pub(super) async fn insert_set(
     .bind(c.cycle)
     .bind(c.reason)
     .bind(&c.values)
+    .bind(lease_term)
     .execute(&mut *conn)
     .await?;
     Ok(())
@@ -64,10 +66,17 @@ impl Store {
         machine: &str,
         c: &NewCompensation<'_>,
     ) -> Result<(), StoreError> {
+        if self.fence.is_some() {
+            let mut tx = self.pool.begin().await?;
+            let term = self.fence(&mut tx, machine).await?;
+            insert_set(&mut tx, machine, c, term).await?;
+            tx.commit().await?;
+            return Ok(());
+        }
         // One statement commits on its own: no transaction round trips for the predicted sets
         // that go out every few minutes.
         let mut conn = self.pool.acquire().await?;
-        insert_set(&mut conn, machine, c).await
+        insert_set(&mut conn, machine, c, None).await
     }
 
     /// Every compensation set of a machine, oldest first: (version, source, cycle).
