@@ -87,6 +87,17 @@ enum Command {
         #[arg(long, default_value_t = 5.0)]
         timeout_s: f64,
     },
+    /// A fleet's leases and the audit of its stored data: who ran each machine in which term,
+    /// and every breach of one-process-at-a-time or versions-only-forward the data shows
+    /// (exit 1 if any).
+    FleetAudit {
+        /// Configuration TOML whose database to read (default: the built-in one).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// The database instead (postgres://... or sqlite://PATH).
+        #[arg(long)]
+        database_url: Option<String>,
+    },
     /// Run the truth simulator over a scenario and write a contract recording (MCAP).
     Simulate {
         /// Scenario TOML, or a built-in name (patent, warmup).
@@ -361,6 +372,16 @@ fn run(cmd: Command) -> Result<ExitCode> {
                 .build()
                 .context("starting the async runtime")?;
             rt.block_on(serve::healthcheck(&url, timeout_s))
+        }
+        Command::FleetAudit {
+            config,
+            database_url,
+        } => {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .context("starting the async runtime")?;
+            rt.block_on(serve::fleet_audit(config.as_deref(), database_url))
         }
         Command::Serve {
             config,

@@ -116,3 +116,61 @@ async fn shutdown_signal() {
         let _ = tokio::signal::ctrl_c().await;
     }
 }
+
+/// `fleet-audit`: each machine's lease terms and the breaches its stored data shows.
+pub async fn fleet_audit(
+    config: Option<&std::path::Path>,
+    database_url: Option<String>,
+) -> Result<ExitCode> {
+    use driftwatch_service::store::Store;
+    let cfg = ServiceConfig::load(config)?;
+    let store = match database_url.or(cfg.database_url.clone()) {
+        Some(url) => Store::connect(&url).await?,
+        None => Store::open(&cfg.data_dir.join("driftwatch.db")).await?,
+    };
+    let mut problems = 0;
+    for m in &cfg.machines {
+        let audit = store.lease_audit(&m.id).await?;
+        println!(
+            "{}: {} cycles, {} compensation sets, {} lease terms",
+            m.id,
+            audit.cycles.len(),
+            audit.sets.len(),
+            audit.terms.len()
+        );
+        for t in &audit.terms {
+            let cycles = audit.cycles.iter().filter(|c| c.3 == Some(t.term)).count();
+            let sets = audit.sets.iter().filter(|s| s.2 == Some(t.term)).count();
+            println!(
+                "  term {} '{}': {} .. {} ({}), wrote {cycles} cycles and {sets} sets",
+                t.term,
+                t.holder,
+                ms_utc(t.acquired_ms),
+                ms_utc(t.released_ms.unwrap_or(t.expires_ms)),
+                if t.released_ms.is_some() {
+                    "released"
+                } else {
+                    "expired or held"
+                }
+            );
+        }
+        for p in audit.problems() {
+            println!("  PROBLEM {p}");
+            problems += 1;
+        }
+    }
+    store.close().await;
+    println!("{problems} problems");
+    Ok(if problems == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn ms_utc(ms: i64) -> String {
+    chrono::DateTime::from_timestamp_millis(ms).map_or_else(
+        || ms.to_string(),
+        |t| t.format("%Y-%m-%d %H:%M:%S%.3f").to_string(),
+    )
+}

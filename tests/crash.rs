@@ -7,13 +7,13 @@
 //! waiting on the wall clock is polling that child (every wait is bounded).
 #![cfg(unix)]
 
+mod common;
+
 use std::collections::BTreeSet;
 use std::fs::{self, File};
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
 use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
@@ -21,161 +21,21 @@ use serde_json::Value;
 use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_service::store::{CycleStatus, FileStatus, Store};
 
+use common::child::Serve;
+
 const MACHINE: &str = "sim-1";
 /// Steps of the default `patent` plan: one detection each.
 const STEPS: usize = 24;
 
-/// A `driftwatch serve` child; killed if the test panics while it runs.
-struct Service {
-    child: Child,
-    addr: SocketAddr,
-    log: PathBuf,
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        if let Ok(None) = self.child.try_wait() {
-            let _ = self.child.kill();
-            let _ = self.child.wait();
-        }
-    }
-}
-
-/// The address `serve` says it listens on ("driftwatch serving ... on http://ADDR (...").
-fn served_addr(log: &str) -> Option<SocketAddr> {
-    let line = log.lines().find(|l| l.starts_with("driftwatch serving"))?;
-    let rest = line.split_once("http://")?.1;
-    rest.split_whitespace().next()?.parse().ok()
-}
-
-impl Service {
-    /// Start `serve` on `data` at `time_scale` on a port the system picks (no race for a free
-    /// port), read the address it prints, and wait (bounded) until its API answers.
-    fn start(data: &Path, time_scale: f64, log: PathBuf) -> Service {
-        let out = File::create(&log).unwrap();
-        let child = Command::new(env!("CARGO_BIN_EXE_driftwatch"))
-            .arg("serve")
-            .arg("--time-scale")
-            .arg(time_scale.to_string())
-            .arg("--listen")
-            .arg("127.0.0.1:0")
-            .arg("--data-dir")
-            .arg(data)
-            .stdin(Stdio::null())
-            .stdout(out.try_clone().unwrap())
-            .stderr(out)
-            .spawn()
-            .unwrap();
-        let unbound: SocketAddr = ([127, 0, 0, 1], 0).into();
-        let mut s = Service {
-            child,
-            addr: unbound,
-            log,
-        };
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if let Some(status) = s.child.try_wait().unwrap() {
-                panic!("serve exited at start ({status}):\n{}", s.log_text());
-            }
-            if s.addr == unbound
-                && let Some(a) = served_addr(&s.log_text())
-            {
-                s.addr = a;
-            }
-            if s.addr != unbound
-                && get(s.addr, "/api/v1/machines").is_some_and(|(code, _)| code == 200)
-            {
-                return s;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "serve did not answer within 30 s:\n{}",
-                s.log_text()
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-
-    fn log_text(&self) -> String {
-        fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    /// GET that must answer; the JSON body.
-    fn get(&self, path: &str) -> (u16, Value) {
-        get(self.addr, path).unwrap_or_else(|| panic!("GET {path}: no answer\n{}", self.log_text()))
-    }
-
-    fn machine(&self) -> Value {
-        let (code, body) = self.get("/api/v1/machines");
-        assert_eq!(code, 200, "{body}");
-        body.as_array()
-            .and_then(|a| a.iter().find(|m| m["id"] == MACHINE))
-            .unwrap_or_else(|| panic!("no {MACHINE} in {body}"))
-            .clone()
-    }
-
-    fn cycles(&self) -> Vec<Value> {
-        let (code, body) = self.get(&format!("/api/v1/machines/{MACHINE}/cycles?limit=1000"));
-        assert_eq!(code, 200, "{body}");
-        body.as_array().unwrap().clone()
-    }
-
-    /// Wait (bounded) for the child to end by itself.
-    fn wait_exit(&mut self, within: Duration) -> ExitStatus {
-        let deadline = Instant::now() + within;
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return status;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "serve still running {within:?} after the signal:\n{}",
-                self.log_text()
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-}
-
-/// A plain HTTP/1.1 GET: status and JSON body (`Null` if the body is not JSON); `None` if the
-/// server does not answer.
-fn get(addr: SocketAddr, path: &str) -> Option<(u16, Value)> {
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(10))).ok()?;
-    s.set_write_timeout(Some(Duration::from_secs(10))).ok()?;
-    write!(
-        s,
-        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nAccept: application/json\r\nConnection: close\r\n\r\n"
-    )
-    .ok()?;
-    let mut raw = Vec::new();
-    s.read_to_end(&mut raw).ok()?;
-    let text = String::from_utf8(raw).ok()?;
-    let (head, body) = text.split_once("\r\n\r\n")?;
-    let code = head.split_whitespace().nth(1)?.parse().ok()?;
-    let chunked = head.lines().any(|l| {
-        let l = l.to_ascii_lowercase();
-        l.starts_with("transfer-encoding:") && l.contains("chunked")
-    });
-    let body = if chunked {
-        dechunk(body)?
-    } else {
-        body.to_string()
-    };
-    Some((code, serde_json::from_str(&body).unwrap_or(Value::Null)))
-}
-
-fn dechunk(mut s: &str) -> Option<String> {
-    let mut out = String::new();
-    loop {
-        let (size, rest) = s.split_once("\r\n")?;
-        let n = usize::from_str_radix(size.split(';').next()?.trim(), 16).ok()?;
-        if n == 0 {
-            return Some(out);
-        }
-        out.push_str(rest.get(..n)?);
-        s = rest.get(n + 2..)?;
-    }
+/// `serve` on `data` at `time_scale`.
+fn start(data: &Path, time_scale: f64, log: PathBuf) -> Serve {
+    let args = [
+        "--time-scale".to_string(),
+        time_scale.to_string(),
+        "--data-dir".to_string(),
+        data.display().to_string(),
+    ];
+    Serve::start(&args, log)
 }
 
 fn copy_dir(from: &Path, to: &Path) {
@@ -241,20 +101,20 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
     let rec_dir = data.join("mcap").join(MACHINE);
 
     // 1. Run fast until two cycles were validated and a later one is half-way, then SIGKILL.
-    let mut first = Service::start(&data, 300.0, base.join("serve-1.log"));
+    let mut first = start(&data, 300.0, base.join("serve-1.log"));
     let deadline = Instant::now() + Duration::from_secs(60);
     let (open_cycle, seen_version, ok_before, seen_detections) = loop {
         assert!(
             Instant::now() < deadline,
             "no cycle open after two validated ones within 60 s; last view {}\n{}",
-            first.machine(),
+            first.machine(MACHINE),
             first.log_text()
         );
-        let m = first.machine();
+        let m = first.machine(MACHINE);
         let version = m["compensation_version"].as_u64().unwrap_or(0);
         if let (true, Some(n)) = (version >= 2, m["open_cycle"].as_i64()) {
             let ok: BTreeSet<i64> = first
-                .cycles()
+                .cycles(MACHINE)
                 .iter()
                 .filter(|c| c["status"] == "ok")
                 .map(|c| c["cycle"].as_i64().unwrap())
@@ -347,7 +207,7 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
 
     // 2. Start again on the same data directory. At 1x its clock stays before the 06:00 power-on
     // while the test looks, so no new cycle can run: what it serves is what survived the kill.
-    let mut second = Service::start(&data, 1.0, base.join("serve-2.log"));
+    let mut second = start(&data, 1.0, base.join("serve-2.log"));
     let (code, comp) = second.get(&format!("/api/v1/machines/{MACHINE}/compensation"));
     assert_eq!(code, 200, "{comp}");
     let served = comp["version"].as_u64().unwrap();
@@ -356,10 +216,10 @@ fn a_kill_during_a_cycle_loses_no_validated_result_and_leaves_recoverable_files(
         "served version after the restart; before the kill {seen_version}"
     );
     assert_eq!(comp["cycle"].as_i64(), Some(highest_ok), "{comp}");
-    let m = second.machine();
+    let m = second.machine(MACHINE);
     assert_eq!(m["compensation_version"].as_u64(), Some(served), "{m}");
     assert!(m["open_cycle"].is_null(), "{m}");
-    let cycles = second.cycles();
+    let cycles = second.cycles(MACHINE);
     assert_eq!(status_of(&cycles, open_cycle), "abandoned", "{cycles:?}");
     for n in &at_kill.ok {
         assert_eq!(status_of(&cycles, *n), "ok", "cycle {n}");

@@ -5,6 +5,8 @@
 // Each test binary uses a part of this module.
 #![allow(dead_code)]
 
+pub mod child;
+
 use std::path::PathBuf;
 use std::time::Duration;
 

@@ -283,6 +283,46 @@ pub struct ServiceConfig {
     /// Where alert events are POSTed.
     #[serde(default)]
     pub webhooks: Vec<crate::webhook::WebhookConfig>,
+    /// Several processes on one PostgreSQL database sharing the machines through leases
+    /// (absent: this process runs every configured machine alone).
+    #[serde(default)]
+    pub fleet: Option<FleetConfig>,
+}
+
+/// `[fleet]`: this process's part in a fleet of processes sharing one database.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FleetConfig {
+    /// This process's name in the leases; default `<host>-<pid>`.
+    #[serde(default)]
+    pub process: Option<String>,
+    /// A machine whose process has not renewed its lease for this long is taken over by
+    /// another, s. Renewed every fifth of it.
+    #[serde(default = "default_lease_s")]
+    pub lease_s: f64,
+    /// Where this process's API answers for the others (requests that change a machine run
+    /// by this process are pointed there).
+    #[serde(default)]
+    pub advertise_url: Option<String>,
+    /// The most machines this process runs at once (absent: as many as are free).
+    #[serde(default)]
+    pub max_machines: Option<usize>,
+}
+
+fn default_lease_s() -> f64 {
+    15.0
+}
+
+impl FleetConfig {
+    /// The process name in the leases.
+    pub fn process_name(&self) -> String {
+        self.process.clone().unwrap_or_else(|| {
+            let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+                .map(|h| h.trim().to_string())
+                .unwrap_or_else(|_| "host".to_string());
+            format!("{host}-{}", std::process::id())
+        })
+    }
 }
 
 impl ServiceConfig {
@@ -391,6 +431,38 @@ impl ServiceConfig {
         for m in &self.machines {
             if let Err(e) = validate_mtconnect(&m.link) {
                 return bad(format!("machine '{}': {e}", m.id));
+            }
+        }
+        if let Some(f) = &self.fleet {
+            if !(1.0..=3600.0).contains(&f.lease_s) {
+                return bad(format!(
+                    "fleet.lease_s must be from 1 to 3600 s, not {}",
+                    f.lease_s
+                ));
+            }
+            if self.database_url.is_none() {
+                return bad(
+                    "[fleet] needs database_url: the processes of a fleet share one PostgreSQL \
+                     database"
+                        .into(),
+                );
+            }
+            if f.max_machines == Some(0) {
+                return bad("fleet.max_machines must be at least 1".into());
+            }
+            // Their links connect at start in every process: only the lease holder may talk
+            // to the NC.
+            if let Some(m) = self
+                .machines
+                .iter()
+                .find(|m| matches!(m.link, LinkConfig::Mtconnect { .. } | LinkConfig::Opcua(_)))
+            {
+                return bad(format!(
+                    "machine '{}': a fleet runs simulated and nc_push machines; an {} link is \
+                     not shared between processes yet (run it in a process without [fleet])",
+                    m.id,
+                    m.link.kind()
+                ));
             }
         }
         if let Some(m) = self.machines.iter().find(|m| m.link.is_real())

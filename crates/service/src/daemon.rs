@@ -58,6 +58,8 @@ pub struct MachineView {
     pub open_alerts: Vec<driftwatch_machine::alerts::Alert>,
     pub thermal: ThermalView,
     pub health: LoopHealth,
+    /// In a fleet: who runs the machine (absent: this process runs every machine alone).
+    pub fleet: Option<crate::fleet::FleetView>,
 }
 
 /// The machine loop's own health.
@@ -309,6 +311,18 @@ impl MachineRuntime {
         rt.queue.extend(said.into_iter().map(Job::Core));
         rt.drain().await?;
         Ok(rt)
+    }
+
+    /// Show the machine in `view` and take requests from `inbox` (the API's, kept by a fleet
+    /// across the loops that run the machine one after another) instead of the loop's own.
+    pub fn adopt(&mut self, view: &Arc<Mutex<MachineView>>, inbox: &Arc<Mutex<Inbox>>) {
+        let mine = self.view.lock().map(|v| v.clone()).unwrap_or_default();
+        if let Ok(mut v) = view.lock() {
+            let fleet = v.fleet.take();
+            *v = MachineView { fleet, ..mine };
+        }
+        self.view = view.clone();
+        self.inbox = inbox.clone();
     }
 
     /// Send alert events to these webhooks from now on.

@@ -136,7 +136,11 @@ pub async fn launch_with(
         None => Store::open(&cfg.data_dir.join("driftwatch.db")).await?,
     };
     let (links, t0) = links(&cfg, &store).await?;
-    let t0 = opts.start_ns.unwrap_or(t0);
+    let mut t0 = opts.start_ns.unwrap_or(t0);
+    // The processes of a simulated fleet share one machine time: the first sets it.
+    if cfg.fleet.is_some() && matches!(opts.clock, ClockKind::Configured) {
+        t0 = store.fleet_clock_now(t0, cfg.time_scale).await?;
+    }
     let (clock, manual_clock) = match opts.clock {
         ClockKind::Configured => (ServiceClock::scaled(t0, cfg.time_scale), None),
         ClockKind::Manual => {
@@ -150,7 +154,25 @@ pub async fn launch_with(
     }
     let (notifier, deliveries) = Notifier::start(hooks).map_err(LaunchError::Webhooks)?;
     let mut wired = Vec::new();
+    let mut slots = Vec::new();
     for (id, k, plan, link, settings, nc) in links {
+        if cfg.fleet.is_some() {
+            // Run only once its lease is taken (the fleet's supervisor).
+            let view = MachineView {
+                id: id.clone(),
+                kinematics: k.name.clone(),
+                ..Default::default()
+            };
+            let handle = MachineHandle {
+                view: Arc::new(std::sync::Mutex::new(view)),
+                inbox: Default::default(),
+                nc,
+                kinematics: Some(Arc::new(k.clone())),
+            };
+            let link = crate::fleet::SharedLink::new(link);
+            slots.push(crate::fleet::Slot::new(id, k, plan, settings, link, handle));
+            continue;
+        }
         let info = MachineInfo {
             machine_id: id.clone(),
             kinematics: k.name.clone(),
@@ -179,6 +201,7 @@ pub async fn launch_with(
     let handles: BTreeMap<String, MachineHandle> = wired
         .iter()
         .map(|w| (w.runtime.id.clone(), w.handle.clone()))
+        .chain(slots.iter().map(|s| (s.id.clone(), s.handle.clone())))
         .collect();
     let views = handles
         .iter()
@@ -197,6 +220,19 @@ pub async fn launch_with(
     state.request_timeout = std::time::Duration::from_secs_f64(cfg.http.request_timeout_s);
     state.validation = cfg.validation.clone();
     state.verification = cfg.verification.clone();
+    let fleet = cfg.fleet.as_ref().map(|f| crate::fleet::Fleet {
+        process: f.process_name(),
+        url: f.advertise_url.clone(),
+        ttl: Duration::from_secs_f64(f.lease_s),
+        max_machines: f.max_machines.unwrap_or(usize::MAX),
+        store: store.clone(),
+        clock: clock.clone(),
+        mcap_dir: cfg.data_dir.join("mcap"),
+        max_file_bytes: cfg.max_file_mib << 20,
+        notifier: notifier.clone(),
+        slots,
+    });
+    state.fleet_process = fleet.as_ref().map(|f| f.process.clone());
     // The loops hold the only senders from here: the deliveries end when the loops do.
     drop(notifier);
     let addr = listener.local_addr().map_err(LaunchError::Listener)?;
@@ -211,7 +247,7 @@ pub async fn launch_with(
         })
     };
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
-    let machines = wired
+    let mut machines: Vec<JoinHandle<()>> = wired
         .into_iter()
         .map(|w| {
             tokio::spawn(run_machine(
@@ -223,6 +259,9 @@ pub async fn launch_with(
             ))
         })
         .collect();
+    if let Some(fleet) = fleet {
+        machines.push(tokio::spawn(fleet.run(shutdown.clone())));
+    }
     Ok(Service {
         addr,
         t0_ns: t0,
@@ -421,7 +460,7 @@ const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
 /// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
 /// recorder that cannot write) is logged, counted in its view (and so in `/metrics`) and
 /// tried again with a doubling wait, and never stops the other machines or the API.
-async fn run_machine(
+pub(crate) async fn run_machine(
     mut rt: MachineRuntime,
     clock: ServiceClock,
     start_ns: i64,

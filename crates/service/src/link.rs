@@ -81,6 +81,9 @@ pub trait MachineLink: Send {
     /// The compensation set served from now on (validated: the loop publishes only those). A
     /// link that writes it to the NC does so; the others ignore it.
     fn serve(&mut self, _set: &driftwatch_machine::compensation::CompensationSet) {}
+    /// Bring a simulated machine to `t_ns` unobserved (a fleet process taking it over); a
+    /// real machine is where it is.
+    fn resume_at(&mut self, _t_ns: i64) {}
 }
 
 struct ActiveCycle {
@@ -305,6 +308,10 @@ impl Simulated {
 }
 
 impl MachineLink for Simulated {
+    fn resume_at(&mut self, t_ns: i64) {
+        Simulated::resume_at(self, t_ns)
+    }
+
     fn poll(&mut self, now_ns: i64) -> Vec<LinkEvent> {
         let now_s = (now_ns - self.vm.start_ns()) as f64 / 1e9;
         if self.last_state.is_none() {

@@ -10,8 +10,8 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{ChildStdin, Command, Stdio};
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
 use sqlx::Connection;
@@ -61,10 +61,12 @@ fn bin_dir() -> Result<PathBuf, String> {
             return Ok(dir);
         }
     }
-    Err("PostgreSQL's server programs (initdb, postgres) are not installed: install the Debian \
+    Err(
+        "PostgreSQL's server programs (initdb, postgres) are not installed: install the Debian \
          package `postgresql` (apt-get install postgresql), or set DRIFTWATCH_PG_BIN to the \
          directory holding them"
-        .to_string())
+            .to_string(),
+    )
 }
 
 fn output(cmd: &mut Command) -> Option<String> {
@@ -90,8 +92,10 @@ fn run_as() -> Result<RunAs, String> {
             return Ok(Some((user.to_string(), uid, gid)));
         }
     }
-    Err("running as root and neither a `postgres` nor a `nobody` user exists to run PostgreSQL"
-        .to_string())
+    Err(
+        "running as root and neither a `postgres` nor a `nobody` user exists to run PostgreSQL"
+            .to_string(),
+    )
 }
 
 fn command(user: &RunAs, program: &Path) -> Command {
@@ -193,7 +197,10 @@ impl ScratchPg {
                 break;
             }
             if let Ok(Some(status)) = holder.try_wait() {
-                return Err(format!("the PostgreSQL server exited ({status}): {}", log()));
+                return Err(format!(
+                    "the PostgreSQL server exited ({status}): {}",
+                    log()
+                ));
             }
             if Instant::now() > deadline {
                 return Err(format!(
@@ -249,15 +256,14 @@ pub(crate) async fn test_database() -> String {
         SERVER.get_or_init(|| {
             // The test binary is in target/<profile>/deps.
             let exe = std::env::current_exe().expect("the test binary's path");
-            let target = exe.parent().and_then(Path::parent).unwrap_or(Path::new("."));
+            let target = exe
+                .parent()
+                .and_then(Path::parent)
+                .unwrap_or(Path::new("."));
             ScratchPg::start(target).unwrap_or_else(|e| panic!("{e}"))
         })
     })
     .await
     .expect("start the PostgreSQL test server");
-    server
-        .database()
-        .await
-        .expect("create a test database")
-        .1
+    server.database().await.expect("create a test database").1
 }

@@ -74,13 +74,14 @@ pub(super) async fn alerts(
     Ok(Json(for_caller(json!(body), &caller)))
 }
 
-#[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "the acknowledgement is taken (the loop applies it at its next step)", body = AckResponse), (status = 200, description = "already acknowledged: who did it first, and when (nothing changes)", body = AckResponse), (status = 404, description = "no such open alert, or no such machine"), (status = 400, description = "an alert id that is not a number (bad_request)"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/alerts/{alert}/ack", params(("id" = String, Path, description = "machine id"), ("alert" = u64, Path, description = "alert id")), responses((status = 202, description = "the acknowledgement is taken (the loop applies it at its next step)", body = AckResponse), (status = 200, description = "already acknowledged: who did it first, and when (nothing changes)", body = AckResponse), (status = 404, description = "no such open alert, or no such machine"), (status = 400, description = "an alert id that is not a number (bad_request)"), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read"), (status = 409, description = "another process of the fleet runs the machine, or none does just now (run_elsewhere): the message names the holder and its address")), security(("bearer" = [])))]
 pub(super) async fn ack_alert(
     State(st): State<Shared>,
     Path((id, alert)): Path<(String, u64)>,
     axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Response, ApiError> {
     let h = handle(&st, &id)?;
+    super::run_here(&id, h)?;
     let Some(open) = view(h).open_alerts.into_iter().find(|a| a.id == alert) else {
         return Err(ApiError::new(
             ErrorCode::UnknownAlert,

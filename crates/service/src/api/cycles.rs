@@ -79,13 +79,14 @@ pub(super) async fn cycle(
     }))
 }
 
-#[utoipa::path(post, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id")), responses((status = 202, description = "a cycle will run at the next idle moment", body = CycleRequested), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/cycles", params(("id" = String, Path, description = "machine id")), responses((status = 202, description = "a cycle will run at the next idle moment", body = CycleRequested), (status = 401, description = "no or unknown token"), (status = 403, description = "the token may only read"), (status = 409, description = "another process of the fleet runs the machine, or none does just now (run_elsewhere): the message names the holder and its address")), security(("bearer" = [])))]
 pub(super) async fn request_cycle(
     State(st): State<Shared>,
     Path(id): Path<String>,
     axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Response, ApiError> {
     let h = handle(&st, &id)?;
+    super::run_here(&id, h)?;
     let now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     if let Ok(mut inbox) = h.inbox.lock() {
         inbox.requests.push((caller.name.clone(), now));

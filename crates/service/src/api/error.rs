@@ -30,6 +30,8 @@ pub enum ErrorCode {
     /// The token's role may not do this.
     Role,
     UnknownMachine,
+    /// The machine is run by another process of the fleet (or by none just now).
+    RunElsewhere,
     UnknownCycle,
     UnknownDiagnosis,
     UnknownAlert,
@@ -90,7 +92,7 @@ impl ErrorCode {
             | NoCompensation | NoModel => StatusCode::NOT_FOUND,
             TokenRequired | BadToken => StatusCode::UNAUTHORIZED,
             Role => StatusCode::FORBIDDEN,
-            NoKinematics | NotNcPush | OffsetsRefused => StatusCode::CONFLICT,
+            NoKinematics | NotNcPush | OffsetsRefused | RunElsewhere => StatusCode::CONFLICT,
             DiagnosisBusy => StatusCode::TOO_MANY_REQUESTS,
             Busy | Timeout => StatusCode::SERVICE_UNAVAILABLE,
             DiagnosisPanicked | Storage | Error => StatusCode::INTERNAL_SERVER_ERROR,

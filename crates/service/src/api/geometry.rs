@@ -29,7 +29,7 @@ pub struct GeometryPost {
 /// The longest `source` taken, characters.
 const MAX_SOURCE: usize = 200;
 
-#[utoipa::path(post, path = "/api/v1/machines/{id}/geometry", params(("id" = String, Path, description = "machine id")), request_body(content = GeometryPost, description = "the linear axes' geometry: scale_ppm [X, Y, Z], squareness_urad {xy, xz, yz} in the kinematics' convention, ISO 230-1 component polynomials by name (EZX, EBY, ...: [c1, c2, c3] of p / 100 mm, um or urad), the stack from the bed up and the Abbe offset; and what measured it"), responses((status = 201, description = "the geometry as stored with its version number; the machine's solves start from it from the loop's next step, and each cycle result names it (`geometry`)", body = StoredGeometry), (status = 400, description = "a geometry that cannot be taken (bad_geometry): the message names the field (a value not finite or beyond the limits, an unknown component name, a stack that is not X, Y and Z once each, an empty or overlong source)"), (status = 422, description = "the body is not a geometry's shape (bad_body)")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/geometry", params(("id" = String, Path, description = "machine id")), request_body(content = GeometryPost, description = "the linear axes' geometry: scale_ppm [X, Y, Z], squareness_urad {xy, xz, yz} in the kinematics' convention, ISO 230-1 component polynomials by name (EZX, EBY, ...: [c1, c2, c3] of p / 100 mm, um or urad), the stack from the bed up and the Abbe offset; and what measured it"), responses((status = 201, description = "the geometry as stored with its version number; the machine's solves start from it from the loop's next step, and each cycle result names it (`geometry`)", body = StoredGeometry), (status = 400, description = "a geometry that cannot be taken (bad_geometry): the message names the field (a value not finite or beyond the limits, an unknown component name, a stack that is not X, Y and Z once each, an empty or overlong source)"), (status = 422, description = "the body is not a geometry's shape (bad_body)"), (status = 409, description = "another process of the fleet runs the machine, or none does just now (run_elsewhere): the message names the holder and its address")), security(("bearer" = [])))]
 pub(super) async fn post_geometry(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -37,6 +37,7 @@ pub(super) async fn post_geometry(
     Json(body): Json<GeometryPost>,
 ) -> Result<Response, ApiError> {
     let h = handle(&st, &id)?;
+    super::run_here(&id, h)?;
     let source = body.source.trim();
     if source.is_empty() || source.chars().count() > MAX_SOURCE {
         return Err(ApiError::new(

@@ -66,6 +66,10 @@ pub struct MachineSummary {
     /// Whether the last step failed.
     pub failing: bool,
     pub last_fault: Option<Fault>,
+    /// In a fleet of processes: who runs the machine (absent: this process runs every
+    /// machine alone). A machine run by another process is shown from the database: its
+    /// served set and cycles, not its phase, alerts or predictions.
+    pub fleet: Option<crate::fleet::FleetView>,
 }
 
 /// Detections an open cycle has received of those its plan expects.
@@ -104,8 +108,25 @@ impl MachineSummary {
                 t_ns: *t_ns,
                 message: message.clone(),
             }),
+            fleet: v.fleet.clone(),
         }
     }
+}
+
+/// The fleet's leases as the database holds them.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct FleetStatus {
+    /// This process's name in the leases (absent: it is not part of a fleet).
+    pub process: Option<String>,
+    pub leases: Vec<crate::store::LeaseRow>,
+}
+
+#[utoipa::path(get, path = "/api/v1/fleet", responses((status = 200, description = "this process's name in the fleet and every machine's lease (holder, its address, term, expiry and the database's clock, ms); empty outside a fleet", body = FleetStatus)), security((), ("bearer" = [])))]
+pub(super) async fn fleet(State(st): State<Shared>) -> Result<Json<FleetStatus>, ApiError> {
+    Ok(Json(FleetStatus {
+        process: st.fleet_process.clone(),
+        leases: st.store.leases().await?,
+    }))
 }
 
 #[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, compensation version, the clock at its loop's last step, its loop's failed steps, whether the last step failed, and the last failure", body = Vec<MachineSummary>)), security((), ("bearer" = [])))]
@@ -452,6 +473,7 @@ pub(super) async fn errors(
 
 pub(super) fn routes(guard: &Guard) -> Router<Shared> {
     Router::new()
+        .route("/fleet", guard(get(fleet)))
         .route("/machines", guard(get(machines)))
         .route("/machines/{id}", guard(get(machine)))
         .route("/machines/{id}/compensation", guard(get(compensation)))

@@ -71,6 +71,8 @@ pub struct ApiState {
     pub validation: driftwatch_machine::compensation::ValidationLimits,
     /// How references are compared with the tool setter (`[verification]`).
     pub verification: driftwatch_machine::verification::VerificationConfig,
+    /// This process's name in a fleet (`[fleet]`).
+    pub fleet_process: Option<String>,
 }
 
 impl ApiState {
@@ -86,6 +88,7 @@ impl ApiState {
             request_timeout: std::time::Duration::from_secs(120),
             validation: Default::default(),
             verification: Default::default(),
+            fleet_process: None,
         }
     }
 }
@@ -96,7 +99,7 @@ type Shared = Arc<ApiState>;
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, verifications against a reference instrument, the nc_push link."),
-    paths(machines::healthz, machines::ready, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications, geometry::post_geometry, geometry::geometry),
+    paths(machines::healthz, machines::ready, machines::fleet, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications, geometry::post_geometry, geometry::geometry),
     components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, driftwatch_machine::verification::ReferenceResult, geometry::GeometryPost, driftwatch_core::linear_axes::LinearGeometry, driftwatch_core::linear_axes::Squareness, crate::store::StoredGeometry, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth, &StandardErrors)
 )]
@@ -243,6 +246,31 @@ pub(super) fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle
     st.machines
         .get(id)
         .ok_or_else(|| ApiError::new(ErrorCode::UnknownMachine, format!("no machine '{id}'")))
+}
+
+/// A request that changes a machine goes to the process that runs it: refused (409
+/// `run_elsewhere`, naming the holder and its address) when another process of the fleet
+/// does, or nobody does right now.
+pub(super) fn run_here(id: &str, h: &MachineHandle) -> Result<(), ApiError> {
+    let fleet = h.view.lock().ok().and_then(|v| v.fleet.clone());
+    match fleet {
+        Some(f) if !f.here => Err(ApiError::new(
+            ErrorCode::RunElsewhere,
+            match (f.holder, f.url) {
+                (Some(p), Some(url)) => {
+                    format!("machine '{id}' is run by process '{p}': send this request to {url}")
+                }
+                (Some(p), None) => format!(
+                    "machine '{id}' is run by process '{p}' of the fleet: send this request there"
+                ),
+                (None, _) => format!(
+                    "machine '{id}' is run by no process right now (its lease is being taken \
+                     over): try again shortly"
+                ),
+            },
+        )),
+        _ => Ok(()),
+    }
 }
 
 pub(super) fn view(h: &MachineHandle) -> MachineView {

@@ -11,7 +11,9 @@ use super::{ApiError, ApiState, ErrorCode, Guard, Shared, handle};
 use crate::nc_push::{EventBatch, NcPushHandle};
 
 pub(super) fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHandle, ApiError> {
-    handle(st, id)?.nc.as_ref().ok_or_else(|| {
+    let h = handle(st, id)?;
+    super::run_here(id, h)?;
+    h.nc.as_ref().ok_or_else(|| {
         ApiError::new(
             ErrorCode::NotNcPush,
             format!("machine '{id}' is not on the nc_push link"),
@@ -20,7 +22,7 @@ pub(super) fn nc_handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a NcPushHand
 }
 
 /// The NC posts what happened (contract message shapes), a batch taken whole or refused whole.
-#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole: events queued for the loop, and detections of no ordered cycle (stray: counted in /metrics, not kept)", body = crate::nc_push::Accepted), (status = 400, description = "the batch was refused whole; the message names the bad event (bad_event), or an event's time lies beyond the link's tolerance from the service clock (clock_skew)"), (status = 409, description = "the machine is not on the nc_push link"), (status = 503, description = "too many events wait for the service loop (busy): send the batch again in a few seconds")), security(("bearer" = [])))]
+#[utoipa::path(post, path = "/api/v1/machines/{id}/nc/events", params(("id" = String, Path, description = "machine id")), request_body = EventBatch, responses((status = 202, description = "the batch was taken whole: events queued for the loop, and detections of no ordered cycle (stray: counted in /metrics, not kept)", body = crate::nc_push::Accepted), (status = 400, description = "the batch was refused whole; the message names the bad event (bad_event), or an event's time lies beyond the link's tolerance from the service clock (clock_skew)"), (status = 409, description = "another process of the fleet runs the machine (run_elsewhere); or the machine is not on the nc_push link"), (status = 503, description = "too many events wait for the service loop (busy): send the batch again in a few seconds")), security(("bearer" = [])))]
 pub(super) async fn nc_events(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -48,7 +50,7 @@ pub(super) async fn nc_events(
 
 /// The NC polls for a cycle order: 204 when none. A read (the order stays until the NC posts a
 /// detection of it), so a reader without a token may see it where anonymous reads are on.
-#[utoipa::path(get, path = "/api/v1/machines/{id}/nc/request", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the cycle order to run", body = crate::nc_push::CycleOrder), (status = 204, description = "nothing asked"), (status = 409, description = "the machine is not on the nc_push link")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/nc/request", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "the cycle order to run", body = crate::nc_push::CycleOrder), (status = 204, description = "nothing asked"), (status = 409, description = "another process of the fleet runs the machine (run_elsewhere); or the machine is not on the nc_push link")), security((), ("bearer" = [])))]
 pub(super) async fn nc_request(
     State(st): State<Shared>,
     Path(id): Path<String>,

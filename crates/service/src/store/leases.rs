@@ -231,8 +231,12 @@ impl Store {
         let row = sqlx::query(sqlx::AssertSqlSafe(select))
             .fetch_one(&self.pool)
             .await?;
-        let (t0, wall0, stored_scale, now_ms): (i64, i64, f64, i64) =
-            (row.try_get(0)?, row.try_get(1)?, row.try_get(2)?, row.try_get(3)?);
+        let (t0, wall0, stored_scale, now_ms): (i64, i64, f64, i64) = (
+            row.try_get(0)?,
+            row.try_get(1)?,
+            row.try_get(2)?,
+            row.try_get(3)?,
+        );
         if (stored_scale - scale).abs() > 1e-9 * scale.abs().max(1.0) {
             return Err(StoreError::Fleet(format!(
                 "the fleet's clock runs at time_scale {stored_scale}, this process's configuration \
@@ -316,7 +320,10 @@ impl LeaseAudit {
         let m = &self.machine;
         let mut out = Vec::new();
         for w in self.terms.windows(2) {
-            let ended = w[0].released_ms.unwrap_or(w[0].expires_ms).min(w[0].expires_ms);
+            let ended = w[0]
+                .released_ms
+                .unwrap_or(w[0].expires_ms)
+                .min(w[0].expires_ms);
             if w[1].acquired_ms < ended {
                 out.push(format!(
                     "{m}: term {} ('{}') began {} ms before term {} ('{}') ended",

@@ -16,7 +16,6 @@ mod samples;
 mod sets;
 mod verifications;
 
-
 pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
 pub use backend::Backend;
 pub use cycles::{CycleRow, CycleStatus, DetectionRow};
