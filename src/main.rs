@@ -367,22 +367,12 @@ fn checks(k: &Kinematics, args: &SolverArgs) -> Result<CycleChecks> {
 fn run(cmd: Command) -> Result<ExitCode> {
     match cmd {
         Command::Healthcheck { url, timeout_s } => {
-            let rt = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-                .context("starting the async runtime")?;
-            rt.block_on(serve::healthcheck(&url, timeout_s))
+            current_thread()?.block_on(serve::healthcheck(&url, timeout_s))
         }
         Command::FleetAudit {
             config,
             database_url,
-        } => {
-            let rt = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-                .context("starting the async runtime")?;
-            rt.block_on(serve::fleet_audit(config.as_deref(), database_url))
-        }
+        } => current_thread()?.block_on(serve::fleet_audit(config.as_deref(), database_url)),
         Command::Serve {
             config,
             time_scale,
@@ -992,4 +982,12 @@ fn cmd_bench_solve(machine: &str, plan: Option<&str>, n: usize) -> Result<ExitCo
         sum
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// A single-threaded async runtime for a command that only waits on the network.
+fn current_thread() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
 }

@@ -323,6 +323,41 @@ impl FleetConfig {
             format!("{host}-{}", std::process::id())
         })
     }
+
+    /// What a fleet process needs of the rest of the configuration.
+    fn check(&self, cfg: &ServiceConfig) -> Result<(), String> {
+        if !(1.0..=3600.0).contains(&self.lease_s) {
+            return Err(format!(
+                "fleet.lease_s must be from 1 to 3600 s, not {}",
+                self.lease_s
+            ));
+        }
+        if cfg.database_url.is_none() {
+            return Err(
+                "[fleet] needs database_url: the processes of a fleet share one \
+                        PostgreSQL database"
+                    .into(),
+            );
+        }
+        if self.max_machines == Some(0) {
+            return Err("fleet.max_machines must be at least 1".into());
+        }
+        // Their links connect at start in every process: only the lease holder may talk to
+        // the NC.
+        if let Some(m) = cfg
+            .machines
+            .iter()
+            .find(|m| matches!(m.link, LinkConfig::Mtconnect { .. } | LinkConfig::Opcua(_)))
+        {
+            return Err(format!(
+                "machine '{}': a fleet runs simulated and nc_push machines; an {} link is not \
+                 shared between processes yet (run it in a process without [fleet])",
+                m.id,
+                m.link.kind()
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl ServiceConfig {
@@ -433,37 +468,10 @@ impl ServiceConfig {
                 return bad(format!("machine '{}': {e}", m.id));
             }
         }
-        if let Some(f) = &self.fleet {
-            if !(1.0..=3600.0).contains(&f.lease_s) {
-                return bad(format!(
-                    "fleet.lease_s must be from 1 to 3600 s, not {}",
-                    f.lease_s
-                ));
-            }
-            if self.database_url.is_none() {
-                return bad(
-                    "[fleet] needs database_url: the processes of a fleet share one PostgreSQL \
-                     database"
-                        .into(),
-                );
-            }
-            if f.max_machines == Some(0) {
-                return bad("fleet.max_machines must be at least 1".into());
-            }
-            // Their links connect at start in every process: only the lease holder may talk
-            // to the NC.
-            if let Some(m) = self
-                .machines
-                .iter()
-                .find(|m| matches!(m.link, LinkConfig::Mtconnect { .. } | LinkConfig::Opcua(_)))
-            {
-                return bad(format!(
-                    "machine '{}': a fleet runs simulated and nc_push machines; an {} link is \
-                     not shared between processes yet (run it in a process without [fleet])",
-                    m.id,
-                    m.link.kind()
-                ));
-            }
+        if let Some(f) = &self.fleet
+            && let Err(e) = f.check(self)
+        {
+            return bad(e);
         }
         if let Some(m) = self.machines.iter().find(|m| m.link.is_real())
             && self.time_scale != 1.0

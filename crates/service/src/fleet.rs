@@ -96,14 +96,28 @@ pub struct Slot {
 }
 
 impl Slot {
+    /// A machine not run yet: the API's handle of it shows nothing until the supervisor
+    /// takes it or reads it from the database.
     pub fn new(
         id: String,
         kinematics: Kinematics,
         plan: Plan,
         settings: Settings,
-        link: SharedLink,
-        handle: MachineHandle,
+        link: Box<dyn MachineLink>,
+        nc: Option<crate::nc_push::NcPushHandle>,
     ) -> Self {
+        let view = crate::daemon::MachineView {
+            id: id.clone(),
+            kinematics: kinematics.name.clone(),
+            ..Default::default()
+        };
+        let handle = MachineHandle {
+            view: Arc::new(Mutex::new(view)),
+            inbox: Default::default(),
+            nc,
+            kinematics: Some(Arc::new(kinematics.clone())),
+        };
+        let link = SharedLink::new(link);
         Slot {
             id,
             kinematics,

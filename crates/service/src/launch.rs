@@ -158,41 +158,18 @@ pub async fn launch_with(
     for (id, k, plan, link, settings, nc) in links {
         if cfg.fleet.is_some() {
             // Run only once its lease is taken (the fleet's supervisor).
-            let view = MachineView {
-                id: id.clone(),
-                kinematics: k.name.clone(),
-                ..Default::default()
-            };
+            slots.push(crate::fleet::Slot::new(id, k, plan, settings, link, nc));
+        } else {
+            let mut runtime = start_machine(&cfg, &store, t0, id, k, plan, link, &settings).await?;
+            runtime.set_notifier(notifier.clone());
             let handle = MachineHandle {
-                view: Arc::new(std::sync::Mutex::new(view)),
-                inbox: Default::default(),
+                view: runtime.view.clone(),
+                inbox: runtime.inbox.clone(),
                 nc,
-                kinematics: Some(Arc::new(k.clone())),
+                kinematics: Some(Arc::new(runtime.kinematics().clone())),
             };
-            let link = crate::fleet::SharedLink::new(link);
-            slots.push(crate::fleet::Slot::new(id, k, plan, settings, link, handle));
-            continue;
+            wired.push(Wired { runtime, handle });
         }
-        let info = MachineInfo {
-            machine_id: id.clone(),
-            kinematics: k.name.clone(),
-            software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
-        };
-        let recorder = Recorder::new(&cfg.data_dir.join("mcap"), info, cfg.max_file_mib << 20)
-            .map_err(|e| LaunchError::Machine {
-                machine: id.clone(),
-                message: e.to_string(),
-            })?;
-        let mut runtime =
-            MachineRuntime::new(&id, k, plan, link, &settings, store.clone(), recorder, t0).await?;
-        runtime.set_notifier(notifier.clone());
-        let handle = MachineHandle {
-            view: runtime.view.clone(),
-            inbox: runtime.inbox.clone(),
-            nc,
-            kinematics: Some(Arc::new(runtime.kinematics().clone())),
-        };
-        wired.push(Wired { runtime, handle });
     }
     let (tokens, disabled) = cfg.resolved_tokens();
     for d in &disabled {
@@ -275,6 +252,31 @@ pub async fn launch_with(
         deliveries,
         store,
     })
+}
+
+/// A machine's loop, started from what the store holds.
+#[allow(clippy::too_many_arguments)]
+async fn start_machine(
+    cfg: &ServiceConfig,
+    store: &Store,
+    t0: i64,
+    id: String,
+    k: Kinematics,
+    plan: Plan,
+    link: Box<dyn MachineLink>,
+    settings: &Settings,
+) -> Result<MachineRuntime, LaunchError> {
+    let info = MachineInfo {
+        machine_id: id.clone(),
+        kinematics: k.name.clone(),
+        software: format!("driftwatch {}", env!("CARGO_PKG_VERSION")),
+    };
+    let recorder = Recorder::new(&cfg.data_dir.join("mcap"), info, cfg.max_file_mib << 20)
+        .map_err(|e| LaunchError::Machine {
+            machine: id.clone(),
+            message: e.to_string(),
+        })?;
+    Ok(MachineRuntime::new(&id, k, plan, link, settings, store.clone(), recorder, t0).await?)
 }
 
 type Linked = (
