@@ -30,11 +30,52 @@ pub fn scratch(name: &str) -> PathBuf {
     d
 }
 
-/// The shipped default configuration with its data in `dir`, and literal tokens: `read-token`
-/// (dashboard, read), `write-token` (operator, write).
+/// With `DRIFTWATCH_TEST_BACKEND=postgres`, the URL of the database of data directory `dir` on
+/// a throwaway PostgreSQL server (one per test binary; a fresh database the first time a
+/// directory asks, the same one after, as a restart on the same directory finds its SQLite
+/// file): the tests that take their store from here then run against PostgreSQL instead of
+/// SQLite (`.ci/run` runs them both ways).
+pub fn test_database_url(dir: &std::path::Path) -> Option<String> {
+    use driftwatch_service::scratch_pg::ScratchPg;
+    static SERVER: std::sync::OnceLock<ScratchPg> = std::sync::OnceLock::new();
+    static BY_DIR: std::sync::Mutex<Vec<(PathBuf, String)>> = std::sync::Mutex::new(Vec::new());
+    match std::env::var("DRIFTWATCH_TEST_BACKEND").as_deref() {
+        Ok("postgres") => {}
+        Ok("sqlite") | Err(_) => return None,
+        Ok(other) => panic!("DRIFTWATCH_TEST_BACKEND={other}: sqlite or postgres"),
+    }
+    let server = SERVER.get_or_init(|| {
+        ScratchPg::start(std::path::Path::new(env!("CARGO_TARGET_TMPDIR")))
+            .unwrap_or_else(|e| panic!("{e}"))
+    });
+    let mut by_dir = BY_DIR.lock().unwrap();
+    if let Some((_, url)) = by_dir.iter().find(|(d, _)| d == dir) {
+        return Some(url.clone());
+    }
+    let url = server
+        .database_blocking()
+        .unwrap_or_else(|e| panic!("{e}"))
+        .1;
+    by_dir.push((dir.to_path_buf(), url.clone()));
+    Some(url)
+}
+
+/// The store of a test that runs a machine itself: SQLite in `dir`, or PostgreSQL (see
+/// [`test_database_url`]).
+pub async fn test_store(dir: &std::path::Path) -> Store {
+    match test_database_url(dir) {
+        Some(url) => Store::connect(&url).await.unwrap(),
+        None => Store::open(&dir.join("driftwatch.db")).await.unwrap(),
+    }
+}
+
+/// The shipped default configuration with its data in `dir` (its database: see
+/// [`test_database_url`]), and literal tokens: `read-token` (dashboard, read), `write-token`
+/// (operator, write).
 pub fn config(dir: &std::path::Path) -> ServiceConfig {
     let mut cfg = ServiceConfig::load(None).unwrap();
     cfg.data_dir = dir.to_path_buf();
+    cfg.database_url = test_database_url(dir);
     cfg.http.tokens = vec![
         Token {
             name: "dashboard".into(),

@@ -20,6 +20,8 @@ use sqlx::Connection;
 #[derive(Debug)]
 pub struct ScratchPg {
     pub port: u16,
+    /// The server's programs (initdb, postgres, createdb).
+    bin: PathBuf,
     /// Its directory (data, socket, log), removed when it stops.
     pub dir: PathBuf,
     next: AtomicU32,
@@ -212,6 +214,7 @@ impl ScratchPg {
         }
         Ok(ScratchPg {
             port,
+            bin,
             dir,
             next: AtomicU32::new(1),
             _hold: Mutex::new(hold),
@@ -232,6 +235,32 @@ impl ScratchPg {
             .await?;
         conn.close().await.ok();
         Ok(size)
+    }
+
+    /// A fresh, empty database made without an async runtime (PostgreSQL's `createdb`): its
+    /// name and URL.
+    pub fn database_blocking(&self) -> Result<(String, String), String> {
+        let name = format!("db_{}", self.next.fetch_add(1, Ordering::Relaxed));
+        let out = Command::new(self.bin.join("createdb"))
+            .args([
+                "-h",
+                "127.0.0.1",
+                "-p",
+                &self.port.to_string(),
+                "-U",
+                "postgres",
+            ])
+            .arg(&name)
+            .output()
+            .map_err(|e| format!("running createdb: {e}"))?;
+        if !out.status.success() {
+            return Err(format!(
+                "createdb {name} failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            ));
+        }
+        let url = self.url(&name);
+        Ok((name, url))
     }
 
     /// A fresh, empty database: its name and URL.

@@ -137,6 +137,8 @@ impl Store {
         .bind(AlertSeverity::column(ev.severity))
         .bind(ev.message)
         .bind(ev.value)
+        // Not a cached prepared statement: see `NULLABLE_REAL` in the store's module.
+        .persistent(super::NULLABLE_REAL_CACHED)
         .execute(&self.pool)
         .await?;
         Ok(())

@@ -214,6 +214,8 @@ impl Store {
         .bind(result.chi2)
         .bind(result.dof.map(|d| d as i64))
         .bind(&payload)
+        // Not a cached prepared statement: see `NULLABLE_REAL` in the store's module.
+        .persistent(super::NULLABLE_REAL_CACHED)
         .execute(&mut *tx)
         .await?;
         if let (Some(errors), Some(sigma)) = (&result.errors, &result.sigma) {
