@@ -219,6 +219,11 @@ impl Fleet {
         };
         if r.task.is_finished() {
             info!(machine = %slot.id, term = r.lease.term, "fleet: the machine's loop ended");
+            // Held still (the loop stopped for failed renewals): another process may take it
+            // now rather than after the lease time. Not held: nothing happens.
+            if let Err(e) = self.store.release_lease(&r.lease).await {
+                warn!(machine = %slot.id, error = %e, "fleet: could not release the lease; it expires by itself");
+            }
             slot.running = None;
             return;
         }
