@@ -177,9 +177,16 @@ function drawFleet(view, tiles) {
             : 'none yet: the NC keeps its own values'),
         largestLine(set, open, 'um'),
         largestLine(set, open, 'urad'),
-        el('div', { class: open.length ? 'alerts-open' : '' },
-          el('span', { class: 'label' }, 'open alerts'),
-          open.length ? `${open.length} (${unacked} not acknowledged)` : 'none'),
+        m.fleet && !m.fleet.here
+          ? el('div', {}, el('span', { class: 'label' }, 'open alerts'),
+            'shown by the process that runs it')
+          : el('div', { class: open.length ? 'alerts-open' : '' },
+            el('span', { class: 'label' }, 'open alerts'),
+            open.length ? `${open.length} (${unacked} not acknowledged)` : 'none'),
+        m.fleet
+          ? el('div', {}, el('span', { class: 'label' }, 'run by'),
+            m.fleet.holder ? `${m.fleet.holder}${m.fleet.here ? ' (this process)' : ''}` : 'no process just now')
+          : null,
         m.failing && m.last_fault ? el('div', { class: 'fault' }, `failing: ${m.last_fault.message}`) : null);
     })));
 }
