@@ -3,7 +3,11 @@
 //!   link, phase, scheduler, solve, validation, SQLite, MCAP), as fast as it runs;
 //! - `bench http`: the NC's compensation endpoint under load on loopback, next to a trivial
 //!   endpoint served by the same server in the same run, while the machine loop keeps
-//!   solving and writing.
+//!   solving and writing;
+//! - `bench fleet` ([`fleet`]): N simulated machines through a simulated day in one process
+//!   (the launched service, SQLite or PostgreSQL), as fast as the loops keep up, while a
+//!   client polls the compensation endpoint: wall time, CPU per machine-day, database growth
+//!   per machine-year, the endpoint's latency.
 
 use driftwatch_core::units;
 use std::path::{Path, PathBuf};
@@ -21,6 +25,9 @@ use driftwatch_service::link::Simulated;
 use driftwatch_service::recorder::Recorder;
 use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
+
+mod fleet;
+pub use fleet::{FleetBackend, FleetOptions, fleet};
 
 fn size_of(p: &Path) -> u64 {
     match std::fs::metadata(p) {

@@ -189,48 +189,7 @@ enum Command {
     /// (`plan design`: search for a plan instead).
     Plan(PlanArgs),
     /// Benchmarks (run and report; not tests).
-    Bench {
-        #[arg(value_enum)]
-        which: BenchWhich,
-        /// Machine whose cycles `bench solve` solves (built-in name or path).
-        #[arg(long, default_value = "table_bc")]
-        machine: String,
-        /// Plan to solve (built-in or path); default the machine's own plan in its listed order
-        /// (one pass: `patent_sequential` on table_bc).
-        #[arg(long)]
-        plan: Option<String>,
-        /// Number of solves.
-        #[arg(long, default_value_t = 20000)]
-        n: usize,
-        /// Simulated days (bench year; bench diagnosis takes 3 unless given).
-        #[arg(long, default_value_t = 365.0)]
-        days: f64,
-        /// Scratch directory (bench year and http; emptied first).
-        #[arg(long, default_value = "out/bench")]
-        dir: PathBuf,
-        /// Concurrent keep-alive connections (bench http).
-        #[arg(long, default_value_t = 64)]
-        connections: usize,
-        /// Seconds of load per endpoint (bench http).
-        #[arg(long, default_value_t = 10.0)]
-        seconds: f64,
-        /// Print JSON (bench compensation, bench thermal).
-        #[arg(long)]
-        json: bool,
-        /// Directory of the shipped real data sets (bench thermal).
-        #[arg(long, default_value = "tests/data")]
-        data: PathBuf,
-        /// Grid step of the thermal families, min (bench thermal).
-        #[arg(long, default_value_t = 5.0)]
-        step_min: f64,
-        /// Serve predicted sets between cycles (bench year): on or off.
-        #[arg(long, default_value = "on", value_parser = ["on", "off"])]
-        prediction: String,
-        /// Cycles after a spindle stop, min, for the day under test (bench compensation;
-        /// default: the shipped policy). The patent scenario then uses the scheduler too.
-        #[arg(long, value_delimiter = ',')]
-        after_stop: Option<Vec<f64>>,
-    },
+    Bench(BenchArgs),
 }
 
 /// `plan --machine M [--plan P]` prints a plan; `plan design ...` designs one. The flags of
@@ -296,6 +255,66 @@ enum Which {
     Patent,
 }
 
+/// `bench WHICH` and every bench's options (each bench reads its own).
+#[derive(clap::Args)]
+struct BenchArgs {
+    #[arg(value_enum)]
+    which: BenchWhich,
+    /// Machine whose cycles `bench solve` solves (built-in name or path).
+    #[arg(long, default_value = "table_bc")]
+    machine: String,
+    /// Plan to solve (built-in or path); default the machine's own plan in its listed order
+    /// (one pass: `patent_sequential` on table_bc).
+    #[arg(long)]
+    plan: Option<String>,
+    /// Number of solves.
+    #[arg(long, default_value_t = 20000)]
+    n: usize,
+    /// Simulated days (bench year: default 365; bench fleet: 1; bench diagnosis takes 3
+    /// unless given below 365).
+    #[arg(long)]
+    days: Option<f64>,
+    /// Scratch directory (bench year, http and fleet; emptied first).
+    #[arg(long, default_value = "out/bench")]
+    dir: PathBuf,
+    /// Simulated machines (bench fleet).
+    #[arg(long, default_value_t = 10)]
+    machines: usize,
+    /// The fleet's database (bench fleet): SQLite in --dir, or PostgreSQL (a throwaway server
+    /// under --dir unless --database-url is given).
+    #[arg(long, value_enum, default_value = "sqlite")]
+    backend: bench::FleetBackend,
+    /// An empty PostgreSQL database for bench fleet, postgres://...
+    #[arg(long)]
+    database_url: Option<String>,
+    /// Spread the fleet's days over this many minutes (bench fleet; 0: every machine's day
+    /// starts in the same instant).
+    #[arg(long, default_value_t = 60.0)]
+    stagger_min: f64,
+    /// Concurrent keep-alive connections (bench http).
+    #[arg(long, default_value_t = 64)]
+    connections: usize,
+    /// Seconds of load per endpoint (bench http).
+    #[arg(long, default_value_t = 10.0)]
+    seconds: f64,
+    /// Print JSON (bench compensation, bench thermal).
+    #[arg(long)]
+    json: bool,
+    /// Directory of the shipped real data sets (bench thermal).
+    #[arg(long, default_value = "tests/data")]
+    data: PathBuf,
+    /// Grid step of the thermal families, min (bench thermal).
+    #[arg(long, default_value_t = 5.0)]
+    step_min: f64,
+    /// Serve predicted sets between cycles (bench year): on or off.
+    #[arg(long, default_value = "on", value_parser = ["on", "off"])]
+    prediction: String,
+    /// Cycles after a spindle stop, min, for the day under test (bench compensation;
+    /// default: the shipped policy). The patent scenario then uses the scheduler too.
+    #[arg(long, value_delimiter = ',')]
+    after_stop: Option<Vec<f64>>,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum BenchWhich {
     /// Solves per second of one thread.
@@ -304,6 +323,9 @@ enum BenchWhich {
     Year,
     /// GET /compensation under load next to a trivial endpoint, on loopback.
     Http,
+    /// N simulated machines through a simulated day in one process, as fast as they keep up,
+    /// with the compensation endpoint polled meanwhile.
+    Fleet,
     /// No compensation, last measured and predicted against the truth on four scenarios.
     Compensation,
     /// The diagnosis with the full library on a three-day recording, a cycle every 30 min.
@@ -453,65 +475,45 @@ fn run(cmd: Command) -> Result<ExitCode> {
             let machine = machine.context("--machine is required")?;
             cmd_plan(&machine, plan.as_deref(), sigma_um, drift_rates)
         }
-        Command::Bench {
-            which: BenchWhich::Solve,
-            machine,
-            plan,
-            n,
-            ..
-        } => cmd_bench_solve(&machine, plan.as_deref(), n),
-        Command::Bench {
-            which: BenchWhich::Year,
-            days,
-            dir,
-            prediction,
-            ..
-        } => tokio::runtime::Builder::new_current_thread()
+        Command::Bench(b) => run_bench(b),
+    }
+}
+
+/// `bench WHICH`: each bench on its own runtime, if it needs one.
+fn run_bench(b: BenchArgs) -> Result<ExitCode> {
+    let multi = || {
+        tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .context("starting the async runtime")
+    };
+    match b.which {
+        BenchWhich::Solve => cmd_bench_solve(&b.machine, b.plan.as_deref(), b.n),
+        BenchWhich::Year => tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .context("starting the async runtime")?
-            .block_on(bench::year(days, dir, prediction == "on")),
-        Command::Bench {
-            which: BenchWhich::Compensation,
-            json,
-            after_stop,
-            ..
-        } => bench::compensation(json, after_stop),
-        Command::Bench {
-            which: BenchWhich::Diagnosis,
-            days,
-            ..
-        } => bench::diagnosis(days),
-        Command::Bench {
-            which: BenchWhich::Thermal,
-            data,
-            step_min,
-            json,
-            ..
-        } => bench::thermal(&data, step_min, json),
-        Command::Bench {
-            which: BenchWhich::Nulls,
-            data,
-            n,
-            json,
-            ..
-        } => bench::nulls(&data, if n >= 20000 { 40 } else { n.max(1) }, json),
-        Command::Bench {
-            which: BenchWhich::Power,
-            n,
-            ..
-        } => bench::power(if n >= 20000 { 20 } else { n.max(1) }),
-        Command::Bench {
-            which: BenchWhich::Http,
-            connections,
-            seconds,
-            dir,
-            ..
-        } => tokio::runtime::Builder::new_multi_thread()
-            .enable_all()
-            .build()
-            .context("starting the async runtime")?
-            .block_on(bench::http(connections, seconds, dir)),
+            .block_on(bench::year(
+                b.days.unwrap_or(365.0),
+                b.dir,
+                b.prediction == "on",
+            )),
+        BenchWhich::Compensation => bench::compensation(b.json, b.after_stop),
+        BenchWhich::Diagnosis => bench::diagnosis(b.days.unwrap_or(365.0)),
+        BenchWhich::Thermal => bench::thermal(&b.data, b.step_min, b.json),
+        BenchWhich::Nulls => {
+            bench::nulls(&b.data, if b.n >= 20000 { 40 } else { b.n.max(1) }, b.json)
+        }
+        BenchWhich::Power => bench::power(if b.n >= 20000 { 20 } else { b.n.max(1) }),
+        BenchWhich::Http => multi()?.block_on(bench::http(b.connections, b.seconds, b.dir)),
+        BenchWhich::Fleet => multi()?.block_on(bench::fleet(bench::FleetOptions {
+            machines: b.machines,
+            backend: b.backend,
+            database_url: b.database_url,
+            days: b.days.unwrap_or(1.0),
+            dir: b.dir,
+            stagger_min: b.stagger_min,
+        })),
     }
 }
 

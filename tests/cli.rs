@@ -1509,3 +1509,81 @@ fn facing_points(text: &str, diameter: bool) -> Vec<(f64, f64)> {
     }
     out
 }
+
+/// The number written just before `word` on the line of `out` starting with `prefix`
+/// ("12.5 s," before "s,"); the line must exist once.
+fn figure_before(out: &str, prefix: &str, word: &str) -> f64 {
+    let lines = lines_starting(out, prefix);
+    assert_eq!(lines.len(), 1, "one '{prefix}' line in:\n{out}");
+    let words: Vec<&str> = lines[0].split_whitespace().collect();
+    let i = words
+        .iter()
+        .position(|w| w.trim_end_matches([',', ';']) == word)
+        .unwrap_or_else(|| panic!("no '{word}' in '{}'", lines[0]));
+    assert!(i > 0, "nothing before '{word}' in '{}'", lines[0]);
+    words[i - 1]
+        .trim_end_matches(['x', ','])
+        .parse()
+        .unwrap_or_else(|_| panic!("no number before '{word}' in '{}'", lines[0]))
+}
+
+/// The number written just after `word` on that line ("p99 1234 us").
+fn figure_after(out: &str, prefix: &str, word: &str) -> f64 {
+    let line = lines_starting(out, prefix)[0];
+    let words: Vec<&str> = line.split_whitespace().collect();
+    let i = words
+        .iter()
+        .position(|w| *w == word)
+        .unwrap_or_else(|| panic!("no '{word}' in '{line}'"));
+    words[i + 1]
+        .trim_end_matches([',', ';'])
+        .parse()
+        .unwrap_or_else(|_| panic!("no number after '{word}' in '{line}'"))
+}
+
+#[test]
+fn bench_fleet_runs_machines_through_the_launched_service_and_reports_its_figures() {
+    let dir = tmp("bench-fleet");
+    let (ok, out, err) = run(&[
+        "bench",
+        "fleet",
+        "--machines",
+        "2",
+        "--days",
+        "0.1",
+        "--dir",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    // The machines really worked: the warm-up's cycles ran and were validated, no loop step
+    // failed, and their data reached the store and the recordings.
+    let cycles = figure_before(&out, "cycles:", "run");
+    let validated = figure_before(&out, "cycles:", "validated");
+    assert!(
+        cycles >= 2.0 && validated >= 1.0 && validated <= cycles,
+        "{out}"
+    );
+    assert_eq!(figure_after(&out, "cycles:", "faults"), 0.0, "{out}");
+    assert!(figure_before(&out, "database:", "MB") > 0.0, "{out}");
+    assert!(
+        figure_before(&out, "database:", "MB/machine-year") > 0.0,
+        "{out}"
+    );
+    assert!(figure_before(&out, "mcap:", "MB") > 0.0, "{out}");
+    // The endpoint answered the client, with latencies in order.
+    let answered = figure_before(&out, "endpoint:", "requests");
+    let (p50, p99, max) = (
+        figure_after(&out, "endpoint:", "p50"),
+        figure_after(&out, "endpoint:", "p99"),
+        figure_after(&out, "endpoint:", "max"),
+    );
+    assert!(
+        answered >= 1.0 && p50 > 0.0 && p50 <= p99 && p99 <= max,
+        "{out}"
+    );
+    assert_eq!(figure_before(&out, "endpoint:", "errors"), 0.0, "{out}");
+    // Wall and CPU time were measured (their size is not asserted: it is the figure).
+    assert!(figure_before(&out, "wall:", "s") > 0.0, "{out}");
+    assert!(figure_before(&out, "cpu:", "s") > 0.0, "{out}");
+    assert!(figure_before(&out, "wall:", "real") > 0.0, "{out}");
+}

@@ -1,0 +1,579 @@
+//! `bench fleet`: N simulated machines through a simulated day in one process, the service as
+//! `driftwatch serve` runs it (`launch`: store, machine loops, HTTP API) on a manual clock that
+//! moves a minute at a time as soon as every loop has reached it, while a client polls the
+//! NC's compensation endpoint of random machines at a steady rate.
+//!
+//! Each machine is `table_bc` with the patent plan on the two-shift day, with its own noise
+//! seed; `--stagger-min` spreads the machines' days over that many minutes (0: every machine
+//! starts, warms up and cycles in the same instant, the worst case for peaks).
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use rand::{Rng, SeedableRng};
+use tokio_util::sync::CancellationToken;
+
+use driftwatch_core::units::{NS_PER_H, NS_PER_MIN};
+use driftwatch_service::config::{LinkConfig, ServiceConfig};
+use driftwatch_service::daemon::MachineView;
+use driftwatch_service::launch::{ClockKind, LaunchOptions, Service, launch_with};
+use driftwatch_service::scratch_pg::ScratchPg;
+use driftwatch_service::store::{CycleStatus, Store};
+use driftwatch_sim::scenario::Scenario;
+
+use super::size_of;
+
+/// The database the fleet writes to.
+#[derive(Clone, Copy, Debug, PartialEq, clap::ValueEnum)]
+pub enum FleetBackend {
+    Sqlite,
+    Postgres,
+}
+
+pub struct FleetOptions {
+    pub machines: usize,
+    pub backend: FleetBackend,
+    /// A PostgreSQL database to use instead of a throwaway server (an empty one: machines the
+    /// store already knows resume where they were).
+    pub database_url: Option<String>,
+    pub days: f64,
+    pub dir: PathBuf,
+    pub stagger_min: f64,
+}
+
+/// The clock moves this much machine time at a time.
+const STEP_NS: i64 = NS_PER_MIN;
+/// The endpoint client: this many requests per second in all, over this many keep-alive
+/// connections (an NC polls every few seconds; a few hundred per second is a plant's worth).
+const REQUESTS_PER_S: f64 = 200.0;
+const CONNECTIONS: usize = 4;
+/// A loop that has not reached the clock after this much wall time is reported stuck.
+const STALL: Duration = Duration::from_secs(600);
+const SCENARIO: &str = "two_shift";
+
+/// The database: where it is, and how big it is now.
+enum Db {
+    /// The SQLite file (and its write-ahead log) in the data directory.
+    Sqlite(PathBuf),
+    /// A PostgreSQL database; the throwaway server when the bench started one (kept here:
+    /// dropping it stops it).
+    Postgres {
+        url: String,
+        server: Option<ScratchPg>,
+    },
+}
+
+impl Db {
+    async fn open(opts: &FleetOptions, data_dir: &Path) -> Result<Db> {
+        Ok(match (opts.backend, &opts.database_url) {
+            (FleetBackend::Sqlite, None) => Db::Sqlite(data_dir.join("driftwatch.db")),
+            (FleetBackend::Sqlite, Some(_)) => {
+                anyhow::bail!("--database-url is for --backend postgres")
+            }
+            (FleetBackend::Postgres, Some(url)) => Db::Postgres {
+                url: url.clone(),
+                server: None,
+            },
+            (FleetBackend::Postgres, None) => {
+                let parent = opts.dir.clone();
+                let server = tokio::task::spawn_blocking(move || ScratchPg::start(&parent))
+                    .await?
+                    .map_err(|e| anyhow::anyhow!("starting a throwaway PostgreSQL: {e}"))?;
+                let (_, url) = server
+                    .database()
+                    .await
+                    .context("creating the bench's database")?;
+                Db::Postgres {
+                    url,
+                    server: Some(server),
+                }
+            }
+        })
+    }
+
+    fn url(&self) -> Option<String> {
+        match self {
+            Db::Sqlite(_) => None,
+            Db::Postgres { url, .. } => Some(url.clone()),
+        }
+    }
+
+    /// Bytes on disk: the SQLite file and its log, or `pg_database_size`.
+    async fn size(&self) -> Result<u64> {
+        match self {
+            Db::Sqlite(path) => Ok(sqlite_size(path)),
+            Db::Postgres { url, .. } => {
+                use sqlx::Connection;
+                let mut conn = sqlx::postgres::PgConnection::connect(url)
+                    .await
+                    .context("connecting to PostgreSQL for the database's size")?;
+                let size: i64 = sqlx::query_scalar("SELECT pg_database_size(current_database())")
+                    .fetch_one(&mut conn)
+                    .await
+                    .context("asking PostgreSQL for the database's size")?;
+                conn.close().await.ok();
+                Ok(size.max(0) as u64)
+            }
+        }
+    }
+
+    /// The size the run starts from: an empty store's. SQLite's is measured on an empty
+    /// file opened and closed beside it, since the service's own file holds its schema in a
+    /// log that is folded in (and shrinks) only when the store closes.
+    async fn empty_size(&self) -> Result<u64> {
+        let Db::Sqlite(path) = self else {
+            return self.size().await;
+        };
+        let empty = path.with_file_name("empty.db");
+        let store = Store::open(&empty).await?;
+        store.close().await;
+        let size = sqlite_size(&empty);
+        for suffix in ["", "-wal", "-shm"] {
+            let mut p = empty.clone().into_os_string();
+            p.push(suffix);
+            let _ = std::fs::remove_file(p);
+        }
+        Ok(size)
+    }
+
+    /// CPU seconds of the throwaway server's processes so far (none for another server).
+    fn server_cpu_s(&self, tick: f64) -> Option<f64> {
+        let Db::Postgres {
+            server: Some(s), ..
+        } = self
+        else {
+            return None;
+        };
+        let pid_file = std::fs::read_to_string(s.dir.join("data").join("postmaster.pid")).ok()?;
+        let pid: u32 = pid_file.lines().next()?.trim().parse().ok()?;
+        Some(tree_cpu_s(pid, tick))
+    }
+}
+
+/// An SQLite database's file and its write-ahead log, bytes.
+fn sqlite_size(path: &Path) -> u64 {
+    let mut wal = path.as_os_str().to_owned();
+    wal.push("-wal");
+    size_of(path) + size_of(Path::new(&wal))
+}
+
+/// The fields of `/proc/PID/stat` after the command name (which may hold spaces): index 0 is
+/// the state, 1 the parent, 11-14 utime, stime, cutime, cstime in clock ticks.
+fn proc_stat(pid: &str) -> Option<Vec<u64>> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let rest = &text[text.rfind(')')? + 1..];
+    Some(
+        rest.split_whitespace()
+            .map(|w| w.parse().unwrap_or(0))
+            .collect(),
+    )
+}
+
+/// CPU seconds of process `pid`, its reaped children and its live children (a PostgreSQL
+/// server: the postmaster, the backends that ended, and the connections still open).
+fn tree_cpu_s(pid: u32, tick: f64) -> f64 {
+    let own = |f: &[u64]| f.get(11..15).map_or(0, |c| c.iter().sum::<u64>());
+    let mut ticks = proc_stat(&pid.to_string()).map_or(0, |f| own(&f));
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let Some(f) = proc_stat(&name)
+            && f.get(1) == Some(&u64::from(pid))
+        {
+            ticks += own(&f);
+        }
+    }
+    ticks as f64 / tick
+}
+
+/// This process's CPU time, user and system, s (what getrusage(RUSAGE_SELF) gives, read from
+/// /proc: the workspace forbids unsafe code).
+fn own_cpu_s(tick: f64) -> (f64, f64) {
+    let f = proc_stat("self").unwrap_or_default();
+    let at = |i: usize| f.get(i).copied().unwrap_or(0) as f64 / tick;
+    (at(11), at(12))
+}
+
+/// Clock ticks per second of /proc's times (USER_HZ; 100 on every Linux this runs on).
+fn clock_tick() -> f64 {
+    std::process::Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8_lossy(&o.stdout).trim().parse().ok())
+        .filter(|t: &f64| *t > 0.0)
+        .unwrap_or(100.0)
+}
+
+/// The peak resident set of this process, bytes (VmHWM: getrusage's ru_maxrss).
+fn peak_rss() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// The shipped default configuration with `n` simulated machines `m001`.. in `dir`, each with
+/// its own seed and its day shifted by `i * stagger / n` minutes (a scenario file per machine).
+fn fleet_config(
+    opts: &FleetOptions,
+    data_dir: &Path,
+    url: Option<String>,
+) -> Result<ServiceConfig> {
+    let mut cfg = ServiceConfig::load(None)?;
+    cfg.data_dir = data_dir.to_path_buf();
+    cfg.database_url = url;
+    // Anonymous reads (the default) are what the client uses; no operator token to resolve.
+    cfg.http.anonymous_read = true;
+    cfg.http.tokens.clear();
+    let template = cfg
+        .machines
+        .first()
+        .context("the default configuration has no machine")?
+        .clone();
+    let base = Scenario::load(SCENARIO)?;
+    let start = chrono::DateTime::parse_from_rfc3339(&base.start_utc)
+        .with_context(|| format!("scenario {SCENARIO}: start_utc"))?;
+    let scenarios = opts.dir.join("scenarios");
+    std::fs::create_dir_all(&scenarios)
+        .with_context(|| format!("creating {}", scenarios.display()))?;
+    cfg.machines = (0..opts.machines)
+        .map(|i| {
+            let id = format!("m{:03}", i + 1);
+            let shift_min = opts.stagger_min * i as f64 / opts.machines as f64;
+            let scenario = if shift_min == 0.0 {
+                SCENARIO.to_string()
+            } else {
+                let mut scn = base.clone();
+                let shift = chrono::Duration::milliseconds((shift_min * 60e3).round() as i64);
+                scn.start_utc = (start + shift).to_rfc3339();
+                let path = scenarios.join(format!("{id}.toml"));
+                std::fs::write(&path, toml::to_string(&scn)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                path.display().to_string()
+            };
+            let mut m = template.clone();
+            m.id = id;
+            m.link = LinkConfig::Simulated {
+                scenario,
+                seed: Some(1000 + i as u64),
+            };
+            Ok(m)
+        })
+        .collect::<Result<_>>()?;
+    Ok(cfg)
+}
+
+/// What the endpoint client saw.
+#[derive(Default)]
+struct Polls {
+    /// Latencies of the 200 answers, µs.
+    latencies_us: Vec<u64>,
+    /// 404: the machine has no validated set yet (its first cycle has not run).
+    no_set: u64,
+    errors: u64,
+}
+
+/// `CONNECTIONS` clients, each on its own keep-alive connection, GET the compensation of a
+/// random machine on a fixed schedule (`REQUESTS_PER_S` in all) until `stop`.
+fn poll_endpoint(
+    addr: std::net::SocketAddr,
+    ids: Vec<String>,
+    stop: CancellationToken,
+) -> Vec<tokio::task::JoinHandle<Polls>> {
+    let ids = Arc::new(ids);
+    let period = Duration::from_secs_f64(CONNECTIONS as f64 / REQUESTS_PER_S);
+    (0..CONNECTIONS)
+        .map(|c| {
+            let (ids, stop) = (ids.clone(), stop.clone());
+            tokio::spawn(async move {
+                let mut polls = Polls::default();
+                let Ok(client) = reqwest::Client::builder().pool_max_idle_per_host(1).build()
+                else {
+                    polls.errors += 1;
+                    return polls;
+                };
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(c as u64);
+                // The connections take turns rather than all sending at once.
+                let first = tokio::time::Instant::now() + period * c as u32 / CONNECTIONS as u32;
+                let mut tick = tokio::time::interval_at(first, period);
+                tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+                loop {
+                    tokio::select! {
+                        _ = stop.cancelled() => break,
+                        _ = tick.tick() => {}
+                    }
+                    let id = &ids[rng.random_range(0..ids.len())];
+                    let url = format!("http://{addr}/api/v1/machines/{id}/compensation");
+                    let t = Instant::now();
+                    match client.get(&url).send().await {
+                        Ok(r) => {
+                            let status = r.status();
+                            let body = r.bytes().await;
+                            match (status.as_u16(), body) {
+                                (200, Ok(_)) => {
+                                    polls.latencies_us.push(t.elapsed().as_micros() as u64)
+                                }
+                                (404, Ok(_)) => polls.no_set += 1,
+                                _ => polls.errors += 1,
+                            }
+                        }
+                        Err(_) => polls.errors += 1,
+                    }
+                }
+                polls
+            })
+        })
+        .collect()
+}
+
+/// Whether every loop has stepped to `t_ns`; `from` is the first one not yet seen there (the
+/// ones before it need not be looked at again).
+fn reached(views: &[Arc<Mutex<MachineView>>], t_ns: i64, from: &mut usize) -> Result<bool> {
+    while let Some(v) = views.get(*from) {
+        let at = v
+            .lock()
+            .map_err(|_| anyhow::anyhow!("a machine's view lock is poisoned"))?
+            .health
+            .clock_ns;
+        if at.is_none_or(|t| t < t_ns) {
+            return Ok(false);
+        }
+        *from += 1;
+    }
+    Ok(true)
+}
+
+/// Move the clock a step at a time to `end_ns`, each as soon as every loop has reached the
+/// last; the wall time of each simulated hour (the last one may be shorter: its length too).
+async fn drive(svc: &Service, end_ns: i64) -> Result<Vec<(f64, f64)>> {
+    let clock = svc
+        .manual_clock
+        .as_ref()
+        .context("the service has no manual clock")?;
+    let views: Vec<_> = svc.views.values().cloned().collect();
+    let mut hours = Vec::new();
+    let (mut t, mut hour_t, mut hour_wall) = (svc.t0_ns, svc.t0_ns, Instant::now());
+    while t < end_ns {
+        t = (t + STEP_NS).min(end_ns);
+        clock.set(t);
+        let since = Instant::now();
+        let mut from = 0;
+        // A short poll: the loops need the cores, and a step takes them a millisecond or more.
+        while !reached(&views, t, &mut from)? {
+            if since.elapsed() > STALL {
+                let (id, at) = svc
+                    .views
+                    .iter()
+                    .nth(from)
+                    .map(|(id, v)| (id.clone(), v.lock().map(|v| v.health.clone())))
+                    .context("a machine that never reached the clock")?;
+                anyhow::bail!(
+                    "machine {id} did not reach the clock in {} s: {at:?}",
+                    STALL.as_secs()
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        if t - hour_t >= NS_PER_H || t == end_ns {
+            hours.push(((t - hour_t) as f64 / 1e9, hour_wall.elapsed().as_secs_f64()));
+            (hour_t, hour_wall) = (t, Instant::now());
+        }
+    }
+    Ok(hours)
+}
+
+/// What the run measured.
+struct Figures {
+    wall_s: f64,
+    /// (simulated s, wall s) of each simulated hour.
+    hours: Vec<(f64, f64)>,
+    cpu_s: (f64, f64),
+    server_cpu_s: Option<f64>,
+    db_growth: i64,
+    mcap: u64,
+    polls: Polls,
+    cycles: usize,
+    ok: usize,
+    faults: u64,
+}
+
+pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
+    anyhow::ensure!(opts.machines >= 1, "--machines must be at least 1");
+    anyhow::ensure!(
+        opts.days.is_finite() && opts.days > 0.0,
+        "--days must be > 0"
+    );
+    anyhow::ensure!(
+        opts.stagger_min.is_finite() && opts.stagger_min >= 0.0,
+        "--stagger-min must be >= 0"
+    );
+    let _ = std::fs::remove_dir_all(&opts.dir);
+    std::fs::create_dir_all(&opts.dir)
+        .with_context(|| format!("creating {}", opts.dir.display()))?;
+    let data_dir = opts.dir.join("data");
+    let db = Db::open(&opts, &data_dir).await?;
+    let cfg = fleet_config(&opts, &data_dir, db.url())?;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let launch = LaunchOptions {
+        clock: ClockKind::Manual,
+        ..Default::default()
+    };
+    let svc = launch_with(cfg, listener, CancellationToken::new(), launch)
+        .await
+        .context("launching the service")?;
+    let f = run(&svc, &opts, &db).await;
+    svc.stop();
+    svc.wait().await;
+    let mut f = f?;
+    // After the store has closed: SQLite has folded its log into the file.
+    f.db_growth += db.size().await? as i64;
+    f.mcap = size_of(&data_dir.join("mcap"));
+    report(&opts, &svc_summary(&opts), &f);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The run itself, on the launched service: the clock driven to the end under the client's
+/// polls; everything but the sizes after the store closes.
+async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
+    let tick = clock_tick();
+    let size0 = db.empty_size().await?;
+    let end_ns = svc.t0_ns + (opts.days * 86_400e9).round() as i64;
+    let stop = CancellationToken::new();
+    let clients = poll_endpoint(svc.addr, svc.views.keys().cloned().collect(), stop.clone());
+    let (cpu0, server0) = (own_cpu_s(tick), db.server_cpu_s(tick));
+    let wall = Instant::now();
+    let hours = drive(svc, end_ns).await;
+    let wall_s = wall.elapsed().as_secs_f64();
+    let (cpu1, server1) = (own_cpu_s(tick), db.server_cpu_s(tick));
+    stop.cancel();
+    let mut polls = Polls::default();
+    for c in clients {
+        let p = c.await?;
+        polls.latencies_us.extend(p.latencies_us);
+        polls.no_set += p.no_set;
+        polls.errors += p.errors;
+    }
+    let hours = hours?;
+    let (mut cycles, mut ok, mut faults) = (0, 0, 0);
+    for (id, view) in &svc.views {
+        let rows = svc.store().cycles(id, i64::MAX, None).await?;
+        cycles += rows.len();
+        ok += rows.iter().filter(|c| c.status == CycleStatus::Ok).count();
+        faults += view.lock().map_or(0, |v| v.health.faults);
+    }
+    Ok(Figures {
+        wall_s,
+        hours,
+        cpu_s: (cpu1.0 - cpu0.0, cpu1.1 - cpu0.1),
+        server_cpu_s: server0.zip(server1).map(|(a, b)| b - a),
+        db_growth: -(size0 as i64),
+        mcap: 0,
+        polls,
+        cycles,
+        ok,
+        faults,
+    })
+}
+
+fn svc_summary(opts: &FleetOptions) -> String {
+    let backend = match (opts.backend, &opts.database_url) {
+        (FleetBackend::Sqlite, _) => "SQLite",
+        (FleetBackend::Postgres, None) => "PostgreSQL (a throwaway server on this machine)",
+        (FleetBackend::Postgres, Some(_)) => "PostgreSQL (--database-url)",
+    };
+    format!(
+        "{} simulated machines (table_bc, patent plan, {SCENARIO} day, seeds 1000-{}, days spread over {} min) on {backend}, {} simulated days",
+        opts.machines,
+        999 + opts.machines,
+        opts.stagger_min,
+        opts.days
+    )
+}
+
+fn quantile(sorted: &[u64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() as f64 - 1.0) * q).round() as usize] as f64
+}
+
+/// The figures as plain lines, each starting with what it is.
+fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
+    let machine_days = opts.machines as f64 * opts.days;
+    let sim_s = opts.days * 86_400.0;
+    let speed = sim_s / f.wall_s;
+    let (slowest_i, slowest) = f
+        .hours
+        .iter()
+        .map(|(sim, wall)| sim / wall)
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap_or((0, f64::NAN));
+    println!("fleet: {summary}");
+    println!(
+        "wall: {:.1} s, {speed:.1}x real time on average, {slowest:.1}x in the slowest simulated hour (hour {} of {}); real time {}",
+        f.wall_s,
+        slowest_i + 1,
+        f.hours.len(),
+        if speed >= 1.0 && slowest >= 1.0 {
+            "kept"
+        } else {
+            "NOT kept"
+        }
+    );
+    let (user, sys) = f.cpu_s;
+    println!(
+        "cpu: {:.1} s of this process (user {user:.1}, sys {sys:.1}; the client included), {:.2} s/machine-day{}",
+        user + sys,
+        (user + sys) / machine_days,
+        match f.server_cpu_s {
+            Some(s) => format!(
+                "; PostgreSQL server {s:.1} s, {:.2} s/machine-day",
+                s / machine_days
+            ),
+            None if opts.backend == FleetBackend::Postgres => {
+                "; the PostgreSQL server's not measured (--database-url)".to_string()
+            }
+            None => String::new(),
+        }
+    );
+    println!(
+        "database: {:.2} MB growth, {:.1} MB/machine-year",
+        f.db_growth as f64 / 1e6,
+        f.db_growth as f64 / 1e6 * 365.0 / machine_days
+    );
+    println!(
+        "mcap: {:.2} MB, {:.2} MB/machine-day",
+        f.mcap as f64 / 1e6,
+        f.mcap as f64 / 1e6 / machine_days
+    );
+    let mut lat = f.polls.latencies_us.clone();
+    lat.sort_unstable();
+    println!(
+        "endpoint: {} requests answered 200, p50 {:.0} us, p99 {:.0} us, max {:.0} us; {} answered 404 (no set yet), {} errors ({CONNECTIONS} keep-alive connections, {REQUESTS_PER_S} req/s)",
+        lat.len(),
+        quantile(&lat, 0.5),
+        quantile(&lat, 0.99),
+        lat.last().copied().unwrap_or(0),
+        f.polls.no_set,
+        f.polls.errors
+    );
+    println!(
+        "cycles: {} run, {} validated, {:.1}/machine-day; loop step faults {}",
+        f.cycles,
+        f.ok,
+        f.cycles as f64 / machine_days,
+        f.faults
+    );
+    println!(
+        "rss: peak {:.0} MB",
+        peak_rss().map_or(f64::NAN, |b| b as f64 / 1e6)
+    );
+    println!(
+        "estimate: about {:.0} machines at 1x in the slowest hour if the work grew linearly with the fleet",
+        opts.machines as f64 * slowest
+    );
+}
