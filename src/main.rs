@@ -291,6 +291,10 @@ struct BenchArgs {
     /// starts in the same instant).
     #[arg(long, default_value_t = 60.0)]
     stagger_min: f64,
+    /// After the simulated days, run this many minutes with the clock at 1x (bench fleet):
+    /// the CPU the fleet keeps busy in real time and how far its loops fall behind.
+    #[arg(long, default_value_t = 0.0)]
+    realtime_min: f64,
     /// Concurrent keep-alive connections (bench http).
     #[arg(long, default_value_t = 64)]
     connections: usize,
@@ -513,6 +517,7 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
             days: b.days.unwrap_or(1.0),
             dir: b.dir,
             stagger_min: b.stagger_min,
+            realtime_min: b.realtime_min,
         })),
     }
 }

@@ -1551,6 +1551,8 @@ fn bench_fleet_runs_machines_through_the_launched_service_and_reports_its_figure
         "2",
         "--days",
         "0.1",
+        "--realtime-min",
+        "0.05",
         "--dir",
         dir.to_str().unwrap(),
     ]);
@@ -1586,4 +1588,16 @@ fn bench_fleet_runs_machines_through_the_launched_service_and_reports_its_figure
     assert!(figure_before(&out, "wall:", "s") > 0.0, "{out}");
     assert!(figure_before(&out, "cpu:", "s") > 0.0, "{out}");
     assert!(figure_before(&out, "wall:", "real") > 0.0, "{out}");
+    // Then 3 s at 1x: the loops' lag behind the clock was sampled, the endpoint answered.
+    let lag = figure_after(&out, "realtime:", "max");
+    assert!(lag.is_finite() && lag >= 0.0, "{out}");
+    assert!(
+        figure_before(&out, "realtime endpoint:", "requests") >= 1.0,
+        "{out}"
+    );
+    assert_eq!(
+        figure_before(&out, "realtime endpoint:", "errors"),
+        0.0,
+        "{out}"
+    );
 }

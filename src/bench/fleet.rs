@@ -42,6 +42,8 @@ pub struct FleetOptions {
     pub days: f64,
     pub dir: PathBuf,
     pub stagger_min: f64,
+    /// After the simulated days, this many minutes with the clock at 1x.
+    pub realtime_min: f64,
 }
 
 /// The clock moves this much machine time at a time.
@@ -385,16 +387,148 @@ async fn drive(svc: &Service, end_ns: i64) -> Result<Vec<(f64, f64)>> {
     Ok(hours)
 }
 
+/// CPU time a phase took, s.
+struct Usage {
+    wall_s: f64,
+    user_s: f64,
+    sys_s: f64,
+    /// The throwaway PostgreSQL server's processes.
+    server_s: Option<f64>,
+    /// Every process of the machine (this one included): what else ran meanwhile shows.
+    machine_s: f64,
+}
+
+impl Usage {
+    fn own_s(&self) -> f64 {
+        self.user_s + self.sys_s
+    }
+
+    /// CPU of the processes other than this one and the bench's PostgreSQL server, s.
+    fn others_s(&self) -> f64 {
+        (self.machine_s - self.own_s() - self.server_s.unwrap_or(0.0)).max(0.0)
+    }
+}
+
+/// The CPU counters at one moment.
+struct Counters {
+    at: Instant,
+    own: (f64, f64),
+    server: Option<f64>,
+    machine: f64,
+}
+
+impl Counters {
+    fn read(db: &Db, tick: f64) -> Counters {
+        Counters {
+            at: Instant::now(),
+            own: own_cpu_s(tick),
+            server: db.server_cpu_s(tick),
+            machine: machine_busy_s(tick),
+        }
+    }
+
+    fn since(&self, before: &Counters) -> Usage {
+        Usage {
+            wall_s: self.at.duration_since(before.at).as_secs_f64(),
+            user_s: self.own.0 - before.own.0,
+            sys_s: self.own.1 - before.own.1,
+            server_s: self.server.zip(before.server).map(|(b, a)| b - a),
+            machine_s: self.machine - before.machine,
+        }
+    }
+}
+
+/// Busy time of every core of the machine so far, s (/proc/stat: all but idle and iowait).
+fn machine_busy_s(tick: f64) -> f64 {
+    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+    let f: Vec<f64> = stat
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .split_whitespace()
+        .skip(1)
+        .take(8) // user nice system idle iowait irq softirq steal (guest time is in user)
+        .map(|w| w.parse().unwrap_or(0.0))
+        .collect();
+    let idle = f.get(3).unwrap_or(&0.0) + f.get(4).unwrap_or(&0.0);
+    (f.iter().sum::<f64>() - idle) / tick
+}
+
+/// Run `phase` while the client polls the endpoint: what it returned, the CPU it took, and
+/// what the client saw.
+async fn under_polls<T>(
+    svc: &Service,
+    db: &Db,
+    tick: f64,
+    phase: impl std::future::Future<Output = Result<T>>,
+) -> Result<(T, Usage, Polls)> {
+    let stop = CancellationToken::new();
+    let clients = poll_endpoint(svc.addr, svc.views.keys().cloned().collect(), stop.clone());
+    let before = Counters::read(db, tick);
+    let out = phase.await;
+    let usage = Counters::read(db, tick).since(&before);
+    stop.cancel();
+    let mut polls = Polls::default();
+    for c in clients {
+        let p = c.await?;
+        polls.latencies_us.extend(p.latencies_us);
+        polls.no_set += p.no_set;
+        polls.errors += p.errors;
+    }
+    Ok((out?, usage, polls))
+}
+
+/// The clock at 1x for `span`: it follows the wall clock from where it stands, as in
+/// production, where every loop also wakes for its inbox every 200 ms of wall time, however
+/// quiet its machine. Every 100 ms, before the clock moves on, the largest lag of a loop's
+/// last step behind it, s (up to about 0.3 s when every loop keeps up).
+async fn pace(svc: &Service, span: Duration) -> Result<Vec<f64>> {
+    let clock = svc
+        .manual_clock
+        .as_ref()
+        .context("the service has no manual clock")?;
+    let views: Vec<_> = svc.views.values().cloned().collect();
+    let (t_start, wall0) = (clock.now_ns(), Instant::now());
+    let mut lags = Vec::new();
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    while wall0.elapsed() < span {
+        tick.tick().await;
+        let now = clock.now_ns();
+        let mut worst = 0;
+        for v in &views {
+            let at = v
+                .lock()
+                .map_err(|_| anyhow::anyhow!("a machine's view lock is poisoned"))?
+                .health
+                .clock_ns
+                .unwrap_or(svc.t0_ns);
+            worst = worst.max(now - at);
+        }
+        lags.push(worst as f64 / 1e9);
+        clock.set(t_start + wall0.elapsed().as_nanos() as i64);
+    }
+    Ok(lags)
+}
+
+/// The 1x phase: where it started (machine time), its CPU, the client's view, the lags.
+struct Paced {
+    from_ns: i64,
+    usage: Usage,
+    polls: Polls,
+    lags_s: Vec<f64>,
+}
+
 /// What the run measured.
 struct Figures {
-    wall_s: f64,
+    /// Wall time to launch the service (store, every machine's loop, the API), s.
+    launch_s: f64,
     /// (simulated s, wall s) of each simulated hour.
     hours: Vec<(f64, f64)>,
-    cpu_s: (f64, f64),
-    server_cpu_s: Option<f64>,
+    usage: Usage,
+    polls: Polls,
+    paced: Option<Paced>,
     db_growth: i64,
     mcap: u64,
-    polls: Polls,
     cycles: usize,
     ok: usize,
     faults: u64,
@@ -410,6 +544,10 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         opts.stagger_min.is_finite() && opts.stagger_min >= 0.0,
         "--stagger-min must be >= 0"
     );
+    anyhow::ensure!(
+        opts.realtime_min.is_finite() && opts.realtime_min >= 0.0,
+        "--realtime-min must be >= 0"
+    );
     let _ = std::fs::remove_dir_all(&opts.dir);
     std::fs::create_dir_all(&opts.dir)
         .with_context(|| format!("creating {}", opts.dir.display()))?;
@@ -421,42 +559,43 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         clock: ClockKind::Manual,
         ..Default::default()
     };
+    let launched = Instant::now();
     let svc = launch_with(cfg, listener, CancellationToken::new(), launch)
         .await
         .context("launching the service")?;
+    let launch_s = launched.elapsed().as_secs_f64();
     let f = run(&svc, &opts, &db).await;
     svc.stop();
     svc.wait().await;
     let mut f = f?;
+    f.launch_s = launch_s;
     // After the store has closed: SQLite has folded its log into the file.
     f.db_growth += db.size().await? as i64;
     f.mcap = size_of(&data_dir.join("mcap"));
-    report(&opts, &svc_summary(&opts), &f);
+    report(&opts, &f);
     Ok(ExitCode::SUCCESS)
 }
 
-/// The run itself, on the launched service: the clock driven to the end under the client's
-/// polls; everything but the sizes after the store closes.
+/// The run itself, on the launched service: the simulated days as fast as the loops keep up,
+/// then the 1x phase if asked for, each under the client's polls; everything but the sizes
+/// after the store closes.
 async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
     let tick = clock_tick();
     let size0 = db.empty_size().await?;
     let end_ns = svc.t0_ns + (opts.days * 86_400e9).round() as i64;
-    let stop = CancellationToken::new();
-    let clients = poll_endpoint(svc.addr, svc.views.keys().cloned().collect(), stop.clone());
-    let (cpu0, server0) = (own_cpu_s(tick), db.server_cpu_s(tick));
-    let wall = Instant::now();
-    let hours = drive(svc, end_ns).await;
-    let wall_s = wall.elapsed().as_secs_f64();
-    let (cpu1, server1) = (own_cpu_s(tick), db.server_cpu_s(tick));
-    stop.cancel();
-    let mut polls = Polls::default();
-    for c in clients {
-        let p = c.await?;
-        polls.latencies_us.extend(p.latencies_us);
-        polls.no_set += p.no_set;
-        polls.errors += p.errors;
-    }
-    let hours = hours?;
+    let (hours, usage, polls) = under_polls(svc, db, tick, drive(svc, end_ns)).await?;
+    let paced = if opts.realtime_min > 0.0 {
+        let span = Duration::from_secs_f64(opts.realtime_min * 60.0);
+        let (lags_s, usage, polls) = under_polls(svc, db, tick, pace(svc, span)).await?;
+        Some(Paced {
+            from_ns: end_ns,
+            usage,
+            polls,
+            lags_s,
+        })
+    } else {
+        None
+    };
     let (mut cycles, mut ok, mut faults) = (0, 0, 0);
     for (id, view) in &svc.views {
         let rows = svc.store().cycles(id, i64::MAX, None).await?;
@@ -465,31 +604,36 @@ async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
         faults += view.lock().map_or(0, |v| v.health.faults);
     }
     Ok(Figures {
-        wall_s,
+        launch_s: 0.0,
         hours,
-        cpu_s: (cpu1.0 - cpu0.0, cpu1.1 - cpu0.1),
-        server_cpu_s: server0.zip(server1).map(|(a, b)| b - a),
+        usage,
+        polls,
+        paced,
         db_growth: -(size0 as i64),
         mcap: 0,
-        polls,
         cycles,
         ok,
         faults,
     })
 }
 
-fn svc_summary(opts: &FleetOptions) -> String {
+fn summary(opts: &FleetOptions) -> String {
     let backend = match (opts.backend, &opts.database_url) {
         (FleetBackend::Sqlite, _) => "SQLite",
         (FleetBackend::Postgres, None) => "PostgreSQL (a throwaway server on this machine)",
         (FleetBackend::Postgres, Some(_)) => "PostgreSQL (--database-url)",
     };
     format!(
-        "{} simulated machines (table_bc, patent plan, {SCENARIO} day, seeds 1000-{}, days spread over {} min) on {backend}, {} simulated days",
+        "{} simulated machines (table_bc, patent plan, {SCENARIO} day, seeds 1000-{}, days spread over {} min) on {backend}, {} simulated days as fast as they keep up{}",
         opts.machines,
         999 + opts.machines,
         opts.stagger_min,
-        opts.days
+        opts.days,
+        if opts.realtime_min > 0.0 {
+            format!(", then {} min at 1x", opts.realtime_min)
+        } else {
+            String::new()
+        }
     )
 }
 
@@ -500,11 +644,29 @@ fn quantile(sorted: &[u64], q: f64) -> f64 {
     sorted[((sorted.len() as f64 - 1.0) * q).round() as usize] as f64
 }
 
+/// The client's latencies and answers as one line's words.
+fn polled(p: &Polls, wall_s: f64) -> String {
+    let mut lat = p.latencies_us.clone();
+    lat.sort_unstable();
+    format!(
+        "{} requests answered 200, p50 {:.0} us, p99 {:.0} us, max {:.0} us; {} answered 404 (no set yet), {} errors ({CONNECTIONS} keep-alive connections, {:.0} req/s of the {REQUESTS_PER_S} asked for)",
+        lat.len(),
+        quantile(&lat, 0.5),
+        quantile(&lat, 0.99),
+        lat.last().copied().unwrap_or(0),
+        p.no_set,
+        p.errors,
+        (lat.len() as u64 + p.no_set + p.errors) as f64 / wall_s
+    )
+}
+
 /// The figures as plain lines, each starting with what it is.
-fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
+fn report(opts: &FleetOptions, f: &Figures) {
     let machine_days = opts.machines as f64 * opts.days;
-    let sim_s = opts.days * 86_400.0;
-    let speed = sim_s / f.wall_s;
+    // The stored data and the cycles cover the 1x phase too.
+    let stored_days = opts.machines as f64 * (opts.days + opts.realtime_min / 1440.0);
+    let u = &f.usage;
+    let speed = opts.days * 86_400.0 / u.wall_s;
     let (slowest_i, slowest) = f
         .hours
         .iter()
@@ -512,10 +674,10 @@ fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .unwrap_or((0, f64::NAN));
-    println!("fleet: {summary}");
+    println!("fleet: {}", summary(opts));
     println!(
         "wall: {:.1} s, {speed:.1}x real time on average, {slowest:.1}x in the slowest simulated hour (hour {} of {}); real time {}",
-        f.wall_s,
+        u.wall_s,
         slowest_i + 1,
         f.hours.len(),
         if speed >= 1.0 && slowest >= 1.0 {
@@ -524,12 +686,23 @@ fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
             "NOT kept"
         }
     );
-    let (user, sys) = f.cpu_s;
+    let each: Vec<String> = f
+        .hours
+        .iter()
+        .map(|(sim, wall)| format!("{:.0}", sim / wall))
+        .collect();
     println!(
-        "cpu: {:.1} s of this process (user {user:.1}, sys {sys:.1}; the client included), {:.2} s/machine-day{}",
-        user + sys,
-        (user + sys) / machine_days,
-        match f.server_cpu_s {
+        "hours: speed of each simulated hour from the start (x): {}; the launch took {:.1} s",
+        each.join(" "),
+        f.launch_s
+    );
+    println!(
+        "cpu: {:.1} s of this process (user {:.1}, sys {:.1}; the client included), {:.2} s/machine-day{}; other processes of the machine {:.1} s",
+        u.own_s(),
+        u.user_s,
+        u.sys_s,
+        u.own_s() / machine_days,
+        match u.server_s {
             Some(s) => format!(
                 "; PostgreSQL server {s:.1} s, {:.2} s/machine-day",
                 s / machine_days
@@ -538,34 +711,25 @@ fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
                 "; the PostgreSQL server's not measured (--database-url)".to_string()
             }
             None => String::new(),
-        }
+        },
+        u.others_s()
     );
     println!(
         "database: {:.2} MB growth, {:.1} MB/machine-year",
         f.db_growth as f64 / 1e6,
-        f.db_growth as f64 / 1e6 * 365.0 / machine_days
+        f.db_growth as f64 / 1e6 * 365.0 / stored_days
     );
     println!(
         "mcap: {:.2} MB, {:.2} MB/machine-day",
         f.mcap as f64 / 1e6,
-        f.mcap as f64 / 1e6 / machine_days
+        f.mcap as f64 / 1e6 / stored_days
     );
-    let mut lat = f.polls.latencies_us.clone();
-    lat.sort_unstable();
-    println!(
-        "endpoint: {} requests answered 200, p50 {:.0} us, p99 {:.0} us, max {:.0} us; {} answered 404 (no set yet), {} errors ({CONNECTIONS} keep-alive connections, {REQUESTS_PER_S} req/s)",
-        lat.len(),
-        quantile(&lat, 0.5),
-        quantile(&lat, 0.99),
-        lat.last().copied().unwrap_or(0),
-        f.polls.no_set,
-        f.polls.errors
-    );
+    println!("endpoint: {}", polled(&f.polls, u.wall_s));
     println!(
         "cycles: {} run, {} validated, {:.1}/machine-day; loop step faults {}",
         f.cycles,
         f.ok,
-        f.cycles as f64 / machine_days,
+        f.cycles as f64 / stored_days,
         f.faults
     );
     println!(
@@ -573,7 +737,46 @@ fn report(opts: &FleetOptions, summary: &str, f: &Figures) {
         peak_rss().map_or(f64::NAN, |b| b as f64 / 1e6)
     );
     println!(
-        "estimate: about {:.0} machines at 1x in the slowest hour if the work grew linearly with the fleet",
+        "estimate: about {:.0} machines at the slowest hour's pace if the work grew linearly with the fleet (the simulated work only: see realtime)",
         opts.machines as f64 * slowest
+    );
+    if let Some(p) = &f.paced {
+        report_paced(opts, p);
+    }
+}
+
+/// The 1x phase's lines.
+fn report_paced(opts: &FleetOptions, p: &Paced) {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    let u = &p.usage;
+    let mut lags = p.lags_s.clone();
+    lags.sort_by(f64::total_cmp);
+    let q = |q: f64| {
+        lags.get(((lags.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    let used = (u.own_s() + u.server_s.unwrap_or(0.0)) / u.wall_s;
+    println!(
+        "realtime: {:.1} min at 1x from {} (machine time), cores busy: this process {:.2}, PostgreSQL server {}, other processes {:.2}, of {cores}; loops behind the clock p50 {:.2} s, p99 {:.2} s, max {:.2} s; real time {}",
+        u.wall_s / 60.0,
+        chrono::DateTime::from_timestamp_nanos(p.from_ns).format("%H:%M"),
+        u.own_s() / u.wall_s,
+        u.server_s
+            .map_or("-".to_string(), |s| format!("{:.2}", s / u.wall_s)),
+        u.others_s() / u.wall_s,
+        q(0.5),
+        q(0.99),
+        q(1.0),
+        if q(1.0) < 1.0 {
+            "kept (no loop 1 s behind)"
+        } else {
+            "NOT kept (a loop 1 s or more behind)"
+        }
+    );
+    println!("realtime endpoint: {}", polled(&p.polls, u.wall_s));
+    println!(
+        "realtime estimate: this fleet kept {used:.2} of {cores} cores busy at 1x: about {:.0} machines if that grew linearly",
+        opts.machines as f64 * cores / used
     );
 }
