@@ -76,6 +76,11 @@ enum Command {
         /// Data directory (overrides the configuration).
         #[arg(long)]
         data_dir: Option<PathBuf>,
+        /// Start on an empty database although recordings of an earlier history lie in the
+        /// data directory (refused without it: the database was emptied or replaced, and the
+        /// versions would begin again at 1; the new store's sets get new ETags).
+        #[arg(long)]
+        new_database: bool,
     },
     /// Ask a running service whether it answers (exit 0 on 200 from the URL, 1 otherwise):
     /// the container image's HEALTHCHECK, which has no curl.
@@ -405,6 +410,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
             until,
             listen,
             data_dir,
+            new_database,
         } => {
             let rt = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
@@ -416,6 +422,7 @@ fn run(cmd: Command) -> Result<ExitCode> {
                 until,
                 listen,
                 data_dir,
+                new_database,
             }))
         }
         Command::Simulate {

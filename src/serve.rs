@@ -17,6 +17,7 @@ pub struct Options {
     pub until: Option<f64>,
     pub listen: Option<std::net::SocketAddr>,
     pub data_dir: Option<PathBuf>,
+    pub new_database: bool,
 }
 
 pub async fn run(o: Options) -> Result<ExitCode> {
@@ -54,6 +55,7 @@ pub async fn run(o: Options) -> Result<ExitCode> {
     );
     let opts = LaunchOptions {
         until_min: o.until,
+        new_database: o.new_database,
         ..Default::default()
     };
     let service = launch_with(cfg, listener, shutdown, opts).await?;

@@ -129,6 +129,14 @@ pub async fn launch_test(cfg: ServiceConfig, start_ns: Option<i64>) -> TestServi
 }
 
 impl TestService {
+    /// A service launched by the test itself (its own options).
+    pub fn new(svc: Service) -> Self {
+        TestService {
+            svc,
+            client: reqwest::Client::new(),
+        }
+    }
+
     pub fn t0(&self) -> i64 {
         self.svc.t0_ns
     }
@@ -144,7 +152,7 @@ impl TestService {
     }
 
     /// Move the clock to `t_ns` and wait (bounded) until the machines `moving` have stepped
-    /// to it.
+    /// to it (a step that failed counts: a loop whose store refuses writes still steps).
     pub async fn run_to_for(&self, t_ns: i64, moving: &[&str]) {
         self.svc.manual_clock.as_ref().unwrap().set(t_ns);
         let reached = async {
@@ -154,7 +162,7 @@ impl TestService {
                         .lock()
                         .unwrap()
                         .health
-                        .clock_ns
+                        .attempt_ns
                         .is_some_and(|t| t >= t_ns)
                 });
                 if done {

@@ -467,6 +467,19 @@ pub struct AlertState {
     open: BTreeMap<String, Alert>,
 }
 
+/// The rule name of the machine loop's health alert ([`AlertEngine::loop_fault`]): built in,
+/// never configured.
+pub const LOOP_FAULT_RULE: &str = "loop_fault";
+
+/// What the alert log holds of a machine at start-up, for [`AlertEngine::resume`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LoggedAlerts {
+    /// Alerts raised and never resolved: id, rule, severity.
+    pub open: Vec<(u64, String, Severity)>,
+    /// The highest alert id in the log (0: none).
+    pub max_id: u64,
+}
+
 /// What one rule makes of one cycle.
 struct Observation {
     value: f64,
@@ -502,7 +515,8 @@ impl AlertEngine {
         now: i64,
     ) -> Result<(Self, Vec<AlertEvent>), AlertError> {
         validate_rules(&rules)?;
-        let names: BTreeSet<String> = rules.iter().map(Rule::name).collect();
+        let mut names: BTreeSet<String> = rules.iter().map(Rule::name).collect();
+        names.insert(LOOP_FAULT_RULE.to_string());
         let orphans: Vec<String> = state
             .open
             .keys()
@@ -520,6 +534,40 @@ impl AlertEngine {
         let max_open = state.open.values().map(|a| a.id).max().unwrap_or(0);
         state.last_id = state.last_id.max(max_open);
         Ok((AlertEngine { rules, state }, events))
+    }
+
+    /// Continues after a restart from the kept state (none: the store kept none) and the
+    /// alert log: ids go on above every id the log holds, and an alert the log shows open
+    /// that the kept state does not (its state was not kept before the stop) is resolved with
+    /// an event saying so, so that no alert stays open in the log without a resolved event.
+    pub fn resume(
+        rules: Vec<Rule>,
+        state: Option<AlertState>,
+        logged: &LoggedAlerts,
+        now: i64,
+    ) -> Result<(Self, Vec<AlertEvent>), AlertError> {
+        let (mut engine, mut events) = Self::restore(rules, state.unwrap_or_default(), now)?;
+        engine.state.last_id = engine.state.last_id.max(logged.max_id);
+        for (id, rule, severity) in &logged.open {
+            let held = engine.state.open.values().any(|a| a.id == *id);
+            if held || events.iter().any(|e| e.id == *id) {
+                continue;
+            }
+            events.push(AlertEvent {
+                id: *id,
+                rule: rule.clone(),
+                kind: EventKind::Resolved,
+                t_ns: now,
+                cycle: 0,
+                severity: *severity,
+                message: "resolved at restart: the service stopped before it kept this \
+                          alert's state, so its rule starts again from the next cycle"
+                    .into(),
+                value: f64::NAN,
+                acknowledged: false,
+            });
+        }
+        Ok((engine, events))
     }
 
     pub fn rules(&self) -> &[Rule] {
@@ -590,6 +638,36 @@ impl AlertEngine {
     /// Applies every rule to one input, in rule order. A cycle not later than the last one
     /// evaluated is ignored (no events, no change): a daemon that replays its last cycle after
     /// a restart must not count a rejection twice or see a drift over zero minutes.
+    /// The machine loop's own health, a rule every machine has: while its steps fail (its
+    /// store or recorder refuses writes) an alert is open, critical, with the failure's
+    /// message; it resolves when a step succeeds again. `value` counts the failed steps.
+    pub fn loop_fault(
+        &mut self,
+        failing: bool,
+        failed_steps: u64,
+        message: &str,
+        now: i64,
+    ) -> Vec<AlertEvent> {
+        let mut events = Vec::new();
+        let obs = Observation {
+            value: failed_steps as f64,
+            limit: f64::INFINITY,
+            raise: failing,
+            resolve: !failing,
+            severity: Severity::Critical,
+            message: message.to_string(),
+        };
+        let cycle = self
+            .state
+            .open
+            .values()
+            .map(|a| a.last_cycle)
+            .max()
+            .unwrap_or(0);
+        self.apply(LOOP_FAULT_RULE.to_string(), obs, cycle, now, &mut events);
+        events
+    }
+
     pub fn evaluate(&mut self, input: &Input, now: i64) -> Vec<AlertEvent> {
         match input {
             Input::Cycle(c) => self.evaluate_cycle(c, now),

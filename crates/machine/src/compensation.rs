@@ -90,6 +90,46 @@ pub struct ValidationLimits {
     pub max_rate_urad_per_min: f64,
 }
 
+impl ValidationLimits {
+    /// Every limit finite and in range: a NaN or negative limit would reject every cycle (or
+    /// pass every one), so it is refused at start with its name.
+    pub fn check(&self) -> Result<(), String> {
+        if !(self.chi2_quantile > 0.5 && self.chi2_quantile < 1.0) {
+            return Err(format!(
+                "validation.chi2_quantile must be between 0.5 and 1 (exclusive), not {}",
+                self.chi2_quantile
+            ));
+        }
+        let positive = [
+            ("max_sigma_um", self.max_sigma_um),
+            ("max_sigma_urad", self.max_sigma_urad),
+            ("max_abs_um", self.max_abs_um),
+            ("max_abs_urad", self.max_abs_urad),
+            ("max_step_um", self.max_step_um),
+            ("max_step_urad", self.max_step_urad),
+        ];
+        for (name, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "validation.{name} must be a finite number above 0, not {v}"
+                ));
+            }
+        }
+        let rates = [
+            ("max_rate_um_per_min", self.max_rate_um_per_min),
+            ("max_rate_urad_per_min", self.max_rate_urad_per_min),
+        ];
+        for (name, v) in rates {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!(
+                    "validation.{name} must be a finite number of at least 0, not {v}"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for ValidationLimits {
     fn default() -> Self {
         ValidationLimits {

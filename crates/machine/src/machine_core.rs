@@ -29,7 +29,7 @@ use driftwatch_core::thermal_model::{Event, Prediction, Predictor};
 use driftwatch_core::units;
 use thiserror::Error;
 
-use crate::alerts::{Alert, AlertEngine, AlertEvent, ClockInput, Rule};
+use crate::alerts::{Alert, AlertEngine, AlertEvent, AlertState, ClockInput, LoggedAlerts, Rule};
 use crate::compensation::{self, CompensationSet, PredictionPolicy, ValidationLimits};
 use crate::live_model::{LiveModel, ModelView};
 use crate::nc_offsets::NcLayout;
@@ -103,6 +103,13 @@ pub enum Input {
         seconds: f64,
     },
     /// The service stops: give up the open cycle, store what is held.
+    /// The executor's steps began to fail (`failing`, with the failure and the count of
+    /// failed steps) or succeed again: the loop's health alert follows.
+    LoopFault {
+        failing: bool,
+        failed_steps: u64,
+        message: String,
+    },
     Shutdown,
 }
 
@@ -230,6 +237,11 @@ pub enum Effect {
     },
     /// Store a predicted set (before it is served).
     StoreSet(Box<CompensationSet>),
+    /// Keep the alert engine's state (after its events): a restart goes on from it.
+    StoreAlertState {
+        t_ns: i64,
+        state: Box<AlertState>,
+    },
     Alert(Box<AlertEvent>),
     Acknowledged {
         alert: u64,
@@ -326,9 +338,25 @@ pub struct Restored {
     pub last_closed: Option<i64>,
     /// The number the next cycle takes.
     pub next_cycle: i64,
+    /// The alert engine's kept state (none: never kept) and what the alert log holds.
+    pub alerts: Option<AlertState>,
+    pub logged_alerts: LoggedAlerts,
+    /// The stored spindle samples and cycle spans of the phase's window
+    /// ([`Restored::phase_window_ns`]), for the phase to go on from.
+    pub phase_history: Vec<crate::phase::PastEvent>,
 }
 
 impl Restored {
+    /// How far back the phase needs the machine's history: past the longest of its
+    /// thresholds (a run longer than that is steady, a stop longer is cold either way).
+    pub fn phase_window_ns(phase: &PhaseConfig) -> i64 {
+        let longest = phase
+            .warmup_min
+            .max(phase.cold_after_min)
+            .max(phase.cooling_min);
+        units::min_to_ns(longest + 1.0)
+    }
+
     /// The window of stored events the thermal model comes back from, if the store is to be
     /// taken at all: a store whose cycles lie ahead of the clock (a simulated day started
     /// again from its morning) is not.
@@ -370,6 +398,8 @@ pub struct MachineCore {
     sched: SchedulerState,
     limits: ValidationLimits,
     alerts: AlertEngine,
+    /// The alert state the store was last asked to keep: a change emits it again.
+    kept_alerts: AlertState,
     thermal: LiveModel,
     open: Option<OpenCycle>,
     /// A cycle asked of the machine, waiting for its answer: number and trigger.
@@ -439,9 +469,24 @@ impl MachineCore {
                 "the stored cycles lie ahead of the clock (a simulated day started again): the scheduler starts afresh".into(),
             ));
         }
-        let phase = PhaseTracker::new(settings.phase.clone())?;
-        let alerts = AlertEngine::new(settings.alert_rules.clone())
-            .map_err(|e| CoreError::Alerts(e.to_string()))?;
+        let mut phase = PhaseTracker::new(settings.phase.clone())?;
+        phase.replay(std::mem::take(&mut restored.phase_history), now_ns);
+        // Open alerts, acknowledgements and ids go on from what the store kept.
+        let kept_alerts = restored.alerts.clone().unwrap_or_default();
+        let (alerts, resolved) = AlertEngine::resume(
+            settings.alert_rules.clone(),
+            restored.alerts.take(),
+            &restored.logged_alerts,
+            now_ns,
+        )
+        .map_err(|e| CoreError::Alerts(e.to_string()))?;
+        raise(resolved, &mut out);
+        // A loop-fault alert kept open by a stop is over: this start's loop has not failed.
+        let mut alerts = alerts;
+        raise(
+            alerts.loop_fault(false, 0, "the service restarted", now_ns),
+            &mut out,
+        );
         // The NC offsets of the stored sets are this machine's, whatever the store kept.
         let layout = NcLayout::of(&k);
         let sets = restored
@@ -453,6 +498,7 @@ impl MachineCore {
         }
         let view = View {
             compensation: restored.served.clone(),
+            open_alerts: alerts.open_alerts().into_iter().cloned().collect(),
             cycles: CycleView {
                 last: restored.last_closed,
                 steps_per_cycle,
@@ -469,6 +515,7 @@ impl MachineCore {
             sched,
             limits: settings.validation.clone(),
             alerts,
+            kept_alerts,
             thermal,
             open: None,
             requested: None,
@@ -600,6 +647,29 @@ impl MachineCore {
                 seconds,
             } => self.solved(number, *outcome, seconds, &mut out),
             Input::Shutdown => self.shutdown(now_ns, &mut out),
+            Input::LoopFault {
+                failing,
+                failed_steps,
+                message,
+            } => {
+                let events = self
+                    .alerts
+                    .loop_fault(failing, failed_steps, &message, now_ns);
+                if !events.is_empty() {
+                    raise(events, &mut out);
+                    self.view.open_alerts =
+                        self.alerts.open_alerts().into_iter().cloned().collect();
+                    out.push(Effect::PublishView);
+                }
+            }
+        }
+        // After the events that changed it, so that the store keeps the state they led to.
+        if self.alerts.state() != &self.kept_alerts {
+            self.kept_alerts = self.alerts.state().clone();
+            out.push(Effect::StoreAlertState {
+                t_ns: now_ns,
+                state: Box::new(self.kept_alerts.clone()),
+            });
         }
         out
     }

@@ -121,6 +121,22 @@ pub struct PhaseInfo {
     pub cutting: bool,
 }
 
+/// A past event a tracker is brought back with after a restart: the stored spindle samples
+/// and the stored cycles' starts and ends.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PastEvent {
+    Spindle { t_ns: i64, rpm: f64 },
+    Cycle { t_ns: i64, active: bool },
+}
+
+impl PastEvent {
+    fn t_ns(&self) -> i64 {
+        match self {
+            PastEvent::Spindle { t_ns, .. } | PastEvent::Cycle { t_ns, .. } => *t_ns,
+        }
+    }
+}
+
 /// The thermal phase as a state machine fed event by event.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PhaseTracker {
@@ -152,6 +168,29 @@ impl PhaseTracker {
 
     pub fn config(&self) -> &PhaseConfig {
         &self.cfg
+    }
+
+    /// Take the past events up to `now_ns`, in time order (at one instant a cycle's start
+    /// before the spindle sample it spins, its end after the sample that stops its spin): a
+    /// restarted service knows how long ago the spindle started or stopped instead of calling
+    /// the machine cold.
+    pub fn replay(&mut self, mut events: Vec<PastEvent>, now_ns: i64) {
+        events.retain(|e| e.t_ns() <= now_ns);
+        events.sort_by_key(|e| {
+            let rank = match e {
+                PastEvent::Cycle { active: true, .. } => 0,
+                PastEvent::Spindle { .. } => 1,
+                PastEvent::Cycle { active: false, .. } => 2,
+            };
+            (e.t_ns(), rank)
+        });
+        for e in events {
+            // A non-finite or out-of-order stored value is passed over, as a live one is.
+            let _ = match e {
+                PastEvent::Spindle { t_ns, rpm } => self.on_spindle(t_ns, rpm),
+                PastEvent::Cycle { t_ns, active } => self.on_cycle(t_ns, active),
+            };
+        }
     }
 
     /// A spindle speed (min^-1; the sign is the sense of rotation and is ignored).

@@ -399,6 +399,24 @@ impl ServiceConfig {
         if self.machines.is_empty() {
             return bad("no machines configured".into());
         }
+        if !(1..=1 << 20).contains(&self.max_file_mib) {
+            return bad(format!(
+                "max_file_mib must be from 1 to 1048576 (a recording file's size before it \
+                 rotates, MiB), not {}",
+                self.max_file_mib
+            ));
+        }
+        if let Err(e) = self.validation.check() {
+            return bad(e);
+        }
+        if !self.http.anonymous_read && self.resolved_tokens().0.is_empty() {
+            return bad(
+                "http.anonymous_read = false but no token is usable (every tokens entry is \
+                 missing or names an environment variable that is not set): nobody could read \
+                 the API, the NC included. Set a token or allow anonymous reads"
+                    .into(),
+            );
+        }
         if let Some(url) = &self.database_url
             && crate::store::Backend::of_url(url).is_none()
         {

@@ -29,7 +29,7 @@ use driftwatch_machine::compensation::{self, CompensationSet};
 use driftwatch_machine::machine_core::{
     CoreError, Effect, Input, Level, MachineCore, Record, Restored,
 };
-use driftwatch_machine::phase::PhaseInfo;
+use driftwatch_machine::phase::{PastEvent, PhaseInfo};
 use driftwatch_sim::simulator::TruthSample;
 
 pub use driftwatch_machine::machine_core::{CycleView, Settings, ThermalView};
@@ -67,6 +67,8 @@ pub struct MachineView {
 pub struct LoopHealth {
     /// The service clock at the loop's last completed step, ns.
     pub clock_ns: Option<i64>,
+    /// The service clock at the loop's last step, completed or failed, ns.
+    pub attempt_ns: Option<i64>,
     /// Steps that failed (a store or recorder error) and were tried again.
     pub faults: u64,
     /// Whether the last step failed.
@@ -125,6 +127,9 @@ enum Job {
     Truth(TruthSample),
     FileOpened(std::path::PathBuf),
     FileClosed(ClosedFile),
+    /// An alert event already shown and sent (the loop's health alert, raised while the
+    /// queue is held up by the fault it reports): only stored.
+    StoreAlert(Box<driftwatch_machine::alerts::AlertEvent>),
 }
 
 pub struct MachineRuntime {
@@ -145,10 +150,16 @@ pub struct MachineRuntime {
     /// Clock-skew refusals the link reported and the core has not been told yet: count and
     /// the last worst skew, ns.
     skew: (u64, i64),
+    /// The newest set the store holds: the only set that may be shown to the API or written
+    /// to the NC. The core decides a set before the executor has stored it, so its view may
+    /// be ahead of the store; a set becomes this only once its row is committed.
+    stored_set: Option<CompensationSet>,
     /// The set version and thermal-view revision last shown to the API.
     published: (Option<u64>, u64),
     /// The service clock at the current step: recording files follow it.
     clock_ns: i64,
+    /// Steps failed since the last one that succeeded (0: healthy).
+    failed_steps: u64,
 }
 
 /// The stored spindle and temperature samples and validated cycle results in a window, as
@@ -203,6 +214,28 @@ async fn restore(
         }
         None => None,
     };
+    // The phase's window: the spindle samples and the cycles' spans, so that a cycle's spin
+    // is not taken for a spindle start.
+    let from = now_ns.saturating_sub(Restored::phase_window_ns(&settings.phase));
+    let mut phase_history: Vec<PastEvent> = store
+        .samples(id, from, now_ns)
+        .await?
+        .into_iter()
+        .filter_map(|s| match s {
+            crate::store::Sample::Spindle { t_ns, rpm } => Some(PastEvent::Spindle { t_ns, rpm }),
+            crate::store::Sample::Temperature { .. } => None,
+        })
+        .collect();
+    for (start, end) in store.cycle_spans(id, from, now_ns).await? {
+        phase_history.push(PastEvent::Cycle {
+            t_ns: start,
+            active: true,
+        });
+        phase_history.push(PastEvent::Cycle {
+            t_ns: end.unwrap_or(now_ns),
+            active: false,
+        });
+    }
     Ok(Restored {
         last_start_ns,
         last_good_ns,
@@ -211,6 +244,9 @@ async fn restore(
         measured,
         last_closed: store.last_closed_cycle(id).await?,
         next_cycle: store.next_cycle_number(id).await?,
+        alerts: store.alert_state(id).await?,
+        logged_alerts: store.logged_alerts(id).await?,
+        phase_history,
     })
 }
 
@@ -282,13 +318,15 @@ impl MachineRuntime {
             machine: id.to_string(),
             source,
         })?;
+        // The core starts from the store's newest set: that is the stored set.
+        let stored_set = core.served().cloned();
+        let view_version = stored_set.as_ref().map(|c| c.version);
         let cv = core.view();
-        let view_version = cv.compensation.as_ref().map(|c| c.version);
         let view = MachineView {
             id: id.to_string(),
             kinematics: kin_name,
-            compensation: cv.compensation.clone(),
-            nc_body: cv.compensation.as_ref().and_then(NcBody::of),
+            compensation: stored_set.clone(),
+            nc_body: stored_set.as_ref().and_then(NcBody::of),
             cycles: cv.cycles.clone(),
             ..Default::default()
         };
@@ -305,8 +343,10 @@ impl MachineRuntime {
             alert_log: Vec::new(),
             notifier: Default::default(),
             skew: (0, 0),
+            stored_set,
             published: (view_version, 0),
             clock_ns: now_ns,
+            failed_steps: 0,
         };
         rt.queue.extend(said.into_iter().map(Job::Core));
         rt.drain().await?;
@@ -330,8 +370,65 @@ impl MachineRuntime {
         self.notifier = notifier;
     }
 
-    /// Handle everything up to `now_ns`; returns when to call again at the latest.
+    /// Handle everything up to `now_ns`; returns when to call again at the latest. A step
+    /// that fails raises the loop's health alert at once (shown and sent, stored when the
+    /// store takes writes again); the first step that succeeds after it resolves it.
     pub async fn step(&mut self, now_ns: i64) -> Result<i64, DaemonError> {
+        match self.step_inner(now_ns).await {
+            Ok(wake) if self.failed_steps == 0 => Ok(wake),
+            Ok(wake) => {
+                let failed_steps = std::mem::take(&mut self.failed_steps);
+                info!(machine = %self.id, failed_steps, "the machine loop steps again: its pending writes are stored");
+                self.feed(
+                    Input::LoopFault {
+                        failing: false,
+                        failed_steps,
+                        message: format!(
+                            "the loop steps again after {failed_steps} failed steps; every \
+                             pending write is stored"
+                        ),
+                    },
+                    now_ns,
+                );
+                self.drain().await.map_err(|e| self.failed(now_ns, e))?;
+                Ok(wake)
+            }
+            Err(e) => Err(self.failed(now_ns, e)),
+        }
+    }
+
+    /// A failed step: on the first of a run, the health alert is raised in the core, shown in
+    /// the view and sent at once; its storing waits in the queue behind the failed write.
+    fn failed(&mut self, now_ns: i64, e: DaemonError) -> DaemonError {
+        self.failed_steps += 1;
+        if self.failed_steps == 1 {
+            let message = format!(
+                "the machine loop cannot store (no new compensation set is served until it \
+                 can; the NC keeps the last stored one): {e}"
+            );
+            let input = Input::LoopFault {
+                failing: true,
+                failed_steps: 1,
+                message,
+            };
+            for effect in self.core.handle(input, now_ns) {
+                match effect {
+                    Effect::Alert(ev) => {
+                        warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
+                        self.notifier.notify(&self.id, &ev);
+                        self.alert_log.push((*ev).clone());
+                        self.queue.push_back(Job::StoreAlert(ev));
+                    }
+                    // The view's alerts only: the served set stays the stored one.
+                    Effect::PublishView => self.publish(),
+                    other => self.queue.push_back(Job::Core(other)),
+                }
+            }
+        }
+        e
+    }
+
+    async fn step_inner(&mut self, now_ns: i64) -> Result<i64, DaemonError> {
         self.clock_ns = now_ns;
         // What a failed step left: its effects first, then its events.
         self.drain().await?;
@@ -446,6 +543,10 @@ impl MachineRuntime {
                 self.file_closed(f, now).await?;
                 return Ok(Vec::new());
             }
+            Job::StoreAlert(ev) => {
+                self.store_alert(ev).await?;
+                return Ok(Vec::new());
+            }
         };
         match effect {
             Effect::Record(r) => return self.record_core(r),
@@ -501,31 +602,25 @@ impl MachineRuntime {
                 let stored = set.as_deref().map(crate::store::NewCompensation::of);
                 self.store
                     .close_cycle_with(&self.id, result, *t_ns, stored.as_ref())
-                    .await?
+                    .await?;
+                if let Some(set) = set {
+                    self.stored_set = Some((**set).clone());
+                }
             }
             Effect::StoreSet(set) => {
                 self.store
                     .insert_compensation(&self.id, &crate::store::NewCompensation::of(set))
-                    .await?
+                    .await?;
+                self.stored_set = Some((**set).clone());
             }
             Effect::Alert(ev) => {
                 warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
-                self.store
-                    .add_alert_event(
-                        &self.id,
-                        &NewAlertEvent {
-                            alert: ev.id as i64,
-                            t_ns: ev.t_ns,
-                            kind: ev.kind.into(),
-                            rule: &ev.rule,
-                            severity: Some(ev.severity.into()),
-                            message: &ev.message,
-                            value: Some(ev.value),
-                        },
-                    )
-                    .await?;
+                self.store_alert(ev).await?;
                 self.notifier.notify(&self.id, ev);
                 self.alert_log.push((**ev).clone());
+            }
+            Effect::StoreAlertState { t_ns, state } => {
+                self.store.put_alert_state(&self.id, *t_ns, state).await?
             }
             Effect::Acknowledged { alert, by, t_ns } => {
                 self.store
@@ -551,6 +646,23 @@ impl MachineRuntime {
             },
         }
         Ok(Vec::new())
+    }
+
+    async fn store_alert(
+        &mut self,
+        ev: &driftwatch_machine::alerts::AlertEvent,
+    ) -> Result<(), DaemonError> {
+        let row = NewAlertEvent {
+            alert: ev.id as i64,
+            t_ns: ev.t_ns,
+            kind: ev.kind.into(),
+            rule: &ev.rule,
+            severity: Some(ev.severity.into()),
+            message: &ev.message,
+            // An alert resolved at a restart has no value to report.
+            value: Some(ev.value).filter(|v| v.is_finite()),
+        };
+        Ok(self.store.add_alert_event(&self.id, &row).await?)
     }
 
     /// Solve on the blocking pool, so that the async threads keep answering the API and the
@@ -602,23 +714,25 @@ impl MachineRuntime {
     ) -> Result<Vec<Job>, DaemonError> {
         let rotation = self.recorder.write(topic, t_ns, self.clock_ns, msg)?;
         Ok(rotation
-            .closed
-            .map(Job::FileClosed)
+            .recovered
             .into_iter()
+            .map(Job::FileClosed)
+            .chain(rotation.closed.map(Job::FileClosed))
             .chain(rotation.opened.map(Job::FileOpened))
             .collect())
     }
 
-    /// Show the core's view to the API. The copies are made before the lock is taken and the
-    /// old values dropped after it is released, so that the NC's reads never wait on them; the
-    /// set and its NC body (serialised once per version) and the thermal view are copied only
-    /// when they changed.
+    /// Show the core's view to the API, with the newest *stored* set (the core's own may not
+    /// be stored yet: a failed write keeps it back until the store takes it). The copies are
+    /// made before the lock is taken and the old values dropped after it is released, so that
+    /// the NC's reads never wait on them; the set and its NC body (serialised once per
+    /// version) and the thermal view are copied only when they changed.
     fn publish(&mut self) {
         let cv = self.core.view();
-        let version = cv.compensation.as_ref().map(|c| c.version);
+        let version = self.stored_set.as_ref().map(|c| c.version);
         let set = (version != self.published.0).then(|| {
-            let nc = cv.compensation.as_ref().and_then(NcBody::of);
-            (cv.compensation.clone(), nc)
+            let nc = self.stored_set.as_ref().and_then(NcBody::of);
+            (self.stored_set.clone(), nc)
         });
         // A link that writes the set to the NC gets it as the API does: only once stored.
         if let Some((Some(served), _)) = &set {
@@ -665,15 +779,20 @@ impl MachineRuntime {
                 &f.partial.display().to_string(),
                 &f.path.display().to_string(),
                 now_ns,
-                FileStatus::Closed,
+                if f.recovered {
+                    FileStatus::Recovered
+                } else {
+                    FileStatus::Closed
+                },
                 f.messages as i64,
             )
             .await?;
         Ok(())
     }
 
+    /// The set served: the newest one stored.
     pub fn served(&self) -> Option<&CompensationSet> {
-        self.core.served()
+        self.stored_set.as_ref()
     }
 
     pub fn store(&self) -> &Store {

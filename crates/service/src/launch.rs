@@ -52,6 +52,16 @@ pub enum LaunchError {
     Webhooks(String),
     #[error("the listener: {0}")]
     Listener(std::io::Error),
+    #[error(transparent)]
+    Lock(#[from] crate::dir_lock::LockError),
+    #[error(
+        "the database holds no machine, but {files} recording(s) under {mcap} hold this data \
+         directory's history: the database was emptied or replaced, and starting on it would \
+         begin the versions again at 1. Restore the database from a backup, or start with \
+         --new-database to begin a new store (its sets get new ETags; the old history stays in \
+         the recordings)"
+    )]
+    HistoryWithoutDatabase { mcap: PathBuf, files: usize },
 }
 
 /// Which clock the machines run on.
@@ -71,6 +81,9 @@ pub struct LaunchOptions {
     pub until_min: Option<f64>,
     /// Start the clock here instead (a test that plays a real NC from a simulated start).
     pub start_ns: Option<i64>,
+    /// Start on an empty database even though recordings of an earlier history lie in the
+    /// data directory (refused otherwise: an emptied database would begin versions again).
+    pub new_database: bool,
 }
 
 impl Default for LaunchOptions {
@@ -79,6 +92,7 @@ impl Default for LaunchOptions {
             clock: ClockKind::Configured,
             until_min: None,
             start_ns: None,
+            new_database: false,
         }
     }
 }
@@ -101,6 +115,8 @@ pub struct Service {
     machines: Vec<JoinHandle<()>>,
     deliveries: Vec<JoinHandle<()>>,
     store: Store,
+    /// One process per data directory: held until the service is dropped.
+    _lock: crate::dir_lock::DirLock,
 }
 
 /// Launch the service with its configured clock, until `shutdown` is cancelled.
@@ -127,14 +143,97 @@ pub async fn launch_with(
     opts: LaunchOptions,
 ) -> Result<Service, LaunchError> {
     cfg.validate("the configuration")?;
+    // What this start makes, so that a start that fails leaves nothing behind.
+    let made_dir = !cfg.data_dir.exists();
+    let db_file = cfg
+        .database_url
+        .is_none()
+        .then(|| cfg.data_dir.join("driftwatch.db"));
+    let made_db = db_file.as_ref().is_some_and(|f| !f.exists());
     std::fs::create_dir_all(&cfg.data_dir).map_err(|source| LaunchError::DataDir {
         path: cfg.data_dir.clone(),
         source,
     })?;
+    let who = format!(
+        "pid {} on {}, API on {}, since {}",
+        std::process::id(),
+        hostname(),
+        listener
+            .local_addr()
+            .map_or_else(|e| e.to_string(), |a| a.to_string()),
+        chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true)
+    );
+    let lock = match crate::dir_lock::lock(&cfg.data_dir, &who) {
+        Ok(l) => l,
+        Err(e) => {
+            if made_dir {
+                let _ = std::fs::remove_dir_all(&cfg.data_dir);
+            }
+            return Err(e.into());
+        }
+    };
+    let data_dir = cfg.data_dir.clone();
+    match start(cfg, listener, shutdown, opts, lock).await {
+        Ok(service) => Ok(service),
+        Err(e) => {
+            // Nothing of a failed start stays: the directory or the database it made.
+            if made_dir {
+                let _ = std::fs::remove_dir_all(&data_dir);
+            } else if made_db && let Some(f) = db_file {
+                for suffix in ["", "-wal", "-shm"] {
+                    let mut p = f.clone().into_os_string();
+                    p.push(suffix);
+                    let _ = std::fs::remove_file(PathBuf::from(p));
+                }
+            }
+            Err(e)
+        }
+    }
+}
+
+/// This host's name, for the lock's note (empty where the system does not say).
+fn hostname() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_default()
+}
+
+/// Recordings under `mcap` (one directory per machine): the history a database beside them
+/// should hold.
+fn recordings_in(mcap: &Path) -> usize {
+    let Ok(machines) = std::fs::read_dir(mcap) else {
+        return 0;
+    };
+    machines
+        .flatten()
+        .filter_map(|m| std::fs::read_dir(m.path()).ok())
+        .flat_map(|files| files.flatten())
+        .filter(|f| {
+            let name = f.file_name();
+            let name = name.to_string_lossy();
+            name.ends_with(".mcap") || name.ends_with(".mcap.partial")
+        })
+        .count()
+}
+
+/// The start proper, in a data directory this process holds.
+async fn start(
+    cfg: ServiceConfig,
+    listener: TcpListener,
+    shutdown: CancellationToken,
+    opts: LaunchOptions,
+    lock: crate::dir_lock::DirLock,
+) -> Result<Service, LaunchError> {
     let store = match &cfg.database_url {
         Some(url) => Store::connect(url).await?,
         None => Store::open(&cfg.data_dir.join("driftwatch.db")).await?,
     };
+    let mcap = cfg.data_dir.join("mcap");
+    let files = recordings_in(&mcap);
+    if files > 0 && !opts.new_database && store.is_empty().await? {
+        store.close().await;
+        return Err(LaunchError::HistoryWithoutDatabase { mcap, files });
+    }
     let (links, t0) = links(&cfg, &store).await?;
     let mut t0 = opts.start_ns.unwrap_or(t0);
     // The processes of a simulated fleet share one machine time: the first sets it.
@@ -251,6 +350,7 @@ pub async fn launch_with(
         machines,
         deliveries,
         store,
+        _lock: lock,
     })
 }
 
@@ -480,7 +580,11 @@ pub(crate) async fn run_machine(
         // not in one stride that would start every due cycle late.
         let now = target.min(wake.max(last.saturating_add(1)));
         last = now;
-        wake = match rt.step(now).await {
+        let stepped = rt.step(now).await;
+        if let Ok(mut v) = rt.view.lock() {
+            v.health.attempt_ns = Some(now);
+        }
+        wake = match stepped {
             Ok(wake) => {
                 retry_ns = FIRST_RETRY_NS;
                 if let Ok(mut v) = rt.view.lock() {

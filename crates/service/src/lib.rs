@@ -7,6 +7,7 @@ pub mod api;
 pub mod clock;
 pub mod config;
 pub mod daemon;
+pub mod dir_lock;
 pub mod fleet;
 pub mod launch;
 pub mod link;

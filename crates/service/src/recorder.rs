@@ -35,9 +35,11 @@ pub enum RecorderError {
     },
 }
 
-/// Files a write closed and opened on the way (a new UTC day or the size limit).
+/// Files a write closed and opened on the way (a new UTC day or the size limit), and the
+/// files of writers that had failed, recovered before it.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct Rotation {
+    pub recovered: Vec<ClosedFile>,
     pub closed: Option<ClosedFile>,
     pub opened: Option<PathBuf>,
 }
@@ -69,6 +71,10 @@ pub struct Recorder {
     open: Option<OpenFile>,
     /// Written at the start of every file, so each file stands alone.
     info: rec::MachineInfo,
+    /// A writer failed (a full disk): the MCAP writer refuses every write after a failed
+    /// one, so it was dropped and its `.partial` file waits to be recovered, up to its last
+    /// complete chunk, before the next write opens a new file.
+    salvage: bool,
 }
 
 fn day_of(t_ns: i64) -> String {
@@ -90,7 +96,15 @@ impl Recorder {
             max_bytes,
             open: None,
             info,
+            salvage: false,
         })
+    }
+
+    /// The current writer failed: drop it (what of its file is complete stays readable) and
+    /// recover its file before the next write.
+    fn broke(&mut self) {
+        self.open = None;
+        self.salvage = true;
     }
 
     pub fn machine(&self) -> &str {
@@ -136,11 +150,14 @@ impl Recorder {
                 Err(e) => return Err(rec_err(e)),
             };
             let target = self.free_name(&partial.with_extension(""));
-            let messages =
-                rewrite(&recording, &target).map_err(|source| RecorderError::Recording {
+            let messages = rewrite(&recording, &target).map_err(|source| {
+                // A copy cut short (a full disk) is no file: the partial one stays.
+                let _ = fs::remove_file(&target);
+                RecorderError::Recording {
                     path: target.display().to_string(),
                     source,
-                })?;
+                }
+            })?;
             fs::remove_file(&partial).map_err(|source| RecorderError::Dir {
                 path: partial.display().to_string(),
                 source,
@@ -183,13 +200,20 @@ impl Recorder {
     ) -> Result<Rotation, RecorderError> {
         let day_number = clock_ns.div_euclid(units::NS_PER_DAY);
         let mut rotation = Rotation::default();
+        if self.salvage {
+            rotation.recovered = self.recover()?;
+            self.salvage = false;
+        }
         let rotate = match &self.open {
             Some(f) => f.day_number != day_number || f.bytes_hint >= self.max_bytes,
             None => true,
         };
         if rotate {
             rotation.closed = self.close()?;
-            self.open_file(&day_of(clock_ns), clock_ns)?;
+            if let Err(e) = self.open_file(&day_of(clock_ns), clock_ns) {
+                self.broke();
+                return Err(e);
+            }
             rotation.opened = self.current().map(Path::to_path_buf);
         }
         let Some(f) = self.open.as_mut() else {
@@ -202,12 +226,11 @@ impl Recorder {
                 detail: e.to_string(),
             },
         })?;
-        f.writer
-            .write_json_bytes(topic, t_ns, &data)
-            .map_err(|source| RecorderError::Recording {
-                path: f.partial.display().to_string(),
-                source,
-            })?;
+        if let Err(source) = f.writer.write_json_bytes(topic, t_ns, &data) {
+            let path = f.partial.display().to_string();
+            self.broke();
+            return Err(RecorderError::Recording { path, source });
+        }
         f.messages += 1;
         f.bytes_hint += data.len() as u64;
         Ok(rotation)
@@ -244,13 +267,12 @@ impl Recorder {
 
     /// Close the current chunk so that a crash loses nothing written so far.
     pub fn flush(&mut self) -> Result<(), RecorderError> {
-        if let Some(f) = self.open.as_mut() {
-            f.writer
-                .flush()
-                .map_err(|source| RecorderError::Recording {
-                    path: f.partial.display().to_string(),
-                    source,
-                })?;
+        if let Some(f) = self.open.as_mut()
+            && let Err(source) = f.writer.flush()
+        {
+            let path = f.partial.display().to_string();
+            self.broke();
+            return Err(RecorderError::Recording { path, source });
         }
         Ok(())
     }
@@ -260,12 +282,13 @@ impl Recorder {
         let Some(f) = self.open.take() else {
             return Ok(None);
         };
-        f.writer
-            .finish()
-            .map_err(|source| RecorderError::Recording {
+        if let Err(source) = f.writer.finish() {
+            self.salvage = true;
+            return Err(RecorderError::Recording {
                 path: f.partial.display().to_string(),
                 source,
-            })?;
+            });
+        }
         let done = f.partial.with_extension("");
         fs::rename(&f.partial, &done).map_err(|source| RecorderError::Rename {
             from: f.partial.display().to_string(),

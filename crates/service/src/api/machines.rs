@@ -24,22 +24,31 @@ pub(super) async fn healthz() -> &'static str {
     "ok"
 }
 
-#[utoipa::path(get, path = "/readyz", responses((status = 200, description = "every machine loop is running", body = String, content_type = "text/plain"), (status = 503, description = "waiting for a machine loop", body = String, content_type = "text/plain")))]
+#[utoipa::path(get, path = "/readyz", responses((status = 200, description = "every machine loop is running and storing", body = String, content_type = "text/plain"), (status = 503, description = "a machine loop has not started, or its steps fail (its store or recorder refuses writes: the NC is served the last stored set, no new one); the text names each machine and why", body = String, content_type = "text/plain")))]
 pub(super) async fn ready(State(st): State<Shared>) -> Response {
-    let waiting: Vec<String> = st
-        .machines
-        .iter()
-        .filter(|(_, h)| view(h).phase.is_none())
-        .map(|(id, _)| id.clone())
-        .collect();
-    if waiting.is_empty() {
+    let mut problems = Vec::new();
+    for (id, h) in st.machines.iter() {
+        let v = view(h);
+        if v.fleet.as_ref().is_some_and(|f| !f.here) {
+            // Run by another process of the fleet: that process answers for its loop.
+            continue;
+        }
+        if v.phase.is_none() {
+            problems.push(format!("waiting for {id}"));
+        } else if v.health.failing {
+            let why = v.health.last_fault.as_ref().map_or("", |(_, m)| m.as_str());
+            problems.push(format!(
+                "{id} is failing (serving its last stored set, version {}): {why}",
+                v.compensation
+                    .as_ref()
+                    .map_or("none".to_string(), |c| c.version.to_string())
+            ));
+        }
+    }
+    if problems.is_empty() {
         (StatusCode::OK, "ready").into_response()
     } else {
-        (
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("waiting for {}", waiting.join(", ")),
-        )
-            .into_response()
+        (StatusCode::SERVICE_UNAVAILABLE, problems.join("\n")).into_response()
     }
 }
 
@@ -175,7 +184,9 @@ pub(super) async fn compensation(
             ),
         ));
     };
-    let etag = format!("\"{id}-v{}\"", body.version);
+    // The store's epoch with the version: a version of an emptied or another database never
+    // matches a tag the NC kept.
+    let etag = format!("\"{id}-{}-v{}\"", st.store.epoch(), body.version);
     let matches = headers
         .get(header::IF_NONE_MATCH)
         .and_then(|h| h.to_str().ok())

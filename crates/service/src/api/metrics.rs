@@ -65,6 +65,11 @@ fn describe() {
         "Steps of a machine loop that failed (a store or recorder error) and were tried again."
     );
     describe_gauge!(
+        "driftwatch_machine_failing",
+        "1 while a machine loop's steps fail (its store or recorder refuses writes): the NC is \
+         served the last stored set, and no new one, until the fault clears."
+    );
+    describe_gauge!(
         "driftwatch_compensation_version",
         "Version of the compensation set served to the NC (0: none)."
     );
@@ -133,6 +138,11 @@ fn record_state(st: &super::ApiState) {
             .set(v.cycles.solve_seconds_sum);
         counter!("driftwatch_machine_faults_total", "machine" => id.clone())
             .absolute(v.health.faults);
+        gauge!("driftwatch_machine_failing", "machine" => id.clone()).set(if v.health.failing {
+            1.0
+        } else {
+            0.0
+        });
         gauge!("driftwatch_compensation_version", "machine" => id.clone())
             .set(v.compensation.as_ref().map_or(0.0, |c| c.version as f64));
         gauge!("driftwatch_open_alerts", "machine" => id.clone()).set(v.open_alerts.len() as f64);

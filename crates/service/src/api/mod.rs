@@ -239,7 +239,15 @@ fn edges(app: Router, timeout: std::time::Duration) -> Router {
         timeout,
     ))
     .layer(middleware::from_fn(error::json_errors))
-    .layer(tower_http::trace::TraceLayer::new_for_http())
+    .layer(
+        tower_http::trace::TraceLayer::new_for_http().make_span_with(
+            |req: &axum::http::Request<axum::body::Body>| {
+                // The path only: a query string may carry a token a client put there, and
+                // logs are read by more people than tokens are given to.
+                tracing::debug_span!("request", method = %req.method(), path = %req.uri().path())
+            },
+        ),
+    )
 }
 
 pub(super) fn handle<'a>(st: &'a ApiState, id: &str) -> Result<&'a MachineHandle, ApiError> {

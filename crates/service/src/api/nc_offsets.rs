@@ -136,7 +136,12 @@ pub(super) async fn in_format(
             format!("machine '{id}' has no kinematics in this service"),
         )
     })?;
-    let etag = format!("\"{id}-v{}-{}\"", set.version, format.name());
+    let etag = format!(
+        "\"{id}-{}-v{}-{}\"",
+        st.store.epoch(),
+        set.version,
+        format.name()
+    );
     if headers
         .get(header::IF_NONE_MATCH)
         .and_then(|h| h.to_str().ok())

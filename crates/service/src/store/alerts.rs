@@ -181,4 +181,82 @@ impl Store {
             })
             .collect()
     }
+
+    /// Keep a machine's alert engine state (replacing the one kept before).
+    pub async fn put_alert_state(
+        &self,
+        machine: &str,
+        t_ns: i64,
+        state: &driftwatch_machine::alerts::AlertState,
+    ) -> Result<(), StoreError> {
+        let json = serde_json::to_string(state)?;
+        sqlx::query(
+            "INSERT INTO alert_state (machine_id, t_ns, state) VALUES ($1, $2, $3)
+             ON CONFLICT (machine_id) DO UPDATE SET t_ns = excluded.t_ns, state = excluded.state",
+        )
+        .bind(machine)
+        .bind(t_ns)
+        .bind(json)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// A machine's alert engine state as last kept, if any.
+    pub async fn alert_state(
+        &self,
+        machine: &str,
+    ) -> Result<Option<driftwatch_machine::alerts::AlertState>, StoreError> {
+        let json: Option<String> =
+            sqlx::query_scalar("SELECT state FROM alert_state WHERE machine_id = $1")
+                .bind(machine)
+                .fetch_optional(&self.pool)
+                .await?;
+        json.map(|j| {
+            serde_json::from_str(&j)
+                .map_err(|e| StoreError::Corrupt(format!("the alert state of {machine}: {e}")))
+        })
+        .transpose()
+    }
+
+    /// What the alert log holds of a machine: the alerts raised and never resolved, and the
+    /// highest id.
+    pub async fn logged_alerts(
+        &self,
+        machine: &str,
+    ) -> Result<driftwatch_machine::alerts::LoggedAlerts, StoreError> {
+        let rows = sqlx::query(
+            "SELECT alert_id, MAX(rule), MIN(severity) FROM alert_events
+             WHERE machine_id = $1 AND kind <> 'acknowledged'
+             GROUP BY alert_id
+             HAVING SUM(CASE WHEN kind = 'resolved' THEN 1 ELSE 0 END) = 0
+             ORDER BY alert_id",
+        )
+        .bind(machine)
+        .fetch_all(&self.pool)
+        .await?;
+        let open = rows
+            .iter()
+            .map(|r| {
+                let severity = match AlertSeverity::of_column(&r.try_get::<String, _>(2)?)? {
+                    Some(AlertSeverity::Critical) => Severity::Critical,
+                    _ => Severity::Warning,
+                };
+                Ok((
+                    r.try_get::<i64, _>(0)?.max(0) as u64,
+                    r.try_get(1)?,
+                    severity,
+                ))
+            })
+            .collect::<Result<Vec<_>, StoreError>>()?;
+        let max: Option<i64> =
+            sqlx::query_scalar("SELECT MAX(alert_id) FROM alert_events WHERE machine_id = $1")
+                .bind(machine)
+                .fetch_one(&self.pool)
+                .await?;
+        Ok(driftwatch_machine::alerts::LoggedAlerts {
+            open,
+            max_id: max.unwrap_or(0).max(0) as u64,
+        })
+    }
 }

@@ -44,6 +44,71 @@ pub fn redacted(url: &str) -> String {
     }
 }
 
+/// Whether SQLite says the file is damaged (SQLITE_CORRUPT) or is not a database
+/// (SQLITE_NOTADB), by its primary result code.
+fn is_corruption(e: &sqlx::Error) -> bool {
+    let sqlx::Error::Database(db) = e else {
+        return false;
+    };
+    let code = db.code().and_then(|c| c.parse::<i64>().ok());
+    code.is_some_and(|c| matches!(c & 0xff, 11 | 26))
+        || db.message().contains("malformed")
+        || db.message().contains("not a database")
+}
+
+fn corrupt(url: &str, e: &sqlx::Error) -> StoreError {
+    StoreError::Corrupt(format!(
+        "the database {} is damaged or is not a driftwatch database ({e}); nothing was \
+         written to it. Restore it from a backup, or move it aside to start a new store",
+        redacted(url)
+    ))
+}
+
+/// Whether a SQLite connection given back to the pool is fit to be used again: not in a
+/// transaction, by sqlx's count or by SQLite's. A COMMIT that fails on a full disk may be
+/// rolled back by SQLite itself, leaving sqlx counting a transaction that is not there (its
+/// next one then opens as a savepoint and never commits: written, read back on that
+/// connection, never stored), or may leave one open that holds the write lock ("database is
+/// locked" for every other connection). Such a connection is closed, which ends whatever it
+/// held, and the pool opens a fresh one.
+async fn sqlite_connection_sound(conn: &mut sqlx::AnyConnection) -> Result<bool, sqlx::Error> {
+    use sqlx::Connection;
+    if conn.is_in_transaction() {
+        return Ok(false);
+    }
+    // BEGIN fails inside a transaction; outside one it costs nothing and is ended at once.
+    if sqlx::query("BEGIN").execute(&mut *conn).await.is_err() {
+        return Ok(false);
+    }
+    Ok(sqlx::query("ROLLBACK").execute(&mut *conn).await.is_ok())
+}
+
+/// One connection to the SQLite file before the pool is built: a damaged file, or one that is
+/// not a database, is named as such at once (the pool would retry its connections until its
+/// acquire timeout and say only that it timed out).
+async fn probe_sqlite(url: &str) -> Result<(), StoreError> {
+    use sqlx::Connection;
+    let named = |e: sqlx::Error| {
+        if is_corruption(&e) {
+            corrupt(url, &e)
+        } else {
+            StoreError::Open {
+                path: redacted(url),
+                source: e,
+            }
+        }
+    };
+    let mut conn = sqlx::AnyConnection::connect(url).await.map_err(named)?;
+    // Reading the schema reads the file's first pages: a truncated or overwritten file fails.
+    for sql in [
+        "PRAGMA journal_mode = WAL",
+        "SELECT COUNT(*) FROM sqlite_schema",
+    ] {
+        sqlx::query(sql).execute(&mut conn).await.map_err(named)?;
+    }
+    conn.close().await.map_err(named)
+}
+
 impl Backend {
     /// The engine a URL names: `sqlite://PATH` or `postgres://...` (`postgresql://...`).
     pub fn of_url(url: &str) -> Option<Backend> {
@@ -76,8 +141,10 @@ impl Backend {
                 // crash (only a power loss can take the last commits).
                 let sep = if url.contains('?') { '&' } else { '?' };
                 let url = format!("{url}{sep}mode=rwc");
+                probe_sqlite(&url).await?;
                 AnyPoolOptions::new()
                     .max_connections(4)
+                    .after_release(|conn, _meta| Box::pin(sqlite_connection_sound(conn)))
                     .after_connect(|conn, _meta| {
                         Box::pin(async move {
                             for pragma in [
@@ -101,7 +168,12 @@ impl Backend {
                 .await
                 .map_err(open_error)?,
         };
-        self.migrator().run(&pool).await?;
+        if let Err(e) = self.migrator().run(&pool).await {
+            return Err(match e {
+                sqlx::migrate::MigrateError::Execute(e) if is_corruption(&e) => corrupt(url, &e),
+                e => StoreError::Migrate(e),
+            });
+        }
         Ok(pool)
     }
 

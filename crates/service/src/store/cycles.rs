@@ -305,6 +305,30 @@ impl Store {
         rows.iter().map(|r| Ok(r.try_get::<i64, _>(0)?)).collect()
     }
 
+    /// The spans of a machine's cycles that end at or after `from_ns` and start before
+    /// `to_ns`, in start order: (started, finished; none while open), for the phase to tell a
+    /// cycle's spin from a spindle start after a restart.
+    pub async fn cycle_spans(
+        &self,
+        machine: &str,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<(i64, Option<i64>)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT started_ns, finished_ns FROM cycles
+             WHERE machine_id = $1 AND started_ns < $3 AND COALESCE(finished_ns, started_ns) >= $2
+             ORDER BY started_ns",
+        )
+        .bind(machine)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+            .collect()
+    }
+
     /// A machine's cycles, newest first: at most `limit`, numbered below `before` if given
     /// (the next page starts before the last number of this one).
     pub async fn cycles(

@@ -66,6 +66,9 @@ pub struct Store {
     /// The lease a machine's loop holds in a fleet: its cycle and compensation writes are
     /// checked against it ([`Store::fenced`]).
     fence: Option<std::sync::Arc<Lease>>,
+    /// The name drawn when this database's schema was made: a set's ETag carries it, so that
+    /// a version number of an emptied (or another) database never passes for this one's.
+    epoch: std::sync::Arc<str>,
 }
 
 /// Whether a statement that binds an `Option<f64>` may be a cached prepared statement: no.
@@ -110,11 +113,36 @@ impl Store {
         let backend =
             Backend::of_url(url).ok_or_else(|| StoreError::Url(backend::redacted(url)))?;
         let pool = backend.connect(url).await?;
+        let epoch: Option<String> =
+            sqlx::query_scalar("SELECT value FROM store_meta WHERE key = 'epoch'")
+                .fetch_optional(&pool)
+                .await?;
+        let epoch = epoch.ok_or_else(|| {
+            StoreError::Corrupt(
+                "the database has no epoch (store_meta): not made by driftwatch's migrations"
+                    .into(),
+            )
+        })?;
         Ok(Store {
             pool,
             backend,
             fence: None,
+            epoch: epoch.into(),
         })
+    }
+
+    /// The database's epoch (see [`Store`]): the same for every process on it, new for a
+    /// database made anew.
+    pub fn epoch(&self) -> &str {
+        &self.epoch
+    }
+
+    /// Whether the database holds no machine at all: a new or emptied one.
+    pub async fn is_empty(&self) -> Result<bool, StoreError> {
+        let n: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM machines")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(n == 0)
     }
 
     /// The engine this store runs on.
