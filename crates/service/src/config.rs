@@ -409,14 +409,7 @@ impl ServiceConfig {
         if let Err(e) = self.validation.check() {
             return bad(e);
         }
-        if !self.http.anonymous_read && self.resolved_tokens().0.is_empty() {
-            return bad(
-                "http.anonymous_read = false but no token is usable (every tokens entry is \
-                 missing or names an environment variable that is not set): nobody could read \
-                 the API, the NC included. Set a token or allow anonymous reads"
-                    .into(),
-            );
-        }
+
         if let Some(url) = &self.database_url
             && crate::store::Backend::of_url(url).is_none()
         {
@@ -525,6 +518,15 @@ impl ServiceConfig {
             if t.token.trim().is_empty() {
                 return bad(format!("token of '{}' is empty", t.name));
             }
+        }
+        // Last: the environment's part of the configuration, after everything in the file.
+        if !self.http.anonymous_read && self.resolved_tokens().0.is_empty() {
+            return bad(
+                "http.anonymous_read = false but no token is usable (every tokens entry is \
+                 missing or names an environment variable that is not set): nobody could read \
+                 the API, the NC included. Set a token or allow anonymous reads"
+                    .into(),
+            );
         }
         Ok(())
     }
