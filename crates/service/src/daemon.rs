@@ -56,6 +56,8 @@ pub struct MachineView {
     /// The same set as the NC endpoint sends it, serialised once per version.
     pub nc_body: Option<Arc<NcBody>>,
     pub open_alerts: Vec<driftwatch_machine::alerts::Alert>,
+    /// The threshold alert rules with their references (the dashboard's limit lines).
+    pub thresholds: Vec<driftwatch_machine::machine_core::AlertThreshold>,
     pub thermal: ThermalView,
     pub health: LoopHealth,
     /// In a fleet: who runs the machine (absent: this process runs every machine alone).
@@ -290,6 +292,7 @@ impl MachineRuntime {
             compensation: cv.compensation.clone(),
             nc_body: cv.compensation.as_ref().and_then(NcBody::of),
             cycles: cv.cycles.clone(),
+            thresholds: cv.thresholds.clone(),
             ..Default::default()
         };
         let mut rt = MachineRuntime {
@@ -627,6 +630,7 @@ impl MachineRuntime {
         let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
         self.published = (version, cv.thermal.revision);
         let (mut cycles, mut alerts) = (cv.cycles.clone(), cv.open_alerts.clone());
+        let mut thresholds = cv.thresholds.clone();
         let phase = cv.phase;
         let mut old_set = None;
         let mut old_thermal = None;
@@ -634,6 +638,7 @@ impl MachineRuntime {
             v.phase = phase;
             std::mem::swap(&mut v.cycles, &mut cycles);
             std::mem::swap(&mut v.open_alerts, &mut alerts);
+            std::mem::swap(&mut v.thresholds, &mut thresholds);
             if let Some((set, nc)) = set {
                 old_set = Some((
                     std::mem::replace(&mut v.compensation, set),
@@ -644,7 +649,7 @@ impl MachineRuntime {
                 old_thermal = Some(std::mem::replace(&mut v.thermal, t));
             }
         }
-        drop((cycles, alerts, old_set, old_thermal));
+        drop((cycles, alerts, thresholds, old_set, old_thermal));
     }
 
     /// Give up the open cycle, store what is held and close the recording cleanly.
