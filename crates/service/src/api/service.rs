@@ -63,3 +63,22 @@ pub(super) async fn service(State(st): State<Shared>) -> Json<ServiceInfo> {
 pub(super) fn routes(guard: &Guard) -> Router<Shared> {
     Router::new().route("/service", guard(get(service)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_clock_says_what_moves_it() {
+        assert_eq!(
+            mode(&ServiceClock::scaled(0, 60.0)),
+            (ClockMode::Scaled, Some(60.0))
+        );
+        assert_eq!(
+            mode(&ServiceClock::scaled(0, 1.0)),
+            (ClockMode::Wall, Some(1.0))
+        );
+        let (manual, _hand) = ServiceClock::manual(0);
+        assert_eq!(mode(&manual), (ClockMode::Manual, None));
+    }
+}
