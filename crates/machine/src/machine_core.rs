@@ -300,7 +300,7 @@ pub struct AlertThreshold {
     /// Same unit: back within it resolves.
     pub clear: f64,
     /// The value the distance is measured from: the configured one, else the first validated
-    /// value of the error since the loop started (absent before it).
+    /// value of the error the alert rules saw (absent before it).
     pub reference: Option<f64>,
     /// Whether `reference` is configured (else the first validated value).
     pub reference_configured: bool,

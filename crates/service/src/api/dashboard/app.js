@@ -478,7 +478,7 @@ function thresholdList(thresholds) {
   if (!thresholds || !thresholds.length) return null;
   return el('p', { class: 'muted thresholds' }, 'Threshold rules (the dashed lines on the charts): ',
     thresholds.map((t) => `${t.error} ${thresholdText(t, unit(t.error))}` +
-      (t.reference != null && !t.reference_configured ? ' (the first validated value since the loop started)' : ''))
+      (t.reference != null && !t.reference_configured ? ' (the first validated value the alert rules saw)' : ''))
       .join('; '),
     '.');
 }
