@@ -1,8 +1,11 @@
 //! The dashboard in a real browser: headless Chromium driven through WebDriver (Debian's
 //! `chromium` and `chromium-driver`) against the service on a manual clock. The overview lists
-//! the machine, the machine page draws as many measured points as the API holds for its
-//! window, an acknowledgement is refused without a token (the API's message shown) and taken
-//! with the write token. Screenshots go to `target/tmp/dashboard/` (printed).
+//! the machine with its served set aged on the clock of the same answer, why it is that old,
+//! what each value is (the served set's, an alert's cycle's) and the simulated clock; the
+//! machine page draws as many measured points as the API holds for its window, the EZ0B alert
+//! limits about their reference, and the NC offsets with their units; an acknowledgement is
+//! refused without a token (the API's message shown) and taken with the write token.
+//! Screenshots go to `target/tmp/dashboard/` (printed).
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -14,6 +17,7 @@ use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::json;
 
 use crate::common::{MIN, launch_test, patent_m1, scratch};
+use driftwatch_core::units::NS_PER_S;
 
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 const CHROMIUM: &str = "/usr/bin/chromium";
@@ -92,6 +96,18 @@ async fn browser(driver: &Driver, profile: &Path) -> Client {
     );
 }
 
+/// An age as the page writes it (app.js `age`).
+fn age_text(ns: i64) -> String {
+    let s = ns as f64 / 1e9;
+    if s < 120.0 {
+        format!("{} s", s.round())
+    } else if s < 7200.0 {
+        format!("{} min", (s / 60.0).round())
+    } else {
+        format!("{:.1} h", s / 3600.0)
+    }
+}
+
 async fn screenshot(c: &Client, name: &str) -> PathBuf {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
     std::fs::create_dir_all(&dir).unwrap();
@@ -131,7 +147,10 @@ async fn the_dashboard_shows_the_fleet_and_a_machine_and_acknowledges_in_a_real_
     let t0 = app.t0();
     // Four hours of the patent day: validated cycles, the thermal model fitted (by about
     // 150 min) and serving predictions, and the EZ0B threshold alert open.
-    app.run_to(t0 + 240 * MIN).await;
+    // 45 s past 240 min, while the cycle started then runs: the set served (this seed: the
+    // prediction of 240 min) is some seconds old, so that an age taken on another clock than
+    // the answer's would show.
+    app.run_to(t0 + 240 * MIN + 45 * NS_PER_S).await;
     let base = format!("http://{}", app.svc.addr);
     let c = browser(&driver, &dir.join("profile")).await;
 
@@ -153,10 +172,81 @@ async fn the_dashboard_shows_the_fleet_and_a_machine_and_acknowledges_in_a_real_
         .unwrap()
         .replace('_', " ");
     assert!(tile.contains(&phase), "{tile}");
-    assert!(tile.contains("served set"), "{tile}");
+    let m1 = &machines[0];
+    let (s, _, service) = app
+        .call(Request::get("/api/v1/service").body(Body::empty()).unwrap())
+        .await;
+    assert_eq!(s, StatusCode::OK);
+    // The test's clock is moved by hand and m1 is the simulator: the page says both.
+    assert_eq!(service["clock"], "manual", "{service}");
+    assert_eq!(service["simulated"], json!(["m1"]), "{service}");
+    let kind = text_of(&c, "#clock-kind").await;
     assert!(
-        tile.contains("threshold:") || tile.contains("limit"),
+        kind.contains("simulated clock") && kind.contains("moved by hand"),
+        "{kind}"
+    );
+    assert!(
+        text_of(&c, ".tile[data-machine='m1'] .badge.sim").await == "simulated machine",
         "{tile}"
+    );
+
+    // The served set's age is measured on the service clock of the answer that holds the set:
+    // the clock stands still (manual), so the page's answer had the clock the test reads.
+    let set = &m1["compensation"];
+    let clock = m1["service_clock_ns"]
+        .as_i64()
+        .expect("the clock of the answer");
+    let valid_from = set["valid_from_ns"].as_i64().unwrap();
+    let age_ns = clock - valid_from;
+    assert!(age_ns >= 0, "{m1}");
+    let served = c
+        .find(Locator::Css(".tile[data-machine='m1'] .served"))
+        .await
+        .unwrap();
+    assert_eq!(
+        served.attr("data-age-ns").await.unwrap(),
+        Some(age_ns.to_string())
+    );
+    let served_text = served.text().await.unwrap();
+    let version = set["version"].as_u64().unwrap();
+    let source = set["source"].as_str().unwrap();
+    assert!(
+        served_text.contains(&format!("v{version}, {source}"))
+            && served_text.contains(&format!("{} old", age_text(age_ns))),
+        "{served_text} against {age_ns} ns"
+    );
+    // Why the set is as old as it is: the reason the machine page shows too.
+    let reason = set["reason"].as_str().unwrap();
+    assert_eq!(
+        text_of(&c, ".tile[data-machine='m1'] .served .reason").await,
+        format!("why: {reason}")
+    );
+    // Each value says what it is: a served value names its set, an alert its cycle.
+    let largest = text_of(&c, ".tile[data-machine='m1'] .largest[data-unit='um']").await;
+    assert!(largest.contains(&format!("served v{version}")), "{largest}");
+    let (_, _, alerts) = app
+        .call(
+            Request::get("/api/v1/machines/m1/alerts")
+                .body(Body::empty())
+                .unwrap(),
+        )
+        .await;
+    let ez = alerts["open"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["rule"] == "threshold:EZ0B")
+        .expect("EZ0B above its limit")
+        .clone();
+    let line = text_of(
+        &c,
+        ".tile[data-machine='m1'] .alert-line[data-rule='threshold:EZ0B']",
+    )
+    .await;
+    assert!(
+        line.contains(&format!("at cycle {}", ez["last_cycle"]))
+            && line.contains(ez["message"].as_str().unwrap()),
+        "{line} against {ez}"
     );
     let overview = screenshot(&c, "overview.png").await;
 
@@ -230,22 +320,120 @@ async fn the_dashboard_shows_the_fleet_and_a_machine_and_acknowledges_in_a_real_
     assert!(drawn >= 6, "{drawn} measured points in all");
     assert!(predicted > 0, "no predicted line in any chart");
 
-    // An acknowledgement without a token: refused, with the API's own message on the page.
-    let (_, _, alerts) = app
+    // The EZ0B threshold as the API publishes it: about the first validated EZ0B value (the
+    // rule has no reference of its own), drawn as lines at reference +- limit and +- clear.
+    let rule = alerts["thresholds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["error"] == "EZ0B")
+        .expect("the EZ0B threshold rule")
+        .clone();
+    let (_, _, first) = app
         .call(
-            Request::get("/api/v1/machines/m1/alerts")
+            Request::get("/api/v1/machines/m1/errors?source=measured")
                 .body(Body::empty())
                 .unwrap(),
         )
         .await;
-    let alert = alerts["open"]
+    let first_ez = first
         .as_array()
         .unwrap()
         .iter()
-        .find(|a| a["rule"] == "threshold:EZ0B")
-        .expect("EZ0B above its limit")["id"]
-        .as_u64()
+        .filter(|v| v["name"] == "EZ0B")
+        .min_by_key(|v| v["t_ns"].as_i64().unwrap())
+        .unwrap()["value"]
+        .as_f64()
         .unwrap();
+    assert_eq!(rule["reference"].as_f64(), Some(first_ez), "{rule}");
+    let (limit, clear) = (
+        rule["limit"].as_f64().unwrap(),
+        rule["clear"].as_f64().unwrap(),
+    );
+    let chart = c
+        .find(Locator::Css("svg.chart[data-error='EZ0B']"))
+        .await
+        .unwrap();
+    // (value, y) of each line of a class, highest value first.
+    let lines = |class: &'static str| {
+        let chart = chart.clone();
+        async move {
+            let mut out = Vec::new();
+            for l in chart.find_all(Locator::Css(class)).await.unwrap() {
+                let get = |a: &'static str| {
+                    let l = l.clone();
+                    async move { l.attr(a).await.unwrap().unwrap().parse::<f64>().unwrap() }
+                };
+                out.push((get("data-value").await, get("y1").await));
+            }
+            out.sort_by(|a, b| b.0.total_cmp(&a.0));
+            out
+        }
+    };
+    let (limits, clears, reference) = (
+        lines("line.limit").await,
+        lines("line.clear").await,
+        lines("line.reference").await,
+    );
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+    assert!(
+        limits.len() == 2
+            && close(limits[0].0, first_ez + limit)
+            && close(limits[1].0, first_ez - limit),
+        "{limits:?} against {rule}"
+    );
+    assert!(
+        clears.len() == 2
+            && close(clears[0].0, first_ez + clear)
+            && close(clears[1].0, first_ez - clear),
+        "{clears:?} against {rule}"
+    );
+    // Drawn in order from the top (SVG y grows downwards): +limit, +clear, reference, ...
+    let ys: Vec<f64> = [limits[0], clears[0], reference[0], clears[1], limits[1]]
+        .iter()
+        .map(|l| l.1)
+        .collect();
+    assert!(ys.windows(2).all(|w| w[0] < w[1]), "{ys:?}");
+
+    // The page's served set is the one of its machine answer, aged on that answer's clock.
+    let served_now = c.find(Locator::Css(".served-now")).await.unwrap();
+    assert_eq!(
+        served_now.attr("data-age-ns").await.unwrap(),
+        Some(age_ns.to_string())
+    );
+    // The NC offsets themselves, each with its unit.
+    let offsets = set["offsets"].as_object().unwrap();
+    assert!(!offsets.is_empty(), "{set}");
+    let rows = c
+        .find_all(Locator::Css("table.offsets tr[data-offset]"))
+        .await
+        .unwrap();
+    assert_eq!(rows.len(), offsets.len());
+    for row in rows {
+        let name = row.attr("data-offset").await.unwrap().unwrap();
+        let cells: Vec<String> = {
+            let mut v = Vec::new();
+            for td in row.find_all(Locator::Css("td")).await.unwrap() {
+                v.push(td.text().await.unwrap());
+            }
+            v
+        };
+        let value = offsets[&name].as_f64().unwrap();
+        let unit = name.rsplit('_').next().unwrap();
+        assert!(
+            cells[1] == format!("{value:.2}") && cells[2] == unit && matches!(unit, "um" | "urad"),
+            "{name}: {cells:?} against {value}"
+        );
+    }
+    // An open alert's message names the cycle whose value it holds.
+    let message = text_of(&c, &format!("tr[data-alert='{}'] .alert-message", ez["id"])).await;
+    assert!(
+        message.starts_with(&format!("at cycle {}: ", ez["last_cycle"])),
+        "{message}"
+    );
+
+    // An acknowledgement without a token: refused, with the API's own message on the page.
+    let alert = ez["id"].as_u64().unwrap();
     let row = format!("tr[data-alert='{alert}']");
     let (s, _, refusal) = app
         .call(
@@ -296,8 +484,9 @@ async fn the_dashboard_shows_the_fleet_and_a_machine_and_acknowledges_in_a_real_
     app.run_to(t0 + 241 * MIN).await;
     let acked = text_of(&c, &format!("{row} .acked")).await;
     assert_eq!(acked, "acknowledged by operator");
-    // Tall enough for the whole page.
+    // Tall enough for the whole page, from its top (the header with the clock).
     c.set_window_size(1400, 2600).await.unwrap();
+    c.execute("window.scrollTo(0, 0)", vec![]).await.unwrap();
     let machine = screenshot(&c, "machine.png").await;
 
     c.close().await.unwrap();

@@ -294,7 +294,52 @@ pub struct View {
     /// The set the NC reads: the last validated one.
     pub compensation: Option<CompensationSet>,
     pub open_alerts: Vec<Alert>,
+    /// The threshold rules with the reference each measures from, for charts that draw them.
+    pub thresholds: Vec<AlertThreshold>,
     pub thermal: ThermalView,
+}
+
+/// A threshold alert rule as a chart draws it: `|value - reference|` above `limit` raises,
+/// below `clear` resolves.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct AlertThreshold {
+    /// The rule's name in alerts, `threshold:EZ0B`.
+    pub rule: String,
+    pub error: String,
+    /// um, or urad for an angular error.
+    pub limit: f64,
+    /// Same unit: back within it resolves.
+    pub clear: f64,
+    /// The value the distance is measured from: the configured one, else the first validated
+    /// value of the error the alert rules saw (absent before it).
+    pub reference: Option<f64>,
+    /// Whether `reference` is configured (else the first validated value).
+    pub reference_configured: bool,
+}
+
+/// The threshold rules of `alerts` with their references as they stand.
+fn thresholds(alerts: &AlertEngine) -> Vec<AlertThreshold> {
+    alerts
+        .rules()
+        .iter()
+        .filter_map(|r| match r {
+            Rule::Threshold {
+                error,
+                limit,
+                clear,
+                reference,
+            } => Some(AlertThreshold {
+                rule: r.name(),
+                error: error.clone(),
+                limit: *limit,
+                clear: *clear,
+                reference: alerts.reference(error),
+                reference_configured: reference.is_some(),
+            }),
+            _ => None,
+        })
+        .collect()
 }
 
 /// The settings of one machine's decisions.
@@ -499,6 +544,7 @@ impl MachineCore {
         let view = View {
             compensation: restored.served.clone(),
             open_alerts: alerts.open_alerts().into_iter().cloned().collect(),
+            thresholds: thresholds(&alerts),
             cycles: CycleView {
                 last: restored.last_closed,
                 steps_per_cycle,
@@ -1008,6 +1054,8 @@ impl MachineCore {
             v.cycles.rejected += 1;
         }
         v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
+        // A cycle's first validated values become the references of rules without one.
+        v.thresholds = thresholds(&self.alerts);
         v.cycles.open = None;
         out.push(Effect::PublishView);
     }

@@ -56,6 +56,8 @@ pub struct MachineView {
     /// The same set as the NC endpoint sends it, serialised once per version.
     pub nc_body: Option<Arc<NcBody>>,
     pub open_alerts: Vec<driftwatch_machine::alerts::Alert>,
+    /// The threshold alert rules with their references (the dashboard's limit lines).
+    pub thresholds: Vec<driftwatch_machine::machine_core::AlertThreshold>,
     pub thermal: ThermalView,
     pub health: LoopHealth,
     /// In a fleet: who runs the machine (absent: this process runs every machine alone).
@@ -328,6 +330,8 @@ impl MachineRuntime {
             compensation: stored_set.clone(),
             nc_body: stored_set.as_ref().and_then(NcBody::of),
             cycles: cv.cycles.clone(),
+            open_alerts: cv.open_alerts.clone(),
+            thresholds: cv.thresholds.clone(),
             ..Default::default()
         };
         let mut rt = MachineRuntime {
@@ -741,6 +745,7 @@ impl MachineRuntime {
         let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
         self.published = (version, cv.thermal.revision);
         let (mut cycles, mut alerts) = (cv.cycles.clone(), cv.open_alerts.clone());
+        let mut thresholds = cv.thresholds.clone();
         let phase = cv.phase;
         let mut old_set = None;
         let mut old_thermal = None;
@@ -748,6 +753,7 @@ impl MachineRuntime {
             v.phase = phase;
             std::mem::swap(&mut v.cycles, &mut cycles);
             std::mem::swap(&mut v.open_alerts, &mut alerts);
+            std::mem::swap(&mut v.thresholds, &mut thresholds);
             if let Some((set, nc)) = set {
                 old_set = Some((
                     std::mem::replace(&mut v.compensation, set),
@@ -758,7 +764,7 @@ impl MachineRuntime {
                 old_thermal = Some(std::mem::replace(&mut v.thermal, t));
             }
         }
-        drop((cycles, alerts, old_set, old_thermal));
+        drop((cycles, alerts, thresholds, old_set, old_thermal));
     }
 
     /// Give up the open cycle, store what is held and close the recording cleanly.

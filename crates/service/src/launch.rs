@@ -296,6 +296,13 @@ async fn start(
     state.request_timeout = std::time::Duration::from_secs_f64(cfg.http.request_timeout_s);
     state.validation = cfg.validation.clone();
     state.verification = cfg.verification.clone();
+    state.clock = Some(clock.clone());
+    state.simulated = cfg
+        .machines
+        .iter()
+        .filter(|m| matches!(m.link, LinkConfig::Simulated { .. }))
+        .map(|m| m.id.clone())
+        .collect();
     let fleet = cfg.fleet.as_ref().map(|f| crate::fleet::Fleet {
         process: f.process_name(),
         url: f.advertise_url.clone(),

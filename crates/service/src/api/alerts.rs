@@ -11,6 +11,7 @@ use serde_json::json;
 
 use crate::store::AlertEventRow;
 use driftwatch_machine::alerts::Alert;
+use driftwatch_machine::machine_core::AlertThreshold;
 
 use super::{ApiError, Caller, ErrorCode, Guard, Page, Shared, for_caller, handle, view};
 
@@ -20,6 +21,9 @@ use super::{ApiError, Caller, ErrorCode, Guard, Page, Shared, for_caller, handle
 pub struct AlertsResponse {
     pub open: Vec<Alert>,
     pub events: Vec<AlertEventRow>,
+    /// The machine's threshold rules: an error `limit` from its reference raises, back
+    /// within `clear` resolves (um, urad).
+    pub thresholds: Vec<AlertThreshold>,
     /// The cursor of the next page (`before`), when this one is full.
     pub next_before: Option<String>,
 }
@@ -38,7 +42,7 @@ pub struct AckResponse {
 }
 
 /// Open alerts (from the loop) and the latest alert events (from the store).
-#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "events newest first, at most this many (default 100, at most 1000)"), ("before" = Option<String>, Query, pattern = r"^-?[0-9]{1,18}\.[0-9]{1,9}\.[0-9]{1,18}$", description = "events before this cursor, `t_ns.alert.seq` of the last event of the previous page (see next_before)")), responses((status = 200, description = "open alerts and the latest alert events; next_before is the cursor of the next page when this one is full", body = AlertsResponse), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines/{id}/alerts", params(("id" = String, Path, description = "machine id"), ("limit" = Option<i64>, Query, description = "events newest first, at most this many (default 100, at most 1000)"), ("before" = Option<String>, Query, pattern = r"^-?[0-9]{1,18}\.[0-9]{1,9}\.[0-9]{1,18}$", description = "events before this cursor, `t_ns.alert.seq` of the last event of the previous page (see next_before)")), responses((status = 200, description = "open alerts, the latest alert events and the threshold rules with their references; next_before is the cursor of the next page when this one is full", body = AlertsResponse), (status = 400, description = "a query parameter that is not valid (bad_query)"), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
 pub(super) async fn alerts(
     State(st): State<Shared>,
     Path(id): Path<String>,
@@ -69,6 +73,7 @@ pub(super) async fn alerts(
     let body = AlertsResponse {
         open: v.open_alerts,
         events,
+        thresholds: v.thresholds,
         next_before: next,
     };
     Ok(Json(for_caller(json!(body), &caller)))

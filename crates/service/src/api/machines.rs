@@ -68,8 +68,15 @@ pub struct MachineSummary {
     pub next_due_ns: Option<i64>,
     /// The version of the set served to the NC (none before the first validated cycle).
     pub compensation_version: Option<u64>,
+    /// The set served to the NC, as its compensation endpoint serves it (none before the
+    /// first validated cycle).
+    pub compensation: Option<CompensationSet>,
     /// The service clock at the loop's last completed step, ns.
     pub clock_ns: Option<i64>,
+    /// The service clock when this answer was made, ns: never before any time the answer
+    /// holds that the loop stamped (absent when the API is not told the clock). The age of
+    /// the served set is `service_clock_ns - compensation.valid_from_ns`.
+    pub service_clock_ns: Option<i64>,
     /// Steps of the loop that failed (a store or recorder error) and were tried again.
     pub faults: u64,
     /// Whether the last step failed.
@@ -96,7 +103,8 @@ pub struct Fault {
 }
 
 impl MachineSummary {
-    fn of(v: &MachineView) -> Self {
+    /// The summary of `v`, with the service clock read after it was taken.
+    fn of(v: &MachineView, service_clock_ns: Option<i64>) -> Self {
         MachineSummary {
             id: v.id.clone(),
             kinematics: v.kinematics.clone(),
@@ -110,7 +118,9 @@ impl MachineSummary {
             schedule: v.cycles.schedule.clone(),
             next_due_ns: v.cycles.next_due_ns,
             compensation_version: v.compensation.as_ref().map(|c| c.version),
+            compensation: v.compensation.clone(),
             clock_ns: v.health.clock_ns,
+            service_clock_ns,
             faults: v.health.faults,
             failing: v.health.failing,
             last_fault: v.health.last_fault.as_ref().map(|(t_ns, message)| Fault {
@@ -138,14 +148,13 @@ pub(super) async fn fleet(State(st): State<Shared>) -> Result<Json<FleetStatus>,
     }))
 }
 
-#[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, compensation version, the clock at its loop's last step, its loop's failed steps, whether the last step failed, and the last failure", body = Vec<MachineSummary>)), security((), ("bearer" = [])))]
+#[utoipa::path(get, path = "/api/v1/machines", responses((status = 200, description = "every machine: phase, last and open cycle, schedule, the served set and its version, the clock at its loop's last step and when the answer was made, its loop's failed steps, whether the last step failed, and the last failure", body = Vec<MachineSummary>)), security((), ("bearer" = [])))]
 pub(super) async fn machines(State(st): State<Shared>) -> Json<Vec<MachineSummary>> {
-    Json(
-        st.machines
-            .values()
-            .map(|h| MachineSummary::of(&view(h)))
-            .collect(),
-    )
+    let views: Vec<MachineView> = st.machines.values().map(view).collect();
+    // Read after every view: a loop stamps its sets with the clock, so no set in them is
+    // younger than this time.
+    let now = st.clock.as_ref().map(crate::clock::ServiceClock::now_ns);
+    Json(views.iter().map(|v| MachineSummary::of(v, now)).collect())
 }
 
 #[utoipa::path(get, path = "/api/v1/machines/{id}", params(("id" = String, Path, description = "machine id")), responses((status = 200, description = "one machine", body = MachineSummary), (status = 404, description = "no such machine")), security((), ("bearer" = [])))]
@@ -153,7 +162,9 @@ pub(super) async fn machine(
     State(st): State<Shared>,
     Path(id): Path<String>,
 ) -> Result<Json<MachineSummary>, ApiError> {
-    Ok(Json(MachineSummary::of(&view(handle(&st, &id)?))))
+    let v = view(handle(&st, &id)?);
+    let now = st.clock.as_ref().map(crate::clock::ServiceClock::now_ns);
+    Ok(Json(MachineSummary::of(&v, now)))
 }
 
 /// The NC's endpoint: the last validated set, with its version as ETag.

@@ -14,6 +14,7 @@ mod machines;
 mod metrics;
 mod nc;
 mod nc_offsets;
+mod service;
 mod verifications;
 
 pub use auth::Caller;
@@ -73,6 +74,11 @@ pub struct ApiState {
     pub verification: driftwatch_machine::verification::VerificationConfig,
     /// This process's name in a fleet (`[fleet]`).
     pub fleet_process: Option<String>,
+    /// The service clock the machines run on (absent: the API is not told, and its answers
+    /// carry no clock of their own).
+    pub clock: Option<crate::clock::ServiceClock>,
+    /// The machines whose link is the truth simulator (no NC behind them).
+    pub simulated: std::collections::BTreeSet<String>,
 }
 
 impl ApiState {
@@ -89,6 +95,8 @@ impl ApiState {
             validation: Default::default(),
             verification: Default::default(),
             fleet_process: None,
+            clock: None,
+            simulated: Default::default(),
         }
     }
 }
@@ -99,7 +107,7 @@ type Shared = Arc<ApiState>;
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, verifications against a reference instrument, the nc_push link."),
-    paths(machines::healthz, machines::ready, machines::fleet, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications, geometry::post_geometry, geometry::geometry),
+    paths(machines::healthz, machines::ready, service::service, machines::fleet, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications, geometry::post_geometry, geometry::geometry),
     components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, driftwatch_machine::verification::ReferenceResult, geometry::GeometryPost, driftwatch_core::linear_axes::LinearGeometry, driftwatch_core::linear_axes::Squareness, crate::store::StoredGeometry, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth, &StandardErrors)
 )]
@@ -192,6 +200,7 @@ pub fn router(state: Shared) -> Router {
     let auth = middleware::from_fn_with_state(state.clone(), auth::authenticate);
     let guard = move |m: MethodRouter<Shared>| m.route_layer(auth.clone());
     let api = Router::new()
+        .merge(service::routes(&guard))
         .merge(machines::routes(&guard))
         .merge(cycles::routes(&guard))
         .merge(alerts::routes(&guard))
