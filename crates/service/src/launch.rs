@@ -117,6 +117,8 @@ pub struct Service {
     store: Store,
     /// One process per data directory: held until the service is dropped.
     _lock: crate::dir_lock::DirLock,
+    /// Outside a fleet on PostgreSQL: this process's machines, held until it is dropped.
+    _hold: Option<crate::store::MachineHold>,
 }
 
 /// Launch the service with its configured clock, until `shutdown` is cancelled.
@@ -173,7 +175,7 @@ pub async fn launch_with(
         }
     };
     let data_dir = cfg.data_dir.clone();
-    match start(cfg, listener, shutdown, opts, lock).await {
+    match start(cfg, listener, shutdown, opts, lock, &who).await {
         Ok(service) => Ok(service),
         Err(e) => {
             // Nothing of a failed start stays: the directory or the database it made.
@@ -223,6 +225,7 @@ async fn start(
     shutdown: CancellationToken,
     opts: LaunchOptions,
     lock: crate::dir_lock::DirLock,
+    who: &str,
 ) -> Result<Service, LaunchError> {
     let store = match &cfg.database_url {
         Some(url) => Store::connect(url).await?,
@@ -234,6 +237,14 @@ async fn start(
         store.close().await;
         return Err(LaunchError::HistoryWithoutDatabase { mcap, files });
     }
+    // Outside a fleet, one process per machine on a shared PostgreSQL database too.
+    let hold = match (&cfg.database_url, &cfg.fleet) {
+        (Some(url), None) => {
+            let ids: Vec<String> = cfg.machines.iter().map(|m| m.id.clone()).collect();
+            store.hold_machines(url, &ids, who).await?
+        }
+        _ => None,
+    };
     let (links, t0) = links(&cfg, &store).await?;
     let mut t0 = opts.start_ns.unwrap_or(t0);
     // The processes of a simulated fleet share one machine time: the first sets it.
@@ -358,6 +369,7 @@ async fn start(
         deliveries,
         store,
         _lock: lock,
+        _hold: hold,
     })
 }
 
@@ -655,6 +667,9 @@ impl Service {
             Ok(Ok(())) => {}
             Ok(Err(e)) => error!(error = %e, "the HTTP server failed"),
             Err(e) => error!(error = %e, "the HTTP server panicked"),
+        }
+        if let Some(hold) = self._hold {
+            hold.release().await;
         }
         self.store.close().await;
         let grace = tokio::time::sleep(Duration::from_secs(10));

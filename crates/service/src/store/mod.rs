@@ -11,6 +11,7 @@ mod cycles;
 mod diagnoses;
 mod files;
 mod geometries;
+mod holds;
 mod leases;
 mod samples;
 mod sets;
@@ -22,6 +23,7 @@ pub use cycles::{CycleRow, CycleStatus, DetectionRow};
 pub use diagnoses::{DiagnosisRow, DiagnosisStatus, NewDiagnosis, StoredDiagnosis};
 pub use files::FileStatus;
 pub use geometries::StoredGeometry;
+pub use holds::MachineHold;
 pub use leases::{Lease, LeaseAudit, LeaseRow, TermRow};
 pub use samples::Sample;
 pub use sets::NewCompensation;
@@ -55,6 +57,12 @@ pub enum StoreError {
     },
     #[error("fleet: {0}")]
     Fleet(String),
+    /// Another process runs the machine on this database outside a fleet.
+    #[error(
+        "machine {machine} is run by another driftwatch process on this database ({holders}): \
+         one writer per machine. Stop it first, or share the machines with [fleet]"
+    )]
+    Held { machine: String, holders: String },
 }
 
 pub use driftwatch_core::series::ErrorSample;
@@ -278,6 +286,50 @@ mod tests {
             geometry: None,
             notes: None,
         }
+    }
+
+    /// Outside a fleet, a machine on PostgreSQL is held by one process: a second is refused,
+    /// naming the first; once the first lets go, the second takes it.
+    #[tokio::test]
+    async fn a_machine_on_postgres_is_held_by_one_process_outside_a_fleet() {
+        let db = crate::scratch_pg::test_database().await;
+        let store = Store::connect(&db).await.unwrap();
+        let ids = ["m1".to_string(), "m2".to_string()];
+        let first = store
+            .hold_machines(&db, &ids, "pid 1 on host-a")
+            .await
+            .unwrap();
+        assert!(first.is_some());
+        let err = store
+            .hold_machines(&db, &ids[1..], "pid 2 on host-b")
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("machine m2") && err.contains("driftwatch pid 1 on host-a"),
+            "{err}"
+        );
+        // Another machine is free.
+        let other = store
+            .hold_machines(&db, &["m3".to_string()], "pid 2 on host-b")
+            .await
+            .unwrap();
+        assert!(other.is_some());
+        // Released (a service's stop): taken at once by the next.
+        first.unwrap().release().await;
+        let taken = store
+            .hold_machines(&db, &ids, "pid 2 on host-b")
+            .await
+            .unwrap();
+        assert!(taken.is_some(), "m1 and m2 are free once the first let go");
+        // On SQLite the data directory's lock is the rule: nothing to hold here.
+        let lite = Store::connect(&sqlite_db("holds")).await.unwrap();
+        assert!(
+            lite.hold_machines("unused", &ids, "x")
+                .await
+                .unwrap()
+                .is_none()
+        );
     }
 
     on_both_backends! {
