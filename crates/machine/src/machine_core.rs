@@ -459,6 +459,8 @@ pub struct MachineCore {
     /// Minute and speed of the last stored spindle sample (every change is stored, and one
     /// sample a minute besides), and what is known of each temperature sensor.
     last_spindle: (i64, f64),
+    /// The time the last spindle sample was stored under, ns.
+    last_spindle_ns: i64,
     last_temp: BTreeMap<String, SensorLog>,
     /// Per-minute samples not yet stored.
     samples: Vec<Sample>,
@@ -570,6 +572,7 @@ impl MachineCore {
             served: restored.served,
             measured: restored.measured,
             last_spindle: (i64::MIN, f64::NAN),
+            last_spindle_ns: i64::MIN,
             last_temp: BTreeMap::new(),
             samples: Vec::new(),
             last_prediction_ns: i64::MIN,
@@ -751,6 +754,11 @@ impl MachineCore {
         // Every change, so that the stored log replays the heat input exactly.
         if (minute(t_ns), rpm) != self.last_spindle {
             self.last_spindle = (minute(t_ns), rpm);
+            // The store keeps one speed per instant: a change at the instant of the last one
+            // (a stop and a cycle's spin at the same ns) is stored a nanosecond later, so that
+            // neither is lost and the stored log replays the run and its stop.
+            let t_ns = t_ns.max(self.last_spindle_ns.saturating_add(1));
+            self.last_spindle_ns = t_ns;
             self.buffer_sample(Sample::Spindle { t_ns, rpm }, out);
         }
     }

@@ -519,14 +519,21 @@ impl ServiceConfig {
                 return bad(format!("token of '{}' is empty", t.name));
             }
         }
-        // Last: the environment's part of the configuration, after everything in the file.
+        Ok(())
+    }
+
+    /// What the configuration takes from the environment, checked when a service starts (a
+    /// file is checked without it): with `anonymous_read = false`, at least one token usable.
+    pub fn check_environment(&self, origin: &str) -> Result<(), ConfigError> {
         if !self.http.anonymous_read && self.resolved_tokens().0.is_empty() {
-            return bad(
-                "http.anonymous_read = false but no token is usable (every tokens entry is \
-                 missing or names an environment variable that is not set): nobody could read \
-                 the API, the NC included. Set a token or allow anonymous reads"
+            return Err(ConfigError::Invalid {
+                origin: origin.to_string(),
+                message: "http.anonymous_read = false but no token is usable (every tokens \
+                          entry is missing or names an environment variable that is not set): \
+                          nobody could read the API, the NC included. Set a token or allow \
+                          anonymous reads"
                     .into(),
-            );
+            });
         }
         Ok(())
     }
