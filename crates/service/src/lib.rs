@@ -8,6 +8,7 @@ pub mod clock;
 pub mod config;
 pub mod daemon;
 pub mod fleet;
+pub mod http_server;
 pub mod launch;
 pub mod link;
 pub mod mtconnect;
