@@ -475,8 +475,9 @@ async fn drive(
     let mut builder = Builder::new(TokioExecutor::new());
     // As `axum::serve`: the CONNECT protocol for HTTP/2.
     builder.http2().enable_connect_protocol();
-    let served = builder.serve_connection_with_upgrades(io, TowerToHyperService::new(service));
-    tokio::pin!(served);
+    // Boxed, so that it can be dropped (the socket closed) before the slot is given back.
+    let mut served =
+        Box::pin(builder.serve_connection_with_upgrades(io, TowerToHyperService::new(service)));
     let mut draining = false;
     loop {
         let deadline = conn.phase().deadline(&limits);
