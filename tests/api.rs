@@ -5,6 +5,9 @@ mod common;
 // The dashboard in headless Chromium (in this binary: no link of its own).
 #[path = "api/dashboard.rs"]
 mod dashboard;
+// The server's connection limits: timeouts, the cap.
+#[path = "api/connections.rs"]
+mod connections;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};

@@ -68,6 +68,18 @@ pub struct HttpConfig {
     /// A request not answered within this is answered 503 `timeout`, s.
     #[serde(default = "default_request_timeout_s")]
     pub request_timeout_s: f64,
+    /// Open connections at most; at the cap the oldest connection that has sent no complete
+    /// request head is closed for a new one (`crate::http_server`).
+    #[serde(default = "default_max_connections")]
+    pub max_connections: usize,
+    /// A connection that has not sent a complete request head within this is closed, s: from
+    /// its accept, or on a kept-alive connection from the first byte of its next request.
+    #[serde(default = "default_header_read_timeout_s")]
+    pub header_read_timeout_s: f64,
+    /// A kept-alive connection whose next request has not begun within this of its last
+    /// answer is closed, s.
+    #[serde(default = "default_idle_timeout_s")]
+    pub idle_timeout_s: f64,
 }
 
 fn default_diagnoses_kept() -> i64 {
@@ -76,6 +88,18 @@ fn default_diagnoses_kept() -> i64 {
 
 fn default_request_timeout_s() -> f64 {
     120.0
+}
+
+fn default_max_connections() -> usize {
+    512
+}
+
+fn default_header_read_timeout_s() -> f64 {
+    10.0
+}
+
+fn default_idle_timeout_s() -> f64 {
+    60.0
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -429,6 +453,24 @@ impl ServiceConfig {
             return bad(format!(
                 "http.request_timeout_s must be from 1 to 3600 s, not {}",
                 self.http.request_timeout_s
+            ));
+        }
+        if !(1..=1_000_000).contains(&self.http.max_connections) {
+            return bad(format!(
+                "http.max_connections must be from 1 to 1000000, not {}",
+                self.http.max_connections
+            ));
+        }
+        if !(0.1..=600.0).contains(&self.http.header_read_timeout_s) {
+            return bad(format!(
+                "http.header_read_timeout_s must be from 0.1 to 600 s, not {}",
+                self.http.header_read_timeout_s
+            ));
+        }
+        if !(0.1..=3600.0).contains(&self.http.idle_timeout_s) {
+            return bad(format!(
+                "http.idle_timeout_s must be from 0.1 to 3600 s, not {}",
+                self.http.idle_timeout_s
             ));
         }
         let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();

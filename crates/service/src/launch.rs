@@ -62,6 +62,8 @@ pub enum LaunchError {
          the recordings)"
     )]
     HistoryWithoutDatabase { mcap: PathBuf, files: usize },
+    #[error(transparent)]
+    Http(#[from] crate::http_server::ServerError),
 }
 
 /// Which clock the machines run on.
@@ -333,13 +335,16 @@ async fn start(
     let addr = listener.local_addr().map_err(LaunchError::Listener)?;
     let api = Arc::new(state);
     let server = {
-        let stop = shutdown.clone();
+        // Timeouts and a cap on connections (crate::http_server), checked against the file limit.
+        let limits = crate::http_server::ConnLimits::from_config(&cfg.http);
+        crate::http_server::prepare(&limits, cfg.machines.len())?;
         let app = router(api.clone());
-        tokio::spawn(async move {
-            axum::serve(listener, app)
-                .with_graceful_shutdown(stop.cancelled_owned())
-                .await
-        })
+        tokio::spawn(crate::http_server::serve(
+            listener,
+            app,
+            limits,
+            shutdown.clone(),
+        ))
     };
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
     let mut machines: Vec<JoinHandle<()>> = wired

@@ -9,6 +9,7 @@ pub mod config;
 pub mod daemon;
 pub mod dir_lock;
 pub mod fleet;
+pub mod http_server;
 pub mod launch;
 pub mod link;
 pub mod mtconnect;
