@@ -223,6 +223,10 @@ pub async fn serve(
             shutdown.clone(),
             registry.clone(),
         ));
+        // Let the connections just accepted read their heads before the next accept: under a
+        // flood that reconnects as fast as it is cut, a prompt client's head must arrive before
+        // the cap's worth of newer connections makes it the oldest without a request.
+        tokio::task::yield_now().await;
     }
     drop(listener);
     tasks.close();

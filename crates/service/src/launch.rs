@@ -147,7 +147,7 @@ pub async fn launch_with(
     opts: LaunchOptions,
 ) -> Result<Service, LaunchError> {
     cfg.validate("the configuration")?;
-    cfg.check_environment("the configuration with its environment")?;
+    cfg.check_environment("(its tokens from the environment)")?;
     // What this start makes, so that a start that fails leaves nothing behind.
     let made_dir = !cfg.data_dir.exists();
     let db_file = cfg

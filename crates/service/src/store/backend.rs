@@ -57,11 +57,13 @@ fn is_corruption(e: &sqlx::Error) -> bool {
 }
 
 fn corrupt(url: &str, e: &sqlx::Error) -> StoreError {
-    StoreError::Corrupt(format!(
-        "the database {} is damaged or is not a driftwatch database ({e}); nothing was \
-         written to it. Restore it from a backup, or move it aside to start a new store",
-        redacted(url)
-    ))
+    // The file as the user named it: no scheme, no connection options.
+    let url = redacted(url);
+    let name = url.split('?').next().unwrap_or(&url);
+    StoreError::Damaged {
+        database: name.strip_prefix("sqlite://").unwrap_or(name).to_string(),
+        detail: e.to_string(),
+    }
 }
 
 /// Whether a SQLite connection given back to the pool is fit to be used again: not in a

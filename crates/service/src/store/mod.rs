@@ -48,6 +48,13 @@ pub enum StoreError {
     Json(#[from] serde_json::Error),
     #[error("stored value: {0}")]
     Corrupt(String),
+    /// The database file is damaged or is not a database: named at open, nothing written.
+    #[error(
+        "the database {database} is damaged or is not a driftwatch database ({detail}); \
+         nothing was written to it. Restore it from a backup, or move it aside to start a new \
+         store"
+    )]
+    Damaged { database: String, detail: String },
     /// A fenced write refused: this process no longer holds the machine's lease.
     #[error("machine {machine}: lease term {term} is no longer held ({why}); nothing was written")]
     LeaseLost {
