@@ -361,7 +361,8 @@ async fn a_second_process_on_the_same_data_directory_is_refused_naming_the_first
 async fn settings_that_cannot_work_are_refused_and_a_failed_start_leaves_nothing() {
     let base = scratch("faults-config");
     let dir = base.join("data");
-    let cases: Vec<(&str, Box<dyn Fn(&mut ServiceConfig)>)> = vec![
+    type Change = Box<dyn Fn(&mut ServiceConfig)>;
+    let cases: Vec<(&str, Change)> = vec![
         (
             "validation.max_step_um",
             Box::new(|c| c.validation.max_step_um = f64::NAN),
