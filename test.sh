@@ -37,6 +37,8 @@ for line in open(sys.argv[1]):
 EOF
 }
 
+# The Debian packages the tests need (installed with the packages they recommend: Chromium's
+# fonts among them, for the dashboard's screenshots).
 apt_missing=()
 # The dashboard's browser test drives /usr/bin/chromium through /usr/bin/chromedriver.
 [ -x /usr/bin/chromium ] || apt_missing+=(chromium)
@@ -50,7 +52,7 @@ if ! command -v python3 >/dev/null; then
 elif ! python3 -m pip --version >/dev/null 2>&1; then
     apt_missing+=(python3-pip)
 fi
-apt_cmd="apt-get update && apt-get install -y --no-install-recommends ${apt_missing[*]:-}"
+apt_cmd="apt-get update && apt-get install -y ${apt_missing[*]:-}"
 # A Python whose packages the system manages (PEP 668: Debian's own python3, outside a
 # virtual environment) takes pip's packages only with --break-system-packages.
 pip_cmd() {
@@ -81,7 +83,7 @@ if [ "${#apt_missing[@]}" -gt 0 ]; then
     step "installing Debian packages: ${apt_missing[*]}"
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq >/dev/null
-    apt-get install -y -qq --no-install-recommends "${apt_missing[@]}" >/dev/null
+    apt-get install -y -qq "${apt_missing[@]}" >/dev/null
     py_missing="$(missing_python)"
 fi
 if [ -n "$py_missing" ]; then
