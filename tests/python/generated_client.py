@@ -16,10 +16,14 @@ usage: python3 generated_client.py BINARY OUTDIR [--timeout-s S]
      `/temperature`, every second while it waits;
    - `api.nc.nc_request` (GET .../nc/request) until it answers a `CycleOrder`;
    - `api.nc.nc_events` again: `/machine/state` measuring, then one `/probe/detection` per step
-     of the order (one batch each, as an NC posts its trips), then `/machine/state` idle. The
-     detections are those of the first cycle of `BINARY simulate --scenario patent` (the truth
-     simulator's virtual machine, as kill_harness.py replays them), found for each order step
-     by its label and posted under the order's cycle number;
+     of the order, each posted (in a batch of its own, stamped with the clock) when the step
+     trips in the cycle's own timing, then `/machine/state` idle: the cycle takes its machine
+     time on the wall clock, about a minute for the patent plan. (The solve estimates the
+     tool-tip drift rates from the detections' times: a cycle whose 24 detections were all
+     stamped within a few milliseconds was once rejected as not converging.) The detections
+     and their times in the cycle are those of the first cycle of `BINARY simulate --scenario
+     patent` (the truth simulator's virtual machine, as kill_harness.py replays them), found
+     for each order step by its label and posted under the order's cycle number;
    - `api.cycles.cycle` (GET .../cycles/{n}) until the cycle is no longer open; it must be
      `ok` (validated);
    - `api.machines.compensation` (GET .../compensation) as a typed `CompensationSet` of the
@@ -27,8 +31,8 @@ usage: python3 generated_client.py BINARY OUTDIR [--timeout-s S]
    The document itself is read with urllib (it is not an operation of the API).
 Closes with
   generated client: N operations, cycle C ok (S steps), compensation version V, 304 on its ETag
-The exit status is 1 when any step fails, else 0. Bounded: --timeout-s (default 120) for each
-wait, all on 127.0.0.1.
+The exit status is 1 when any step fails, else 0. About 70 s; bounded: --timeout-s (default
+120) for each wait, all on 127.0.0.1.
 """
 from __future__ import annotations
 
@@ -128,20 +132,25 @@ def generate(base: str, outdir: str):
     return importlib.import_module("driftwatch_client"), len(ops)
 
 
-def template_detections(binary: str, outdir: str) -> list[dict]:
+def template_detections(binary: str, outdir: str) -> dict[str, tuple[float, dict]]:
     """The detections of the first cycle of a simulated patent recording (the virtual
-    machine's trips, as an NC would post them)."""
+    machine's trips, as an NC would post them) by step label, each with its time in the
+    cycle, s."""
     from mcap.reader import make_reader
     path = os.path.join(outdir, "template.mcap")
     subprocess.run([binary, "simulate", "--scenario", "patent", "--out", path], check=True,
                    capture_output=True)
     with open(path, "rb") as f:
-        msgs = [json.loads(m.data) for _, _, m in
+        msgs = [(m.log_time, json.loads(m.data)) for _, _, m in
                 make_reader(f).iter_messages(topics=["/probe/detection"])]
-    return [d for d in msgs if d["cycle"] == 1]
+    first = [(t, d) for t, d in msgs if d["cycle"] == 1]
+    if not first:
+        raise Failed("the simulated recording has no detection of cycle 1")
+    t0 = min(t for t, _ in first)
+    return {d["step"]: ((t - t0) / 1e9, d) for t, d in first}
 
 
-def handshake(dw, base: str, template: list[dict], timeout_s: float) -> str:
+def handshake(dw, base: str, template: dict[str, tuple[float, dict]], timeout_s: float) -> str:
     """The NC's side, through the generated client's typed calls. Returns the closing words."""
     from driftwatch_client.api.cycles import cycle as get_cycle
     from driftwatch_client.api.machines import compensation, healthz
@@ -194,17 +203,21 @@ def handshake(dw, base: str, template: list[dict], timeout_s: float) -> str:
     print(f"order: cycle {order.cycle}, plan {order.plan}, {len(order.steps)} steps at "
           f"{order.spindle_rpm:.0f} min^-1")
 
-    by_label = {d["step"]: d for d in template}
     post(("/machine/state", {"state": "measuring", "program": "generated-client"}))
+    start = time.monotonic()
     for st in order.steps:
-        det = by_label.get(st.step)
-        if det is None:
+        found = template.get(st.step)
+        if found is None:
             raise Failed(f"order step {st.step!r} is not a step of the simulated cycle")
+        at_s, det = found
         if (det["axis"], det["direction"], det["feed_mm_min"]) != (st.axis, st.direction,
                                                                   st.feed_mm_min):
             raise Failed(f"order step {st.step!r} differs from the simulated one: {st} / {det}")
+        # The trip happens this far into the cycle (the machine moves there first).
+        time.sleep(max(0.0, start + at_s - time.monotonic()))
         post(("/probe/detection", dict(det, cycle=order.cycle)))
     post(("/machine/state", {"state": "idle", "program": "generated-client"}))
+    print(f"detections: {len(order.steps)} posted over {time.monotonic() - start:.1f} s")
 
     def closed():
         r = get_cycle.sync_detailed(MACHINE, order.cycle, client=client)
