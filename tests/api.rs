@@ -286,6 +286,38 @@ fn the_openapi_document_matches_its_snapshot_and_every_answer_has_a_schema() {
     );
 }
 
+/// Every `$ref` of the document names a schema it defines: a dangling one makes the document
+/// invalid for validators, and generators drop the operation that uses it.
+#[test]
+fn every_reference_of_the_openapi_document_is_defined() {
+    use utoipa::OpenApi as _;
+    fn refs<'a>(v: &'a Value, out: &mut Vec<&'a str>) {
+        match v {
+            Value::Object(m) => {
+                if let Some(Value::String(r)) = m.get("$ref") {
+                    out.push(r);
+                }
+                m.values().for_each(|x| refs(x, out));
+            }
+            Value::Array(a) => a.iter().for_each(|x| refs(x, out)),
+            _ => {}
+        }
+    }
+    let doc = serde_json::to_value(driftwatch_service::api::ApiDoc::openapi()).unwrap();
+    let mut found = Vec::new();
+    refs(&doc, &mut found);
+    assert!(found.len() > 50, "{} references", found.len());
+    let schemas = doc["components"]["schemas"].as_object().unwrap();
+    let dangling: Vec<&str> = found
+        .into_iter()
+        .filter(|r| {
+            r.strip_prefix("#/components/schemas/")
+                .is_none_or(|name| !schemas.contains_key(name))
+        })
+        .collect();
+    assert!(dangling.is_empty(), "undefined references: {dangling:?}");
+}
+
 #[tokio::test]
 async fn the_openapi_document_lists_every_endpoint_and_swagger_ui_is_served() {
     let app = service("openapi", true).await;

@@ -108,7 +108,7 @@ type Shared = Arc<ApiState>;
 #[openapi(
     info(title = "driftwatch", description = "Rotary-axis compensation of 5-axis machine tools: machines, the NC's compensation endpoint, cycles, errors, alerts, verifications against a reference instrument, the nc_push link."),
     paths(machines::healthz, machines::ready, service::service, machines::fleet, machines::machines, machines::machine, machines::compensation, cycles::cycles, cycles::cycle, machines::errors, machines::model, machines::prediction, cycles::request_cycle, alerts::alerts, alerts::ack_alert, metrics::metrics, nc::nc_events, nc::nc_request, diagnoses::request_diagnosis, diagnoses::diagnoses, diagnoses::diagnosis, verifications::verify, verifications::verifications, geometry::post_geometry, geometry::geometry),
-    components(schemas(ErrorBody, ErrorCode, DiagnosisRequest, driftwatch_machine::verification::ReferenceResult, geometry::GeometryPost, driftwatch_core::linear_axes::LinearGeometry, driftwatch_core::linear_axes::Squareness, crate::store::StoredGeometry, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
+    components(schemas(ErrorBody, ErrorCode, nc_offsets::FormatName, DiagnosisRequest, driftwatch_machine::verification::ReferenceResult, geometry::GeometryPost, driftwatch_core::linear_axes::LinearGeometry, driftwatch_core::linear_axes::Squareness, crate::store::StoredGeometry, EventBatch, crate::nc_push::PostedEvent, crate::nc_push::CycleOrder, crate::nc_push::OrderStep)),
     modifiers(&BearerAuth, &StandardErrors)
 )]
 pub struct ApiDoc;
