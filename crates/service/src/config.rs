@@ -82,6 +82,43 @@ pub struct HttpConfig {
     pub idle_timeout_s: f64,
 }
 
+impl HttpConfig {
+    /// Every `[http]` setting in range.
+    pub fn check(&self) -> Result<(), String> {
+        if self.diagnoses_kept < 1 {
+            return Err(format!(
+                "http.diagnoses_kept must be at least 1, not {}",
+                self.diagnoses_kept
+            ));
+        }
+        if !(1.0..=3600.0).contains(&self.request_timeout_s) {
+            return Err(format!(
+                "http.request_timeout_s must be from 1 to 3600 s, not {}",
+                self.request_timeout_s
+            ));
+        }
+        if !(1..=1_000_000).contains(&self.max_connections) {
+            return Err(format!(
+                "http.max_connections must be from 1 to 1000000, not {}",
+                self.max_connections
+            ));
+        }
+        if !(0.1..=600.0).contains(&self.header_read_timeout_s) {
+            return Err(format!(
+                "http.header_read_timeout_s must be from 0.1 to 600 s, not {}",
+                self.header_read_timeout_s
+            ));
+        }
+        if !(0.1..=3600.0).contains(&self.idle_timeout_s) {
+            return Err(format!(
+                "http.idle_timeout_s must be from 0.1 to 3600 s, not {}",
+                self.idle_timeout_s
+            ));
+        }
+        Ok(())
+    }
+}
+
 fn default_diagnoses_kept() -> i64 {
     200
 }
@@ -443,35 +480,8 @@ impl ServiceConfig {
                     .into(),
             );
         }
-        if self.http.diagnoses_kept < 1 {
-            return bad(format!(
-                "http.diagnoses_kept must be at least 1, not {}",
-                self.http.diagnoses_kept
-            ));
-        }
-        if !(1.0..=3600.0).contains(&self.http.request_timeout_s) {
-            return bad(format!(
-                "http.request_timeout_s must be from 1 to 3600 s, not {}",
-                self.http.request_timeout_s
-            ));
-        }
-        if !(1..=1_000_000).contains(&self.http.max_connections) {
-            return bad(format!(
-                "http.max_connections must be from 1 to 1000000, not {}",
-                self.http.max_connections
-            ));
-        }
-        if !(0.1..=600.0).contains(&self.http.header_read_timeout_s) {
-            return bad(format!(
-                "http.header_read_timeout_s must be from 0.1 to 600 s, not {}",
-                self.http.header_read_timeout_s
-            ));
-        }
-        if !(0.1..=3600.0).contains(&self.http.idle_timeout_s) {
-            return bad(format!(
-                "http.idle_timeout_s must be from 0.1 to 3600 s, not {}",
-                self.http.idle_timeout_s
-            ));
+        if let Err(e) = self.http.check() {
+            return bad(e);
         }
         let mut ids: Vec<&str> = self.machines.iter().map(|m| m.id.as_str()).collect();
         ids.sort_unstable();

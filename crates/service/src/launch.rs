@@ -221,22 +221,20 @@ fn recordings_in(mcap: &Path) -> usize {
         .count()
 }
 
-/// The start proper, in a data directory this process holds.
-async fn start(
-    cfg: ServiceConfig,
-    listener: TcpListener,
-    shutdown: CancellationToken,
-    opts: LaunchOptions,
-    lock: crate::dir_lock::DirLock,
+/// The store, refused when it is empty beside the recordings of an earlier history (unless
+/// `new_database`), and outside a fleet on PostgreSQL this process's hold on its machines.
+async fn open_store(
+    cfg: &ServiceConfig,
+    new_database: bool,
     who: &str,
-) -> Result<Service, LaunchError> {
+) -> Result<(Store, Option<crate::store::MachineHold>), LaunchError> {
     let store = match &cfg.database_url {
         Some(url) => Store::connect(url).await?,
         None => Store::open(&cfg.data_dir.join("driftwatch.db")).await?,
     };
     let mcap = cfg.data_dir.join("mcap");
     let files = recordings_in(&mcap);
-    if files > 0 && !opts.new_database && store.is_empty().await? {
+    if files > 0 && !new_database && store.is_empty().await? {
         store.close().await;
         return Err(LaunchError::HistoryWithoutDatabase { mcap, files });
     }
@@ -248,6 +246,19 @@ async fn start(
         }
         _ => None,
     };
+    Ok((store, hold))
+}
+
+/// The start proper, in a data directory this process holds.
+async fn start(
+    cfg: ServiceConfig,
+    listener: TcpListener,
+    shutdown: CancellationToken,
+    opts: LaunchOptions,
+    lock: crate::dir_lock::DirLock,
+    who: &str,
+) -> Result<Service, LaunchError> {
+    let (store, hold) = open_store(&cfg, opts.new_database, who).await?;
     let (links, t0) = links(&cfg, &store).await?;
     let mut t0 = opts.start_ns.unwrap_or(t0);
     // The processes of a simulated fleet share one machine time: the first sets it.
