@@ -10,7 +10,7 @@ mod common;
 
 use axum::body::Body;
 use axum::http::Request;
-use common::{MIN, TestService, config, launch_test, patent_m1, scratch};
+use common::{MIN, TestService, config, launch_test, patent_m1, refuse_inserts, scratch};
 use driftwatch_service::config::ServiceConfig;
 use driftwatch_service::launch::{ClockKind, LaunchOptions, launch_with};
 use driftwatch_service::store::Store;
@@ -37,29 +37,6 @@ async fn stored_max_version(db: &std::path::Path, machine: &str) -> u64 {
     v.unwrap_or(0) as u64
 }
 
-/// Make every insert of `machine` into `table` fail, as a full disk would, through the real
-/// SQLite: a trigger that aborts it (or drop that trigger).
-async fn refuse_inserts(db: &std::path::Path, table: &str, machine: &str, refuse: bool) {
-    let pool = sqlx::SqlitePool::connect(&format!("sqlite://{}", db.display()))
-        .await
-        .unwrap();
-    let name = format!("refuse_{table}");
-    let sql = if refuse {
-        format!(
-            "CREATE TRIGGER {name} BEFORE INSERT ON {table} WHEN NEW.machine_id = '{machine}' \
-             BEGIN SELECT RAISE(ABORT, 'injected fault: disk full'); END"
-        )
-    } else {
-        format!("DROP TRIGGER {name}")
-    };
-    // The names are the test's own constants: nothing from outside.
-    sqlx::query(sqlx::AssertSqlSafe(sql))
-        .execute(&pool)
-        .await
-        .unwrap();
-    pool.close().await;
-}
-
 /// What the NC gets from `/compensation`: the version in the body and the ETag (none on 404).
 async fn served(svc: &TestService, id: &str) -> Option<(u64, String)> {
     let (code, h, body) = svc
@@ -71,6 +48,21 @@ async fn served(svc: &TestService, id: &str) -> Option<(u64, String)> {
     assert_eq!(code, 200, "{body}");
     let etag = h["etag"].to_str().unwrap().to_string();
     Some((body["version"].as_u64().unwrap(), etag))
+}
+
+/// Run the plant day ten minutes at a time until sim-1 serves a set: the clock then, and the
+/// set's version and ETag.
+async fn until_served(svc: &TestService) -> (i64, (u64, String)) {
+    let t0 = svc.t0();
+    let mut t = t0;
+    loop {
+        if let Some(set) = served(svc, "sim-1").await {
+            return (t, set);
+        }
+        t += 10 * MIN;
+        assert!(t < t0 + 8 * 60 * MIN, "no set served in eight hours");
+        svc.run_to(t).await;
+    }
 }
 
 fn metric(metrics: &str, key: &str) -> f64 {
@@ -89,17 +81,10 @@ async fn a_store_that_refuses_writes_serves_only_stored_sets_says_so_and_recover
     let dir = scratch("faults-store");
     let db = dir.join("driftwatch.db");
     let svc = launch_test(config(&dir), None).await;
-    let t0 = svc.t0();
     // The morning until a set is served.
-    let mut t = t0;
-    while served(&svc, "sim-1").await.is_none() {
-        t += 10 * MIN;
-        assert!(t < t0 + 8 * 60 * MIN, "no set served in eight hours");
-        svc.run_to(t).await;
-    }
-    let (v_before, _) = served(&svc, "sim-1").await.unwrap();
+    let (t, (v_before, _)) = until_served(&svc).await;
 
-    refuse_inserts(&db, "compensation_sets", "sim-1", true).await;
+    refuse_inserts(&db, &["compensation_sets"], "sim-1", true).await;
     let t_fault = t;
     // Three hours of the warm-up: cycles and predictions want new sets all the while.
     let mut tags: Vec<(u64, String)> = Vec::new();
@@ -148,7 +133,7 @@ async fn a_store_that_refuses_writes_serves_only_stored_sets_says_so_and_recover
     );
 
     // The store takes writes again: the loop catches up by itself.
-    refuse_inserts(&db, "compensation_sets", "sim-1", false).await;
+    refuse_inserts(&db, &["compensation_sets"], "sim-1", false).await;
     let t_heal = t_fault + 18 * 10 * MIN;
     for k in 1..=3 {
         svc.run_to(t_heal + k * 20 * MIN).await;
@@ -283,11 +268,11 @@ async fn a_restart_restores_open_alerts_acknowledgements_ids_and_the_phase() {
     // for half an hour of the afternoon, then the rest of the day.
     let t1 = svc.t0();
     let db = dir.join("driftwatch.db");
-    refuse_inserts(&db, "spindle_samples", "m1", true).await;
+    refuse_inserts(&db, &["spindle_samples"], "m1", true).await;
     for k in 1..=3 {
         svc.run_to(t1 + k * 10 * MIN).await;
     }
-    refuse_inserts(&db, "spindle_samples", "m1", false).await;
+    refuse_inserts(&db, &["spindle_samples"], "m1", false).await;
     for k in 4..=12 {
         svc.run_to(t1 + k * 10 * MIN).await;
     }
@@ -407,14 +392,7 @@ async fn a_damaged_or_emptied_database_is_named_and_an_emptied_one_needs_asking(
     let dir = scratch("faults-database");
     let db = dir.join("driftwatch.db");
     let svc = launch_test(config(&dir), None).await;
-    let t0 = svc.t0();
-    let mut t = t0;
-    while served(&svc, "sim-1").await.is_none() {
-        t += 10 * MIN;
-        assert!(t < t0 + 8 * 60 * MIN, "no set served in eight hours");
-        svc.run_to(t).await;
-    }
-    let (v1, tag1) = served(&svc, "sim-1").await.unwrap();
+    let (_, (v1, tag1)) = until_served(&svc).await;
     svc.stop().await;
     let good = std::fs::read(&db).unwrap();
     assert!(good.len() > 8192);
@@ -455,14 +433,7 @@ async fn a_damaged_or_emptied_database_is_named_and_an_emptied_one_needs_asking(
             .await
             .unwrap(),
     );
-    let t0 = svc.t0();
-    let mut t = t0;
-    while served(&svc, "sim-1").await.is_none() {
-        t += 10 * MIN;
-        assert!(t < t0 + 8 * 60 * MIN, "no set served in eight hours");
-        svc.run_to(t).await;
-    }
-    let (v2, tag2) = served(&svc, "sim-1").await.unwrap();
+    let (_, (v2, tag2)) = until_served(&svc).await;
     assert_ne!(
         tag1, tag2,
         "versions {v1} and {v2} of two stores share a tag"

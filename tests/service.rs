@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{MIN, TestService, config, launch_test, scratch};
+use common::{MIN, TestService, config, launch_test, refuse_inserts, scratch};
 use driftwatch_service::config::ServiceConfig;
 use driftwatch_service::store::Store;
 
@@ -22,29 +22,8 @@ fn view_of(t: &TestService, id: &str) -> driftwatch_service::daemon::MachineView
     t.svc.views[id].lock().unwrap().clone()
 }
 
-/// Make every write of `machine` to the samples and cycles tables fail, as a full disk or a
-/// read-only file would, through the real SQLite: triggers that abort the insert.
-async fn refuse_writes_of(db: &std::path::Path, machine: &str, refuse: bool) {
-    let url = format!("sqlite://{}", db.display());
-    let pool = sqlx::SqlitePool::connect(&url).await.unwrap();
-    for table in ["spindle_samples", "temperature_samples", "cycles"] {
-        let name = format!("refuse_{table}");
-        let sql = if refuse {
-            format!(
-                "CREATE TRIGGER {name} BEFORE INSERT ON {table} WHEN NEW.machine_id = '{machine}' \
-                 BEGIN SELECT RAISE(ABORT, 'injected fault: {machine} may not write'); END"
-            )
-        } else {
-            format!("DROP TRIGGER {name}")
-        };
-        // The names are the test's own constants: nothing from outside.
-        sqlx::query(sqlx::AssertSqlSafe(sql))
-            .execute(&pool)
-            .await
-            .unwrap();
-    }
-    pool.close().await;
-}
+/// The tables a machine loop writes as it runs: samples and cycles.
+const LOOP_TABLES: [&str; 3] = ["spindle_samples", "temperature_samples", "cycles"];
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
@@ -52,7 +31,7 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
     let db = dir.join("driftwatch.db");
     // The schema first, then the fault: sim-2's samples and cycles may not be written.
     Store::open(&db).await.unwrap().close().await;
-    refuse_writes_of(&db, "sim-2", true).await;
+    refuse_inserts(&db, &LOOP_TABLES, "sim-2", true).await;
 
     let svc = launch_test(two_machines(&dir), None).await;
     let t0 = svc.t0();
@@ -105,7 +84,7 @@ async fn a_machine_whose_store_fails_stops_neither_the_others_nor_the_api() {
     assert!(v.to_string().contains("injected fault"), "{v}");
 
     // The store heals: sim-2 catches up by itself (its retries), and keeps going.
-    refuse_writes_of(&db, "sim-2", false).await;
+    refuse_inserts(&db, &LOOP_TABLES, "sim-2", false).await;
     let t_heal = t0 + 36 * 10 * MIN;
     for k in 1..=18 {
         svc.run_to(t_heal + k * 10 * MIN).await;

@@ -216,3 +216,28 @@ impl TestService {
             .expect("the service stops");
     }
 }
+
+/// Make every insert of `machine` into `tables` fail, as a full disk or a read-only file
+/// would, through the real SQLite file at `db`: triggers that abort the insert (or, with
+/// `refuse` false, drop them).
+pub async fn refuse_inserts(db: &std::path::Path, tables: &[&str], machine: &str, refuse: bool) {
+    let url = format!("sqlite://{}", db.display());
+    let pool = sqlx::SqlitePool::connect(&url).await.unwrap();
+    for table in tables {
+        let name = format!("refuse_{table}");
+        let sql = if refuse {
+            format!(
+                "CREATE TRIGGER {name} BEFORE INSERT ON {table} WHEN NEW.machine_id = '{machine}' \
+                 BEGIN SELECT RAISE(ABORT, 'injected fault: {machine} may not write'); END"
+            )
+        } else {
+            format!("DROP TRIGGER {name}")
+        };
+        // The names are the tests' own constants: nothing from outside.
+        sqlx::query(sqlx::AssertSqlSafe(sql))
+            .execute(&pool)
+            .await
+            .unwrap();
+    }
+    pool.close().await;
+}

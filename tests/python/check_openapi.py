@@ -19,12 +19,11 @@ import importlib.metadata
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import urllib.request
 
-from served import wait_served
+from served import stop, wait_served
 
 
 def fetch_document(binary: str, outdir: str) -> dict:
@@ -42,13 +41,7 @@ def fetch_document(binary: str, outdir: str) -> dict:
         with urllib.request.urlopen(base + "/api/v1/openapi.json", timeout=30) as r:
             return json.load(r)
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop(proc)
 
 
 def describe(err: BaseException) -> str:

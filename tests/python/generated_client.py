@@ -42,13 +42,12 @@ import importlib.metadata
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
 import urllib.request
 
-from served import wait_served
+from served import stop, wait_served
 
 TOKEN = "generated-client-token"
 MACHINE = "nc-1"
@@ -90,16 +89,6 @@ def start(binary: str, outdir: str) -> tuple[subprocess.Popen, str]:
         stop(proc)
         raise Failed(f"the service did not say where it listens (see {log_path})")
     return proc, base
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def generate(base: str, outdir: str):

@@ -29,14 +29,13 @@ import json
 import os
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
 
-from served import wait_served
+from served import stop, wait_served
 
 CONFIG = """\
 [dictionaries.machines]
@@ -119,16 +118,6 @@ def start(binary: str, outdir: str, token: str) -> tuple[subprocess.Popen, str]:
         time.sleep(0.2)
     stop(proc)
     sys.exit("schemathesis: the service did not answer /healthz (see service.log)")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def run_st(base: str, outdir: str, name: str, n: int, seed: int, token: str | None) -> str:

@@ -3,6 +3,8 @@ port (no race for a free one) and the service prints it ("driftwatch serving ...
 http://ADDR (...")."""
 
 import re
+import signal
+import subprocess
 import time
 
 _SERVING = re.compile(rb"driftwatch serving .* on http://([0-9.]+:[0-9]+) ")
@@ -20,3 +22,14 @@ def wait_served(proc, log_path, offset=0, timeout=30.0):
             return "http://" + m.group(1).decode()
         time.sleep(0.05)
     return None
+
+
+def stop(proc: subprocess.Popen) -> None:
+    """SIGTERM, then SIGKILL if the service has not stopped within 20 s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
