@@ -1,21 +1,24 @@
 """A full disk under a running driftwatch: what the NC is served must be what the store holds.
 
-usage: python3 full_disk.py BINARY OUTDIR [--size-kib N] [--free-kib N] [--seconds S]
+usage: python3 full_disk.py BINARY OUTDIR [--size-kib N] [--seconds S]
 
-Needs root (it mounts a small tmpfs). The data directory lies on a tmpfs of --size-kib (8192)
-that a filler file has filled but for --free-kib (500): the new database and the first
-recording fit, the morning's writes do not (the write-ahead log alone grows past it). `BINARY serve --time-scale 600`
-runs on it; every 0.2 s the script reads, in this order, what the NC is served
-(`GET /api/v1/machines/sim-1/compensation`: version, ETag, body), then the largest version the
-database holds (its own read-only SQLite connection), `/readyz` and the machine's `failing`.
-After --seconds (40) the filler is removed (the disk has room again); after as long again the
-service is stopped (SIGTERM) and started again on the same directory, and watched once more.
+Needs root (it mounts a small tmpfs). The data directory lies on a tmpfs of --size-kib (8192).
+`BINARY serve --time-scale 600` runs on it; every 0.2 s the script reads, in this order, what
+the NC is served (`GET /api/v1/machines/sim-1/compensation`: version, ETag, body), then the
+largest version the database holds (its own read-only SQLite connection), `/readyz` and the
+machine's `failing`. Phases of --seconds (30) each:
+  1. room: the morning's first sets are stored and served;
+  2. disk full: a filler file takes every free byte; the service must go on serving the last
+     stored set, never a newer one, and say it is failing;
+  3. room again: the filler is removed; the pending writes must be stored and served;
+  4. restarted: the service is stopped (SIGTERM) and started again on the same directory.
 
 It fails (exit 1) if at any poll the served version is above the stored one (a set served that
 the store did not hold), if one ETag ever names two different bodies (across the restart too),
-if the service never said it was failing while the disk was full (no 503 on /readyz), or if it
-did not recover after the filler went (served version = stored version, /readyz 200). It
-prints each phase's figures and closes with `full disk: N polls, ...`.
+if the full disk was never reported (no 503 on /readyz), if the served version moved while the
+disk was full, or if the service did not recover (served version = stored version, /readyz
+200; after the restart no version going back). It prints each phase's figures and closes with
+`full disk: N polls, ...`.
 """
 from __future__ import annotations
 
@@ -83,10 +86,28 @@ class Serve:
             self.log.close()
 
 
+def fill(path):
+    """Write zeros to `path` until the filesystem has no byte left."""
+    chunk = b"\0" * (64 * 1024)
+    with open(path, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(chunk)
+        except OSError:
+            pass
+    with open(path, "ab", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 512)
+        except OSError:
+            pass
+
+
 def watch(svc, db, seconds, phase, seen, problems):
     """Poll for `seconds`; returns the phase's figures."""
     polls = failing = readyz_503 = 0
     served_max = stored_seen = 0
+    served_min = None
     last = None
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
@@ -103,6 +124,7 @@ def watch(svc, db, seconds, phase, seen, problems):
             version = json.loads(body)["version"]
             etag = headers.get("ETag") or headers.get("etag")
             served_max = max(served_max, version)
+            served_min = version if served_min is None else min(served_min, version)
             if stored is not None:
                 stored_seen = max(stored_seen, stored)
                 if version > stored:
@@ -114,6 +136,7 @@ def watch(svc, db, seconds, phase, seen, problems):
         time.sleep(0.2)
     return {
         "polls": polls, "served_max": served_max, "stored_max": stored_seen,
+        "served_min": served_min or 0,
         "readyz_503": readyz_503, "failing": failing, "last": last,
         "ready_text": rbody.decode(errors="replace")[:300],
     }
@@ -124,8 +147,7 @@ def main():
     ap.add_argument("binary")
     ap.add_argument("outdir")
     ap.add_argument("--size-kib", type=int, default=8192)
-    ap.add_argument("--free-kib", type=int, default=500)
-    ap.add_argument("--seconds", type=float, default=40.0)
+    ap.add_argument("--seconds", type=float, default=30.0)
     a = ap.parse_args()
     if os.geteuid() != 0:
         print("full disk: needs root to mount a tmpfs (run as root, as CI does)")
@@ -138,13 +160,13 @@ def main():
     problems, seen, rows = [], {}, []
     try:
         filler = os.path.join(mnt, "filler")
-        with open(filler, "wb") as f:
-            f.write(b"\0" * ((a.size_kib - a.free_kib) * 1024))
         data = os.path.join(mnt, "d")
         db = os.path.join(data, "driftwatch.db")
         log = os.path.join(a.outdir, "serve.log")
         svc = Serve(a.binary, data, log)
         try:
+            rows.append(("room", watch(svc, db, a.seconds, "room", seen, problems)))
+            fill(filler)
             rows.append(("disk full", watch(svc, db, a.seconds, "disk full", seen, problems)))
             os.remove(filler)
             rows.append(("room again", watch(svc, db, a.seconds, "room again", seen, problems)))
@@ -158,16 +180,22 @@ def main():
     finally:
         subprocess.run(["umount", mnt], check=False)
     for name, r in rows:
-        print(f"{name:>10}: {r['polls']} polls, served up to v{r['served_max']}, stored up to "
-              f"v{r['stored_max']}, /readyz 503 in {r['readyz_503']}, failing in {r['failing']}, "
-              f"last (served, stored, readyz) {r['last']}")
-    full, room = rows[0][1], rows[1][1]
+        print(f"{name:>10}: {r['polls']} polls, served v{r['served_min']}..v{r['served_max']}, "
+              f"stored up to v{r['stored_max']}, /readyz 503 in {r['readyz_503']}, failing in "
+              f"{r['failing']}, last (served, stored, readyz) {r['last']}")
+    room, full, again, restarted = (r for _, r in rows)
+    if room["served_max"] == 0:
+        problems.append("no set was served before the disk filled: nothing to keep serving")
     if full["readyz_503"] == 0 or full["failing"] == 0:
         problems.append("the full disk was never reported (/readyz 503, failing)")
-    if room["last"] is None or room["last"][0] != room["last"][1] or room["last"][2] != 200:
-        problems.append(f"no recovery once the disk had room: last {room['last']}")
-    if rows[2][1]["last"] is None or rows[2][1]["served_max"] < room["served_max"]:
-        problems.append(f"after the restart the served version went back: {rows[2][1]}")
+    if full["served_max"] != full["served_min"]:
+        problems.append(f"the served set changed while the disk was full: {full}")
+    if again["last"] is None or again["last"][0] != again["last"][1] or again["last"][2] != 200:
+        problems.append(f"no recovery once the disk had room: last {again['last']}")
+    if again["served_max"] <= full["served_max"]:
+        problems.append("no new set was served once the disk had room")
+    if restarted["last"] is None or restarted["served_min"] < again["served_max"]:
+        problems.append(f"after the restart the served version went back: {restarted}")
     for p in problems[:20]:
         print("PROBLEM:", p)
     polls = sum(r["polls"] for _, r in rows)
