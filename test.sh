@@ -160,7 +160,11 @@ check "NC soak" python3 tests/python/soak_nc.py "$bin" "$out/soak"
 # itself when the disk has room again, and after a restart.
 not_run=()
 if [ "$(id -u)" -eq 0 ]; then
-    check "full disk (a small tmpfs)" python3 tests/python/full_disk.py "$bin" "$out/full-disk"
+    check "full disk while serving (a small tmpfs)" \
+        python3 tests/python/full_disk.py "$bin" "$out/full-disk" --seconds 20
+    check "full disk from the start (a small tmpfs)" \
+        python3 tests/python/full_disk.py "$bin" "$out/full-disk-start" --seconds 20 \
+        --start-full-kib 500
 else
     not_run+=("full disk (needs root to mount a small filesystem)")
 fi

@@ -1,6 +1,6 @@
 """A full disk under a running driftwatch: what the NC is served must be what the store holds.
 
-usage: python3 full_disk.py BINARY OUTDIR [--size-kib N] [--seconds S]
+usage: python3 full_disk.py BINARY OUTDIR [--size-kib N] [--seconds S] [--start-full-kib N]
 
 Needs root (it mounts a small tmpfs). The data directory lies on a tmpfs of --size-kib (8192).
 `BINARY serve --time-scale 600` runs on it; every 0.2 s the script reads, in this order, what
@@ -12,6 +12,8 @@ machine's `failing`. Phases of --seconds (30) each:
      stored set, never a newer one, and say it is failing;
   3. room again: the filler is removed; the pending writes must be stored and served;
   4. restarted: the service is stopped (SIGTERM) and started again on the same directory.
+With --start-full-kib N the disk is full from the start but for N KiB (the new database and
+the first recording fit, the morning's writes do not) and phase 1 is left out.
 
 It fails (exit 1) if at any poll the served version is above the stored one (a set served that
 the store did not hold), if one ETag ever names two different bodies (across the restart too),
@@ -148,6 +150,7 @@ def main():
     ap.add_argument("outdir")
     ap.add_argument("--size-kib", type=int, default=8192)
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--start-full-kib", type=int, default=None)
     a = ap.parse_args()
     if os.geteuid() != 0:
         print("full disk: needs root to mount a tmpfs (run as root, as CI does)")
@@ -163,10 +166,14 @@ def main():
         data = os.path.join(mnt, "d")
         db = os.path.join(data, "driftwatch.db")
         log = os.path.join(a.outdir, "serve.log")
+        if a.start_full_kib is not None:
+            with open(filler, "wb") as f:
+                f.write(b"\0" * ((a.size_kib - a.start_full_kib) * 1024))
         svc = Serve(a.binary, data, log)
         try:
-            rows.append(("room", watch(svc, db, a.seconds, "room", seen, problems)))
-            fill(filler)
+            if a.start_full_kib is None:
+                rows.append(("room", watch(svc, db, a.seconds, "room", seen, problems)))
+                fill(filler)
             rows.append(("disk full", watch(svc, db, a.seconds, "disk full", seen, problems)))
             os.remove(filler)
             rows.append(("room again", watch(svc, db, a.seconds, "room again", seen, problems)))
@@ -183,8 +190,8 @@ def main():
         print(f"{name:>10}: {r['polls']} polls, served v{r['served_min']}..v{r['served_max']}, "
               f"stored up to v{r['stored_max']}, /readyz 503 in {r['readyz_503']}, failing in "
               f"{r['failing']}, last (served, stored, readyz) {r['last']}")
-    room, full, again, restarted = (r for _, r in rows)
-    if room["served_max"] == 0:
+    full, again, restarted = (r for _, r in rows[-3:])
+    if a.start_full_kib is None and rows[0][1]["served_max"] == 0:
         problems.append("no set was served before the disk filled: nothing to keep serving")
     if full["readyz_503"] == 0 or full["failing"] == 0:
         problems.append("the full disk was never reported (/readyz 503, failing)")
