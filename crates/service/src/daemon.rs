@@ -202,7 +202,8 @@ async fn restore(
     now_ns: i64,
 ) -> Result<Restored, DaemonError> {
     let (last_start_ns, last_good_ns) = store.schedule_memory(id).await?;
-    let history = match Restored::history_window(last_start_ns, &settings.prediction, now_ns) {
+    let window = Restored::history_window(last_start_ns, &settings.prediction, now_ns);
+    let history = match window {
         Some((from, to)) => stored_events(store, id, from, to).await?,
         None => Vec::new(),
     };
@@ -219,15 +220,30 @@ async fn restore(
     // The phase's window: the spindle samples and the cycles' spans, so that a cycle's spin
     // is not taken for a spindle start.
     let from = now_ns.saturating_sub(Restored::phase_window_ns(&settings.phase));
-    let mut phase_history: Vec<PastEvent> = store
-        .samples(id, from, now_ns)
-        .await?
-        .into_iter()
-        .filter_map(|s| match s {
-            crate::store::Sample::Spindle { t_ns, rpm } => Some(PastEvent::Spindle { t_ns, rpm }),
-            crate::store::Sample::Temperature { .. } => None,
-        })
-        .collect();
+    // The thermal model's window usually holds the phase's: its samples are read once.
+    let mut phase_history: Vec<PastEvent> = match window {
+        Some((start, _)) if start <= from => history
+            .iter()
+            .filter_map(|e| match e {
+                Event::Spindle { t_ns, rpm } if *t_ns >= from => Some(PastEvent::Spindle {
+                    t_ns: *t_ns,
+                    rpm: *rpm,
+                }),
+                _ => None,
+            })
+            .collect(),
+        _ => store
+            .samples(id, from, now_ns)
+            .await?
+            .into_iter()
+            .filter_map(|s| match s {
+                crate::store::Sample::Spindle { t_ns, rpm } => {
+                    Some(PastEvent::Spindle { t_ns, rpm })
+                }
+                crate::store::Sample::Temperature { .. } => None,
+            })
+            .collect(),
+    };
     for (start, end) in store.cycle_spans(id, from, now_ns).await? {
         phase_history.push(PastEvent::Cycle {
             t_ns: start,
