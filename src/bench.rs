@@ -27,6 +27,7 @@ use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
 mod fleet;
+pub mod thermal;
 pub use fleet::{FleetBackend, FleetOptions, fleet};
 
 fn size_of(p: &Path) -> u64 {
@@ -587,7 +588,6 @@ struct RealSet {
     spindle: Option<&'static str>,
     temperatures: Vec<String>,
     channels: Vec<String>,
-    train_h: f64,
 }
 
 fn real_sets() -> Vec<RealSet> {
@@ -601,7 +601,6 @@ fn real_sets() -> Vec<RealSet> {
             spindle: Some("spindle_rpm"),
             temperatures: temps.clone(),
             channels: chans.clone(),
-            train_h: 40.0,
         },
         // The same test with the spindle log left out at import: temperatures alone.
         RealSet {
@@ -611,7 +610,6 @@ fn real_sets() -> Vec<RealSet> {
             spindle: None,
             temperatures: temps,
             channels: chans,
-            train_h: 40.0,
         },
     ]
 }
@@ -767,280 +765,4 @@ fn top_speed(events: &[driftwatch_core::thermal_model::Event]) -> f64 {
         })
         .fold(0.0, f64::max)
         .max(1.0)
-}
-
-/// A data set of `bench thermal`: its events, the channels judged, where the hold-out starts
-/// and what its inputs are.
-struct ThermalSet {
-    name: String,
-    events: Vec<driftwatch_core::thermal_model::Event>,
-    channels: Vec<String>,
-    train_h: f64,
-    inputs: &'static str,
-}
-
-/// Days of each simulated scenario in `bench thermal`, its fit span and the sensor noise.
-const SIM_DAYS: usize = 3;
-const SIM_TRAIN_H: f64 = 40.0;
-const SIM_SIGMA: f64 = 0.5;
-
-/// The simulated scenarios as a test rig sees them (`strategies::sensor_view`): every
-/// identified error that moves by more than ten times the sensor noise is a channel.
-fn simulated_sets() -> Result<Vec<ThermalSet>> {
-    use driftwatch_core::thermal_model::Event;
-    let mut out = Vec::new();
-    for (name, _) in driftwatch_sim::strategies::BENCH_SCENARIOS {
-        let events = driftwatch_sim::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
-        let mut range: std::collections::BTreeMap<&str, (f64, f64)> = Default::default();
-        for e in &events {
-            if let Event::Observation { channel, value, .. } = e {
-                let r = range
-                    .entry(channel)
-                    .or_insert((f64::INFINITY, f64::NEG_INFINITY));
-                *r = (r.0.min(*value), r.1.max(*value));
-            }
-        }
-        let channels = range
-            .iter()
-            .filter(|(_, (lo, hi))| hi - lo > 10.0 * SIM_SIGMA)
-            .map(|(c, _)| c.to_string())
-            .collect();
-        out.push(ThermalSet {
-            name: format!("simulated {name}, {SIM_DAYS} days"),
-            events,
-            channels,
-            train_h: SIM_TRAIN_H,
-            inputs: "spindle + logged temperatures; EA0C, EB0C in urad, the rest in um",
-        });
-    }
-    Ok(out)
-}
-
-/// Every family against the baselines on every shipped real data set and the simulated
-/// scenarios: rolling-origin CV on the training span, then the hold-out with no reading used.
-pub fn thermal(data: &Path, step_min: f64, json: bool) -> Result<ExitCode> {
-    let mut sets = Vec::new();
-    for set in real_sets() {
-        sets.push(ThermalSet {
-            name: set.name.into(),
-            events: real_events(data, &set)?,
-            channels: set.channels.clone(),
-            train_h: set.train_h,
-            inputs: if set.spindle.is_some() {
-                "spindle + temperatures"
-            } else {
-                "temperatures only"
-            },
-        });
-    }
-    sets.extend(simulated_sets()?);
-    let mut rows = Vec::new();
-    let mut summary = Vec::new();
-    for set in &sets {
-        if !json {
-            println!(
-                "\n{}: fit on 0-{} h, hold-out to the end; {}-min grid; inputs: {}",
-                set.name, set.train_h, step_min, set.inputs
-            );
-            println!(
-                "{:<8} {:<15} {:>8} {:>11} {:>9} {:>8} {:>11}  chosen / inputs",
-                "channel", "family", "CV rmse", "CV cov68/95", "hold rmse", "hold max", "cov68/95",
-            );
-        }
-        let (set_rows, fails) = thermal_set(set, step_min, json);
-        summary.push(format!(
-            "  {}: {} of {} channels pass{}",
-            set.name,
-            set_rows.len() - fails.len(),
-            set_rows.len(),
-            if fails.is_empty() {
-                String::new()
-            } else {
-                format!("; fail: {}", fails.join(", "))
-            }
-        ));
-        rows.extend(set_rows);
-    }
-    if !json {
-        println!("\nthe bar (served beats persistence, within 10 % of the best baseline):");
-        for line in &summary {
-            println!("{line}");
-        }
-    }
-    if json {
-        println!("{}", serde_json::to_string_pretty(&rows)?);
-    }
-    Ok(ExitCode::SUCCESS)
-}
-
-/// One set of `bench thermal`: each channel's competition (printed unless `json`), its JSON
-/// rows, and the channels whose served prediction fails the bar.
-fn thermal_set(
-    set: &ThermalSet,
-    step_min: f64,
-    json: bool,
-) -> (Vec<serde_json::Value>, Vec<String>) {
-    use driftwatch_core::families::{Family, compete, grid};
-    let step_ns = units::min_to_ns(step_min);
-    let train_end_ns = set
-        .events
-        .first()
-        .map_or(0, |e| e.t_ns() + units::h_to_ns(set.train_h));
-    let mut rows = Vec::new();
-    let mut fails = Vec::new();
-    for ch in &set.channels {
-        let Some(g) = grid(&set.events, ch, step_ns) else {
-            continue;
-        };
-        let grey = driftwatch_core::families::grey_box_config(&g);
-        let scores = compete(&set.events, &g, train_end_ns, &Family::ALL, &grey);
-        for s in &scores {
-            if !json {
-                println!(
-                    "{:<8} {:<15} {:>8.2} {:>5.0}%/{:>3.0}% {:>9.2} {:>8.2} {:>5.0}%/{:>3.0}%  {}{}",
-                    ch,
-                    s.family,
-                    s.cv_rmse,
-                    100.0 * s.cv_cover68.unwrap_or(f64::NAN),
-                    100.0 * s.cv_cover95.unwrap_or(f64::NAN),
-                    s.holdout_rmse,
-                    s.holdout_max,
-                    100.0 * s.cover68,
-                    100.0 * s.cover95,
-                    if s.chosen { "<- chosen; " } else { "" },
-                    s.detail
-                );
-            }
-        }
-        // What predict serves: the chosen family, and the grey box from where an
-        // empirical family leaves the inputs' range of its fit data.
-        let served = served_holdout(&set.events, &g, train_end_ns, &scores, &grey);
-        let verdict = served
-            .as_ref()
-            .and_then(|(rmse, _)| Verdict::of(*rmse, &scores));
-        if let (false, Some((rmse, why)), Some(v)) = (json, &served, &verdict) {
-            println!("{ch:<8} served: hold-out RMSE {rmse:.2} ({why}); {v}");
-        }
-        if !verdict.as_ref().is_some_and(Verdict::passes) {
-            fails.push(ch.clone());
-        }
-        rows.push(serde_json::json!({
-            "set": set.name, "channel": ch, "families": scores,
-            "served_rmse": served.as_ref().map(|s| s.0),
-            "served": served.map(|s| s.1),
-            "verdict": verdict,
-        }));
-    }
-    (rows, fails)
-}
-
-/// What is served for a channel against the baselines on the hold-out: the bar is
-/// below persistence and within 10 % of the best baseline.
-#[derive(serde::Serialize)]
-struct Verdict {
-    beats_persistence: bool,
-    persistence_rmse: f64,
-    best_baseline: String,
-    best_baseline_rmse: f64,
-    within_10_percent: bool,
-}
-
-impl Verdict {
-    fn of(served: f64, scores: &[driftwatch_core::families::FamilyScore]) -> Option<Verdict> {
-        use driftwatch_core::families::Family;
-        let rmse = |f: Family| {
-            scores
-                .iter()
-                .find(|s| s.family == f.as_str())
-                .map(|s| s.holdout_rmse)
-        };
-        let persistence = rmse(Family::Persistence)?;
-        let (best, best_rmse) = [
-            Family::Persistence,
-            Family::Regression,
-            Family::KeyRegression,
-            Family::Arx,
-        ]
-        .into_iter()
-        .filter_map(|f| Some((f, rmse(f)?)))
-        .min_by(|a, b| a.1.total_cmp(&b.1))?;
-        Some(Verdict {
-            beats_persistence: served < persistence,
-            persistence_rmse: persistence,
-            best_baseline: best.as_str().into(),
-            best_baseline_rmse: best_rmse,
-            within_10_percent: served <= 1.1 * best_rmse,
-        })
-    }
-
-    fn passes(&self) -> bool {
-        self.beats_persistence && self.within_10_percent
-    }
-}
-
-impl std::fmt::Display for Verdict {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "{} persistence ({:.2}), {} the best baseline ({} {:.2}){}",
-            if self.beats_persistence {
-                "beats"
-            } else {
-                "LOSES to"
-            },
-            self.persistence_rmse,
-            if self.within_10_percent {
-                "within 10 % of"
-            } else {
-                "more than 10 % over"
-            },
-            self.best_baseline,
-            self.best_baseline_rmse,
-            if self.passes() { "" } else { ": FAILS the bar" }
-        )
-    }
-}
-
-/// The hold-out RMSE of what `predict` serves for a channel: the chosen family, handing over
-/// to the grey box where it leaves the inputs' range of its fit data; and what that was.
-fn served_holdout(
-    events: &[driftwatch_core::thermal_model::Event],
-    g: &driftwatch_core::families::Grid,
-    train_end_ns: i64,
-    scores: &[driftwatch_core::families::FamilyScore],
-    grey: &driftwatch_core::thermal_model::ModelConfig,
-) -> Option<(f64, String)> {
-    use driftwatch_core::families::{
-        Family, fit_scored, grey_box, input_ranges, leaves_range, origin_residual, relax_weight,
-        simulate_with,
-    };
-    let chosen = scores.iter().find(|s| s.chosen)?;
-    let family = Family::parse(&chosen.family)?;
-    let n_train = g.index_at(train_end_ns);
-    let n = g.len();
-    if family == Family::GreyBox || n_train >= n {
-        return Some((chosen.holdout_rmse, chosen.family.clone()));
-    }
-    let f = fit_scored(chosen, g, n_train)?;
-    // From a step early: the grey box's value at the last reading gives the residual there.
-    let gb_prev = grey_box(events, grey, g, n_train - 1, n)?;
-    let gb = &gb_prev[1..];
-    let mut p = simulate_with(&f, g, n_train, n, gb);
-    let r0 = origin_residual(&f, g, n_train, gb_prev[0]);
-    let step_ns = g.t_ns.get(1).map_or(1, |t| t - g.t_ns[0]);
-    for (h, v) in p.iter_mut().enumerate() {
-        *v += r0 * relax_weight(chosen.relax_h, h, step_ns);
-    }
-    let mut why = chosen.family.clone();
-    if let Some((k, j, _)) = leaves_range(&f, g, &input_ranges(g, n_train), n_train, n) {
-        p[k - n_train..].copy_from_slice(&gb[k - n_train..]);
-        why = format!(
-            "{}, the grey box from {:.2} h where {} leaves its fit range",
-            chosen.family,
-            units::ns_to_h(g.t_ns[k]),
-            g.names[j]
-        );
-    }
-    let e: Vec<f64> = p.iter().zip(&g.y[n_train..]).map(|(p, y)| p - y).collect();
-    Some((driftwatch_core::families::rms(&e), why))
 }

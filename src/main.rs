@@ -26,6 +26,7 @@ mod nc_program_cmd;
 mod plan_design_cmd;
 mod rtest_cmd;
 mod serve;
+mod thermal_sets;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
 macro_rules! out {
@@ -309,12 +310,16 @@ struct BenchArgs {
     /// Print JSON (bench compensation, bench thermal).
     #[arg(long)]
     json: bool,
-    /// Directory of the shipped real data sets (bench thermal).
+    /// Directory of thermal-test data sets (bench thermal: every manifest*.toml in it and
+    /// its subfolders, docs/thermal-sets.md; bench nulls: the shipped fl-thermal).
     #[arg(long, default_value = "tests/data")]
     data: PathBuf,
-    /// Grid step of the thermal families, min (bench thermal).
-    #[arg(long, default_value_t = 5.0)]
-    step_min: f64,
+    /// Grid step of the thermal families, min (bench thermal; default: each set's own).
+    #[arg(long)]
+    step_min: Option<f64>,
+    /// Leave the simulated scenarios out (bench thermal).
+    #[arg(long)]
+    no_simulated: bool,
     /// Serve predicted sets between cycles (bench year): on or off.
     #[arg(long, default_value = "on", value_parser = ["on", "off"])]
     prediction: String,
@@ -511,7 +516,9 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
             )),
         BenchWhich::Compensation => bench::compensation(b.json, b.after_stop),
         BenchWhich::Diagnosis => bench::diagnosis(b.days.unwrap_or(365.0)),
-        BenchWhich::Thermal => bench::thermal(&b.data, b.step_min, b.json),
+        BenchWhich::Thermal => {
+            bench::thermal::thermal(&b.data, b.step_min, b.json, !b.no_simulated)
+        }
         BenchWhich::Nulls => {
             bench::nulls(&b.data, if b.n >= 20000 { 40 } else { b.n.max(1) }, b.json)
         }

@@ -7,7 +7,10 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 
-use driftwatch_core::csv_import::{CsvFormat, CsvOptions, RowTime, import_csv_with, split_columns};
+use driftwatch_core::csv_import::{
+    CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_columns,
+    split_runs,
+};
 use driftwatch_core::families::{ChannelChoice, Family};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::prediction_plot::Panel;
@@ -62,6 +65,15 @@ pub struct ImportCsvArgs {
     /// Replace --out if it exists (else the import is refused).
     #[arg(long)]
     force: bool,
+    /// Column naming each row's run (a thermal test of several runs, each zeroed at its
+    /// start, in one table): --out is then a directory, one recording per run
+    /// (`<run>.mcap`), for `fit --runs`.
+    #[arg(long)]
+    run_column: Option<String>,
+    /// The displacement sensors hold their value between real updates (while the machine
+    /// stands): a row whose value did not change is not a reading and is left out.
+    #[arg(long)]
+    only_changed: bool,
 }
 
 pub fn cmd_import_csv(a: ImportCsvArgs) -> Result<ExitCode> {
@@ -103,21 +115,61 @@ pub fn cmd_import_csv(a: ImportCsvArgs) -> Result<ExitCode> {
         delimiter,
         decimal_comma: a.decimal_comma,
     };
-    let im = import_csv_with(&text, &opts, fmt)
-        .with_context(|| format!("importing {}", a.input.display()))?;
-    write_recording_file(&a.out, &im.recording)
-        .with_context(|| format!("writing {}", a.out.display()))?;
-    let r = &im.recording;
-    println!(
-        "{} rows -> {}: {} /spindle, {} /temperature, {} /displacement messages",
-        im.rows,
-        a.out.display(),
-        r.spindle.len(),
-        r.temperatures.len(),
-        r.displacements.len()
-    );
-    for (col, n) in &im.skipped {
-        println!("  column {col}: {n} cells empty or not a number, skipped");
+    let parts = match &a.run_column {
+        Some(col) => {
+            std::fs::create_dir_all(&a.out)
+                .with_context(|| format!("creating {}", a.out.display()))?;
+            split_runs(&text, col, fmt)
+                .with_context(|| format!("{}: --run-column {col}", a.input.display()))?
+                .into_iter()
+                .map(|(run, t)| {
+                    let safe: String = run
+                        .chars()
+                        .map(|c| {
+                            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                                c
+                            } else {
+                                '_'
+                            }
+                        })
+                        .collect();
+                    (Some(run), a.out.join(format!("{safe}.mcap")), t)
+                })
+                .collect()
+        }
+        None => vec![(None, a.out.clone(), text)],
+    };
+    for (run, out, text) in parts {
+        anyhow::ensure!(
+            a.force || a.run_column.is_none() || !out.exists(),
+            "{} exists: give --force to replace it",
+            out.display()
+        );
+        let mut im = import_csv_with(&text, &opts, fmt).with_context(|| {
+            format!(
+                "importing {}{}",
+                a.input.display(),
+                run.as_ref()
+                    .map_or(String::new(), |r| format!(" (run {r})"))
+            )
+        })?;
+        if a.only_changed {
+            keep_changed_displacements(&mut im.recording);
+        }
+        write_recording_file(&out, &im.recording)
+            .with_context(|| format!("writing {}", out.display()))?;
+        let r = &im.recording;
+        println!(
+            "{} rows -> {}: {} /spindle, {} /temperature, {} /displacement messages",
+            im.rows,
+            out.display(),
+            r.spindle.len(),
+            r.temperatures.len(),
+            r.displacements.len()
+        );
+        for (col, n) in &im.skipped {
+            println!("  column {col}: {n} cells empty or not a number, skipped");
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -191,6 +243,23 @@ pub struct FitArgs {
     /// Grid step of the families, min (displacement channels).
     #[arg(long, default_value_t = 5.0)]
     step_min: f64,
+    /// How far ahead of its last reading the model will be used (a duration, 8h): the
+    /// families are judged by CV at this horizon. Default: the span of the recordings after
+    /// --until (what is left to predict), else as far as the CV folds reach.
+    #[arg(long)]
+    horizon: Option<String>,
+    /// Each recording is one run of a thermal test (a day, zeroed at its start): learn
+    /// across them and write a model that predicts a new run whole from its first reading
+    /// (`predict --new-run`). Runs are taken in the order of their first event, then of
+    /// the arguments.
+    #[arg(long)]
+    runs: bool,
+}
+
+/// What `fit --runs` writes: per displacement channel the family chosen across runs.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct RunsModelFile {
+    across_runs: Vec<driftwatch_core::across_runs::RunsChoice>,
 }
 
 /// What `fit` writes: the grey-box model (read by the service as it is) and, for
@@ -307,6 +376,9 @@ pub fn filter_channels(events: Vec<Event>, channels: &[String]) -> Vec<Event> {
 }
 
 pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
+    if a.runs {
+        return fit_runs(&a);
+    }
     if let Some(m) = &a.machine {
         Kinematics::load(m).with_context(|| format!("machine '{m}'"))?;
     }
@@ -322,7 +394,13 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
-    let families = choose_families(&events, &cfg, a.step_min, until, force);
+    let last_t = events.last().map_or(t0, Event::t_ns);
+    let horizon_ns = match (&a.horizon, until) {
+        (Some(h), _) => Some(parse_time(h, 0)?),
+        (None, Some(u)) if last_t > u => Some(last_t - u),
+        _ => None,
+    };
+    let families = choose_families(&events, &cfg, a.step_min, until, force, horizon_ns);
     let file = ModelFile { model, families };
     let model = &file.model;
     std::fs::write(&a.out, serde_json::to_string_pretty(&file)?)
@@ -337,6 +415,139 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     );
     for g in p.guards() {
         println!("{g}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `fit --runs`: each recording a run; per displacement channel the family that predicts a
+/// new run from its start, chosen by forward chaining over the runs.
+fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
+    anyhow::ensure!(
+        a.step_min > 0.0 && a.step_min.is_finite(),
+        "--step-min must be > 0"
+    );
+    anyhow::ensure!(
+        a.until.is_none() && a.family == "auto",
+        "--runs learns from whole runs: --until and --family do not apply"
+    );
+    let sensors = split_columns(&a.sensors);
+    let mut runs: Vec<(i64, usize, Vec<Event>)> = Vec::new();
+    for (i, rec) in read_recordings(&a.recording)?.into_iter().enumerate() {
+        let ev = only_sensors(filter_channels(events_from(&[rec]), &a.channels), &sensors);
+        runs.push((ev.first().map_or(i64::MAX, Event::t_ns), i, ev));
+    }
+    runs.sort_by_key(|r| (r.0, r.1));
+    let step_ns = units::min_to_ns(a.step_min);
+    let channels =
+        displacement_channels(&runs.iter().flat_map(|r| r.2.clone()).collect::<Vec<_>>());
+    let mut out = Vec::new();
+    for ch in &channels {
+        let grids: Vec<driftwatch_core::families::Grid> = runs
+            .iter()
+            .filter_map(|r| driftwatch_core::families::grid(&r.2, ch, step_ns))
+            .collect();
+        anyhow::ensure!(
+            grids.iter().all(|g| g.names == grids[0].names),
+            "{ch}: the runs do not all have the same inputs"
+        );
+        let refs: Vec<&driftwatch_core::families::Grid> = grids.iter().collect();
+        match driftwatch_core::across_runs::choose(&refs) {
+            Some(c) => {
+                println!(
+                    "{ch}: {} runs; chained CV RMSE (each run from the second on predicted whole from the runs before): {}",
+                    refs.len(),
+                    c.cv.iter()
+                        .map(|(f, e)| format!("{} {e:.3}", f.as_str()))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+                println!("{ch}: served: {}", c.why);
+                out.push(c);
+            }
+            None => eprintln!("{ch}: no family could be fitted across the runs"),
+        }
+    }
+    anyhow::ensure!(
+        !out.is_empty(),
+        "no displacement channel could be fitted across the runs"
+    );
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(
+        &a.out,
+        serde_json::to_string_pretty(&RunsModelFile { across_runs: out })?,
+    )
+    .with_context(|| format!("writing {}", a.out.display()))?;
+    println!("-> {}", a.out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `predict --new-run`: the recording as a new run, each channel predicted whole from its
+/// first reading by the family `fit --runs` chose; scored on the updated readings against
+/// holding the first reading.
+fn predict_new_run(a: &PredictArgs, text: &str) -> Result<ExitCode> {
+    let file: RunsModelFile = serde_json::from_str(text)
+        .with_context(|| format!("{}: not a model written by fit --runs", a.model.display()))?;
+    let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
+    let t0 = events.first().map_or(0, Event::t_ns);
+    let mut out = std::io::stdout().lock();
+    for c in &file.across_runs {
+        let g = driftwatch_core::families::grid(&events, &c.channel, c.step_ns)
+            .with_context(|| format!("{}: no readings with every input", c.channel))?;
+        anyhow::ensure!(
+            g.names == c.names,
+            "{}: the model's inputs are {}, the recording has {}",
+            c.channel,
+            c.names.join(", "),
+            g.names.join(", ")
+        );
+        let p = driftwatch_core::across_runs::predict(&c.fitted, &g);
+        let (mut e, mut held) = (Vec::new(), Vec::new());
+        for (k, v) in p.iter().enumerate() {
+            if a.json {
+                let line = serde_json::json!({
+                    "t_ns": g.t_ns[k],
+                    "values": {c.channel.clone(): {"value": v, "source": "predicted",
+                        "family": c.family.as_str(), "measured": g.y[k]}},
+                });
+                writeln!(out, "{line}")?;
+            } else {
+                writeln!(
+                    out,
+                    "{:>10.3} {:<12} {:>10.3} predicted ({}; measured {:.3})",
+                    units::ns_to_h(g.t_ns[k] - t0),
+                    c.channel,
+                    v,
+                    c.family.as_str(),
+                    g.y[k]
+                )?;
+            }
+            if k > 0 && g.fresh[k] {
+                e.push(v - g.y[k]);
+                held.push(g.y[0] - g.y[k]);
+            }
+        }
+        let rms = driftwatch_core::families::rms;
+        eprintln!(
+            "{}: {} from the run's first reading, {} updated readings: RMSE {:.3} (first reading held {:.3}); {}",
+            c.channel,
+            c.family.as_str(),
+            e.len(),
+            rms(&e),
+            rms(&held),
+            c.why
+        );
+        if let Some((k, j, d)) = driftwatch_core::across_runs::leaves_changes(c, &g) {
+            eprintln!(
+                "{}: warning: from {:.2} h {} has changed by {d:.2} since the run's start, beyond what the fit runs taught ({:.2} to {:.2}): the prediction is an extrapolation there",
+                c.channel,
+                units::ns_to_h(g.t_ns[k] - t0),
+                g.names[j],
+                c.change_ranges[j][0],
+                c.change_ranges[j][1]
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -444,15 +655,28 @@ fn choose_families(
     step_min: f64,
     until: Option<i64>,
     force: Option<Family>,
+    horizon_ns: Option<i64>,
 ) -> Vec<ChannelChoice> {
     let step_ns = units::min_to_ns(step_min);
+    // In grid steps; none given: as far as the folds reach.
+    let horizon = horizon_ns.map_or(usize::MAX, |h| {
+        (h.max(1) as f64 / step_ns as f64).ceil() as usize
+    });
     let train_end = until.unwrap_or(i64::MAX);
     let mut families = Vec::new();
     for ch in displacement_channels(events) {
         let Some(g) = driftwatch_core::families::grid(events, &ch, step_ns) else {
             continue;
         };
-        match driftwatch_core::families::choose(events, &g, train_end, &Family::ALL, cfg, force) {
+        match driftwatch_core::families::choose(
+            events,
+            &g,
+            train_end,
+            &Family::ALL,
+            cfg,
+            force,
+            horizon,
+        ) {
             Some(c) => families.push(c),
             None => eprintln!(
                 "{ch}: no family could be fitted (too few readings for the rolling origins)"
@@ -502,7 +726,7 @@ fn print_family_scores(families: &[ChannelChoice], forced: bool) {
         return;
     }
     println!(
-        "model families, rolling-origin cross-validation on the fit data (eight origins from 1/2 to 15/16 of it, each predicting freely to its end): CV RMSE; the 68/95 % band of the CV errors at horizons under 1 h and over 8 h; and its CV coverage (each fold against the other folds' bands; 68 and 95 % when calibrated). These are CV figures on the fit data, not a hold-out."
+        "model families, rolling-origin cross-validation on the fit data (eight origins, each fitted on what came before it and predicting freely up to the horizon of use): CV RMSE; the 68/95 % band of the CV errors at horizons under 1 h and over 8 h; and its CV coverage (each fold against the other folds' bands; 68 and 95 % when calibrated). These are CV figures on the fit data, not a hold-out."
     );
     println!(
         "{:<12} {:<15} {:>9} {:>13} {:>13} {:>11}  chosen / inputs",
@@ -535,6 +759,9 @@ fn print_family_scores(families: &[ChannelChoice], forced: bool) {
                 s.detail
             );
         }
+        if let Some(ch) = &c.choice {
+            println!("{:<12} served: {}", c.channel, ch.why);
+        }
     }
 }
 
@@ -564,6 +791,10 @@ pub struct PredictArgs {
     /// Also draw each channel (measured, predicted, band, where the updates stop) to this SVG.
     #[arg(long)]
     plot: Option<PathBuf>,
+    /// The recording is a new run: predict it whole from its first reading with a model
+    /// written by `fit --runs`.
+    #[arg(long)]
+    new_run: bool,
 }
 
 /// The grey box's rows from `from` on: a table, or one JSON object per step.
@@ -674,23 +905,11 @@ fn write_plot(
 }
 
 /// A family channel ready to run: its choice, its grid on the recording, the first grid point
-/// it predicts, and where it leaves its fit data (the grey box serves from there).
-type Run = (
-    ChannelChoice,
-    driftwatch_core::families::Grid,
-    usize,
-    Option<usize>,
-);
+/// it predicts.
+type Run = (ChannelChoice, driftwatch_core::families::Grid, usize);
 
-/// Grid each chosen family on the recording, from the last reading at or before `origin_t`,
-/// and say where one leaves the inputs' range it was fitted on.
-fn family_runs(
-    chosen: Vec<ChannelChoice>,
-    events: &[Event],
-    origin_t: i64,
-    t0: i64,
-) -> Result<Vec<Run>> {
-    // An empirical family serves only while its inputs stay within what it was fitted on.
+/// Grid each chosen family on the recording, from the last reading at or before `origin_t`.
+fn family_runs(chosen: Vec<ChannelChoice>, events: &[Event], origin_t: i64) -> Result<Vec<Run>> {
     let mut runs = Vec::new();
     for c in chosen {
         let g = driftwatch_core::families::grid(events, &c.channel, c.step_ns)
@@ -704,20 +923,7 @@ fn family_runs(
             g.names.join(", ")
         );
         let origin = g.index_at(origin_t.saturating_add(1)).max(1);
-        let leave =
-            driftwatch_core::families::leaves_range(&c.fitted, &g, &c.ranges, origin, g.len());
-        if let Some((k, j, v)) = leave {
-            eprintln!(
-                "{}: {} leaves its fit data at {:.2} h ({} = {v:.3}, fitted on {:.3} to {:.3}): the grey box serves from then on",
-                c.channel,
-                c.family,
-                units::ns_to_h(g.t_ns[k] - t0),
-                g.names[j],
-                c.ranges[j][0],
-                c.ranges[j][1],
-            );
-        }
-        runs.push((c, g, origin, leave.map(|l| l.0)));
+        runs.push((c, g, origin));
     }
     Ok(runs)
 }
@@ -728,16 +934,14 @@ struct FamiliesOnly {
     families: Vec<ChannelChoice>,
 }
 
-/// A channel another family than the grey box serves: it runs freely from the last reading
-/// before grid point `origin` (the fit's end, or --update-until), without updates. Rows from
-/// `from` on at `step_ns`, then RMSE, largest error and band coverage against the readings after the
+/// A channel served by its family choice: it runs freely from the last reading before grid
+/// point `origin` (the fit's end, or --update-until), without updates. Rows from `from` on at
+/// `step_ns`, then RMSE, largest error and band coverage against the readings after the
 /// origin, next to persistence.
 struct FamilyRun<'a> {
     c: &'a ChannelChoice,
     g: &'a driftwatch_core::families::Grid,
     origin: usize,
-    /// The grid point where the family leaves its fit data: the grey box serves from there.
-    leave: Option<usize>,
     /// The grey box's served values of the channel, by time.
     grey: &'a [(i64, f64)],
 }
@@ -752,38 +956,21 @@ fn predict_family(
     json: bool,
 ) -> Result<Vec<(f64, f64, f64)>> {
     let (c, g, origin) = (r.c, r.g, r.origin);
-    // The grey box's served value at each grid time (a combination holds it; it serves where
-    // the family leaves its fit data).
-    let grey: Vec<f64> = g.t_ns[origin.min(g.len())..]
-        .iter()
-        .map(|t| {
-            let at = r.grey.partition_point(|(tg, _)| tg <= t);
-            at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
-        })
-        .collect();
-    let mut family = driftwatch_core::families::simulate_with(&c.fitted, g, origin, g.len(), &grey);
-    // The residual at the origin, relaxed into the prediction as the CV chose.
-    let grey_prev = {
-        let t = g.t_ns[origin - 1];
-        let at = r.grey.partition_point(|(tg, _)| *tg <= t);
+    // The grey box's served value at each grid time from the last reading on (a
+    // combination holds it; it may serve beyond the fit range).
+    let grey_at = |t: &i64| {
+        let at = r.grey.partition_point(|(tg, _)| tg <= t);
         at.checked_sub(1).map_or(f64::NAN, |i| r.grey[i].1)
     };
-    let r0 = driftwatch_core::families::origin_residual(&c.fitted, g, origin, grey_prev);
-    for (h, v) in family.iter_mut().enumerate() {
-        *v += r0 * driftwatch_core::families::relax_weight(c.relax_h, h, c.step_ns);
-    }
-    let p: Vec<(f64, &str)> = family
-        .iter()
-        .zip(&grey)
-        .enumerate()
-        .map(|(i, (v, gb))| {
-            if r.leave.is_some_and(|l| origin + i >= l) {
-                (*gb, "grey_box")
-            } else {
-                (*v, c.family.as_str())
-            }
-        })
-        .collect();
+    let grey: Vec<f64> = g.t_ns[origin.min(g.len())..].iter().map(grey_at).collect();
+    let grey_prev = grey_at(&g.t_ns[origin - 1]);
+    let served = c.serve(g, origin, g.len(), &grey, grey_prev);
+    eprintln!(
+        "{}: served {}",
+        c.channel,
+        driftwatch_core::families::describe_served(&served, g, origin)
+    );
+    let p: Vec<(f64, String)> = served.iter().map(|(v, s)| (*v, s.to_string())).collect();
     let mut next_row = from;
     let mut series = Vec::new();
     let mut out = std::io::stdout().lock();
@@ -794,8 +981,11 @@ fn predict_family(
         let y = g.y[k];
         // The band widens with the time since the last reading used.
         let (b68, b95) = c.band_at(i);
-        errors.push((i, v - y));
-        persistence.push(g.y[origin - 1] - y);
+        // Scored on the readings the sensor updated (a held value is not a reading).
+        if g.fresh[k] {
+            errors.push((i, v - y));
+            persistence.push(g.y[origin - 1] - y);
+        }
         if g.t_ns[k] >= from {
             series.push((units::ns_to_h(g.t_ns[k] - t0), *v, b68));
         }
@@ -846,15 +1036,10 @@ fn predict_family(
     };
     let errors: Vec<f64> = errors.into_iter().map(|(_, e)| e).collect();
     eprintln!(
-        "{}: {} ({}){}, free run from {:.2} h, {} readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band by horizon: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
+        "{}: {} ({}), free run from {:.2} h, {} updated readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band by horizon: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
         c.channel,
         c.family,
         c.fitted.describe(g),
-        if r.leave.is_some() {
-            ", then the grey box"
-        } else {
-            ""
-        },
         units::ns_to_h(g.t_ns[origin.min(g.len() - 1)] - t0),
         errors.len(),
         units::ns_to_min(c.step_ns),
@@ -907,7 +1092,21 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         a.step_s > 0.0 && a.step_s.is_finite(),
         "--step-s must be > 0"
     );
-    let (model, grey_chosen, chosen) = read_model_file(&a.model)?;
+    if a.new_run {
+        let text = std::fs::read_to_string(&a.model)
+            .with_context(|| format!("reading {}", a.model.display()))?;
+        return predict_new_run(&a, &text);
+    }
+    let (model, mut grey_chosen, mut chosen) = read_model_file(&a.model)?;
+    // A free run from a cut (--update-until): every channel with a family choice is served
+    // by it, its regimes and hand-overs as `fit` chose them; with updates the grey box's
+    // filter serves the channels that chose it, corrected by every reading.
+    if a.update_until.is_some() {
+        let (with, without): (Vec<_>, Vec<_>) =
+            grey_chosen.into_iter().partition(|c| c.choice.is_some());
+        chosen.extend(with);
+        grey_chosen = without;
+    }
     let events = events_from(&read_recordings(std::slice::from_ref(&a.recording))?);
     let Some(first) = events.first() else {
         anyhow::bail!("{}: no events to replay", a.recording.display());
@@ -924,7 +1123,7 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     } else {
         model.to_ns
     };
-    let runs = family_runs(chosen, &events, origin_t, t0)?;
+    let runs = family_runs(chosen, &events, origin_t)?;
     let from = a
         .from
         .as_deref()
@@ -963,25 +1162,16 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
     // One panel per channel: the grey box's served values, or the family's.
     let h = |t: i64| units::ns_to_h(t - t0);
     let mut panels = grey_panels(&steps, from, t0);
-    for ((c, g, origin, leave), grey) in runs.iter().zip(&greys) {
+    for ((c, g, origin), grey) in runs.iter().zip(&greys) {
         let run = FamilyRun {
             c,
             g,
             origin: *origin,
-            leave: *leave,
             grey,
         };
         let series = predict_family(&run, t0, from, step_ns, a.json)?;
         let panel = panels.entry(c.channel.clone()).or_default();
-        panel.source = format!(
-            "{}{} (68 % band of its CV)",
-            c.family,
-            if leave.is_some() {
-                ", then the grey box"
-            } else {
-                ""
-            }
-        );
+        panel.source = format!("{} (68 % band of its CV)", c.family);
         panel.predicted = series;
         panel.boundary_h = g.t_ns.get(origin.saturating_sub(1)).map(|t| h(*t));
     }

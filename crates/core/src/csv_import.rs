@@ -284,6 +284,61 @@ fn column_time(
     Ok(t_ns)
 }
 
+/// The rows of `text` grouped by the value of column `col` (a thermal test of several runs
+/// in one table), each part a table of its own with the header, in the order the runs first
+/// appear.
+pub fn split_runs(
+    text: &str,
+    col: &str,
+    fmt: CsvFormat,
+) -> Result<Vec<(String, String)>, ImportError> {
+    let err = |e: csv::Error| ImportError::Csv(e.to_string());
+    let mut rd = csv::ReaderBuilder::new()
+        .delimiter(fmt.delimiter)
+        .trim(csv::Trim::All)
+        .from_reader(text.as_bytes());
+    let header = rd.headers().map_err(err)?.clone();
+    let at = header.iter().position(|h| h == col).ok_or_else(|| {
+        ImportError::NoColumn(col.into(), header.iter().collect::<Vec<_>>().join(", "))
+    })?;
+    let mut parts: Vec<(String, csv::Writer<Vec<u8>>)> = Vec::new();
+    for r in rd.records() {
+        let r = r.map_err(err)?;
+        let run = r.get(at).unwrap_or("").to_string();
+        let i = match parts.iter().position(|(n, _)| *n == run) {
+            Some(i) => i,
+            None => {
+                let mut w = csv::WriterBuilder::new()
+                    .delimiter(fmt.delimiter)
+                    .from_writer(Vec::new());
+                w.write_record(&header).map_err(err)?;
+                parts.push((run, w));
+                parts.len() - 1
+            }
+        };
+        parts[i].1.write_record(&r).map_err(err)?;
+    }
+    parts
+        .into_iter()
+        .map(|(n, w)| {
+            let bytes = w
+                .into_inner()
+                .map_err(|e| ImportError::Csv(e.to_string()))?;
+            String::from_utf8(bytes)
+                .map(|t| (n, t))
+                .map_err(|e| ImportError::Csv(e.to_string()))
+        })
+        .collect()
+}
+
+/// Keep only the displacement readings that changed (and each sensor's first): for a sensor
+/// that holds its value while the machine stands, a repeated value is not a reading.
+pub fn keep_changed_displacements(rec: &mut Recording) {
+    let mut last: BTreeMap<String, f64> = BTreeMap::new();
+    rec.displacements
+        .retain(|m| last.insert(m.msg.sensor.clone(), m.msg.um) != Some(m.msg.um));
+}
+
 /// Comma-separated column lists (`a,b` or repeated flags) as one list.
 pub fn split_columns(args: &[String]) -> Vec<String> {
     args.iter()
@@ -311,6 +366,33 @@ mod tests {
     }
 
     const TEXT: &str = "time_s, rpm, ch1, t1\n0,0,0.1,20\n15,0,0.2,20.1\n30,1000,0.3,\n45,1000,x,20.3\n60,0,0.5,20.4\n";
+
+    #[test]
+    fn a_table_of_runs_splits_by_its_run_column_and_a_held_value_is_no_reading() {
+        let text = "run,t,x\nb,0,1\na,0,5\nb,1,1\nb,2,2\n";
+        let parts = split_runs(text, "run", CsvFormat::default()).unwrap();
+        assert_eq!(parts.len(), 2);
+        assert_eq!(parts[0].0, "b");
+        assert_eq!(parts[0].1, "run,t,x\nb,0,1\nb,1,1\nb,2,2\n");
+        assert!(split_runs(text, "day", CsvFormat::default()).is_err());
+        let o = CsvOptions {
+            time: RowTime::Column("t".into()),
+            start_ns: 0,
+            spindle: None,
+            temperatures: Vec::new(),
+            displacements: vec!["x".into()],
+            machine_id: "m".into(),
+        };
+        let mut im = import_csv(&parts[0].1, &o).unwrap();
+        keep_changed_displacements(&mut im.recording);
+        let v: Vec<f64> = im
+            .recording
+            .displacements
+            .iter()
+            .map(|m| m.msg.um)
+            .collect();
+        assert_eq!(v, [1.0, 2.0]);
+    }
 
     #[test]
     fn rows_become_contract_messages() {

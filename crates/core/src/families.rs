@@ -29,6 +29,10 @@ pub struct Grid {
     pub names: Vec<String>,
     /// `inputs[j][k]`: input j at grid time k.
     pub inputs: Vec<Vec<f64>>,
+    /// `fresh[k]`: a reading of the channel arrived since the grid time before (else `y[k]`
+    /// is the last reading held). Fits and scores use fresh points only: a sensor that holds
+    /// its value while the machine stands says nothing then.
+    pub fresh: Vec<bool>,
 }
 
 impl Grid {
@@ -71,7 +75,9 @@ pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
         y: Vec::new(),
         names: names.clone(),
         inputs: vec![Vec::new(); names.len()],
+        fresh: Vec::new(),
     };
+    let mut fresh = false;
     let mut next: Option<i64> = None;
     let mut k = 0;
     let last_t = events.last()?.t_ns();
@@ -94,7 +100,10 @@ pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
                 }
                 Event::Observation {
                     channel: c, value, ..
-                } if c == channel => y = Some(*value),
+                } if c == channel => {
+                    y = Some(*value);
+                    fresh = true;
+                }
                 _ => {}
             }
             k += 1;
@@ -102,6 +111,7 @@ pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
         if let (Some(v), true) = (y, now.iter().all(Option::is_some)) {
             g.t_ns.push(until);
             g.y.push(v);
+            g.fresh.push(std::mem::take(&mut fresh));
             for (j, x) in now.iter().enumerate() {
                 g.inputs[j].push(x.unwrap_or(0.0));
             }
@@ -116,7 +126,10 @@ pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
 }
 
 /// The families that compete.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
 pub enum Family {
     /// The last training reading, held.
     Persistence,
@@ -269,15 +282,32 @@ fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
+/// The inputs among `inputs` that vary over grid points `0..end`: one constant over the fit
+/// data is the intercept again, and the vanishing ridge would split the intercept between
+/// them, an arbitrary gain that moves the prediction when the input does.
+fn varying(g: &Grid, inputs: &[usize], end: usize) -> Vec<usize> {
+    inputs
+        .iter()
+        .copied()
+        .filter(|&j| {
+            let x = &g.inputs[j][..end.min(g.len())];
+            x.iter()
+                .any(|v| (v - x[0]).abs() > 1e-12 * x[0].abs().max(1.0))
+        })
+        .collect()
+}
+
 fn fit_linear(g: &Grid, inputs: &[usize], end: usize) -> Option<Fitted> {
-    let x = DMatrix::from_fn(end, inputs.len() + 1, |i, j| {
+    let inputs = &varying(g, inputs, end);
+    let rows: Vec<usize> = (0..end).filter(|&k| g.fresh[k]).collect();
+    let x = DMatrix::from_fn(rows.len(), inputs.len() + 1, |i, j| {
         if j == 0 {
             1.0
         } else {
-            g.inputs[inputs[j - 1]][i]
+            g.inputs[inputs[j - 1]][rows[i]]
         }
     });
-    let y = DVector::from_row_slice(&g.y[..end]);
+    let y = DVector::from_iterator(rows.len(), rows.iter().map(|&k| g.y[k]));
     let coef = least_squares(&x, &y)?;
     Some(Fitted::Linear {
         inputs: inputs.to_vec(),
@@ -286,6 +316,7 @@ fn fit_linear(g: &Grid, inputs: &[usize], end: usize) -> Option<Fitted> {
 }
 
 fn fit_arx(g: &Grid, na: usize, nb: usize, inputs: &[usize], end: usize) -> Option<Fitted> {
+    let inputs = &varying(g, inputs, end);
     let lag = na.max(nb.saturating_sub(1));
     if end <= lag + 1 {
         return None;
@@ -392,17 +423,45 @@ pub fn simulate_with(f: &Fitted, g: &Grid, origin: usize, end: usize, grey: &[f6
     }
 }
 
-/// Rolling origins over the first `end` grid points: eight, at 8/16, 9/16, ... 15/16 of
-/// them, each fold predicting freely to `end`. To the end, not to the next origin: what is
-/// served runs freely for hours, so the CV must judge long horizons (with folds to the next
-/// origin, a model that drifts slowly won the CV and lost the hold-out on fl-thermal).
-pub fn folds(end: usize) -> Vec<(usize, usize)> {
-    let mut o: Vec<usize> = (8..16).map(|q| end * q / 16).collect();
+/// Rolling origins of the CV: this many, spread evenly (fewer on a short span).
+pub const N_FOLDS: usize = 8;
+
+/// Rolling origins over the first `end` grid points for a model used `horizon` grid steps
+/// ahead of its last reading: [`N_FOLDS`] origins, each fold fitted on what comes before it
+/// and predicting freely up to `horizon` steps, never past `end`. The CV judges a model at
+/// the horizon it is used for, as far as the data allow: the origins run from half the span
+/// to where a fold still has its whole horizon, or to three quarters of it when the horizon
+/// is longer than a quarter. No fold is fitted on less than half the span: a fold fitted on
+/// far less data than the model it judges misjudges it (on short warm-up runs, least squares
+/// on two dozen temperatures fitted on a third of the fit lost to persistence in CV and beat
+/// it on the hold-out). What the folds test is [`tested_horizon`]; a longer horizon of use is
+/// beyond what the CV saw, and the choice says so.
+pub fn folds(end: usize, horizon: usize) -> Vec<(usize, usize)> {
+    if end < 2 {
+        return Vec::new();
+    }
+    let horizon = horizon.max(1);
+    let first = (end / 2).max(1);
+    let last = end
+        .saturating_sub(horizon.min((end - first) / 2).max(1))
+        .max(first);
+    let mut o: Vec<usize> = (0..N_FOLDS)
+        .map(|i| first + (last - first) * i / (N_FOLDS - 1))
+        .collect();
     o.dedup();
     o.into_iter()
-        .map(|a| (a, end))
+        .map(|a| (a, a.saturating_add(horizon).min(end)))
         .filter(|(a, b)| a < b && *a > 0)
         .collect()
+}
+
+/// The longest horizon, in grid steps, the folds of [`folds`] test.
+pub fn tested_horizon(end: usize, horizon: usize) -> usize {
+    folds(end, horizon)
+        .iter()
+        .map(|(a, b)| b - a)
+        .max()
+        .unwrap_or(0)
 }
 
 /// One CV error: its fold, its horizon in grid steps after the fold's origin, its value.
@@ -413,10 +472,17 @@ pub struct CvError {
     pub e: f64,
 }
 
-fn fold_errors(fold: usize, p: &[f64], y: &[f64]) -> impl Iterator<Item = CvError> {
+/// A fold's errors on the fresh readings (`fresh` and `y` from the fold's origin).
+fn fold_errors<'a>(
+    fold: usize,
+    p: &'a [f64],
+    y: &'a [f64],
+    fresh: &'a [bool],
+) -> impl Iterator<Item = CvError> + 'a {
     p.iter()
         .zip(y)
         .enumerate()
+        .filter(|(h, _)| fresh[*h])
         .map(move |(horizon, (p, y))| CvError {
             fold,
             horizon,
@@ -426,8 +492,13 @@ fn fold_errors(fold: usize, p: &[f64], y: &[f64]) -> impl Iterator<Item = CvErro
 
 /// The errors of a fit procedure over the folds of `0..end`; `None` when a fold could not
 /// be fitted.
-fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Option<Vec<CvError>> {
-    cv_run(g, end, fit).map(|r| r.0)
+fn cv_errors(
+    g: &Grid,
+    end: usize,
+    horizon: usize,
+    fit: &dyn Fn(usize) -> Option<Fitted>,
+) -> Option<Vec<CvError>> {
+    cv_run(g, end, horizon, fit).map(|r| r.0)
 }
 
 /// [`cv_errors`], and each fold's residual at its origin: the last reading before it less
@@ -435,14 +506,15 @@ fn cv_errors(g: &Grid, end: usize, fit: &dyn Fn(usize) -> Option<Fitted>) -> Opt
 fn cv_run(
     g: &Grid,
     end: usize,
+    horizon: usize,
     fit: &dyn Fn(usize) -> Option<Fitted>,
 ) -> Option<(Vec<CvError>, Vec<f64>)> {
     let mut e = Vec::new();
     let mut r0 = Vec::new();
-    for (i, (o, stop)) in folds(end).into_iter().enumerate() {
+    for (i, (o, stop)) in folds(end, horizon).into_iter().enumerate() {
         let f = fit(o)?;
         let p = simulate(&f, g, o, stop);
-        e.extend(fold_errors(i, &p, &g.y[o..stop]));
+        e.extend(fold_errors(i, &p, &g.y[o..stop], &g.fresh[o..stop]));
         r0.push(origin_residual(&f, g, o, f64::NAN));
     }
     (!e.is_empty()).then_some((e, r0))
@@ -486,7 +558,7 @@ pub fn rms(e: &[f64]) -> f64 {
 
 /// Forward selection of key inputs on `0..end`, by the inner rolling-origin CV of a
 /// regression on them: add the input that lowers it most, stop when none lowers it by 1 %.
-pub fn key_inputs(g: &Grid, end: usize) -> Vec<usize> {
+pub fn key_inputs(g: &Grid, end: usize, horizon: usize) -> Vec<usize> {
     let mut chosen: Vec<usize> = Vec::new();
     let mut best = f64::INFINITY;
     while chosen.len() < MAX_KEY {
@@ -497,7 +569,7 @@ pub fn key_inputs(g: &Grid, end: usize) -> Vec<usize> {
             }
             let mut with = chosen.clone();
             with.push(j);
-            let Some(e) = cv_errors(g, end, &|o| fit_linear(g, &with, o)) else {
+            let Some(e) = cv_errors(g, end, horizon, &|o| fit_linear(g, &with, o)) else {
                 continue;
             };
             let s = cv_rms(&e);
@@ -517,20 +589,20 @@ pub fn key_inputs(g: &Grid, end: usize) -> Vec<usize> {
 }
 
 /// Fit `family` on grid points `0..end` (its inner choices made there).
-pub fn fit_family(family: Family, g: &Grid, end: usize) -> Option<Fitted> {
+pub fn fit_family(family: Family, g: &Grid, end: usize, horizon: usize) -> Option<Fitted> {
     let all: Vec<usize> = (0..g.names.len()).collect();
     match family {
         Family::Persistence => Some(Fitted::Persistence),
         Family::Regression => fit_linear(g, &all, end),
         Family::KeyRegression => {
-            let key = key_inputs(g, end);
+            let key = key_inputs(g, end, horizon);
             fit_linear(g, &key, end)
         }
 
         Family::Arx => {
             // Orders and inputs by the inner CV: first or second order, on the key inputs
             // or on every input.
-            let key = key_inputs(g, end);
+            let key = key_inputs(g, end, horizon);
             let mut best: Option<(Fitted, f64)> = None;
             for inputs in [&key, &all] {
                 if inputs.is_empty() {
@@ -538,7 +610,8 @@ pub fn fit_family(family: Family, g: &Grid, end: usize) -> Option<Fitted> {
                 }
                 for na in [1, 2] {
                     let nb = 2;
-                    let Some(e) = cv_errors(g, end, &|o| fit_arx(g, na, nb, inputs, o)) else {
+                    let Some(e) = cv_errors(g, end, horizon, &|o| fit_arx(g, na, nb, inputs, o))
+                    else {
                         continue;
                     };
                     let s = cv_rms(&e);
@@ -841,15 +914,21 @@ impl Run {
 }
 
 /// The grey box's CV errors and hold-out predictions; `None` when a fold cannot be fitted.
-fn grey_box_run(events: &[Event], cfg: &ModelConfig, g: &Grid, n_train: usize) -> Option<GreyRun> {
+fn grey_box_run(
+    events: &[Event],
+    cfg: &ModelConfig,
+    g: &Grid,
+    n_train: usize,
+    horizon: usize,
+) -> Option<GreyRun> {
     // Each run starts a step early: its first value, at the last reading before the origin,
     // gives the residual there.
     let mut e = Vec::new();
     let mut r0 = Vec::new();
-    for (i, (o, stop)) in folds(n_train).into_iter().enumerate() {
+    for (i, (o, stop)) in folds(n_train, horizon).into_iter().enumerate() {
         let p = grey_box(events, cfg, g, o - 1, stop)?;
         r0.push(g.y[o - 1] - p[0]);
-        e.extend(fold_errors(i, &p[1..], &g.y[o..stop]));
+        e.extend(fold_errors(i, &p[1..], &g.y[o..stop], &g.fresh[o..stop]));
     }
     if e.is_empty() {
         return None;
@@ -943,6 +1022,7 @@ fn score(r: Run, g: &Grid, n_train: usize) -> FamilyScore {
         .iter()
         .zip(&g.y[n_train..])
         .enumerate()
+        .filter(|(h, _)| g.fresh[n_train + h])
         .map(|(h, (p, y))| (h, p - y))
         .collect();
     let bands = Bands::from_errors(&r.cv, step_ns);
@@ -977,22 +1057,23 @@ fn score(r: Run, g: &Grid, n_train: usize) -> FamilyScore {
     }
 }
 
-/// Every family on one channel: CV on grid points before `train_end_ns`, hold-out on the
-/// rest. The chosen family has the lowest CV RMSE among those that could be fitted.
+/// Every family on one channel: CV on grid points before `train_end_ns` at `horizon` grid
+/// steps (the horizon the model is used for), hold-out on the rest. The choice is [`Choice`].
 pub fn compete(
     events: &[Event],
     g: &Grid,
     train_end_ns: i64,
     families: &[Family],
     grey: &ModelConfig,
-) -> Vec<FamilyScore> {
+    horizon: usize,
+) -> (Vec<FamilyScore>, Choice) {
     let n_train = g.index_at(train_end_ns);
     let n = g.len();
     let mut runs = Vec::new();
     for &family in families {
         let run = match family {
             Family::Combination => continue,
-            Family::GreyBox => grey_box_run(events, grey, g, n_train).map(|r| Run {
+            Family::GreyBox => grey_box_run(events, grey, g, n_train, horizon).map(|r| Run {
                 family,
                 detail: Fitted::GreyBox.describe(g),
                 cv: r.cv,
@@ -1001,18 +1082,20 @@ pub fn compete(
                 r0: r.r0,
                 hold_r0: r.hold_r0,
             }),
-            _ => cv_run(g, n_train, &|o| fit_family(family, g, o)).and_then(|(cv, r0)| {
-                let f = fit_family(family, g, n_train)?;
-                Some(Run {
-                    family,
-                    detail: f.describe(g),
-                    cv,
-                    hold: simulate(&f, g, n_train, n),
-                    weights: Vec::new(),
-                    r0,
-                    hold_r0: origin_residual(&f, g, n_train, f64::NAN),
-                })
-            }),
+            _ => cv_run(g, n_train, horizon, &|o| fit_family(family, g, o, horizon)).and_then(
+                |(cv, r0)| {
+                    let f = fit_family(family, g, n_train, horizon)?;
+                    Some(Run {
+                        family,
+                        detail: f.describe(g),
+                        cv,
+                        hold: simulate(&f, g, n_train, n),
+                        weights: Vec::new(),
+                        r0,
+                        hold_r0: origin_residual(&f, g, n_train, f64::NAN),
+                    })
+                },
+            ),
         };
         runs.extend(run);
     }
@@ -1025,16 +1108,32 @@ pub fn compete(
     // stay as the textbook has them; the grey box has its own offset walk, learned from the
     // data by its filter.
     let step_ns = g.t_ns.get(1).map_or(1, |t| t - g.t_ns[0]);
-    let mut out: Vec<FamilyScore> = runs
+    let runs: Vec<(Run, Option<f64>)> = runs
         .into_iter()
         .map(|r| {
-            let (r, relax_h) = if r.family == Family::Combination {
+            if r.family == Family::Combination {
                 r.relaxed(step_ns)
             } else {
                 (r, None)
-            };
+            }
+        })
+        .collect();
+    let excursions = fold_excursions(g, n_train, horizon);
+    let independent = independent_folds(&folds(n_train, horizon));
+    let choice = Choice::of(
+        &runs,
+        &excursions,
+        &independent,
+        tested_horizon(n_train, horizon),
+        horizon,
+    );
+    let out = runs
+        .into_iter()
+        .map(|(r, relax_h)| {
+            let chosen = r.family == choice.family;
             let mut s = score(r, g, n_train);
             s.relax_h = relax_h;
+            s.chosen = chosen;
             if let Some(h) = relax_h {
                 s.detail
                     .push_str(&format!("; the residual at the origin relaxes over {h} h"));
@@ -1042,11 +1141,320 @@ pub fn compete(
             s
         })
         .collect();
-    if let Some(best) = out
-        .iter_mut()
-        .min_by(|a, b| a.cv_rmse.total_cmp(&b.cv_rmse))
-    {
-        best.chosen = true;
+    (out, choice)
+}
+
+/// The one-sided sign test at 5 %: the fewest wins of `n` paired comparisons (folds, or
+/// later runs) that chance alone gives with probability at most 0.05; `None` when not even
+/// `n` of `n` would (`n` < 5). A challenger replaces the textbook baseline only with that
+/// many wins (7 of the 8 CV folds: P = 9/256 = 0.035; the folds overlap, so the true level
+/// is somewhat higher, which errs towards the baseline).
+pub fn sign_test_wins(n: usize) -> Option<usize> {
+    // P(W >= w) for W ~ Binomial(n, 1/2), from the top down.
+    let mut tail = 0.0;
+    let mut c = 1.0; // C(n, k), k from n down
+    let total = 2f64.powi(n as i32);
+    let mut best = None;
+    for k in (0..=n).rev() {
+        tail += c / total;
+        if tail > 0.05 {
+            break;
+        }
+        best = Some(k);
+        c = c * k as f64 / (n - k + 1) as f64;
+    }
+    best
+}
+
+/// How the served family was chosen for one regime of the inputs.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RegimeChoice {
+    pub family: Family,
+    /// The family with the lowest CV error on the regime's points, and on how many folds
+    /// (of those with such points) it beat the baseline.
+    pub best_cv: Family,
+    pub fold_wins: usize,
+    pub folds: usize,
+    /// CV points in the regime, and the RMSE there of the chosen family and the baseline.
+    pub points: usize,
+    pub rmse: f64,
+    pub baseline_rmse: f64,
+    pub why: String,
+}
+
+/// How the served prediction of a channel was chosen. Warm-up data leave the fit's input
+/// range by design, and a model that predicts well inside what it was fitted on may not
+/// outside it, so each regime has its own choice, judged on the CV points of that regime:
+/// **inside** (every input within its fold's fit range, widened by [`RANGE_SLACK`] of it)
+/// and **beyond** (from the first point in a fold where some input is not). At prediction
+/// time the inputs are measured as they happen, so which regime a point is in is known
+/// causally. A challenger replaces the textbook baseline in a regime only where it wins
+/// beyond chance on folds with separate prediction windows ([`independent_folds`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Choice {
+    /// The inside choice's family (the one the channel is named by).
+    pub family: Family,
+    /// The textbook baseline every choice starts from: least squares on every input, or
+    /// persistence where that could not be fitted. A challenger replaces it only where it
+    /// wins beyond chance ([`sign_test_wins`]).
+    pub baseline: Family,
+    pub inside: RegimeChoice,
+    /// `None` where the CV folds never left their fit range.
+    pub beyond: Option<RegimeChoice>,
+    /// The largest excursion beyond the fit range the CV folds tested (a share of each
+    /// input's range, [`excursion`]).
+    pub tested_excursion: f64,
+    /// The horizon of use and the longest the CV folds tested, grid steps.
+    pub horizon: usize,
+    pub tested_horizon: usize,
+    pub why: String,
+}
+
+impl RegimeChoice {
+    /// The choice among `runs` on the CV points where `mask` holds.
+    fn of(
+        runs: &[(Run, Option<f64>)],
+        baseline: Family,
+        mask: &[bool],
+        independent: &[usize],
+        regime: &str,
+    ) -> Self {
+        let pick = |r: &Run| -> Vec<CvError> {
+            r.cv.iter()
+                .zip(mask)
+                .filter(|(_, m)| **m)
+                .map(|(c, _)| *c)
+                .collect()
+        };
+        let usable: Vec<(Family, Vec<CvError>)> = runs
+            .iter()
+            .filter(|(r, _)| r.cv.len() == mask.len())
+            .map(|(r, _)| (r.family, pick(r)))
+            .filter(|(_, e)| !e.is_empty() && cv_rms(e).is_finite())
+            .collect();
+        let base = usable.iter().find(|(f, _)| *f == baseline);
+        let best = usable
+            .iter()
+            .min_by(|a, b| cv_rms(&a.1).total_cmp(&cv_rms(&b.1)));
+        let points = base.map_or(0, |b| b.1.len());
+        let (best_cv, wins, folds) = match (best, base) {
+            (Some(b), Some(base)) => {
+                let (w, n) = fold_wins(&b.1, &base.1, independent);
+                (b.0, w, n)
+            }
+            (Some(b), None) => (b.0, 0, 0),
+            _ => (baseline, 0, 0),
+        };
+        let replaced = best_cv != baseline && sign_test_wins(folds).is_some_and(|w| wins >= w);
+        let family = if replaced { best_cv } else { baseline };
+        let rmse_of = |f: Family| {
+            usable
+                .iter()
+                .find(|(g, _)| *g == f)
+                .map_or(f64::NAN, |(_, e)| cv_rms(e))
+        };
+        let why = if best_cv == baseline {
+            format!("{regime}: {} has the lowest CV error", baseline.as_str())
+        } else if replaced {
+            format!(
+                "{regime}: {} beat the textbook baseline ({}) on {wins} of {folds} CV folds with separate prediction windows",
+                best_cv.as_str(),
+                baseline.as_str()
+            )
+        } else {
+            format!(
+                "{regime}: {} served; {} had the lowest CV error but beat it on {wins} of {folds} folds with separate prediction windows ({}), not beyond chance",
+                baseline.as_str(),
+                best_cv.as_str(),
+                sign_test_wins(folds).map_or("too few folds for the test".into(), |w| format!(
+                    "the bar is {w}"
+                ))
+            )
+        };
+        RegimeChoice {
+            family,
+            best_cv,
+            fold_wins: wins,
+            folds,
+            points,
+            rmse: rmse_of(family),
+            baseline_rmse: rmse_of(baseline),
+            why,
+        }
+    }
+}
+
+impl Choice {
+    fn of(
+        runs: &[(Run, Option<f64>)],
+        excursions: &[f64],
+        independent: &[usize],
+        tested: usize,
+        horizon: usize,
+    ) -> Self {
+        let find = |f: Family| runs.iter().find(|(r, _)| r.family == f).map(|(r, _)| r);
+        let baseline = [Family::Regression, Family::Persistence]
+            .into_iter()
+            .find(|f| find(*f).is_some_and(|r| cv_rms(&r.cv).is_finite()))
+            .unwrap_or(Family::Persistence);
+        let inside_mask: Vec<bool> = excursions.iter().map(|x| *x <= RANGE_SLACK).collect();
+        let beyond_mask: Vec<bool> = inside_mask.iter().map(|m| !m).collect();
+        let inside = RegimeChoice::of(
+            runs,
+            baseline,
+            &inside_mask,
+            independent,
+            "inside the fit range",
+        );
+        let beyond = (beyond_mask.iter().filter(|m| **m).count() >= MIN_BEYOND).then(|| {
+            RegimeChoice::of(
+                runs,
+                baseline,
+                &beyond_mask,
+                independent,
+                "beyond the fit range",
+            )
+        });
+        let tested_excursion = if beyond.is_some() {
+            excursions.iter().copied().fold(0.0, f64::max)
+        } else {
+            RANGE_SLACK
+        };
+        let mut why = inside.why.clone();
+        match &beyond {
+            Some(b) => why.push_str(&format!(
+                "; {} (excursions up to {:.2} of an input's fit range tested)",
+                b.why, tested_excursion
+            )),
+            None => why.push_str(&format!(
+                "; the CV folds never left their fit range by more than {:.0} % of it: beyond that untested",
+                100.0 * RANGE_SLACK
+            )),
+        }
+        if tested < horizon && horizon < usize::MAX / 2 {
+            why.push_str(&format!(
+                "; the CV tested horizons up to {tested} grid steps, the model is used {horizon} ahead: beyond what the CV saw"
+            ));
+        }
+        Choice {
+            family: inside.family,
+            baseline,
+            inside,
+            beyond,
+            tested_excursion,
+            horizon,
+            tested_horizon: tested,
+            why,
+        }
+    }
+
+    /// The family that serves a point whose (running) excursion is `x`: the inside choice
+    /// within [`RANGE_SLACK`], else the beyond choice (the inside one where the CV folds
+    /// never went beyond). Excursions larger than any the CV tested are served the same way
+    /// and said to be untested ([`Choice::tested_excursion`]): holding the last reading
+    /// there was tried and lost to least squares on the real warm-up runs it was meant for.
+    pub fn family_at(&self, x: f64) -> Family {
+        if x <= RANGE_SLACK {
+            self.inside.family
+        } else {
+            self.beyond
+                .as_ref()
+                .map_or(self.inside.family, |b| b.family)
+        }
+    }
+}
+
+/// Fewest CV points beyond the folds' fit range for a choice there.
+pub const MIN_BEYOND: usize = 10;
+
+/// The folds whose prediction windows do not overlap, taken from the last (the one fitted
+/// on the most data) backwards: overlapping folds predict the same readings from nearly the
+/// same fit, so they are not separate trials for the sign test.
+pub fn independent_folds(folds: &[(usize, usize)]) -> Vec<usize> {
+    let mut out = Vec::new();
+    let mut before = usize::MAX;
+    for (i, &(a, b)) in folds.iter().enumerate().rev() {
+        if b <= before {
+            out.push(i);
+            before = a;
+        }
+    }
+    out.reverse();
+    out
+}
+
+/// On how many folds `a`'s mean square error is below `b`'s, of the `independent` folds
+/// both have.
+fn fold_wins(a: &[CvError], b: &[CvError], independent: &[usize]) -> (usize, usize) {
+    let per_fold = |e: &[CvError]| {
+        let mut m: std::collections::BTreeMap<usize, (f64, usize)> = Default::default();
+        for c in e {
+            let x = m.entry(c.fold).or_default();
+            x.0 += c.e * c.e;
+            x.1 += 1;
+        }
+        m
+    };
+    let (pa, pb) = (per_fold(a), per_fold(b));
+    let mut wins = 0;
+    let mut n = 0;
+    for (f, (sa, na)) in pa.iter().filter(|(f, _)| independent.contains(f)) {
+        if let Some((sb, nb)) = pb.get(f) {
+            n += 1;
+            wins += usize::from(sa / (*na as f64) < sb / (*nb as f64));
+        }
+    }
+    (wins, n)
+}
+
+/// How far grid point `k` lies beyond `ranges`: the largest of each input's distance
+/// outside its range, as a share of the range (0 inside; an input constant over the fit
+/// data that moves counts as far beyond anything, `f64::INFINITY`).
+pub fn excursion(g: &Grid, ranges: &[[f64; 2]], k: usize) -> f64 {
+    g.inputs
+        .iter()
+        .zip(ranges)
+        .map(|(x, &[lo, hi])| {
+            let v = x[k];
+            let out = (lo - v).max(v - hi).max(0.0);
+            if out <= 1e-9 * lo.abs().max(hi.abs()).max(1.0) {
+                0.0
+            } else if hi - lo <= 0.0 {
+                f64::INFINITY
+            } else {
+                out / (hi - lo)
+            }
+        })
+        .fold(0.0, f64::max)
+}
+
+/// For each CV error of [`cv_run`]'s order: the running largest [`excursion`] in its fold
+/// from the origin to the point (a fold that has left its fit range counts as beyond from
+/// then on, as the served prediction does). An input constant over a fold's fit data is left
+/// out there: the fold's models have no gain on it, and the model served has one wherever
+/// it varied in the fit data, so such a fold says nothing of how it extrapolates (it would
+/// judge the regime by a never-seen input, as a spindle stage that starts after a fold's
+/// origin is).
+fn fold_excursions(g: &Grid, n_train: usize, horizon: usize) -> Vec<f64> {
+    let mut out = Vec::new();
+    for (o, stop) in folds(n_train, horizon) {
+        let ranges: Vec<[f64; 2]> = input_ranges(g, o)
+            .into_iter()
+            .map(|[lo, hi]| {
+                if hi > lo {
+                    [lo, hi]
+                } else {
+                    [f64::NEG_INFINITY, f64::INFINITY]
+                }
+            })
+            .collect();
+        let mut run = 0.0f64;
+        for k in o..stop {
+            run = run.max(excursion(g, &ranges, k));
+            if g.fresh[k] {
+                out.push(run);
+            }
+        }
     }
     out
 }
@@ -1120,6 +1528,15 @@ pub struct ChannelChoice {
     #[serde(default)]
     pub relax_h: Option<f64>,
     pub scores: Vec<FamilyScore>,
+    /// How the family was chosen (absent in model files written before it: there the grey
+    /// box takes over where an empirical family leaves its fit range).
+    #[serde(default)]
+    pub choice: Option<Choice>,
+    /// The family that serves beyond the fit data's range, fitted, and its relaxation.
+    #[serde(default)]
+    pub beyond_fitted: Option<Fitted>,
+    #[serde(default)]
+    pub beyond_relax_h: Option<f64>,
 }
 
 impl ChannelChoice {
@@ -1129,24 +1546,139 @@ impl ChannelChoice {
             .as_ref()
             .map_or((self.band68, self.band95), |b| b.at(horizon))
     }
+
+    /// Whether serving from `origin` needs the grey box's predictions.
+    pub fn needs_grey(&self) -> bool {
+        let uses = |f: &str| f == Family::GreyBox.as_str() || f == Family::Combination.as_str();
+        match &self.choice {
+            None => true,
+            Some(c) => {
+                uses(&self.family) || c.beyond.as_ref().is_some_and(|b| uses(b.family.as_str()))
+            }
+        }
+    }
+
+    /// What the channel serves at grid points `origin..end`, from the readings before
+    /// `origin` and the inputs as they happen: each point's value and what gave it. `grey`:
+    /// the grey box's free run over the same points and `grey_prev` its value at the last
+    /// reading (NaN where [`ChannelChoice::needs_grey`] is false). Inside the fit data's
+    /// range the inside choice serves, beyond it the beyond choice, and beyond what the CV
+    /// tested the last reading is held ([`Choice`]); once a point has left a regime the
+    /// rest of the run stays out of it (warm-up does not come back).
+    pub fn serve(
+        &self,
+        g: &Grid,
+        origin: usize,
+        end: usize,
+        grey: &[f64],
+        grey_prev: f64,
+    ) -> Vec<(f64, Served)> {
+        let end = end.min(g.len());
+        if origin == 0 || origin >= end {
+            return Vec::new();
+        }
+        let run = |f: &Fitted, relax_h: Option<f64>| -> Vec<f64> {
+            let mut p = simulate_with(f, g, origin, end, grey);
+            let r0 = origin_residual(f, g, origin, grey_prev);
+            for (h, v) in p.iter_mut().enumerate() {
+                *v += r0 * relax_weight(relax_h, h, self.step_ns);
+            }
+            p
+        };
+        let inside = run(&self.fitted, self.relax_h);
+        let beyond = self
+            .beyond_fitted
+            .as_ref()
+            .map(|f| run(f, self.beyond_relax_h));
+        let held = g.y[origin - 1];
+        let mut x = 0.0f64;
+        (origin..end)
+            .enumerate()
+            .map(|(i, k)| {
+                x = x.max(excursion(g, &self.ranges, k));
+                let at = |v: Option<&Vec<f64>>| v.and_then(|p| p.get(i)).copied();
+                match &self.choice {
+                    // A model file from before the regimes: the grey box beyond the range.
+                    None if x > RANGE_SLACK => (
+                        grey.get(i).copied().unwrap_or(held),
+                        Served::Beyond(Family::GreyBox),
+                    ),
+                    None => (inside[i], Served::Inside(self.family.clone())),
+                    Some(_) if x <= RANGE_SLACK => (inside[i], Served::Inside(self.family.clone())),
+                    // Beyond: the beyond choice where there is one (fitted), else the inside
+                    // family; a beyond family that could not be fitted holds the reading.
+                    Some(c) => match (c.beyond.as_ref(), at(beyond.as_ref())) {
+                        (None, _) => (inside[i], Served::Inside(self.family.clone())),
+                        (Some(b), Some(v)) => (v, Served::Beyond(b.family)),
+                        (Some(_), None) => (held, Served::Held),
+                    },
+                }
+            })
+            .collect()
+    }
 }
 
-/// A scored family fitted on grid points `0..end` (a combination with its CV weights).
-pub fn fit_scored(score: &FamilyScore, g: &Grid, end: usize) -> Option<Fitted> {
+/// The sources of a served run in words: the first, then each change with its time (h
+/// after the run's first grid point).
+pub fn describe_served(served: &[(f64, Served)], g: &Grid, origin: usize) -> String {
+    let mut out: Vec<String> = Vec::new();
+    let mut last: Option<&Served> = None;
+    for (i, (_, s)) in served.iter().enumerate() {
+        if last != Some(s) {
+            let h = units::ns_to_h(g.t_ns[origin + i] - g.t_ns[0]);
+            out.push(if last.is_none() {
+                s.to_string()
+            } else {
+                format!("{s} from {h:.2} h")
+            });
+            last = Some(s);
+        }
+    }
+    out.join(", then ")
+}
+
+/// What gave a served value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Served {
+    /// The inside choice (the channel's family), inputs within the fit data's range.
+    Inside(String),
+    /// The beyond choice, some input beyond the fit data's range.
+    Beyond(Family),
+    /// The last reading held: the beyond choice could not be fitted.
+    Held,
+}
+
+impl std::fmt::Display for Served {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Served::Inside(family) => write!(f, "{family}"),
+            Served::Beyond(family) => write!(f, "{} (beyond the fit range)", family.as_str()),
+            Served::Held => write!(
+                f,
+                "last reading held (the beyond choice could not be fitted)"
+            ),
+        }
+    }
+}
+
+/// A scored family fitted on grid points `0..end` (a combination with its CV weights), its
+/// inner choices made by CV at `horizon`.
+pub fn fit_scored(score: &FamilyScore, g: &Grid, end: usize, horizon: usize) -> Option<Fitted> {
     match Family::parse(&score.family)? {
         Family::Combination => {
             let mut parts = Vec::new();
             for (name, w) in &score.weights {
-                parts.push((fit_family(Family::parse(name)?, g, end)?, *w));
+                parts.push((fit_family(Family::parse(name)?, g, end, horizon)?, *w));
             }
             Some(Fitted::Combination { parts })
         }
-        family => fit_family(family, g, end),
+        family => fit_family(family, g, end, horizon),
     }
 }
 
 /// Run the competition on the training span (`train_end_ns`: all of the grid when it lies
-/// beyond it) and keep the chosen family, or `force` it. `None` when nothing could be fitted.
+/// beyond it) for a model used `horizon` grid steps ahead, and keep the chosen family, or
+/// `force` it. `None` when nothing could be fitted.
 pub fn choose(
     events: &[Event],
     g: &Grid,
@@ -1154,15 +1686,36 @@ pub fn choose(
     families: &[Family],
     grey: &ModelConfig,
     force: Option<Family>,
+    horizon: usize,
 ) -> Option<ChannelChoice> {
-    let scores = compete(events, g, train_end_ns, families, grey);
+    let (scores, mut choice) = compete(events, g, train_end_ns, families, grey, horizon);
     let pick = match force {
-        Some(f) => scores.iter().find(|s| s.family == f.as_str())?,
+        Some(f) => {
+            // A forced family serves in every regime.
+            choice.why = format!(
+                "{} forced (the CV would serve {})",
+                f.as_str(),
+                choice.family.as_str()
+            );
+            choice.family = f;
+            choice.inside.family = f;
+            choice.beyond = Some(RegimeChoice {
+                family: f,
+                ..choice.inside.clone()
+            });
+            choice.tested_excursion = f64::INFINITY;
+            scores.iter().find(|s| s.family == f.as_str())?
+        }
         None => scores.iter().find(|s| s.chosen)?,
     };
     let n_train = g.index_at(train_end_ns);
-    let fitted = fit_scored(pick, g, n_train)?;
+    let fitted = fit_scored(pick, g, n_train, horizon)?;
     let ranges = input_ranges(g, n_train);
+    let beyond = choice
+        .beyond
+        .as_ref()
+        .and_then(|b| scores.iter().find(|s| s.family == b.family.as_str()));
+    let beyond_fitted = beyond.and_then(|s| fit_scored(s, g, n_train, horizon));
     Some(ChannelChoice {
         channel: g.channel.clone(),
         family: pick.family.clone(),
@@ -1174,7 +1727,10 @@ pub fn choose(
         band95: pick.band95,
         bands: pick.bands.clone(),
         relax_h: pick.relax_h,
+        beyond_relax_h: beyond.and_then(|s| s.relax_h),
         scores,
+        choice: Some(choice),
+        beyond_fitted,
     })
 }
 
@@ -1259,10 +1815,40 @@ mod tests {
     }
 
     #[test]
+    fn folds_with_overlapping_windows_are_one_trial() {
+        assert_eq!(
+            independent_folds(&[(0, 10), (5, 15), (10, 20), (15, 25)]),
+            [1, 3]
+        );
+        assert_eq!(independent_folds(&[(0, 4), (4, 8), (8, 12)]), [0, 1, 2]);
+        assert_eq!(independent_folds(&folds(96, 72)).len(), 1);
+    }
+
+    #[test]
+    fn the_sign_test_asks_for_wins_chance_gives_under_five_percent() {
+        assert_eq!(sign_test_wins(8), Some(7));
+        assert_eq!(sign_test_wins(5), Some(5));
+        assert_eq!(sign_test_wins(4), None);
+        assert_eq!(sign_test_wins(10), Some(9));
+        assert_eq!(sign_test_wins(20), Some(15));
+    }
+
+    #[test]
     fn folds_chain_forward_and_cover_the_second_half() {
-        assert_eq!(folds(80), [40, 45, 50, 55, 60, 65, 70, 75].map(|o| (o, 80)));
-        assert_eq!(folds(8), [4, 5, 6, 7].map(|o| (o, 8)));
-        assert!(folds(1).is_empty());
+        // A short horizon: origins from half the span to where the horizon still fits.
+        assert_eq!(
+            folds(80, 8),
+            [40, 44, 49, 53, 58, 62, 67, 72].map(|o| (o, o + 8))
+        );
+        // A horizon longer than a quarter of the span: from half to three quarters, each
+        // fold to the end.
+        let long = folds(96, 72);
+        assert_eq!(long.first(), Some(&(48, 96)));
+        assert_eq!(long.last(), Some(&(72, 96)));
+        assert!(long.iter().all(|f| f.1 == 96), "{long:?}");
+        assert_eq!(tested_horizon(96, 72), 48);
+        assert_eq!(tested_horizon(80, 8), 8);
+        assert!(folds(1, 5).is_empty());
     }
 
     /// On a lagged plant the free-run ARX beats regression at the same time, both beat
@@ -1272,7 +1858,7 @@ mod tests {
         let ev = plant(3000, 2.0);
         let g = grid(&ev, "d", 5 * MIN).unwrap();
         let n_train = g.index_at(2000 * MIN);
-        assert_eq!(key_inputs(&g, n_train), [0]);
+        assert_eq!(key_inputs(&g, n_train, usize::MAX), [0]);
         let s = compete(
             &ev,
             &g,
@@ -1284,7 +1870,9 @@ mod tests {
                 Family::Arx,
             ],
             &grey_box_config(&g),
-        );
+            usize::MAX,
+        )
+        .0;
         let by = |f: Family| s.iter().find(|x| x.family == f.as_str()).unwrap();
         let arx = by(Family::Arx);
         assert!(arx.chosen, "{s:#?}");
@@ -1416,6 +2004,7 @@ mod tests {
             y: (0..50).map(|k| 1.1f64.powi(k)).collect(),
             names: vec!["u".into()],
             inputs: vec![vec![0.0; 50]],
+            fresh: vec![true; 50],
         };
         g.inputs[0][3] = 1.0;
         assert!(fit_arx(&g, 1, 2, &[0], 50).is_none());

@@ -6,6 +6,7 @@
 //! a given seed. The only I/O is `recording::mcap_io` (reading and writing MCAP files) and the
 //! loading of TOML descriptions by name or path (`source`). The theory is in docs/physics.md.
 
+pub mod across_runs;
 pub mod csv_import;
 pub mod cycle;
 pub mod error_name;
