@@ -457,7 +457,10 @@ fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
                     "{ch}: {} runs; chained CV RMSE (each run from the second on predicted whole from the runs before): {}",
                     refs.len(),
                     c.cv.iter()
-                        .map(|(f, e)| format!("{} {e:.3}", f.as_str()))
+                        .map(|(f, e)| match e {
+                            Some(e) => format!("{} {e:.3}", f.as_str()),
+                            None => format!("{} could not be run", f.as_str()),
+                        })
                         .collect::<Vec<_>>()
                         .join(", ")
                 );

@@ -1601,3 +1601,135 @@ fn bench_fleet_runs_machines_through_the_launched_service_and_reports_its_figure
         "{out}"
     );
 }
+
+/// fl-thermal cut into five runs of about nine hours (each run's time from 0) with a run
+/// column, ch3 and four temperatures: a thermal test of several days as a plant keeps it.
+fn fl_thermal_runs(path: &Path) {
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal/fl_thermal.csv"),
+    )
+    .unwrap();
+    let mut rd = csv::Reader::from_reader(text.as_bytes());
+    let h = rd.headers().unwrap().clone();
+    let col = |n: &str| h.iter().position(|x| x == n).unwrap();
+    let keep = ["t1_C", "t5_C", "t9_C", "t13_C", "ch3_um"].map(col);
+    let mut out = String::from("run,time_s,t1_C,t5_C,t9_C,t13_C,ch3_um\n");
+    let run_s = 9.0 * 3600.0;
+    for r in rd.records() {
+        let r = r.unwrap();
+        let t: f64 = r[col("time_s")].parse().unwrap();
+        let run = (t / run_s).floor() as usize;
+        if run >= 5 {
+            continue;
+        }
+        let cells: Vec<&str> = keep.iter().map(|&i| &r[i]).collect();
+        out.push_str(&format!(
+            "day{run},{},{}\n",
+            t - run as f64 * run_s,
+            cells.join(",")
+        ));
+    }
+    std::fs::write(path, out).unwrap();
+}
+
+/// Several runs in one table: `import csv --run-column` writes one recording per run, `fit
+/// --runs` learns across the first four (forward chaining over whole runs, least squares on
+/// the changes since each run's start as the baseline) and `predict --new-run` predicts the
+/// fifth whole from its first reading, better than holding that reading; `bench thermal
+/// --data` reads the same table from a manifest and reports it within and across runs.
+#[test]
+fn a_thermal_test_of_several_runs_is_learnt_across_runs_and_a_new_run_predicted_from_its_start() {
+    let dir = tmp("runs");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let csv_path = dir.join("runs.csv");
+    fl_thermal_runs(&csv_path);
+    let recs = dir.join("recs");
+    let (ok, out, err) = run(&[
+        "import",
+        "csv",
+        "--in",
+        csv_path.to_str().unwrap(),
+        "--out",
+        recs.to_str().unwrap(),
+        "--time-column",
+        "time_s",
+        "--run-column",
+        "run",
+        "--temperature-columns",
+        "t1_C,t5_C,t9_C,t13_C",
+        "--displacement-columns",
+        "ch3_um",
+    ]);
+    assert!(ok, "{out}{err}");
+    let runs: Vec<String> = (0..5)
+        .map(|i| {
+            recs.join(format!("day{i}.mcap"))
+                .to_str()
+                .unwrap()
+                .to_string()
+        })
+        .collect();
+    assert!(runs.iter().all(|r| Path::new(r).exists()), "{out}");
+    let model = dir.join("model.json");
+    let mut args = vec![
+        "fit",
+        "--runs",
+        "--out",
+        model.to_str().unwrap(),
+        "--recording",
+    ];
+    args.extend(runs[..4].iter().map(String::as_str));
+    let (ok, out, err) = run(&args);
+    assert!(ok, "{out}{err}");
+    assert!(
+        out.contains("ch3_um: 4 runs") && out.contains("served:"),
+        "{out}"
+    );
+    let (ok, out, err) = run(&[
+        "predict",
+        "--new-run",
+        "--model",
+        model.to_str().unwrap(),
+        "--recording",
+        &runs[4],
+    ]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("predicted ("), "{out}");
+    // "RMSE a (first reading held b)"
+    let figure = |after: &str| -> f64 {
+        let i = err.find(after).unwrap_or_else(|| panic!("{err}")) + after.len();
+        err[i..]
+            .split(|c: char| c == ' ' || c == ')')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let (served, held) = (figure("RMSE "), figure("first reading held "));
+    assert!(served < held, "{err}");
+    // The same table as a data set.
+    std::fs::write(
+        dir.join("manifest.toml"),
+        "name = \"fl-thermal in runs\"\ncsv = \"runs.csv\"\nrun = \"run\"\ntime = \"time_s\"\n\
+         temperatures = [\"t1_C\", \"t5_C\", \"t9_C\", \"t13_C\"]\ndisplacements = [\"ch3_um\"]\nstep_min = 5.0\n",
+    )
+    .unwrap();
+    let (ok, out, err) = run(&[
+        "bench",
+        "thermal",
+        "--data",
+        dir.to_str().unwrap(),
+        "--no-simulated",
+        "--json",
+    ]);
+    assert!(ok, "{out}{err}");
+    let v: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["within"].as_array().unwrap().len(), 5, "{out}");
+    assert_eq!(v["across"].as_array().unwrap().len(), 4, "{out}");
+    for row in v["across"].as_array().unwrap() {
+        // Too few earlier runs for a challenger: pooled least squares is what is served.
+        assert_eq!(row["served"], "regression", "{row}");
+        assert_eq!(row["served_rmse"], row["regression"], "{row}");
+    }
+}

@@ -247,8 +247,8 @@ pub struct RunsChoice {
     /// Each input's change since its run's start over the fit runs: a new run whose changes
     /// leave it is beyond what was learnt.
     pub change_ranges: Vec<[f64; 2]>,
-    /// Each family's chained CV RMSE over the fit runs (NaN where it could not be run).
-    pub cv: Vec<(Family, f64)>,
+    /// Each family's chained CV RMSE over the fit runs (none where it could not be run).
+    pub cv: Vec<(Family, Option<f64>)>,
     pub fold_wins: usize,
     pub folds: usize,
     pub why: String,
@@ -262,9 +262,16 @@ pub fn choose(runs: &[&Grid]) -> Option<RunsChoice> {
         .iter()
         .map(|&f| (f, chained_errors(f, runs, &inputs)))
         .collect();
-    let cv: Vec<(Family, f64)> = chains
+    let cv: Vec<(Family, Option<f64>)> = chains
         .iter()
-        .map(|(f, e)| (*f, e.as_ref().map_or(f64::NAN, |e| rms(&e.concat()))))
+        .map(|(f, e)| {
+            (
+                *f,
+                e.as_ref()
+                    .map(|e| rms(&e.concat()))
+                    .filter(|v| v.is_finite()),
+            )
+        })
         .collect();
     let of = |f: Family| chains.iter().find(|c| c.0 == f).and_then(|c| c.1.as_ref());
     let baseline = if of(Family::Regression).is_some() {
@@ -274,7 +281,7 @@ pub fn choose(runs: &[&Grid]) -> Option<RunsChoice> {
     };
     let best = cv
         .iter()
-        .filter(|c| c.1.is_finite())
+        .filter_map(|(f, e)| e.map(|e| (*f, e)))
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map_or(baseline, |c| c.0);
     let (wins, folds) = match (of(best), of(baseline)) {
