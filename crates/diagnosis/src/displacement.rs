@@ -26,6 +26,9 @@ use crate::lsq::lsq;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
 use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
+mod located;
+pub use located::{LOCATED_TAUS_MIN, LocatedTerm, MIN_AFTER_ONSET_H, NotConfirmed, RAMP_R};
+
 #[derive(Debug, thiserror::Error)]
 pub enum DisplacementError {
     #[error("no displacement readings")]
@@ -445,6 +448,10 @@ pub struct ChannelDiagnosis {
     pub transients: Vec<Transient>,
     /// What the final model leaves, located (none without readings).
     pub unexplained: Option<Unexplained>,
+    /// What the forward selection left, located, tied to a temperature and made a term:
+    /// accepted into the final model (then also in `accepted`) or not confirmed, with the
+    /// reason. None when nothing was tied to a temperature.
+    pub located_term: Option<LocatedTerm>,
     /// Candidates that could be scored at all (a singular design drops one before scoring).
     pub candidates_tested: usize,
     /// The surrogate bar of each selection step (delta-BIC), where one was computed.
@@ -1102,7 +1109,12 @@ fn diagnose_channel(
         candidates_tested,
         surrogate_bars,
     } = select(&design, &cands, &base_cols, k0, channel, opts);
-    let mf = design.matrix(&chosen, &base_cols);
+    // What the selection leaves, tied to a temperature and made a term.
+    let located_term = located::located_term(
+        &design, &base_cols, &chosen, &t_min, &temps_now, channel, opts,
+    );
+    let final_cols = final_columns(&design, &base_cols, &chosen, &located_term, &mut accepted);
+    let mf = design.matrix(&chosen, &final_cols);
     let (final_pred, final_fit) = design.fit(&mf);
     let final_resid: Vec<f64> = (0..keep.len())
         .map(|i| design.y[i] - final_pred[i])
@@ -1122,6 +1134,12 @@ fn diagnose_channel(
             overshoots,
         );
     }
+    accepted.extend(
+        located_term
+            .iter()
+            .filter(|l| l.accepted)
+            .map(LocatedTerm::as_term),
+    );
 
     let mut d = ChannelDiagnosis {
         channel: channel.to_string(),
@@ -1134,6 +1152,7 @@ fn diagnose_channel(
         periodic,
         transients,
         unexplained,
+        located_term,
         candidates_tested,
         surrogate_bars,
         accepted,
@@ -1148,6 +1167,26 @@ fn diagnose_channel(
     };
     d.statements = statements_of(&d, changes, baseline_name, opts);
     Ok(d)
+}
+
+/// The columns of the final model beside the chosen candidates: the baseline's, and the
+/// located term's when it is accepted (then every accepted term's held-out figures are
+/// recomputed on that model).
+fn final_columns(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    chosen: &[usize],
+    located: &Option<LocatedTerm>,
+    accepted: &mut [Term],
+) -> Vec<Vec<f64>> {
+    match located.as_ref().filter(|l| l.accepted) {
+        Some(l) => {
+            let cols: Vec<Vec<f64>> = base_cols.iter().cloned().chain([l.x.clone()]).collect();
+            heldout_figures(design, &cols, chosen, accepted);
+            cols
+        }
+        None => base_cols.to_vec(),
+    }
 }
 
 /// What the final fit (`final_fit`, residuals `final_resid` at `t_min`) leaves: where it
@@ -1426,9 +1465,15 @@ fn statements_of(
             }
         ));
     }
-    // Only a drift that stands out over no change is worth a statement.
+    // The located term is the one statement of the drift it models (accepted, it is among
+    // the accepted terms above); without one, the onset is, when it stands out over no
+    // change.
+    if let Some(l) = d.located_term.as_ref().filter(|l| !l.accepted) {
+        statements.push(l.statement.clone());
+    }
     if let Some(o) = unexplained
         .as_ref()
+        .filter(|_| d.located_term.is_none())
         .and_then(|u| u.onset.as_ref())
         .filter(|o| o.delta_bic >= 10.0)
     {
@@ -1495,15 +1540,34 @@ fn judge(
     phi: &[f64],
     opts: &DisplacementOptions,
 ) -> Judged {
-    let m2 = design.matrix(cols, base_cols);
-    let (mw2, yw2) = design.whiten(&m2, phi);
+    judge_column(
+        design,
+        &cand.x,
+        m,
+        &design.matrix(cols, base_cols),
+        phi,
+        opts,
+    )
+}
+
+/// The rules of [`judge`] for a column `xs` (on every row) that is the last of the model
+/// `m2`, `m` being the model without it: shared by the forward selection and the located
+/// term, so that both meet the same rules.
+fn judge_column(
+    design: &Design,
+    xs: &[f64],
+    m: &DMatrix<f64>,
+    m2: &DMatrix<f64>,
+    phi: &[f64],
+    opts: &DisplacementOptions,
+) -> Judged {
+    let (mw2, yw2) = design.whiten(m2, phi);
     let f = lsq(&mw2, &yw2);
     let p = m2.ncols();
     let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
     let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
     let t = f.beta[p - 1] / sd;
-    let (wins, overall) = design.blocks_improved(m, &m2);
-    let xs = &cand.x;
+    let (wins, overall) = design.blocks_improved(m, m2);
     let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
         - xs.iter().copied().fold(f64::INFINITY, f64::min);
     let footprint = (f.beta[p - 1] * range).abs();
