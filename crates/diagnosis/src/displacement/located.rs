@@ -9,11 +9,11 @@
 //! that would split it. Without an onset, a temperature that follows the residual's largest
 //! departure is tried un-gated, with the same lags.
 
+use super::scoring::ColumnScorer;
 use super::{
     Design, DisplacementOptions, Judged, ModelInput, Term, judge_column, locate_departure,
     locate_onset,
 };
-use nalgebra::{DMatrix, DVector};
 use rand::SeedableRng;
 use serde::Serialize;
 
@@ -116,46 +116,6 @@ fn gated(x: &[f64], k: Option<usize>) -> Vec<f64> {
     }
 }
 
-/// The final model whitened once, to score columns added to it as the forward selection
-/// does (`N ln(SSE0 / SSE1) - ln N` on the whitened training rows).
-struct Whitened<'a> {
-    design: &'a Design<'a>,
-    phi: Vec<f64>,
-    q: DMatrix<f64>,
-    resid: DVector<f64>,
-    sse0: f64,
-    n_w: f64,
-}
-
-impl<'a> Whitened<'a> {
-    fn new(design: &'a Design<'a>, m: &DMatrix<f64>) -> Self {
-        let (phi, mw, yw, _) = design.whitened(m);
-        let q = mw.qr().q();
-        let resid = &yw - &q * (q.transpose() * &yw);
-        Whitened {
-            design,
-            phi,
-            q,
-            sse0: resid.norm_squared(),
-            resid,
-            n_w: yw.len() as f64,
-        }
-    }
-
-    /// Delta-BIC of a column given on the training rows, with `extra` located parameters
-    /// (the onset, the lag) charged `ln N` each.
-    fn delta_bic(&self, x_train: &[f64], extra: usize) -> f64 {
-        let xw = self.design.whiten_train(x_train, &self.phi);
-        let xp = &xw - &self.q * (self.q.transpose() * &xw);
-        let xx = xp.norm_squared();
-        if xx <= 1e-12 * xw.norm_squared().max(1e-300) {
-            return f64::NEG_INFINITY;
-        }
-        let sse = (self.sse0 - self.resid.dot(&xp).powi(2) / xx).max(1e-300);
-        self.n_w * (self.sse0 / sse).ln() - (1 + extra) as f64 * self.n_w.ln()
-    }
-}
-
 /// Other sensors that follow the residual `rt` within delta-BIC 10 of sensor `s`, in its
 /// shape (gated at `gate`), on the onset search's own scale: an offset and the temperature's
 /// change, the samples counted as `n (1 - r) / (1 + r)` independent ones (`r` the lag-1
@@ -204,21 +164,41 @@ fn comparable(
     out
 }
 
-/// The located sensor's best lag and its score.
+/// The located candidate: the sensor, its lag, its score and the AR coefficients it was
+/// scored with.
 struct Pick {
+    sensor: usize,
     tau: f64,
     score: f64,
+    phi: Vec<f64>,
 }
 
-/// The best score of sensor `x` (on the training rows, times `tt`) through each lag, gated
-/// at training row `gate`, against the whitened final model: `(score, lag)`.
-fn best_lag(w: &Whitened, tt: &[f64], x: &[f64], gate: Option<usize>) -> (f64, f64) {
-    let mut best = (f64::NEG_INFINITY, 0.0);
-    for tau in LOCATED_TAUS_MIN {
-        let extra = usize::from(gate.is_some()) + usize::from(tau > 0.0);
-        let score = w.delta_bic(&gated(&lagged(tt, x, tau), gate), extra);
-        if score > best.0 {
-            best = (score, tau);
+/// The best lag of sensor `x` (on the training rows, times `tt`), gated at training row
+/// `gate`, added to the final model of `w`. The sensor is the one the onset search named:
+/// scored as a term (whitened) against every other sensor it would pick one for whatever
+/// fast swing of the residual it shares, not for following the drift (fl-thermal's t16_C
+/// over an injected t11_C drift).
+fn best_pick(
+    w: &ColumnScorer,
+    tt: &[f64],
+    (sensor, x): (usize, &[f64]),
+    gate: Option<usize>,
+) -> Option<Pick> {
+    let mut best: Option<Pick> = None;
+    {
+        for tau in LOCATED_TAUS_MIN {
+            let extra = usize::from(gate.is_some()) + usize::from(tau > 0.0);
+            let Some(s) = w.score(&gated(&lagged(tt, x, tau), gate), extra) else {
+                continue;
+            };
+            if best.as_ref().is_none_or(|b| s.delta_bic > b.score) {
+                best = Some(Pick {
+                    sensor,
+                    tau,
+                    score: s.delta_bic,
+                    phi: s.phi,
+                });
+            }
         }
     }
     best
@@ -258,7 +238,7 @@ fn onset_row(tt: &[f64], at_h: f64) -> usize {
 /// replicates, of the located term's score when every temperature is phase-randomised (same
 /// spectrum, no relation to the readings) and the residual located and tied again on them.
 fn surrogate_bar(
-    w: &Whitened,
+    w: &ColumnScorer,
     tt: &[f64],
     rt: &[f64],
     temps: &[Vec<f64>],
@@ -280,16 +260,19 @@ fn surrogate_bar(
         let Some((s, gate)) = tie(tt, rt, &sur, structured) else {
             continue;
         };
-        bar = bar.max(best_lag(w, tt, &sur[s].1, gate).0);
+        if let Some(p) = best_pick(w, tt, (s, &sur[s].1), gate) {
+            bar = bar.max(p.score);
+        }
     }
     bar
 }
 
-/// The located term of one channel: the residual of the final model (`chosen` on
+/// The located candidate of one channel: the residual of the selection's model (`chosen` on
 /// `base_cols`) located on the training rows and tied to a temperature of `temps` (every
-/// thinned reading), made a candidate, fitted and judged. None when nothing is tied to a
-/// temperature.
-pub(super) fn located_term(
+/// thinned reading), made a candidate, fitted and judged against that model (its held-out
+/// figures are settled with the held-out veto, then [`verdict`] gives the term). None when
+/// nothing is tied to a temperature.
+pub(super) fn locate(
     design: &Design,
     base_cols: &[Vec<f64>],
     chosen: &[usize],
@@ -297,7 +280,7 @@ pub(super) fn located_term(
     temps: &[(String, Vec<f64>)],
     channel: &str,
     opts: &DisplacementOptions,
-) -> Option<LocatedTerm> {
+) -> Option<Found> {
     let m = design.matrix(chosen, base_cols);
     let final_fit = design.fit(&m).1;
     let beta = design.ols(&m, &design.train);
@@ -315,14 +298,10 @@ pub(super) fn located_term(
     // the term; without one, a temperature that follows the largest departure of a
     // structured residual is tried un-gated.
     let structured = final_fit.ar1 > 0.5 && final_fit.ljung_box_p < 0.01;
-    let (sensor, gate) = tie(&tt, &rt, &temps_t, structured)?;
-    let w = Whitened::new(design, &m);
-    let xs: Vec<Vec<f64>> = temps_t.iter().map(|t| t.1.clone()).collect();
-    let (score, tau) = best_lag(&w, &tt, &xs[sensor], gate);
-    let best = Pick { tau, score };
-    if !best.score.is_finite() {
-        return None;
-    }
+    let (s, gate) = tie(&tt, &rt, &temps_t, structured)?;
+    let w = ColumnScorer::new(design, &m, opts.located_noise);
+    let best = best_pick(&w, &tt, (s, &temps_t[s].1), gate)?;
+    let sensor = best.sensor;
     let bar = if opts.surrogates == 0 || best.score < opts.min_delta_bic {
         opts.min_delta_bic
     } else {
@@ -331,6 +310,7 @@ pub(super) fn located_term(
             ^ channel
                 .bytes()
                 .fold(0u64, |h, b| h.wrapping_mul(31).wrapping_add(b as u64));
+        let xs: Vec<Vec<f64>> = temps_t.iter().map(|t| t.1.clone()).collect();
         surrogate_bar(&w, &tt, &rt, &xs, structured, seed, opts)
     };
     // The candidate on every reading: the lag runs on through the held-out end (a causal
@@ -339,7 +319,7 @@ pub(super) fn located_term(
     let x = gated(&lagged(t_min, &temps[sensor].1, best.tau), k_all);
     let mut m2 = m.clone().insert_column(m.ncols(), 0.0);
     m2.column_mut(m.ncols()).copy_from_slice(&x);
-    let judged = judge_column(design, &x, &m, &m2, &w.phi, opts);
+    let judged = judge_column(design, &x, &m, &m2, &best.phi, opts);
     let before = design.fit(&m).1.rms_heldout_um;
     let after = design.fit(&m2).1.rms_heldout_um;
     let comparable = comparable(&rt, &temps_t, sensor, gate);
@@ -361,23 +341,31 @@ pub(super) fn located_term(
         blocks: design.blocks.len(),
         x,
     };
-    Some(verdict(design, t_min, found, channel, opts))
+    Some(found)
+}
+
+/// Whether a located candidate passes every rule before the held-out veto: the bar and
+/// [`judge_column`]'s.
+pub(super) fn passes_before_veto(f: &Found) -> bool {
+    f.score >= f.bar && f.judged.reason.is_none()
 }
 
 /// The chosen candidate's figures, before the verdict.
-struct Found {
+pub(super) struct Found {
     sensor: String,
     tau: f64,
     onset_min: Option<f64>,
     score: f64,
     bar: f64,
     judged: Judged,
-    before: f64,
-    after: f64,
+    /// Held-out RMS of the final model without it and with it (set once the veto settled
+    /// that model).
+    pub before: f64,
+    pub after: f64,
     ramp_r: f64,
     comparable: Vec<(String, f64)>,
     blocks: usize,
-    x: Vec<f64>,
+    pub x: Vec<f64>,
 }
 
 /// The rule a located candidate fails, in the forward selection's order (the bar, then
@@ -442,7 +430,7 @@ fn shortfall(
 
 /// Accepted, or not confirmed with the reason and the recording that would split it; the
 /// one statement of the located term.
-fn verdict(
+pub(super) fn verdict(
     design: &Design,
     t_min: &[f64],
     f: Found,
