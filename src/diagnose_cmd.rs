@@ -355,7 +355,31 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         }
     }
     for n in &d.not_carried {
-        println!("not carried into the model (a clock term): {n}");
+        println!(
+            "not carried into the model (a clock term, or a drift gated at an onset the thermal model has no input for): {n}"
+        );
+    }
+    for c in &d.channels {
+        if let Some(l) = &c.located_term {
+            println!(
+                "{}: located term {}: held-out RMS {:.2} -> {:.2} um, {}",
+                c.channel,
+                l.term,
+                l.heldout_before_um,
+                l.heldout_after_um,
+                if l.accepted {
+                    "accepted into the final model".to_string()
+                } else {
+                    format!(
+                        "not confirmed{}",
+                        l.split_by
+                            .as_ref()
+                            .map(|s| format!("; what would split it: {s}"))
+                            .unwrap_or_default()
+                    )
+                }
+            );
+        }
     }
     println!(
         "wrote {} and {}; {model_note}",

@@ -26,6 +26,11 @@ use crate::lsq::lsq;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
 use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
+mod located;
+mod scoring;
+pub use located::{LOCATED_TAUS_MIN, LocatedTerm, MIN_AFTER_ONSET_H, NotConfirmed, RAMP_R};
+pub use scoring::NoiseModel;
+
 #[derive(Debug, thiserror::Error)]
 pub enum DisplacementError {
     #[error("no displacement readings")]
@@ -63,6 +68,11 @@ pub struct DisplacementOptions {
     /// Largest order of the AR noise model the acceptance whitens with; the order is chosen
     /// by BIC on the residual up to it (1: AR(1), as before issue 14).
     pub ar_max: usize,
+    /// Where the AR noise model a candidate of the forward selection is scored with comes
+    /// from ([`NoiseModel`]).
+    pub noise: NoiseModel,
+    /// The same for the located term.
+    pub located_noise: NoiseModel,
     /// The folds a term must improve: rolling origins (fit on what came before, predict the
     /// rest of the training span), or leave-one-block-out blocks (as before issue 14).
     pub rolling_origin: bool,
@@ -87,6 +97,8 @@ impl DisplacementOptions {
     pub fn before_issue_14() -> Self {
         DisplacementOptions {
             ar_max: 1,
+            noise: NoiseModel::WithoutCandidate,
+            located_noise: NoiseModel::WithoutCandidate,
             rolling_origin: false,
             heldout_veto: false,
             surrogates: 0,
@@ -111,6 +123,8 @@ impl Default for DisplacementOptions {
             band_min: (10.0, 60.0),
             min_overshoot_um: 1.5,
             ar_max: 4,
+            noise: NoiseModel::WithoutCandidate,
+            located_noise: NoiseModel::Profile,
             rolling_origin: true,
             heldout_veto: true,
             surrogates: 39,
@@ -445,6 +459,10 @@ pub struct ChannelDiagnosis {
     pub transients: Vec<Transient>,
     /// What the final model leaves, located (none without readings).
     pub unexplained: Option<Unexplained>,
+    /// What the forward selection left, located, tied to a temperature and made a term:
+    /// accepted into the final model (then also in `accepted`) or not confirmed, with the
+    /// reason. None when nothing was tied to a temperature.
+    pub located_term: Option<LocatedTerm>,
     /// Candidates that could be scored at all (a singular design drops one before scoring).
     pub candidates_tested: usize,
     /// The surrogate bar of each selection step (delta-BIC), where one was computed.
@@ -646,11 +664,7 @@ impl Design<'_> {
         let beta = self.ols(m, &self.train);
         let pred = m * &beta;
         let e: Vec<f64> = self.train.iter().map(|&i| self.y[i] - pred[i]).collect();
-        let phi = if self.ar_max <= 1 {
-            vec![ar1(&e)]
-        } else {
-            ar_by_bic(&e, self.ar_max)
-        };
+        let phi = self.ar_of(&e);
         let (mw, yw) = self.whiten(m, &phi);
         let sse = lsq(&mw, &yw).chi2;
         (phi, mw, yw, sse)
@@ -673,54 +687,6 @@ impl Design<'_> {
             ljung_box_p: driftwatch_core::stats::ljung_box(&e, 10).map_or(f64::NAN, |l| l.p_value),
         };
         (pred, fit)
-    }
-
-    /// The training rows of a column given on them, whitened as `whiten` does.
-    fn whiten_train(&self, x: &[f64], phi: &[f64]) -> DVector<f64> {
-        let rows: Vec<usize> = (self.ar_max.max(1)..self.train.len()).collect();
-        DVector::from_fn(rows.len(), |r, _| {
-            let k = rows[r];
-            x[k] - phi
-                .iter()
-                .enumerate()
-                .map(|(l, p)| p * x[k - 1 - l])
-                .sum::<f64>()
-        })
-    }
-
-    /// The highest over `k` replicates of the best delta-BIC that phase-randomised copies
-    /// of candidates `cols` reach when added to the whitened design `mw` (readings `yw`).
-    fn surrogate_bar(
-        &self,
-        mw: &DMatrix<f64>,
-        yw: &DVector<f64>,
-        phi: &[f64],
-        cols: &[usize],
-        k: usize,
-        rng: &mut impl rand::Rng,
-    ) -> f64 {
-        let q = mw.clone().qr().q();
-        let resid = yw - &q * (q.transpose() * yw);
-        let sse0 = resid.norm_squared();
-        let n_w = yw.len() as f64;
-        let mut best = Vec::with_capacity(k);
-        for _ in 0..k {
-            let mut top = f64::NEG_INFINITY;
-            for &j in cols {
-                let x: Vec<f64> = self.train.iter().map(|&i| self.cands[j].x[i]).collect();
-                let xw = self.whiten_train(&crate::surrogates::phase_randomised(&x, rng), phi);
-                let xp = &xw - &q * (q.transpose() * &xw);
-                let xx = xp.norm_squared();
-                if xx <= 1e-12 * xw.norm_squared().max(1e-300) {
-                    continue;
-                }
-                let gain = resid.dot(&xp).powi(2) / xx;
-                let sse = (sse0 - gain).max(1e-300);
-                top = top.max(n_w * (sse0 / sse).ln() - n_w.ln());
-            }
-            best.push(top);
-        }
-        best.into_iter().fold(f64::NEG_INFINITY, f64::max)
     }
 
     /// The folds in which `m2` predicts better than `m` (each fitted on the fold's fit rows,
@@ -1095,14 +1061,40 @@ fn diagnose_channel(
         .collect();
     let periodic = periodic_of(&design.train, &t_min, &resid, &temps_now, opts);
 
+    let mut sel = select(&design, &cands, &base_cols, k0, channel, opts);
+    // The selection's own veto first: the located search works on what its final model
+    // leaves (located on the model before the veto, a late drift is sought in the misfit
+    // of terms the veto drops, and fl-thermal's injected t11_C drift was tied to t4_C).
+    if opts.heldout_veto {
+        veto(
+            &design,
+            &base_cols,
+            &mut sel.chosen,
+            &mut sel.accepted,
+            &mut sel.refused,
+        );
+    }
+    // What the selection leaves, tied to a temperature and made a term; then the held-out
+    // veto over the model with it.
+    let found = located::locate(
+        &design,
+        &base_cols,
+        &sel.chosen,
+        &t_min,
+        &temps_now,
+        channel,
+        opts,
+    );
+    let located_term = settle(&design, &base_cols, &mut sel, found, &t_min, channel, opts);
     let Selection {
         chosen,
         mut accepted,
         refused,
         candidates_tested,
         surrogate_bars,
-    } = select(&design, &cands, &base_cols, k0, channel, opts);
-    let mf = design.matrix(&chosen, &base_cols);
+    } = sel;
+    let final_cols = final_columns(&design, &base_cols, &chosen, &located_term, &mut accepted);
+    let mf = design.matrix(&chosen, &final_cols);
     let (final_pred, final_fit) = design.fit(&mf);
     let final_resid: Vec<f64> = (0..keep.len())
         .map(|i| design.y[i] - final_pred[i])
@@ -1122,6 +1114,12 @@ fn diagnose_channel(
             overshoots,
         );
     }
+    accepted.extend(
+        located_term
+            .iter()
+            .filter(|l| l.accepted)
+            .map(LocatedTerm::as_term),
+    );
 
     let mut d = ChannelDiagnosis {
         channel: channel.to_string(),
@@ -1134,6 +1132,7 @@ fn diagnose_channel(
         periodic,
         transients,
         unexplained,
+        located_term,
         candidates_tested,
         surrogate_bars,
         accepted,
@@ -1148,6 +1147,29 @@ fn diagnose_channel(
     };
     d.statements = statements_of(&d, changes, baseline_name, opts);
     Ok(d)
+}
+
+/// The columns of the final model beside the chosen candidates: the baseline's, and the
+/// located term's when it is accepted (then every accepted term's held-out figures are
+/// recomputed on that model).
+fn final_columns(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    chosen: &[usize],
+    located: &Option<LocatedTerm>,
+    accepted: &mut [Term],
+) -> Vec<Vec<f64>> {
+    match located.as_ref().filter(|l| l.accepted) {
+        Some(l) => {
+            let cols: Vec<Vec<f64>> = base_cols.iter().cloned().chain([l.x.clone()]).collect();
+            heldout_figures(design, &cols, chosen, accepted);
+            cols
+        }
+        None => {
+            heldout_figures(design, base_cols, chosen, accepted);
+            base_cols.to_vec()
+        }
+    }
 }
 
 /// What the final fit (`final_fit`, residuals `final_resid` at `t_min`) leaves: where it
@@ -1426,9 +1448,15 @@ fn statements_of(
             }
         ));
     }
-    // Only a drift that stands out over no change is worth a statement.
+    // The located term is the one statement of the drift it models (accepted, it is among
+    // the accepted terms above); without one, the onset is, when it stands out over no
+    // change.
+    if let Some(l) = d.located_term.as_ref().filter(|l| !l.accepted) {
+        statements.push(l.statement.clone());
+    }
     if let Some(o) = unexplained
         .as_ref()
+        .filter(|_| d.located_term.is_none())
         .and_then(|u| u.onset.as_ref())
         .filter(|o| o.delta_bic >= 10.0)
     {
@@ -1495,15 +1523,34 @@ fn judge(
     phi: &[f64],
     opts: &DisplacementOptions,
 ) -> Judged {
-    let m2 = design.matrix(cols, base_cols);
-    let (mw2, yw2) = design.whiten(&m2, phi);
+    judge_column(
+        design,
+        &cand.x,
+        m,
+        &design.matrix(cols, base_cols),
+        phi,
+        opts,
+    )
+}
+
+/// The rules of [`judge`] for a column `xs` (on every row) that is the last of the model
+/// `m2`, `m` being the model without it: shared by the forward selection and the located
+/// term, so that both meet the same rules.
+fn judge_column(
+    design: &Design,
+    xs: &[f64],
+    m: &DMatrix<f64>,
+    m2: &DMatrix<f64>,
+    phi: &[f64],
+    opts: &DisplacementOptions,
+) -> Judged {
+    let (mw2, yw2) = design.whiten(m2, phi);
     let f = lsq(&mw2, &yw2);
     let p = m2.ncols();
     let s2 = f.chi2 / yw2.len().saturating_sub(p).max(1) as f64;
     let sd = (f.cov[(p - 1, p - 1)] * s2).sqrt();
     let t = f.beta[p - 1] / sd;
-    let (wins, overall) = design.blocks_improved(m, &m2);
-    let xs = &cand.x;
+    let (wins, overall) = design.blocks_improved(m, m2);
     let range = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)
         - xs.iter().copied().fold(f64::INFINITY, f64::min);
     let footprint = (f.beta[p - 1] * range).abs();
@@ -1574,7 +1621,7 @@ fn select(
         n_w,
         ln_n: (n_w as f64).ln(),
         m: DMatrix::zeros(0, 0),
-        phi: Vec::new(),
+        phis: Vec::new(),
         scored: Vec::new(),
         bar: opts.min_delta_bic,
         accepted: Vec::new(),
@@ -1587,23 +1634,14 @@ fn select(
         tries: 10,
         min_worth: opts.min_delta_bic,
     };
-    let mut chosen = stepwise(&mut scoring, &rules);
+    let chosen = stepwise(&mut scoring, &rules);
     let DisplacementScoring {
-        mut accepted,
-        mut refused,
+        accepted,
+        refused,
         candidates_tested,
         surrogate_bars,
         ..
     } = scoring;
-    if opts.heldout_veto {
-        veto(design, base_cols, &mut chosen, &mut accepted, &mut refused);
-    }
-    heldout_figures(design, base_cols, &chosen, &mut accepted);
-    // One entry per candidate: its last refusal, none for what was accepted.
-    let mut seen = std::collections::BTreeSet::new();
-    refused.reverse();
-    refused.retain(|r| !accepted.iter().any(|a| a.term == r.term) && seen.insert(r.term.clone()));
-    refused.reverse();
     Selection {
         chosen,
         accepted,
@@ -1611,6 +1649,70 @@ fn select(
         candidates_tested,
         surrogate_bars,
     }
+}
+
+/// The final model: the located candidate `found` (searched on what the selection leaves)
+/// joins it if it passes every rule and the held-out veto, applied to the model with it,
+/// keeps it (a term of the selection that only the located one makes pay is not dropped
+/// before the located one is tried); the veto then drops any term, the located one
+/// included, that worsens the held-out end. Each term's held-out figures are those of the
+/// final model without it and with it; one entry per refused candidate (its last refusal).
+#[allow(clippy::too_many_arguments)]
+fn settle(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    sel: &mut Selection,
+    found: Option<located::Found>,
+    t_min: &[f64],
+    channel: &str,
+    opts: &DisplacementOptions,
+) -> Option<LocatedTerm> {
+    let held =
+        |cols: &[usize], base: &[Vec<f64>]| design.fit(&design.matrix(cols, base)).1.rms_heldout_um;
+    let veto_on = |base: &[Vec<f64>], sel: &mut Selection| {
+        if opts.heldout_veto {
+            veto(
+                design,
+                base,
+                &mut sel.chosen,
+                &mut sel.accepted,
+                &mut sel.refused,
+            );
+        }
+    };
+    let located = found.map(|mut f| {
+        let with: Vec<Vec<f64>> = base_cols.iter().cloned().chain([f.x.clone()]).collect();
+        let mut trial = Selection {
+            chosen: sel.chosen.clone(),
+            accepted: sel.accepted.clone(),
+            refused: sel.refused.clone(),
+            candidates_tested: sel.candidates_tested,
+            surrogate_bars: Vec::new(),
+        };
+        veto_on(&with, &mut trial);
+        let (before, after) = (held(&trial.chosen, base_cols), held(&trial.chosen, &with));
+        if located::passes_before_veto(&f) && (after <= before || !opts.heldout_veto) {
+            sel.chosen = trial.chosen;
+            sel.accepted = trial.accepted;
+            sel.refused = trial.refused;
+        } else {
+            veto_on(base_cols, sel);
+        }
+        f.before = held(&sel.chosen, base_cols);
+        f.after = held(&sel.chosen, &with);
+        located::verdict(design, t_min, f, channel, opts)
+    });
+    if located.is_none() {
+        veto_on(base_cols, sel);
+    }
+    // One entry per candidate: its last refusal, none for what was accepted.
+    let accepted = &sel.accepted;
+    let mut seen = std::collections::BTreeSet::new();
+    sel.refused.reverse();
+    sel.refused
+        .retain(|r| !accepted.iter().any(|a| a.term == r.term) && seen.insert(r.term.clone()));
+    sel.refused.reverse();
+    located
 }
 
 /// The displacement search's scoring for [`stepwise`], on the training rows whitened by the
@@ -1627,9 +1729,10 @@ struct DisplacementScoring<'d> {
     /// Whitened training rows, and `ln` of them.
     n_w: usize,
     ln_n: f64,
-    /// The current forward step: its model, AR coefficients, ranking and bar.
+    /// The current forward step: its model, each candidate's AR coefficients (those it was
+    /// scored with), the ranking and the bar.
     m: DMatrix<f64>,
-    phi: Vec<f64>,
+    phis: Vec<Vec<f64>>,
     scored: Vec<(f64, usize)>,
     bar: f64,
     accepted: Vec<Term>,
@@ -1639,11 +1742,11 @@ struct DisplacementScoring<'d> {
 }
 
 impl DisplacementScoring<'_> {
-    /// The bar of a forward step after `chosen` over the ranking `scored` (model `mw`,
-    /// readings `yw`, whitened): the fixed delta-BIC, and what the best of these candidates
-    /// reaches on phase-randomised copies (only worth computing when the best real one
-    /// passes the fixed bar).
-    fn bar(&mut self, chosen: &[usize], mw: &DMatrix<f64>, yw: &DVector<f64>) -> f64 {
+    /// The bar of a forward step after `chosen` over the ranking `scored`, against the
+    /// model of `scorer`: the fixed delta-BIC, and what the best of these candidates reaches
+    /// on phase-randomised copies (only worth computing when the best real one passes the
+    /// fixed bar).
+    fn bar(&mut self, chosen: &[usize], scorer: &scoring::ColumnScorer) -> f64 {
         let opts = self.opts;
         let passes_fixed = self
             .scored
@@ -1652,15 +1755,23 @@ impl DisplacementScoring<'_> {
         if opts.surrogates == 0 || !passes_fixed {
             return opts.min_delta_bic;
         }
-        let cols: Vec<usize> = self.scored.iter().map(|s| s.1).collect();
+        let cols: Vec<Vec<f64>> = self
+            .scored
+            .iter()
+            .map(|s| {
+                self.design
+                    .train
+                    .iter()
+                    .map(|&i| self.cands[s.1].x[i])
+                    .collect()
+            })
+            .collect();
         let seed = opts.seed
             ^ self.channel.bytes().fold(chosen.len() as u64, |h, b| {
                 h.wrapping_mul(31).wrapping_add(b as u64)
             });
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let b = self
-            .design
-            .surrogate_bar(mw, yw, &self.phi, &cols, opts.surrogates, &mut rng);
+        let b = scorer.surrogate_bar(&cols, opts.surrogates, &mut rng);
         self.surrogate_bars.push(b);
         b.max(opts.min_delta_bic)
     }
@@ -1669,26 +1780,23 @@ impl DisplacementScoring<'_> {
 impl Scoring for DisplacementScoring<'_> {
     fn rank(&mut self, chosen: &[usize]) -> Vec<(usize, f64)> {
         let design = self.design;
-        let (n_w, ln_n) = (self.n_w, self.ln_n);
         self.m = design.matrix(chosen, self.base_cols);
-        let (phi, mw, yw, sse0) = design.whitened(&self.m);
-        let mut scored: Vec<(f64, usize)> = (0..self.cands.len())
-            .filter(|j| Some(*j) != self.k0 && !chosen.contains(j))
-            .filter_map(|j| {
-                let (xw, _) = design.whiten(&design.matrix(&[j], &[]), &phi);
-                let mut full = mw.clone().insert_column(mw.ncols(), 0.0);
-                full.column_mut(mw.ncols()).copy_from(&xw.column(0));
-                let f = lsq(&full, &yw);
-                (f.rank == full.ncols()).then(|| (n_w as f64 * (sse0 / f.chi2).ln() - ln_n, j))
-            })
-            .collect();
+        let scorer = scoring::ColumnScorer::new(design, &self.m, self.opts.noise);
+        self.phis = vec![Vec::new(); self.cands.len()];
+        let mut scored: Vec<(f64, usize)> = Vec::new();
+        for j in (0..self.cands.len()).filter(|j| Some(*j) != self.k0 && !chosen.contains(j)) {
+            let x: Vec<f64> = design.train.iter().map(|&i| self.cands[j].x[i]).collect();
+            if let Some(s) = scorer.score(&x, 0) {
+                scored.push((s.delta_bic, j));
+                self.phis[j] = s.phi;
+            }
+        }
         scored.sort_by(|a, b| b.0.total_cmp(&a.0));
         if chosen.is_empty() {
             self.candidates_tested = scored.len();
         }
-        self.phi = phi;
         self.scored = scored;
-        self.bar = self.bar(chosen, &mw, &yw);
+        self.bar = self.bar(chosen, &scorer);
         self.scored.iter().map(|&(db, j)| (j, db)).collect()
     }
 
@@ -1723,7 +1831,7 @@ impl Scoring for DisplacementScoring<'_> {
             self.base_cols,
             &[chosen, &[j]].concat(),
             &self.m,
-            &self.phi,
+            &self.phis[j],
             opts,
         );
         if let Some(reason) = reason {

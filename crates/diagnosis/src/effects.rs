@@ -260,6 +260,17 @@ pub const EFFECTS: &[Effect] = &[
         slow: false,
     },
     Effect {
+        id: "onset_drift",
+        label: "drift after an onset",
+        physics: "a part that starts to heat or cool partway through the run and then follows one temperature (a ball screw that starts to work, a door opened, a coolant switched on): nothing before, the temperature's change after",
+        signature: "displacement recordings: what the selected terms leave follows a logged temperature's change since some hour",
+        shapes: "the located temperature's change since the located onset, (T(t) - T(t_on)) 1[t >= t_on], itself or through a 30/120/480-min lag; without an onset, the temperature itself and its lags",
+        parameters: "um/K",
+        split_by: "a run where that temperature and time do not move together (its source held constant for a day, or cycled), long enough after the onset for the held-out end",
+        max_um: 200.0,
+        slow: false,
+    },
+    Effect {
         id: "outliers",
         label: "outliers",
         physics: "coolant mist, chips on the tool, a skipped trigger",

@@ -371,6 +371,7 @@ pub fn displacement_html(d: &crate::displacement::DisplacementDiagnosis, title: 
         }
     }
     h.push_str("</table>");
+    located_table(&mut h, d);
     for c in &d.channels {
         let s = &c.series;
         let pts = |v: &[f64]| -> Points { s.t_h.iter().copied().zip(v.iter().copied()).collect() };
@@ -401,4 +402,56 @@ pub fn displacement_html(d: &crate::displacement::DisplacementDiagnosis, title: 
     }
     h.push_str("</body></html>");
     h
+}
+
+/// The located terms: what the forward selection left, tied to a temperature and modelled,
+/// with the held-out end before and after and the verdict.
+fn located_table(h: &mut String, d: &crate::displacement::DisplacementDiagnosis) {
+    let located: Vec<_> = d
+        .channels
+        .iter()
+        .filter_map(|c| c.located_term.as_ref().map(|l| (c, l)))
+        .collect();
+    if located.is_empty() {
+        return;
+    }
+    h.push_str("<h2>Located and modelled</h2><p>What the accepted terms leave, located (an onset and the temperature it follows, on the training part) and fitted as one more term of the model, judged by the same rules; accepted, it is part of the final model above.</p><table><tr><th>channel</th><th>term</th><th>gain (um/K)</th><th>delta-BIC (bar)</th><th>t</th><th>rolling origins</th><th>held-out before &rarr; after (um)</th><th>verdict</th><th>what would split it</th></tr>");
+    for (c, l) in located {
+        let verdict = match l.reason {
+            None => "accepted".to_string(),
+            Some(r) => format!(
+                "not confirmed: {}{}",
+                match r {
+                    crate::displacement::NotConfirmed::TooShort => "too short after the onset",
+                    crate::displacement::NotConfirmed::ConfoundedWithRamp =>
+                        "confounded with a ramp",
+                    crate::displacement::NotConfirmed::ConfoundedWithSensor => {
+                        "confounded with another sensor"
+                    }
+                    crate::displacement::NotConfirmed::NotSupported => "not supported by the data",
+                },
+                l.rule
+                    .as_ref()
+                    .map(|r| format!(" ({r})"))
+                    .unwrap_or_default()
+            ),
+        };
+        h.push_str(&format!(
+            "<tr><td>{}</td><td>{}</td><td>{} &plusmn; {}</td><td>{:.1} ({:.1})</td><td>{:.1}</td><td>{} of {}</td><td>{} &rarr; {}</td><td>{}</td><td>{}</td></tr>",
+            esc(&c.channel),
+            esc(&l.term),
+            f(l.gain_um_per_k),
+            f(l.sigma_um_per_k),
+            l.delta_bic,
+            l.bar,
+            l.t,
+            l.blocks_improved,
+            l.blocks,
+            f(l.heldout_before_um),
+            f(l.heldout_after_um),
+            esc(&verdict),
+            esc(l.split_by.as_deref().unwrap_or(""))
+        ));
+    }
+    h.push_str("</table>");
 }
