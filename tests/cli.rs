@@ -1699,12 +1699,7 @@ fn a_thermal_test_of_several_runs_is_learnt_across_runs_and_a_new_run_predicted_
     // "RMSE a (first reading held b)"
     let figure = |after: &str| -> f64 {
         let i = err.find(after).unwrap_or_else(|| panic!("{err}")) + after.len();
-        err[i..]
-            .split(|c: char| c == ' ' || c == ')')
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap()
+        err[i..].split([' ', ')']).next().unwrap().parse().unwrap()
     };
     let (served, held) = (figure("RMSE "), figure("first reading held "));
     assert!(served < held, "{err}");

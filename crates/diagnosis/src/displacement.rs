@@ -1061,31 +1061,8 @@ fn diagnose_channel(
         .collect();
     let periodic = periodic_of(&design.train, &t_min, &resid, &temps_now, opts);
 
-    let mut sel = select(&design, &cands, &base_cols, k0, channel, opts);
-    // The selection's own veto first: the located search works on what its final model
-    // leaves (located on the model before the veto, a late drift is sought in the misfit
-    // of terms the veto drops, and fl-thermal's injected t11_C drift was tied to t4_C).
-    if opts.heldout_veto {
-        veto(
-            &design,
-            &base_cols,
-            &mut sel.chosen,
-            &mut sel.accepted,
-            &mut sel.refused,
-        );
-    }
-    // What the selection leaves, tied to a temperature and made a term; then the held-out
-    // veto over the model with it.
-    let found = located::locate(
-        &design,
-        &base_cols,
-        &sel.chosen,
-        &t_min,
-        &temps_now,
-        channel,
-        opts,
-    );
-    let located_term = settle(&design, &base_cols, &mut sel, found, &t_min, channel, opts);
+    let (sel, located_term) =
+        select_and_locate(&design, &base_cols, k0, (&t_min, &temps_now), channel, opts);
     let Selection {
         chosen,
         mut accepted,
@@ -1147,6 +1124,44 @@ fn diagnose_channel(
     };
     d.statements = statements_of(&d, changes, baseline_name, opts);
     Ok(d)
+}
+
+/// The forward selection with its held-out veto, then what it leaves tied to a temperature
+/// and made a term, settled by the veto over the model with it.
+fn select_and_locate(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    k0: Option<usize>,
+    (t_min, temps_now): (&[f64], &[(String, Vec<f64>)]),
+    channel: &str,
+    opts: &DisplacementOptions,
+) -> (Selection, Option<LocatedTerm>) {
+    let mut sel = select(design, design.cands, base_cols, k0, channel, opts);
+    // The selection's own veto first: the located search works on what its final model
+    // leaves (located on the model before the veto, a late drift is sought in the misfit
+    // of terms the veto drops, and fl-thermal's injected t11_C drift was tied to t4_C).
+    if opts.heldout_veto {
+        veto(
+            design,
+            base_cols,
+            &mut sel.chosen,
+            &mut sel.accepted,
+            &mut sel.refused,
+        );
+    }
+    // What the selection leaves, tied to a temperature and made a term; then the held-out
+    // veto over the model with it.
+    let found = located::locate(
+        design,
+        base_cols,
+        &sel.chosen,
+        t_min,
+        temps_now,
+        channel,
+        opts,
+    );
+    let located_term = settle(design, base_cols, &mut sel, found, t_min, channel, opts);
+    (sel, located_term)
 }
 
 /// The columns of the final model beside the chosen candidates: the baseline's, and the
