@@ -1101,12 +1101,18 @@ pub fn cmd_predict(a: PredictArgs) -> Result<ExitCode> {
         return predict_new_run(&a, &text);
     }
     let (model, mut grey_chosen, mut chosen) = read_model_file(&a.model)?;
-    // A free run from a cut (--update-until): every channel with a family choice is served
-    // by it, its regimes and hand-overs as `fit` chose them; with updates the grey box's
-    // filter serves the channels that chose it, corrected by every reading.
+    // A free run from a cut (--update-until): a channel whose choice hands over to another
+    // family beyond the fit range is served by its choice, as `fit` made it; the grey box's
+    // filter serves the channels that chose it throughout (corrected by every reading up to
+    // the cut).
     if a.update_until.is_some() {
-        let (with, without): (Vec<_>, Vec<_>) =
-            grey_chosen.into_iter().partition(|c| c.choice.is_some());
+        let (with, without): (Vec<_>, Vec<_>) = grey_chosen.into_iter().partition(|c| {
+            c.choice.as_ref().is_some_and(|ch| {
+                ch.beyond
+                    .as_ref()
+                    .is_some_and(|b| b.family != Family::GreyBox)
+            })
+        });
         chosen.extend(with);
         grey_chosen = without;
     }

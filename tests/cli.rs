@@ -559,10 +559,12 @@ fn import_fit_and_predict_a_thermal_test_table() {
     // A 30-min lag between the basis poles (15, 40 min), 4-decimal data: within 1 um of a
     // 12-um swing, where holding the last reading is 10 um off.
     assert!(rmse < 1.0, "{err}");
-    // Left to choose, the families compete on the fit data: there the spindle never stops,
-    // so an ARX model predicts the heating perfectly and wins the cross-validation, but it
-    // never learnt what a stop does. When the spindle stops it hands over to the grey box,
-    // whose pole basis knows, and says so.
+    // Left to choose, the families compete on the fit data: there the spindle never stops
+    // and the hall is constant, so least squares has no input and holding the last reading
+    // is the baseline; ARX predicts the heating perfectly in the CV, but three hours hold one
+    // fold with a window of its own, too few to tell beyond chance. When the spindle stops,
+    // (right at the cut) an input no family learnt moves, and the grey box, whose pole basis
+    // knows what a stop does, serves from then on and says so.
     let auto = tmp("table-auto.json");
     let plot = tmp("table-auto.svg");
     let _ = std::fs::remove_file(&plot);
@@ -587,7 +589,12 @@ fn import_fit_and_predict_a_thermal_test_table() {
     ] {
         assert!(out.contains(&format!("ch1          {family}")), "{out}");
     }
-    assert!(out.contains("<- chosen; na"), "{out}");
+    assert!(out.contains("<- chosen; last value held"), "{out}");
+    assert!(
+        out.contains("persistence served; arx had the lowest CV error")
+            && out.contains("not beyond chance"),
+        "{out}"
+    );
     let (ok, out, err) = run(&[
         "predict",
         "--model",
@@ -604,14 +611,13 @@ fn import_fit_and_predict_a_thermal_test_table() {
     ]);
     assert!(ok, "{err}");
     assert!(
-        err.contains("ch1: arx leaves its fit data at 3.08 h (spindle_rpm = 0.000"),
+        err.contains("ch1: served grey_box (an input constant over the fit data moved"),
         "{err}"
     );
-    let svg = std::fs::read_to_string(&plot).unwrap();
     assert!(
-        svg.contains("ch1 (predicted: arx, then the grey box") && svg.contains("updates stop"),
-        "{}",
-        &svg[..svg.len().min(400)]
+        std::fs::read_to_string(&plot)
+            .unwrap()
+            .contains("updates stop")
     );
     let lines: Vec<Value> = out
         .lines()
@@ -619,15 +625,15 @@ fn import_fit_and_predict_a_thermal_test_table() {
         .collect();
     assert_eq!(lines.len(), 12, "every 10 min over the last 2 h: {out}");
     assert!(
-        lines
-            .iter()
-            .all(|l| l["values"]["ch1"]["family"] == "grey_box"
-                && l["values"]["ch1"]["measured"].is_number())
+        lines.iter().all(|l| l["values"]["ch1"]["family"]
+            .as_str()
+            .is_some_and(|f| f.starts_with("grey_box"))
+            && l["values"]["ch1"]["measured"].is_number()),
+        "{out}"
     );
     let rmse: f64 = err
-        .split("then the grey box")
+        .split("updated readings on the 5-min grid: RMSE ")
         .nth(1)
-        .and_then(|s| s.split("RMSE ").nth(1))
         .and_then(|s| s.split(' ').next())
         .unwrap()
         .parse()

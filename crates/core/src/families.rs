@@ -1177,7 +1177,10 @@ pub struct RegimeChoice {
     pub folds: usize,
     /// CV points in the regime, and the RMSE there of the chosen family and the baseline.
     pub points: usize,
+    /// NaN where a family has no CV points here (null in JSON, read back as NaN).
+    #[serde(deserialize_with = "null_as_nan")]
     pub rmse: f64,
+    #[serde(deserialize_with = "null_as_nan")]
     pub baseline_rmse: f64,
     pub why: String,
 }
@@ -1202,7 +1205,9 @@ pub struct Choice {
     /// `None` where the CV folds never left their fit range.
     pub beyond: Option<RegimeChoice>,
     /// The largest excursion beyond the fit range the CV folds tested (a share of each
-    /// input's range, [`excursion`]).
+    /// input's range, [`excursion`]; infinite, written as null, where a forced family serves
+    /// everywhere).
+    #[serde(deserialize_with = "null_as_nan")]
     pub tested_excursion: f64,
     /// The horizon of use and the longest the CV folds tested, grid steps.
     pub horizon: usize,
@@ -1293,9 +1298,16 @@ impl Choice {
         horizon: usize,
     ) -> Self {
         let find = |f: Family| runs.iter().find(|(r, _)| r.family == f).map(|(r, _)| r);
+        // Least squares with no input that varied over the fit data is a constant, the mean
+        // of the fit data: holding the last reading is the baseline then.
         let baseline = [Family::Regression, Family::Persistence]
             .into_iter()
-            .find(|f| find(*f).is_some_and(|r| cv_rms(&r.cv).is_finite()))
+            .find(|f| {
+                find(*f).is_some_and(|r| {
+                    cv_rms(&r.cv).is_finite()
+                        && (*f == Family::Persistence || !r.detail.starts_with("0 inputs"))
+                })
+            })
             .unwrap_or(Family::Persistence);
         let inside_mask: Vec<bool> = excursions.iter().map(|x| *x <= RANGE_SLACK).collect();
         let beyond_mask: Vec<bool> = inside_mask.iter().map(|m| !m).collect();
@@ -1550,6 +1562,10 @@ impl ChannelChoice {
     /// Whether serving from `origin` needs the grey box's predictions.
     pub fn needs_grey(&self) -> bool {
         let uses = |f: &str| f == Family::GreyBox.as_str() || f == Family::Combination.as_str();
+        // An input constant over the fit data may move: then only the grey box has a model.
+        if self.ranges.iter().any(|[lo, hi]| hi <= lo) {
+            return true;
+        }
         match &self.choice {
             None => true,
             Some(c) => {
@@ -1597,6 +1613,15 @@ impl ChannelChoice {
             .map(|(i, k)| {
                 x = x.max(excursion(g, &self.ranges, k));
                 let at = |v: Option<&Vec<f64>>| v.and_then(|p| p.get(i)).copied();
+                // An input constant over the fit data has moved: no family learnt what it
+                // does (a spindle that never stopped teaches nothing of a stop); the grey
+                // box's pole basis is the only model of it.
+                if x.is_infinite() && self.choice.is_some() {
+                    return match grey.get(i).filter(|v| v.is_finite()) {
+                        Some(v) => (*v, Served::Unlearnt),
+                        None => (held, Served::Held),
+                    };
+                }
                 match &self.choice {
                     // A model file from before the regimes: the grey box beyond the range.
                     None if x > RANGE_SLACK => (
@@ -1644,7 +1669,9 @@ pub enum Served {
     Inside(String),
     /// The beyond choice, some input beyond the fit data's range.
     Beyond(Family),
-    /// The last reading held: the beyond choice could not be fitted.
+    /// The grey box: an input constant over the fit data moved.
+    Unlearnt,
+    /// The last reading held: the family for the regime could not be run.
     Held,
 }
 
@@ -1653,9 +1680,13 @@ impl std::fmt::Display for Served {
         match self {
             Served::Inside(family) => write!(f, "{family}"),
             Served::Beyond(family) => write!(f, "{} (beyond the fit range)", family.as_str()),
+            Served::Unlearnt => write!(
+                f,
+                "grey_box (an input constant over the fit data moved: no family learnt what it does)"
+            ),
             Served::Held => write!(
                 f,
-                "last reading held (the beyond choice could not be fitted)"
+                "last reading held (the family for the regime could not be run)"
             ),
         }
     }
@@ -1736,6 +1767,21 @@ pub fn choose(
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_choice_round_trips_through_json_with_figures_it_could_not_have() {
+        let ev = plant(600, 2.0);
+        let g = grid(&ev, "d", 5 * MIN).unwrap();
+        let fams = [Family::Persistence, Family::Regression];
+        let mut c = choose(&ev, &g, 400 * MIN, &fams, &grey_box_config(&g), None, 12).unwrap();
+        let ch = c.choice.as_mut().unwrap();
+        ch.inside.rmse = f64::NAN;
+        ch.tested_excursion = f64::INFINITY;
+        let text = serde_json::to_string(&c).unwrap();
+        let back: ChannelChoice = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.family, c.family);
+        assert!(back.choice.unwrap().inside.rmse.is_nan());
+    }
 
     #[test]
     fn a_score_without_a_hold_out_round_trips_through_json() {
@@ -1858,7 +1904,7 @@ mod tests {
         let ev = plant(3000, 2.0);
         let g = grid(&ev, "d", 5 * MIN).unwrap();
         let n_train = g.index_at(2000 * MIN);
-        assert_eq!(key_inputs(&g, n_train, usize::MAX), [0]);
+        assert_eq!(key_inputs(&g, n_train, 12), [0]);
         let s = compete(
             &ev,
             &g,
@@ -1870,7 +1916,8 @@ mod tests {
                 Family::Arx,
             ],
             &grey_box_config(&g),
-            usize::MAX,
+            // An hour ahead: the second half of the fit holds eight separate windows.
+            12,
         )
         .0;
         let by = |f: Family| s.iter().find(|x| x.family == f.as_str()).unwrap();
