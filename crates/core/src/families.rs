@@ -1562,15 +1562,33 @@ impl ChannelChoice {
     /// Whether serving from `origin` needs the grey box's predictions.
     pub fn needs_grey(&self) -> bool {
         let uses = |f: &str| f == Family::GreyBox.as_str() || f == Family::Combination.as_str();
-        // An input constant over the fit data may move: then only the grey box has a model.
-        if self.ranges.iter().any(|[lo, hi]| hi <= lo) {
-            return true;
-        }
         match &self.choice {
             None => true,
             Some(c) => {
                 uses(&self.family) || c.beyond.as_ref().is_some_and(|b| uses(b.family.as_str()))
             }
+        }
+    }
+
+    /// The value the regime of excursion `x` serves at hold-out index `i`.
+    fn regime_value(
+        &self,
+        x: f64,
+        i: usize,
+        inside: &[f64],
+        beyond: Option<&Vec<f64>>,
+        held: f64,
+    ) -> (f64, Served) {
+        let beyond_at = beyond.and_then(|p| p.get(i)).copied();
+        match self.choice.as_ref().and_then(|c| c.beyond.as_ref()) {
+            _ if x <= RANGE_SLACK => (inside[i], Served::Inside(self.family.clone())),
+            // No beyond choice (the CV never went beyond): the inside family.
+            None => (inside[i], Served::Inside(self.family.clone())),
+            Some(b) => match beyond_at {
+                Some(v) => (v, Served::Beyond(b.family)),
+                // A beyond family that could not be run holds the reading.
+                None => (held, Served::Held),
+            },
         }
     }
 
@@ -1612,16 +1630,11 @@ impl ChannelChoice {
             .enumerate()
             .map(|(i, k)| {
                 x = x.max(excursion(g, &self.ranges, k));
-                let at = |v: Option<&Vec<f64>>| v.and_then(|p| p.get(i)).copied();
                 // An input constant over the fit data has moved: no family learnt what it
-                // does (a spindle that never stopped teaches nothing of a stop); the grey
-                // box's pole basis is the only model of it.
-                if x.is_infinite() && self.choice.is_some() {
-                    return match grey.get(i).filter(|v| v.is_finite()) {
-                        Some(v) => (*v, Served::Unlearnt),
-                        None => (held, Served::Held),
-                    };
-                }
+                // does (a spindle that never stopped teaches nothing of a stop). The regime's
+                // family goes on serving, said to be untested there: handing over to the grey
+                // box's pole basis (which models a stop) lost to least squares on the lathe's
+                // warm-up runs where it happened (docs/physics.md 2.5).
                 match &self.choice {
                     // A model file from before the regimes: the grey box beyond the range.
                     None if x > RANGE_SLACK => (
@@ -1629,14 +1642,14 @@ impl ChannelChoice {
                         Served::Beyond(Family::GreyBox),
                     ),
                     None => (inside[i], Served::Inside(self.family.clone())),
-                    Some(_) if x <= RANGE_SLACK => (inside[i], Served::Inside(self.family.clone())),
-                    // Beyond: the beyond choice where there is one (fitted), else the inside
-                    // family; a beyond family that could not be fitted holds the reading.
-                    Some(c) => match (c.beyond.as_ref(), at(beyond.as_ref())) {
-                        (None, _) => (inside[i], Served::Inside(self.family.clone())),
-                        (Some(b), Some(v)) => (v, Served::Beyond(b.family)),
-                        (Some(_), None) => (held, Served::Held),
-                    },
+                    Some(_) => {
+                        let (v, s) = self.regime_value(x, i, &inside, beyond.as_ref(), held);
+                        if x.is_infinite() {
+                            (v, Served::Untested(Box::new(s)))
+                        } else {
+                            (v, s)
+                        }
+                    }
                 }
             })
             .collect()
@@ -1669,8 +1682,8 @@ pub enum Served {
     Inside(String),
     /// The beyond choice, some input beyond the fit data's range.
     Beyond(Family),
-    /// The grey box: an input constant over the fit data moved.
-    Unlearnt,
+    /// What the regime serves, where an input constant over the fit data has moved.
+    Untested(Box<Served>),
     /// The last reading held: the family for the regime could not be run.
     Held,
 }
@@ -1680,9 +1693,9 @@ impl std::fmt::Display for Served {
         match self {
             Served::Inside(family) => write!(f, "{family}"),
             Served::Beyond(family) => write!(f, "{} (beyond the fit range)", family.as_str()),
-            Served::Unlearnt => write!(
+            Served::Untested(s) => write!(
                 f,
-                "grey_box (an input constant over the fit data moved: no family learnt what it does)"
+                "{s} (untested: an input constant over the fit data moved)"
             ),
             Served::Held => write!(
                 f,
