@@ -240,9 +240,10 @@ pub struct FitArgs {
     /// default: every sensor the recordings have).
     #[arg(long, num_args = 1..)]
     sensors: Vec<String>,
-    /// Grid step of the families, min (displacement channels).
-    #[arg(long, default_value_t = 5.0)]
-    step_min: f64,
+    /// Grid step of the families, min (displacement channels; default: the temperatures'
+    /// median sample spacing, at least a 400th of the data's span, or of the shortest run).
+    #[arg(long)]
+    step_min: Option<f64>,
     /// How far ahead of its last reading the model will be used (a duration, 8h): the
     /// families are judged by CV at this horizon. Default: the span of the recordings after
     /// --until (what is left to predict), else as far as the CV folds reach.
@@ -383,10 +384,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         Kinematics::load(m).with_context(|| format!("machine '{m}'"))?;
     }
     let force = forced_family(&a.family)?;
-    anyhow::ensure!(
-        a.step_min > 0.0 && a.step_min.is_finite(),
-        "--step-min must be > 0"
-    );
+    check_step(a.step_min)?;
     let (events, cfg) = fit_inputs(&a)?;
     let t0 = events.first().map_or(0, Event::t_ns);
     let until = a.until.as_deref().map(|u| parse_time(u, t0)).transpose()?;
@@ -400,7 +398,11 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         (None, Some(u)) if last_t > u => Some(last_t - u),
         _ => None,
     };
-    let families = choose_families(&events, &cfg, a.step_min, until, force, horizon_ns);
+    let step_ns = a.step_min.map_or_else(
+        || driftwatch_core::families::default_step_ns(&[&events]),
+        units::min_to_ns,
+    );
+    let families = choose_families(&events, &cfg, step_ns, until, force, horizon_ns);
     let file = ModelFile { model, families };
     let model = &file.model;
     std::fs::write(&a.out, serde_json::to_string_pretty(&file)?)
@@ -419,13 +421,19 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `--step-min`, when given, must be a positive number of minutes.
+fn check_step(step_min: Option<f64>) -> Result<()> {
+    anyhow::ensure!(
+        step_min.is_none_or(|m| m > 0.0 && m.is_finite()),
+        "--step-min must be > 0"
+    );
+    Ok(())
+}
+
 /// `fit --runs`: each recording a run; per displacement channel the family that predicts a
 /// new run from its start, chosen by forward chaining over the runs.
 fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
-    anyhow::ensure!(
-        a.step_min > 0.0 && a.step_min.is_finite(),
-        "--step-min must be > 0"
-    );
+    check_step(a.step_min)?;
     anyhow::ensure!(
         a.until.is_none() && a.family == "auto",
         "--runs learns from whole runs: --until and --family do not apply"
@@ -437,7 +445,13 @@ fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
         runs.push((ev.first().map_or(i64::MAX, Event::t_ns), i, ev));
     }
     runs.sort_by_key(|r| (r.0, r.1));
-    let step_ns = units::min_to_ns(a.step_min);
+    let step_ns = a.step_min.map_or_else(
+        || {
+            let r: Vec<&[Event]> = runs.iter().map(|r| r.2.as_slice()).collect();
+            driftwatch_core::families::default_step_ns(&r)
+        },
+        units::min_to_ns,
+    );
     let channels =
         displacement_channels(&runs.iter().flat_map(|r| r.2.clone()).collect::<Vec<_>>());
     let mut out = Vec::new();
@@ -655,12 +669,11 @@ fn inputs_the_data_allow(
 fn choose_families(
     events: &[Event],
     cfg: &ModelConfig,
-    step_min: f64,
+    step_ns: i64,
     until: Option<i64>,
     force: Option<Family>,
     horizon_ns: Option<i64>,
 ) -> Vec<ChannelChoice> {
-    let step_ns = units::min_to_ns(step_min);
     // In grid steps; none given: as far as the folds reach.
     let horizon = horizon_ns.map_or(usize::MAX, |h| {
         (h.max(1) as f64 / step_ns as f64).ceil() as usize

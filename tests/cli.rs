@@ -644,7 +644,7 @@ fn import_fit_and_predict_a_thermal_test_table() {
             .unwrap()
     };
     assert_eq!(
-        figure("updated readings on the 5-min grid: RMSE "),
+        figure("updated readings on the 1-min grid: RMSE "),
         figure("(persistence "),
         "{err}"
     );

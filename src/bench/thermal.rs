@@ -113,26 +113,8 @@ fn step_ns_of(set: &ThermalData, step_min: Option<f64>) -> i64 {
     if let Some(m) = step_min.or(set.step_min) {
         return units::min_to_ns(m);
     }
-    let mut spacing = Vec::new();
-    let mut shortest = i64::MAX;
-    for r in &set.runs {
-        let t: Vec<i64> = r
-            .events
-            .iter()
-            .filter(|e| matches!(e, Event::Temperature { .. }))
-            .map(Event::t_ns)
-            .collect();
-        spacing.extend(t.windows(2).map(|w| w[1] - w[0]).filter(|d| *d > 0));
-        if let (Some(a), Some(b)) = (t.first(), t.last()) {
-            shortest = shortest.min(b - a);
-        }
-    }
-    spacing.sort_unstable();
-    let median = spacing
-        .get(spacing.len() / 2)
-        .copied()
-        .unwrap_or(units::NS_PER_MIN);
-    median.max(shortest / 400).max(1)
+    let runs: Vec<&[Event]> = set.runs.iter().map(|r| r.events.as_slice()).collect();
+    families::default_step_ns(&runs)
 }
 
 /// What is served on the hold-out of a channel whose family was chosen on `0..n_train`, as

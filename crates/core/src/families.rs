@@ -125,6 +125,32 @@ pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
     (!g.is_empty()).then_some(g)
 }
 
+/// The grid step for runs of a thermal test when none is given: the temperatures' median
+/// sample spacing, but at least a 400th of the shortest run (a fine grid on a long test only
+/// costs time; a coarse one on a short run leaves least squares on two dozen inputs with too
+/// few rows to fit).
+pub fn default_step_ns(runs: &[&[Event]]) -> i64 {
+    let mut spacing = Vec::new();
+    let mut shortest = i64::MAX;
+    for r in runs {
+        let t: Vec<i64> = r
+            .iter()
+            .filter(|e| matches!(e, Event::Temperature { .. }))
+            .map(Event::t_ns)
+            .collect();
+        spacing.extend(t.windows(2).map(|w| w[1] - w[0]).filter(|d| *d > 0));
+        if let (Some(a), Some(b)) = (t.first(), t.last()) {
+            shortest = shortest.min(b - a);
+        }
+    }
+    spacing.sort_unstable();
+    let median = spacing
+        .get(spacing.len() / 2)
+        .copied()
+        .unwrap_or(units::NS_PER_MIN);
+    median.max(shortest / 400).max(1)
+}
+
 /// The families that compete.
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
