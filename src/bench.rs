@@ -27,6 +27,7 @@ use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
 mod fleet;
+pub mod located;
 pub mod thermal;
 pub use fleet::{FleetBackend, FleetOptions, fleet};
 
@@ -756,7 +757,7 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
 }
 
 /// The top logged spindle speed (1 without a spindle log): the diagnosis' reference speed.
-fn top_speed(events: &[driftwatch_core::thermal_model::Event]) -> f64 {
+pub(crate) fn top_speed(events: &[driftwatch_core::thermal_model::Event]) -> f64 {
     events
         .iter()
         .filter_map(|e| match e {

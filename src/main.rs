@@ -307,7 +307,7 @@ struct BenchArgs {
     /// Seconds of load per endpoint (bench http).
     #[arg(long, default_value_t = 10.0)]
     seconds: f64,
-    /// Print JSON (bench compensation, bench thermal).
+    /// Print JSON (bench compensation, bench thermal, bench located).
     #[arg(long)]
     json: bool,
     /// Directory of thermal-test data sets (bench thermal: every manifest*.toml in it and
@@ -354,6 +354,10 @@ enum BenchWhich {
     /// it: terms that worsen the held-out end, false positives on --n nulls (40 unless given
     /// below 20000), power on injected effects; before issue 14's acceptance rules and now.
     Nulls,
+    /// The located term's power on every data set under --data: a drift that follows one
+    /// temperature after an onset injected into each run's real readings at 1.5, 3 and 6 um
+    /// RMS, and the run as it is as the null.
+    Located,
 }
 
 fn main() -> ExitCode {
@@ -522,6 +526,7 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
         BenchWhich::Nulls => {
             bench::nulls(&b.data, if b.n >= 20000 { 40 } else { b.n.max(1) }, b.json)
         }
+        BenchWhich::Located => bench::located::located(&b.data, b.json),
         BenchWhich::Power => bench::power(if b.n >= 20000 { 20 } else { b.n.max(1) }),
         BenchWhich::Http => multi()?.block_on(bench::http(b.connections, b.seconds, b.dir)),
         BenchWhich::Fleet => multi()?.block_on(bench::fleet(bench::FleetOptions {

@@ -1743,3 +1743,66 @@ fn a_thermal_test_of_several_runs_is_learnt_across_runs_and_a_new_run_predicted_
         assert_eq!(row["served_rmse"], row["regression"], "{row}");
     }
 }
+
+/// `bench located --data` on a small set: two 9-h runs cut from fl-thermal, four
+/// temperatures, one channel. Each run gives a row with the rule's sensor and onset and an
+/// outcome at every size, and the table has a row per size with every run as a trial.
+#[test]
+fn bench_located_reports_every_run_at_every_size() {
+    let dir = tmp("located");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let csv_path = dir.join("runs.csv");
+    fl_thermal_runs(&csv_path);
+    // The first two runs only: the bench runs four diagnoses a run.
+    let text = std::fs::read_to_string(&csv_path).unwrap();
+    let two: Vec<&str> = text
+        .lines()
+        .filter(|l| l.starts_with("run,") || l.starts_with("day0,") || l.starts_with("day1,"))
+        .collect();
+    std::fs::write(&csv_path, two.join("\n") + "\n").unwrap();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        "name = \"fl-thermal in runs\"\ncsv = \"runs.csv\"\nrun = \"run\"\ntime = \"time_s\"\n\
+         temperatures = [\"t1_C\", \"t5_C\", \"t9_C\", \"t13_C\"]\ndisplacements = [\"ch3_um\"]\n",
+    )
+    .unwrap();
+    let (ok, out, err) = run(&[
+        "bench",
+        "located",
+        "--data",
+        dir.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{out}{err}");
+    let v: Value = serde_json::from_str(&out).unwrap();
+    let runs = v["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 2, "{out}");
+    for r in runs {
+        assert!(r["error"].is_null(), "{r}");
+        assert!(r["sensor"].as_str().unwrap().starts_with('t'), "{r}");
+        let onset = r["onset_h"].as_f64().unwrap();
+        assert!((3.0..4.0).contains(&onset), "{r}");
+        let sizes: Vec<f64> = r["outcomes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|o| o["rms_um"].as_f64().unwrap())
+            .collect();
+        assert_eq!(sizes, [0.0, 1.5, 3.0, 6.0], "{r}");
+    }
+    let table = v["sizes"].as_array().unwrap();
+    assert_eq!(table.len(), 4, "{out}");
+    for s in table {
+        assert_eq!(s["trials"], 2, "{s}");
+        assert!(s["found"].as_u64().unwrap() <= 2, "{s}");
+    }
+    // The text form: a line per run and the table.
+    let (ok, out, err) = run(&["bench", "located", "--data", dir.to_str().unwrap()]);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("day0") && out.contains("day1"), "{out}");
+    assert!(
+        out.contains("found and modelled") && out.contains("wall time"),
+        "{out}"
+    );
+}
