@@ -986,6 +986,7 @@ fn predict_family(
         c.channel,
         driftwatch_core::families::describe_served(&served, g, origin)
     );
+    warn_untested_excursion(c, g, origin, t0);
     let p: Vec<(f64, String)> = served.iter().map(|(v, s)| (*v, s.to_string())).collect();
     let mut next_row = from;
     let mut series = Vec::new();
@@ -1066,6 +1067,39 @@ fn predict_family(
         100.0 * cover95,
     );
     Ok(series)
+}
+
+/// Say where an input first goes further beyond its fit data's range than any CV fold went
+/// (as a warming hall or a faulty sensor does): what is served from there is an
+/// extrapolation no fold tested.
+fn warn_untested_excursion(
+    c: &ChannelChoice,
+    g: &driftwatch_core::families::Grid,
+    origin: usize,
+    t0: i64,
+) {
+    let Some(tested) = c.choice.as_ref().map(|ch| ch.tested_excursion) else {
+        return;
+    };
+    let bar = tested.max(driftwatch_core::families::RANGE_SLACK);
+    let first = (origin..g.len())
+        .map(|k| {
+            (
+                k,
+                driftwatch_core::families::excursion_by_input(g, &c.ranges, k),
+            )
+        })
+        .find(|(_, (x, _))| x.is_finite() && *x > bar);
+    if let Some((k, (x, j))) = first {
+        eprintln!(
+            "{}: warning: from {:.2} h {} is beyond its fit range by {x:.2} of it (fitted on {:.3} to {:.3}), further than any CV fold went ({tested:.2}): what is served from there is an untested extrapolation (a regime the fit data did not hold, or a faulty sensor)",
+            c.channel,
+            units::ns_to_h(g.t_ns[k] - t0),
+            g.names[j],
+            c.ranges[j][0],
+            c.ranges[j][1]
+        );
+    }
 }
 
 /// The truth of a simulated recording (`/sim/truth`, the minute samples, not the cycles'):

@@ -1449,6 +1449,11 @@ fn fold_wins(a: &[CvError], b: &[CvError], independent: &[usize]) -> (usize, usi
 /// outside its range, as a share of the range (0 inside; an input constant over the fit
 /// data that moves counts as far beyond anything, `f64::INFINITY`).
 pub fn excursion(g: &Grid, ranges: &[[f64; 2]], k: usize) -> f64 {
+    excursion_by_input(g, ranges, k).0
+}
+
+/// [`excursion`] and the input that makes it (the first of equals).
+pub fn excursion_by_input(g: &Grid, ranges: &[[f64; 2]], k: usize) -> (f64, usize) {
     g.inputs
         .iter()
         .zip(ranges)
@@ -1463,7 +1468,11 @@ pub fn excursion(g: &Grid, ranges: &[[f64; 2]], k: usize) -> f64 {
                 out / (hi - lo)
             }
         })
-        .fold(0.0, f64::max)
+        .enumerate()
+        .fold(
+            (0.0, 0),
+            |best, (j, x)| if x > best.0 { (x, j) } else { best },
+        )
 }
 
 /// For each CV error of [`cv_run`]'s order: the running largest [`excursion`] in its fold
@@ -1897,6 +1906,25 @@ mod tests {
         assert_eq!(g.len(), 6);
         assert_eq!(g.t_ns[1], 5 * MIN);
         assert!(grid(&ev, "nothing", MIN).is_none());
+    }
+
+    #[test]
+    fn an_excursion_is_a_share_of_the_fit_range_and_names_its_input() {
+        let g = Grid {
+            channel: "d".into(),
+            t_ns: vec![0, 1, 2],
+            y: vec![0.0; 3],
+            names: vec!["a".into(), "b".into(), "c".into()],
+            inputs: vec![vec![20.0, 21.0, 23.0], vec![5.0, 5.0, 2.0], vec![1.0; 3]],
+            fresh: vec![true; 3],
+        };
+        let ranges = input_ranges(&g, 2);
+        assert_eq!(ranges, [[20.0, 21.0], [5.0, 5.0], [1.0, 1.0]]);
+        assert_eq!(excursion_by_input(&g, &ranges, 1), (0.0, 0));
+        // a is 2 of its range beyond it; b, constant over the fit data, moved: infinitely far.
+        assert_eq!(excursion_by_input(&g, &ranges, 2), (f64::INFINITY, 1));
+        let no_b = [ranges[0], [f64::NEG_INFINITY, f64::INFINITY], ranges[2]];
+        assert_eq!(excursion_by_input(&g, &no_b, 2), (2.0, 0));
     }
 
     #[test]
