@@ -452,8 +452,12 @@ fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
         },
         units::min_to_ns,
     );
-    let channels =
-        displacement_channels(&runs.iter().flat_map(|r| r.2.clone()).collect::<Vec<_>>());
+    let mut channels: Vec<String> = runs
+        .iter()
+        .flat_map(|r| displacement_channels(&r.2))
+        .collect();
+    channels.sort();
+    channels.dedup();
     let mut out = Vec::new();
     for ch in &channels {
         let grids: Vec<driftwatch_core::families::Grid> = runs

@@ -3,8 +3,7 @@
 //! temperatures. Trained on 0-40 h, held out 40-46.3 h. Figures:
 //! `cargo test --release --test displacement -- --nocapture`.
 
-use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
-use driftwatch_core::thermal_model::{Event, ModelInput, events_from};
+use driftwatch_core::thermal_model::{Event, ModelInput};
 use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
 use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
@@ -13,26 +12,11 @@ use driftwatch_diagnosis::surrogates::Null;
 
 const H: i64 = 3_600_000_000_000;
 
+#[path = "common/fl_thermal.rs"]
+mod fl;
+
 fn events(spindle: bool) -> Vec<Event> {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/fl-thermal/fl_thermal.csv"
-    ))
-    .unwrap();
-    let channels: Vec<String> = (1..=5).map(|i| format!("ch{i}_um")).collect();
-    let im = import_csv(
-        &text,
-        &CsvOptions {
-            time: RowTime::Column("time_s".into()),
-            start_ns: 0,
-            spindle: spindle.then(|| "spindle_rpm".into()),
-            temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: channels,
-            machine_id: "fl-thermal".into(),
-        },
-    )
-    .unwrap();
-    events_from(&[im.recording])
+    fl::events(spindle, &fl::CHANNELS)
 }
 
 fn channels() -> Vec<String> {

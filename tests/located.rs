@@ -6,8 +6,7 @@
 //! as steadily as time is reported as confounded with a ramp. The power table over sizes,
 //! onsets, sensors and channels: `cargo test --test located -- --ignored --nocapture`.
 
-use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
-use driftwatch_core::thermal_model::{Event, events_from};
+use driftwatch_core::thermal_model::Event;
 use driftwatch_diagnosis::calibration::{LocatedOutcome, located_power, worsening_terms};
 use driftwatch_diagnosis::displacement::{
     ChannelDiagnosis, DisplacementOptions, NotConfirmed, diagnose_displacements,
@@ -16,25 +15,11 @@ use driftwatch_diagnosis::surrogates::with_temperature_effect;
 
 const H: i64 = 3_600_000_000_000;
 
+#[path = "common/fl_thermal.rs"]
+mod fl;
+
 fn events() -> Vec<Event> {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/fl-thermal/fl_thermal.csv"
-    ))
-    .unwrap();
-    let im = import_csv(
-        &text,
-        &CsvOptions {
-            time: RowTime::Column("time_s".into()),
-            start_ns: 0,
-            spindle: Some("spindle_rpm".into()),
-            temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: (1..=5).map(|i| format!("ch{i}_um")).collect(),
-            machine_id: "fl-thermal".into(),
-        },
-    )
-    .unwrap();
-    events_from(&[im.recording])
+    fl::events(true, &fl::CHANNELS)
 }
 
 fn opts() -> DisplacementOptions {

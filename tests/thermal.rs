@@ -3,9 +3,8 @@
 //! No accuracy goal yet: the figures are printed (`cargo test --test thermal -- --nocapture`)
 //! and the assertions check what must hold whatever the numbers.
 
-use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
 use driftwatch_core::thermal_model::{
-    Event, HoldoutScore, ModelConfig, TemperatureInput, events_from, fit, replay,
+    Event, HoldoutScore, ModelConfig, TemperatureInput, fit, replay,
 };
 
 const H: i64 = 3_600_000_000_000;
@@ -15,28 +14,12 @@ fn events() -> Vec<Event> {
     fl_thermal(true, &["ch1_um", "ch3_um"])
 }
 
+#[path = "common/fl_thermal.rs"]
+mod fl;
+
 /// fl-thermal imported with or without its spindle column, all 16 temperatures and `channels`.
 fn fl_thermal(spindle: bool, channels: &[&str]) -> Vec<Event> {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/fl-thermal/fl_thermal.csv"
-    ))
-    .unwrap();
-    let im = import_csv(
-        &text,
-        &CsvOptions {
-            time: RowTime::Column("time_s".into()),
-            start_ns: 0,
-            spindle: spindle.then(|| "spindle_rpm".into()),
-            temperatures: (1..=16).map(|i| format!("t{i}_C")).collect(),
-            displacements: channels.iter().map(|c| c.to_string()).collect(),
-            machine_id: "fl-thermal".into(),
-        },
-    )
-    .unwrap();
-    assert_eq!(im.rows, 11115);
-    assert!(im.skipped.is_empty(), "{:?}", im.skipped);
-    events_from(&[im.recording])
+    fl::events(spindle, channels)
 }
 
 fn spindle_only() -> ModelConfig {
@@ -247,7 +230,7 @@ fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
     }
 }
 
-const CHANNELS: [&str; 5] = ["ch1_um", "ch2_um", "ch3_um", "ch4_um", "ch5_um"];
+use fl::CHANNELS;
 
 /// The families compete on fl-thermal's five channels (fit on 0-40 h, cross-validated there
 /// at the horizon of use, 6.3 h, judged on 40-46.3 h with no reading used), with the spindle

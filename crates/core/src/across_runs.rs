@@ -19,7 +19,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::families::{Family, Grid, MAX_KEY, rms, sign_test_wins};
+use crate::families::{Family, Grid, forward_select, least_squares, rms, sign_test_wins};
 
 /// The families that compete across runs (the grey box's filter needs one timeline).
 pub const FAMILIES: [Family; 4] = [
@@ -37,25 +37,6 @@ pub struct RunsFitted {
     pub inputs: Vec<usize>,
     /// Regression: one gain per input. ARX: `a`, then `b_j0, b_j1` per input.
     pub coef: Vec<f64>,
-}
-
-/// Least squares, columns scaled, with a vanishing ridge (a collinear design still solves).
-fn lsq(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
-    let (n, p) = x.shape();
-    if p == 0 || n <= p {
-        return None;
-    }
-    let scale: Vec<f64> = (0..p)
-        .map(|j| (x.column(j).norm_squared() / n as f64).sqrt().max(1e-12))
-        .collect();
-    let xs = DMatrix::from_fn(n, p, |i, j| x[(i, j)] / scale[j]);
-    let mut a = xs.transpose() * &xs;
-    for j in 0..p {
-        a[(j, j)] += 1e-9 * n as f64;
-    }
-    let sol = a.cholesky()?.solve(&(xs.transpose() * y));
-    let out = DVector::from_fn(p, |j, _| sol[j] / scale[j]);
-    out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
 /// Fit `family` on `runs` with `inputs` (key regression chooses its own among them).
@@ -108,7 +89,7 @@ fn fit_regression(runs: &[&Grid], inputs: &[usize]) -> Option<RunsFitted> {
             coef: Vec::new(),
         });
     }
-    let b = lsq(&x, &y)?;
+    let b = least_squares(&x, &y)?;
     Some(RunsFitted {
         family: Family::Regression,
         inputs: inputs.to_vec(),
@@ -135,7 +116,7 @@ fn fit_arx(runs: &[&Grid], inputs: &[usize]) -> Option<RunsFitted> {
         }
     }
     let x = DMatrix::from_fn(rows.len(), p, |i, j| rows[i][j]);
-    let theta = lsq(&x, &DVector::from_vec(ys))?;
+    let theta = least_squares(&x, &DVector::from_vec(ys))?;
     (theta[0].abs() < 1.0).then(|| RunsFitted {
         family: Family::Arx,
         inputs: inputs.to_vec(),
@@ -212,27 +193,7 @@ fn key_inputs(runs: &[&Grid], inputs: &[usize]) -> Vec<usize> {
             fit_regression(runs, with).map_or(f64::INFINITY, |f| rms(&errors(&f, runs[0])))
         }
     };
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut best = score(&[]);
-    while chosen.len() < MAX_KEY {
-        let step = inputs
-            .iter()
-            .filter(|j| !chosen.contains(j))
-            .map(|&j| {
-                let mut with = chosen.clone();
-                with.push(j);
-                (j, score(&with))
-            })
-            .min_by(|a, b| a.1.total_cmp(&b.1));
-        match step {
-            Some((j, s)) if s < 0.99 * best => {
-                chosen.push(j);
-                best = s;
-            }
-            _ => break,
-        }
-    }
-    chosen
+    forward_select(inputs, score(&[]), &score)
 }
 
 /// How the family that predicts a new run was chosen.

@@ -243,7 +243,7 @@ impl Fitted {
     }
 
     /// The grid inputs an empirical (regression or ARX) part uses: the ones whose range
-    /// bounds where it may serve (see [`leaves_range`]).
+    /// a combination's description names.
     fn empirical_inputs(&self) -> Vec<usize> {
         let mut out: Vec<usize> = match self {
             Fitted::Linear { inputs, .. } | Fitted::Arx { inputs, .. } => inputs.clone(),
@@ -286,7 +286,7 @@ impl Fitted {
 /// on columns scaled to unit mean square. `None` when the design has no more rows than
 /// columns. (`driftwatch_diagnosis::lsq` truncates the SVD instead, and reports the rank: here a
 /// collinear input must still give a usable, if arbitrary, split of its gain.)
-fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
+pub(crate) fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVector<f64>> {
     let (n, p) = x.shape();
     if n <= p || p == 0 {
         return None;
@@ -585,24 +585,34 @@ pub fn rms(e: &[f64]) -> f64 {
 /// Forward selection of key inputs on `0..end`, by the inner rolling-origin CV of a
 /// regression on them: add the input that lowers it most, stop when none lowers it by 1 %.
 pub fn key_inputs(g: &Grid, end: usize, horizon: usize) -> Vec<usize> {
+    let all: Vec<usize> = (0..g.names.len()).collect();
+    forward_select(&all, f64::INFINITY, &|with| {
+        cv_errors(g, end, horizon, &|o| fit_linear(g, with, o))
+            .map_or(f64::INFINITY, |e| cv_rms(&e))
+    })
+}
+
+/// Forward selection of at most [`MAX_KEY`] of `candidates`: add the one whose `score`
+/// (lower is better; infinite where it cannot be had) is lowest, while it lowers the score
+/// by 1 % from `start` (the score of none).
+pub(crate) fn forward_select(
+    candidates: &[usize],
+    start: f64,
+    score: &dyn Fn(&[usize]) -> f64,
+) -> Vec<usize> {
     let mut chosen: Vec<usize> = Vec::new();
-    let mut best = f64::INFINITY;
+    let mut best = start;
     while chosen.len() < MAX_KEY {
-        let mut step: Option<(usize, f64)> = None;
-        for j in 0..g.names.len() {
-            if chosen.contains(&j) {
-                continue;
-            }
-            let mut with = chosen.clone();
-            with.push(j);
-            let Some(e) = cv_errors(g, end, horizon, &|o| fit_linear(g, &with, o)) else {
-                continue;
-            };
-            let s = cv_rms(&e);
-            if step.is_none_or(|(_, b)| s < b) {
-                step = Some((j, s));
-            }
-        }
+        let step = candidates
+            .iter()
+            .filter(|j| !chosen.contains(j))
+            .map(|&j| {
+                let mut with = chosen.clone();
+                with.push(j);
+                (j, score(&with))
+            })
+            .filter(|(_, s)| s.is_finite())
+            .min_by(|a, b| a.1.total_cmp(&b.1));
         match step {
             Some((j, s)) if s < 0.99 * best => {
                 chosen.push(j);
@@ -1146,12 +1156,13 @@ pub fn compete(
         .collect();
     let excursions = fold_excursions(g, n_train, horizon);
     let independent = independent_folds(&folds(n_train, horizon));
+    let all: Vec<usize> = (0..g.names.len()).collect();
     let choice = Choice::of(
         &runs,
         &excursions,
         &independent,
-        tested_horizon(n_train, horizon),
-        horizon,
+        (tested_horizon(n_train, horizon), horizon),
+        !varying(g, &all, n_train).is_empty(),
     );
     let out = runs
         .into_iter()
@@ -1316,22 +1327,22 @@ impl RegimeChoice {
 }
 
 impl Choice {
+    /// `regression_has_inputs`: some input varied over the fit data (else least squares is
+    /// a constant, the fit data's mean, and holding the last reading is the baseline).
     fn of(
         runs: &[(Run, Option<f64>)],
         excursions: &[f64],
         independent: &[usize],
-        tested: usize,
-        horizon: usize,
+        (tested, horizon): (usize, usize),
+        regression_has_inputs: bool,
     ) -> Self {
         let find = |f: Family| runs.iter().find(|(r, _)| r.family == f).map(|(r, _)| r);
-        // Least squares with no input that varied over the fit data is a constant, the mean
-        // of the fit data: holding the last reading is the baseline then.
         let baseline = [Family::Regression, Family::Persistence]
             .into_iter()
             .find(|f| {
                 find(*f).is_some_and(|r| {
                     cv_rms(&r.cv).is_finite()
-                        && (*f == Family::Persistence || !r.detail.starts_with("0 inputs"))
+                        && (*f == Family::Persistence || regression_has_inputs)
                 })
             })
             .unwrap_or(Family::Persistence);
@@ -1383,21 +1394,6 @@ impl Choice {
             horizon,
             tested_horizon: tested,
             why,
-        }
-    }
-
-    /// The family that serves a point whose (running) excursion is `x`: the inside choice
-    /// within [`RANGE_SLACK`], else the beyond choice (the inside one where the CV folds
-    /// never went beyond). Excursions larger than any the CV tested are served the same way
-    /// and said to be untested ([`Choice::tested_excursion`]): holding the last reading
-    /// there was tried and lost to least squares on the real warm-up runs it was meant for.
-    pub fn family_at(&self, x: f64) -> Family {
-        if x <= RANGE_SLACK {
-            self.inside.family
-        } else {
-            self.beyond
-                .as_ref()
-                .map_or(self.inside.family, |b| b.family)
         }
     }
 }
@@ -1523,35 +1519,6 @@ pub fn input_ranges(g: &Grid, n_train: usize) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// Where an empirical family leaves what it learnt from: the first grid point in
-/// `origin..end` where one of its inputs lies outside its range over the fit data by more
-/// than half that range (any change of an input that was constant: its gain was never
-/// learnt), with the input's index and value. Half the range: a linear model's gains are
-/// trusted that far beyond the data they were fitted on, not to a regime it never saw.
-/// Regression and ARX have no physics to extrapolate with (a spindle that never stopped in
-/// the fit data teaches them nothing about a stop); the grey box's pole basis does, so it
-/// serves there instead.
-pub fn leaves_range(
-    f: &Fitted,
-    g: &Grid,
-    ranges: &[[f64; 2]],
-    origin: usize,
-    end: usize,
-) -> Option<(usize, usize, f64)> {
-    let inputs = f.empirical_inputs();
-    for k in origin..end.min(g.len()) {
-        for &j in &inputs {
-            let [lo, hi] = *ranges.get(j)?;
-            let slack = (RANGE_SLACK * (hi - lo)).max(1e-9 * lo.abs().max(hi.abs()));
-            let v = g.inputs[j][k];
-            if v < lo - slack || v > hi + slack {
-                return Some((k, j, v));
-            }
-        }
-    }
-    None
-}
-
 /// What `fit` keeps of a channel's competition: the chosen family fitted on the whole
 /// training span, its CV band, and every family's CV figures.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -1563,7 +1530,7 @@ pub struct ChannelChoice {
     /// have the same inputs).
     pub step_ns: i64,
     pub inputs: Vec<String>,
-    /// Each input's range over the fit data (see [`leaves_range`]).
+    /// Each input's range over the fit data (see [`excursion`]).
     pub ranges: Vec<[f64; 2]>,
     pub band68: f64,
     pub band95: f64,
