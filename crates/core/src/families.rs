@@ -312,20 +312,35 @@ pub(crate) fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<DVecto
 /// data is the intercept again, and the vanishing ridge would split the intercept between
 /// them, an arbitrary gain that moves the prediction when the input does.
 fn varying(g: &Grid, inputs: &[usize], end: usize) -> Vec<usize> {
+    let rows: Vec<usize> = (0..end.min(g.len())).collect();
+    varying_on(g, inputs, &rows)
+}
+
+/// [`varying`] over the grid points `rows` (those a fit uses): a spindle that stood only
+/// while the sensor held its value varies over the grid, but not over the fresh readings,
+/// and there it is the intercept again.
+fn varying_on(g: &Grid, inputs: &[usize], rows: &[usize]) -> Vec<usize> {
     inputs
         .iter()
         .copied()
         .filter(|&j| {
-            let x = &g.inputs[j][..end.min(g.len())];
-            x.iter()
-                .any(|v| (v - x[0]).abs() > 1e-12 * x[0].abs().max(1.0))
+            let x = &g.inputs[j];
+            rows.first().is_some_and(|&r0| {
+                rows.iter()
+                    .any(|&k| (x[k] - x[r0]).abs() > 1e-12 * x[r0].abs().max(1.0))
+            })
         })
         .collect()
 }
 
+/// The grid points before `end` with a fresh reading: the rows a fit takes.
+fn fresh_rows(g: &Grid, end: usize) -> Vec<usize> {
+    (0..end.min(g.len())).filter(|&k| g.fresh[k]).collect()
+}
+
 fn fit_linear(g: &Grid, inputs: &[usize], end: usize) -> Option<Fitted> {
-    let inputs = &varying(g, inputs, end);
-    let rows: Vec<usize> = (0..end).filter(|&k| g.fresh[k]).collect();
+    let rows = fresh_rows(g, end);
+    let inputs = &varying_on(g, inputs, &rows);
     let x = DMatrix::from_fn(rows.len(), inputs.len() + 1, |i, j| {
         if j == 0 {
             1.0
@@ -1162,7 +1177,7 @@ pub fn compete(
         &excursions,
         &independent,
         (tested_horizon(n_train, horizon), horizon),
-        !varying(g, &all, n_train).is_empty(),
+        !varying_on(g, &all, &fresh_rows(g, n_train)).is_empty(),
     );
     let out = runs
         .into_iter()
@@ -1782,6 +1797,40 @@ pub fn choose(
 
 #[cfg(test)]
 mod tests {
+
+    /// A spindle that stood only while the sensor held its value: over the fresh readings
+    /// least squares fits on, it never moved, and it gets no gain (before, it took an
+    /// arbitrary share of the intercept, and a later speed doubled that into the prediction).
+    #[test]
+    fn an_input_that_moved_only_between_fresh_readings_gets_no_gain() {
+        let n = 40;
+        let temp: Vec<f64> = (0..n).map(|k| 20.0 + 0.1 * k as f64).collect();
+        let stood = |k: usize| (15..25).contains(&k);
+        let g = Grid {
+            channel: "d".into(),
+            t_ns: (0..n as i64).map(|k| k * MIN).collect(),
+            y: temp.iter().map(|t| 5.0 + 2.0 * (t - 20.0)).collect(),
+            names: vec!["t".into(), "spindle_rpm".into()],
+            inputs: vec![
+                temp.clone(),
+                (0..n)
+                    .map(|k| if stood(k) { 0.0 } else { 1000.0 })
+                    .collect(),
+            ],
+            fresh: (0..n).map(|k| !stood(k)).collect(),
+        };
+        let f = fit_family(Family::Regression, &g, n, 10).unwrap();
+        let Fitted::Linear { inputs, coef } = &f else {
+            panic!("{f:?}")
+        };
+        assert_eq!(inputs, &vec![0], "{f:?}");
+        assert!((coef[1] - 2.0).abs() < 1e-6, "{f:?}");
+        // At twice the speed the prediction follows the temperature alone.
+        let mut h = g.clone();
+        h.inputs[1].iter_mut().for_each(|v| *v = 2000.0);
+        let p = simulate(&f, &h, n - 1, n);
+        assert!((p[0] - h.y[n - 1]).abs() < 1e-4, "{p:?}");
+    }
 
     #[test]
     fn a_choice_round_trips_through_json_with_figures_it_could_not_have() {
