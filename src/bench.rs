@@ -28,6 +28,7 @@ use driftwatch_sim::scenario::Scenario;
 
 mod fleet;
 pub mod located;
+pub mod served;
 pub mod thermal;
 pub use fleet::{FleetBackend, FleetOptions, fleet};
 

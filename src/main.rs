@@ -317,6 +317,14 @@ struct BenchArgs {
     /// Grid step of the thermal families, min (bench thermal; default: each set's own).
     #[arg(long)]
     step_min: Option<f64>,
+    /// Minutes between the validated cycles replayed (bench served).
+    #[arg(long, default_value_t = 120.0)]
+    cycle_every_min: f64,
+    /// Service configuration whose `[thermal]` policy the live model runs with (bench served;
+    /// default: the built-in config/default.toml). Its temperature inputs are replaced by
+    /// each set's sensors.
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Leave the simulated scenarios out (bench thermal).
     #[arg(long)]
     no_simulated: bool,
@@ -358,6 +366,10 @@ enum BenchWhich {
     /// temperature after an onset injected into each run's real readings at 1.5, 3 and 6 um
     /// RMS, and the run as it is as the null.
     Located,
+    /// The service's live model replayed on every data set under --data (the runs one a
+    /// day, a validated cycle every --cycle-every-min): what it serves between cycles
+    /// against the last cycle held and least squares on the cycles so far.
+    Served,
 }
 
 fn main() -> ExitCode {
@@ -527,6 +539,11 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
             bench::nulls(&b.data, if b.n >= 20000 { 40 } else { b.n.max(1) }, b.json)
         }
         BenchWhich::Located => bench::located::located(&b.data, b.json),
+        BenchWhich::Served => {
+            let policy =
+                driftwatch_service::config::ServiceConfig::load(b.config.as_deref())?.thermal;
+            bench::served::served(&b.data, policy, b.step_min, b.cycle_every_min, b.json)
+        }
         BenchWhich::Power => bench::power(if b.n >= 20000 { 20 } else { b.n.max(1) }),
         BenchWhich::Http => multi()?.block_on(bench::http(b.connections, b.seconds, b.dir)),
         BenchWhich::Fleet => multi()?.block_on(bench::fleet(bench::FleetOptions {

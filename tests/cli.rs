@@ -1806,3 +1806,69 @@ fn bench_located_reports_every_run_at_every_size() {
         "{out}"
     );
 }
+
+/// `bench served` replays the service's live model on the shipped fl-thermal run with a cycle
+/// every 30 min: every channel is scored between its cycles, the model serves most of them,
+/// and the served value beats the last cycle held on every channel. With `anchored = false`
+/// in the service's configuration (the filter's own value served) the median is worse: the
+/// configuration is the one the replay runs, and anchoring is what the figures rest on.
+#[test]
+fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
+    let dir = tmp("served");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal");
+    std::fs::copy(data.join("manifest.toml"), dir.join("manifest.toml")).unwrap();
+    std::fs::copy(data.join("fl_thermal.csv"), dir.join("fl_thermal.csv")).unwrap();
+    let bench = |extra: &[&str]| -> Value {
+        let mut args = vec![
+            "bench",
+            "served",
+            "--data",
+            dir.to_str().unwrap(),
+            "--cycle-every-min",
+            "30",
+            "--json",
+        ];
+        args.extend_from_slice(extra);
+        let (ok, out, err) = run(&args);
+        assert!(ok, "{out}{err}");
+        serde_json::from_str(&out).unwrap()
+    };
+    let v = bench(&[]);
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 5, "{v}");
+    for r in rows {
+        let f = |k: &str| r[k].as_f64().unwrap();
+        assert!(r["cycles"].as_u64().unwrap() >= 80, "{r}");
+        let sources: Vec<u64> = r["sources"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap())
+            .collect();
+        assert!(
+            sources[0] * 2 > sources.iter().sum::<u64>(),
+            "the model serves most readings: {r}"
+        );
+        assert!(f("served_rmse") < f("last_cycle_rmse"), "{r}");
+    }
+    let median = |v: &Value| v["summary"][0]["median_served"].as_f64().unwrap();
+    let config =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/default.toml"))
+            .unwrap();
+    assert!(config.contains("anchored = true"));
+    let unanchored = dir.join("unanchored.toml");
+    std::fs::write(
+        &unanchored,
+        config.replace("anchored = true", "anchored = false"),
+    )
+    .unwrap();
+    let filter = bench(&["--config", unanchored.to_str().unwrap()]);
+    assert!(
+        median(&v) < median(&filter),
+        "anchored {} vs the filter's own value {}",
+        median(&v),
+        median(&filter)
+    );
+}

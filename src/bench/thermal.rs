@@ -109,7 +109,7 @@ struct AcrossRow {
 
 /// The grid step for a set: given, or the rows' median spacing but at least a 400th of the
 /// shortest run.
-fn step_ns_of(set: &ThermalData, step_min: Option<f64>) -> i64 {
+pub(super) fn step_ns_of(set: &ThermalData, step_min: Option<f64>) -> i64 {
     if let Some(m) = step_min.or(set.step_min) {
         return units::min_to_ns(m);
     }
@@ -296,7 +296,7 @@ fn across(set: &ThermalData, step_ns: i64, json: bool) -> Vec<AcrossRow> {
     rows
 }
 
-fn median(v: impl Iterator<Item = f64>) -> f64 {
+pub(super) fn median(v: impl Iterator<Item = f64>) -> f64 {
     let mut v: Vec<f64> = v.filter(|x| x.is_finite()).collect();
     v.sort_by(f64::total_cmp);
     match v.len() {

@@ -100,6 +100,16 @@ pub struct ModelConfig {
     /// Prior standard deviation of every gain (um per unit input): what the data must
     /// overrule. Thermal errors of tens of um make 100 um a weak but physical bound.
     pub prior_gain_sd: f64,
+    /// Hours without an observation that end a run (the machine stood, e.g. overnight):
+    /// the least squares the model must beat takes an offset per run (the inputs as changes
+    /// within each run), as a thermal test zeroed at each start is read.
+    pub run_gap_h: f64,
+    /// Serve the model's change since the last observation added to that observation,
+    /// instead of the filter's own value: the filter weighs each observation against the
+    /// model's scatter as if that scatter were new at every instant, while a model's error
+    /// on a real machine persists from one hour to the next. For as long as the last
+    /// measured value may be held: it was judged at the gaps scored.
+    pub anchored: bool,
 }
 
 impl Default for ModelConfig {
@@ -116,6 +126,8 @@ impl Default for ModelConfig {
             holdout_share: 0.3,
             min_scored: 4,
             prior_gain_sd: 100.0,
+            run_gap_h: 8.0,
+            anchored: true,
         }
     }
 }
@@ -171,6 +183,9 @@ impl ModelConfig {
         }
         if self.min_scored == 0 {
             return bad("min_scored must be at least 1".into());
+        }
+        if !crate::units::positive(self.run_gap_h) {
+            return bad(format!("run_gap_h must be > 0, not {}", self.run_gap_h));
         }
         Ok(())
     }
@@ -505,6 +520,96 @@ pub struct ChannelFit {
     /// the temperature inputs when their gains are not jointly significant.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub held_to_range: Vec<(usize, f64, f64)>,
+    /// The textbook least squares the model must beat on the same observations (`None`
+    /// with fewer observations than its inputs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub regression: Option<ChangeRegression>,
+}
+
+/// Least squares on every input (each one's fastest column: the spindle's shortest lag, each
+/// temperature's own), fitted on the changes within each run of observations (an offset per
+/// run, [`ModelConfig::run_gap_h`]): the regression a thermal engineer tries first, learned
+/// across days as a thermal test zeroed at each start is. It predicts the last observation
+/// moved by the inputs' changes since it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChangeRegression {
+    /// Columns of the design row and their gains.
+    pub columns: Vec<usize>,
+    pub gains: Vec<f64>,
+}
+
+impl ChangeRegression {
+    /// The value at design row `to` of a channel last observed as `last` at row `from`.
+    pub fn value(&self, last: f64, from: &[f64], to: &DVector<f64>) -> f64 {
+        if from.len() != to.len() {
+            return last;
+        }
+        last + self
+            .columns
+            .iter()
+            .zip(&self.gains)
+            .map(|(&j, g)| g * (to[j] - from[j]))
+            .sum::<f64>()
+    }
+}
+
+/// Each input's fastest column of `cfg`'s design row: the shortest spindle lag, the shortest
+/// lag of each temperature (the temperature itself where a lag of 0 is configured).
+fn fastest_columns(cfg: &ModelConfig) -> Vec<usize> {
+    let argmin = |taus: &[f64]| {
+        taus.iter()
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(b.1))
+            .map(|(i, _)| i)
+    };
+    let mut out = Vec::new();
+    let mut at = 1;
+    if let Some(i) = argmin(&cfg.taus_min) {
+        out.push(at + i);
+    }
+    at += cfg.taus_min.len();
+    for t in &cfg.temperatures {
+        if let Some(i) = argmin(&t.taus_min) {
+            out.push(at + i);
+        }
+        at += t.taus_min.len();
+    }
+    out
+}
+
+/// [`ChangeRegression`] on `obs` (time-ordered): within each run the means of the reading
+/// and of the inputs are removed, inputs that do not vary within any run are left out.
+fn fit_change_regression(cfg: &ModelConfig, obs: &[Obs]) -> Option<ChangeRegression> {
+    let gap = crate::units::h_to_ns(cfg.run_gap_h);
+    let mut runs: Vec<&[Obs]> = Vec::new();
+    let mut start = 0;
+    for i in 1..=obs.len() {
+        if i == obs.len() || obs[i].t_ns - obs[i - 1].t_ns > gap {
+            runs.push(&obs[start..i]);
+            start = i;
+        }
+    }
+    let cols = fastest_columns(cfg);
+    let mut x: Vec<Vec<f64>> = vec![Vec::new(); cols.len()];
+    let mut y = Vec::new();
+    for run in runs.iter().filter(|r| r.len() >= 2) {
+        let m = run.len() as f64;
+        let my = run.iter().map(|o| o.y).sum::<f64>() / m;
+        y.extend(run.iter().map(|o| o.y - my));
+        for (c, &j) in cols.iter().enumerate() {
+            let mx = run.iter().map(|o| o.row[j]).sum::<f64>() / m;
+            x[c].extend(run.iter().map(|o| o.row[j] - mx));
+        }
+    }
+    let keep: Vec<usize> = (0..cols.len())
+        .filter(|&c| x[c].iter().any(|v| v.abs() > 1e-9))
+        .collect();
+    let design = DMatrix::from_fn(y.len(), keep.len(), |i, k| x[keep[k]][i]);
+    let gains = crate::families::least_squares(&design, &DVector::from_vec(y))?;
+    Some(ChangeRegression {
+        columns: keep.iter().map(|&c| cols[c]).collect(),
+        gains: gains.iter().copied().collect(),
+    })
 }
 
 impl ChannelFit {
@@ -538,6 +643,10 @@ pub enum Served {
     /// model's offset, every thermal term at zero), which is what no thermal compensation
     /// leaves in place.
     NoChange,
+    /// The last measured value moved by least squares on the inputs' changes since it: the
+    /// textbook regression on the temperatures, which the model must beat
+    /// ([`ChangeRegression`]).
+    Regression,
 }
 
 impl Served {
@@ -546,6 +655,7 @@ impl Served {
             Served::Model => "model",
             Served::LastMeasured => "last_measured",
             Served::NoChange => "no_change",
+            Served::Regression => "regression",
         }
     }
 }
@@ -591,6 +701,14 @@ pub struct Guard {
     pub d2_last: f64,
     pub d_cold: f64,
     pub d2_cold: f64,
+    /// The same for least squares on the inputs' changes ([`ChangeRegression`]; the last
+    /// measured value where the channel has none).
+    pub sse_reg: f64,
+    pub d_reg: f64,
+    pub d2_reg: f64,
+    /// The design row of the last observation: where the regression's changes start.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub last_row: Vec<f64>,
     /// The last observation's time, and the sum of the gaps before the scored ones, s: the
     /// last measured value was judged at those gaps, and is not held much longer.
     pub last_t_ns: Option<i64>,
@@ -622,6 +740,7 @@ pub struct GuardSummary {
     pub rmse_model: f64,
     pub rmse_last_measured: f64,
     pub rmse_no_change: f64,
+    pub rmse_regression: f64,
     /// The factor on the model's band learned from the scored observations.
     pub sigma_scale: f64,
     /// The served value in its served band: RMS of z, share within 1 and 2 sigma.
@@ -637,13 +756,14 @@ impl std::fmt::Display for GuardSummary {
         let u = &self.unit;
         write!(
             f,
-            "{:<6} serves {}: {} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} {u}; band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {u}^2/h ({})",
+            "{:<6} serves {}: {} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} / regression {:.2} {u}; band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {u}^2/h ({})",
             self.channel,
             self.source.as_str(),
             self.scored,
             self.rmse_model,
             self.rmse_last_measured,
             self.rmse_no_change,
+            self.rmse_regression,
             self.sigma_scale,
             self.z_rms,
             100.0 * self.within_1_sigma,
@@ -707,21 +827,37 @@ impl Guard {
         (mean > 0.0 && t > FALLBACK_T).then_some(t)
     }
 
-    /// What to serve: the model unless the last measured value or no change beat it on the
-    /// scored observations beyond chance (the model until `min_scored` are scored); of two
-    /// that beat it, the one with the smaller error.
+    /// What to serve: the model unless a fallback (the last measured value, no change, or
+    /// least squares on the inputs' changes) beat it on the scored observations beyond
+    /// chance (the model until `min_scored` are scored); of several that beat it, the one
+    /// with the smallest error.
     pub fn source(&self, min_scored: usize) -> Served {
+        self.fallback(min_scored, true)
+    }
+
+    /// [`Guard::source`], the fallbacks anchored at the last observation (the last measured
+    /// value, the regression from it) left out unless `anchored`.
+    fn fallback(&self, min_scored: usize, anchored: bool) -> Served {
         if self.n < min_scored || self.last.is_none() {
             return Served::Model;
         }
-        let cold = self.beaten_by(self.d_cold, self.d2_cold).is_some();
-        let last = self.beaten_by(self.d_last, self.d2_last).is_some();
-        match (cold, last) {
-            (false, false) => Served::Model,
-            (true, true) if self.sse_last < self.sse_cold => Served::LastMeasured,
-            (true, _) => Served::NoChange,
-            (false, true) => Served::LastMeasured,
+        let mut best: Option<(f64, Served)> = None;
+        for (sse, d, d2, served) in [
+            (self.sse_cold, self.d_cold, self.d2_cold, Served::NoChange),
+            (
+                self.sse_last,
+                self.d_last,
+                self.d2_last,
+                Served::LastMeasured,
+            ),
+            (self.sse_reg, self.d_reg, self.d2_reg, Served::Regression),
+        ] {
+            let eligible = anchored || served == Served::NoChange;
+            if eligible && self.beaten_by(d, d2).is_some() && best.is_none_or(|(b, _)| sse < b) {
+                best = Some((sse, served));
+            }
         }
+        best.map_or(Served::Model, |(_, s)| s)
     }
 
     /// The served value and its sigma (of the true value) from the model's value and
@@ -731,10 +867,12 @@ impl Guard {
     /// the scored cycles, not for any time since the last one.) A fallback's sigma is its
     /// scored error less the observations' own noise, at least its own uncertainty
     /// ([`Guard::reason`] says why).
+    /// `reg` is the regression's value ([`ChangeRegression::value`]).
     pub fn serve(
         &self,
         model: (f64, f64),
         cold: (f64, f64),
+        reg: f64,
         min_scored: usize,
         t_ns: i64,
     ) -> (f64, f64, Served) {
@@ -743,12 +881,9 @@ impl Guard {
         let n = self.n.max(1) as f64;
         let obs_var = self.sum_obs_var / n;
         let mut source = self.source(min_scored);
-        if source == Served::LastMeasured && self.last_is_stale(t_ns) {
-            source = if self.beaten_by(self.d_cold, self.d2_cold).is_some() {
-                Served::NoChange
-            } else {
-                Served::Model
-            };
+        // Both fallbacks anchored at the last observation were judged at the gaps scored.
+        if matches!(source, Served::LastMeasured | Served::Regression) && self.last_is_stale(t_ns) {
+            source = self.fallback(min_scored, false);
         }
         match (source, self.last) {
             (Served::NoChange, _) => {
@@ -759,43 +894,57 @@ impl Guard {
                 let var = (self.sse_last / n - obs_var).max(self.last_var);
                 (last, var.sqrt(), Served::LastMeasured)
             }
+            (Served::Regression, Some(_)) if reg.is_finite() => {
+                let var = (self.sse_reg / n - obs_var).max(self.last_var);
+                (reg, var.sqrt(), Served::Regression)
+            }
             _ => (model.0, model_sd, Served::Model),
         }
     }
 
     /// Score the observation `y` at `t_ns` (stated variance `obs_var`) before it corrects
     /// the model, whose prediction of it is `model` (value, variance of the true value) and
-    /// whose cold value is `cold`, then take it as the last value. The first observation of a
-    /// channel has no last value and is only taken.
+    /// whose cold value is `cold` and the regression's `reg`, then take it as the last value
+    /// with its design row `row`. The first observation of a channel has no last value and
+    /// is only taken; so is the first of a run (more than `run_gap_ns` after the last): the
+    /// fallbacks anchored at the last observation are judged within runs, and after a stand
+    /// they are stale ([`Guard::serve`]), so a night's change is not theirs to answer for.
+    #[allow(clippy::too_many_arguments)]
     fn observe(
         &mut self,
         y: f64,
         obs_var: f64,
         model: (f64, f64),
         cold: (f64, f64),
+        reg: f64,
         min_scored: usize,
         t_ns: i64,
+        row: &DVector<f64>,
+        run_gap_ns: i64,
     ) {
-        if let Some(last) = self.last {
-            self.score(y, obs_var, model, cold, min_scored, t_ns, last);
+        let new_run = self.last_t_ns.is_some_and(|t| t_ns - t > run_gap_ns);
+        if let Some(last) = self.last.filter(|_| !new_run) {
+            let reg = if reg.is_finite() { reg } else { last };
+            self.score(y, obs_var, (model, cold, reg), min_scored, t_ns, last);
         }
         self.last = Some(y);
         self.last_var = obs_var;
         self.last_t_ns = Some(t_ns);
+        self.last_row = row.iter().copied().collect();
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// `by`: the model's value and variance, the cold value and variance, the regression's.
     fn score(
         &mut self,
         y: f64,
         obs_var: f64,
-        model: (f64, f64),
-        cold: (f64, f64),
+        by: ((f64, f64), (f64, f64), f64),
         min_scored: usize,
         t_ns: i64,
         last: f64,
     ) {
-        let (v, s, _) = self.serve(model, cold, min_scored, t_ns);
+        let (model, cold, reg) = by;
+        let (v, s, _) = self.serve(model, cold, reg, min_scored, t_ns);
         if let Some(t) = self.last_t_ns {
             self.sum_gap_s += (t_ns - t).max(0) as f64 / 1e9;
         }
@@ -816,6 +965,10 @@ impl Guard {
         self.d2_last += (em - el).powi(2);
         self.d_cold += em - ec;
         self.d2_cold += (em - ec).powi(2);
+        let er = (y - reg).powi(2);
+        self.sse_reg += er;
+        self.d_reg += em - er;
+        self.d2_reg += (em - er).powi(2);
         self.sum_model_var += model.1.max(0.0);
         self.sum_obs_var += obs_var;
     }
@@ -823,10 +976,11 @@ impl Guard {
     /// Why the channel serves `served` (its [`Guard::source`], or what [`Guard::serve`] gave).
     pub fn reason(&self, channel: &str, min_scored: usize, served: Served) -> String {
         let u = channel_unit(channel);
-        let (m, l, c) = (
+        let (m, l, c, r) = (
             self.rms(self.sse_model),
             self.rms(self.sse_last),
             self.rms(self.sse_cold),
+            self.rms(self.sse_reg),
         );
         let n = self.n;
         match served {
@@ -834,7 +988,7 @@ impl Guard {
                 "model: {n} held-out observation(s) scored, {min_scored} needed to judge it"
             ),
             Served::Model => format!(
-                "model: RMSE {m:.2} {u} on {n} held-out observations, against last measured {l:.2} and no change {c:.2} (no fallback better beyond chance)"
+                "model: RMSE {m:.2} {u} on {n} held-out observations, against last measured {l:.2}, no change {c:.2} and least squares on the inputs' changes {r:.2} (no fallback better beyond chance)"
             ),
             Served::LastMeasured => format!(
                 "last measured: the model's RMSE {m:.2} {u} on {n} held-out observations is worse than the last measured value's {l:.2} beyond chance (t = {:.1}; no change {c:.2})",
@@ -845,6 +999,10 @@ impl Guard {
                 "no change (its cold value, as if not compensated): the model's RMSE {m:.2} {u} on {n} held-out observations is worse than no change's {c:.2} beyond chance (t = {:.1}; last measured {l:.2})",
                 self.beaten_by(self.d_cold, self.d2_cold)
                     .unwrap_or(f64::NAN)
+            ),
+            Served::Regression => format!(
+                "least squares on the inputs' changes since the last measured value: the model's RMSE {m:.2} {u} on {n} held-out observations is worse than least squares' {r:.2} beyond chance (t = {:.1}; last measured {l:.2}, no change {c:.2})",
+                self.beaten_by(self.d_reg, self.d2_reg).unwrap_or(f64::NAN)
             ),
         }
     }
@@ -862,6 +1020,7 @@ impl Guard {
             rmse_model: self.rms(self.sse_model),
             rmse_last_measured: self.rms(self.sse_last),
             rmse_no_change: self.rms(self.sse_cold),
+            rmse_regression: self.rms(self.sse_reg),
             sigma_scale: self.sigma_scale(min_scored),
             z_rms: self.rms(self.sum_z2),
             within_1_sigma: self.within_1 as f64 / n,
@@ -1046,6 +1205,7 @@ fn fit_channel(
     let mut c = fit_posterior(cfg, name, obs, n)?;
     c.offset_walk_per_h = learn_walk(cfg, obs, &c);
     c.guard = holdout_guard(cfg, name, obs, n);
+    c.regression = fit_change_regression(cfg, obs);
     Ok(c)
 }
 
@@ -1106,24 +1266,33 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
                 obs_var(o),
                 (o.y, 0.0),
                 (o.y, 0.0),
+                o.y,
                 cfg.min_scored,
                 o.t_ns,
+                &o.row,
+                crate::units::h_to_ns(cfg.run_gap_h),
             );
         }
         return g;
     };
     let walk = learn_walk(cfg, &obs[..n_head], &head).unwrap_or(cfg.offset_walk_per_h);
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
+    st.reg = fit_change_regression(cfg, &obs[..n_head]);
+    st.anchored = cfg.anchored;
     // The head's last observation is only taken (the head's posterior holds it).
     for (i, o) in obs[n_head - 1..].iter().enumerate() {
         st.walk_to(o.t_ns);
+        let reg = st.reg_value(&g, &o.row);
         g.observe(
             o.y,
             obs_var(o),
-            st.model_at(&o.row),
+            st.served_model(&g, &o.row, o.t_ns),
             st.cold(0.0),
+            reg,
             cfg.min_scored,
             o.t_ns,
+            &o.row,
+            crate::units::h_to_ns(cfg.run_gap_h),
         );
         if i > 0 {
             st.correct(&o.row, o.y, obs_var(o));
@@ -1188,6 +1357,7 @@ fn fit_posterior(
         cv_rmse_um: best.0,
         offset_walk_per_h: None,
         guard: Guard::default(),
+        regression: None,
         held_to_range,
     })
 }
@@ -1422,6 +1592,9 @@ struct ChannelState {
     guard: Guard,
     /// Columns held to the fit data's range (see [`ChannelFit::held_to_range`]).
     held: Vec<(usize, f64, f64)>,
+    reg: Option<ChangeRegression>,
+    /// [`ModelConfig::anchored`].
+    anchored: bool,
 }
 
 impl ChannelState {
@@ -1435,6 +1608,8 @@ impl ChannelState {
             walk_per_s,
             guard: c.guard.clone(),
             held: c.held_to_range.clone(),
+            reg: c.regression.clone(),
+            anchored: false,
         }
     }
 
@@ -1451,6 +1626,38 @@ impl ChannelState {
             walk_per_s,
             guard: Guard::default(),
             held: Vec::new(),
+            reg: None,
+            anchored: false,
+        }
+    }
+
+    /// The model's value at design row `h` at `t_ns` as served and its variance: anchored at
+    /// `guard`'s last observation when [`ModelConfig::anchored`], for as long as the last
+    /// measured value may be held (it was judged at the gaps scored; a free run of hours from
+    /// one reading is the filter's own).
+    fn served_model(&self, guard: &Guard, h: &DVector<f64>, t_ns: i64) -> (f64, f64) {
+        let (m, v) = self.model_at(h);
+        match guard.last {
+            Some(last)
+                if self.anchored
+                    && !guard.last_is_stale(t_ns)
+                    && guard.last_row.len() == h.len() =>
+            {
+                let (at_last, _) = self.model_at(&DVector::from_column_slice(&guard.last_row));
+                // The anchor's own noise rides on every value until the next observation.
+                (m + last - at_last, v + guard.last_var)
+            }
+            _ => (m, v),
+        }
+    }
+
+    /// The regression's value at design row `h` from `guard`'s last observation (the last
+    /// observation itself without a regression; NaN before any).
+    fn reg_value(&self, guard: &Guard, h: &DVector<f64>) -> f64 {
+        match (&self.reg, guard.last) {
+            (Some(r), Some(last)) => r.value(last, &guard.last_row, h),
+            (None, Some(last)) => last,
+            _ => f64::NAN,
         }
     }
 
@@ -1532,10 +1739,9 @@ impl Predictor {
                 let walk = c
                     .offset_walk_per_h
                     .unwrap_or(model.config.offset_walk_per_h);
-                (
-                    c.name.clone(),
-                    ChannelState::of_fit(c, walk / 3600.0, last_obs_ns),
-                )
+                let mut st = ChannelState::of_fit(c, walk / 3600.0, last_obs_ns);
+                st.anchored = model.config.anchored;
+                (c.name.clone(), st)
             })
             .collect();
         Predictor {
@@ -1593,6 +1799,7 @@ impl Predictor {
         h: &DVector<f64>,
     ) -> bool {
         let min_scored = self.model.config.min_scored;
+        let run_gap_ns = crate::units::h_to_ns(self.model.config.run_gap_h);
         let Some(s) = self.channels.get_mut(channel) else {
             return false;
         };
@@ -1603,9 +1810,14 @@ impl Predictor {
             .filter(|x| crate::units::positive(*x))
             .map_or(0.0, |x| x * x);
         s.walk_to(t_ns);
-        let (model, cold) = (s.model_at(h), s.cold(0.0));
-        s.guard
-            .observe(value, obs_var, model, cold, min_scored, t_ns);
+        let (model, cold, reg) = (
+            s.served_model(&s.guard, h, t_ns),
+            s.cold(0.0),
+            s.reg_value(&s.guard, h),
+        );
+        s.guard.observe(
+            value, obs_var, model, cold, reg, min_scored, t_ns, h, run_gap_ns,
+        );
         s.correct(h, value, obs_var);
         true
     }
@@ -1620,9 +1832,11 @@ impl Predictor {
             .iter()
             .map(|(name, s)| {
                 let walk = s.walk_per_s * (t_ns - s.t_ns).max(0) as f64 / 1e9;
-                let (m, v) = s.model_at(&h);
+                let (m, v) = s.served_model(&s.guard, &h, t_ns);
+                let reg = s.reg_value(&s.guard, &h);
                 let (value, sigma, source) =
-                    s.guard.serve((m, v + walk), s.cold(walk), min_scored, t_ns);
+                    s.guard
+                        .serve((m, v + walk), s.cold(walk), reg, min_scored, t_ns);
                 let reason =
                     (source != Served::Model).then(|| s.guard.reason(name, min_scored, source));
                 Prediction {
@@ -2233,23 +2447,143 @@ mod tests {
     }
 
     #[test]
+    fn the_served_model_passes_through_the_last_observation_and_moves_by_its_change() {
+        let (ev, _) = day(30, 0.3, 7);
+        let cut = 300 * MIN;
+        let model = fit(&ModelConfig::default(), &ev, Some(cut)).unwrap();
+        let served_after_an_offset = |anchored: bool| {
+            let mut m = model.clone();
+            m.config.anchored = anchored;
+            let mut p = Predictor::new(&m, 0);
+            for e in ev.iter().filter(|e| e.t_ns() <= cut) {
+                p.apply(e);
+            }
+            // A cycle 6 um above what the model says: an error that persists.
+            let t = cut + 15 * MIN;
+            let before = p.predict(t)[0].model_value;
+            p.apply(&Event::Observation {
+                t_ns: t,
+                channel: "EZ0B".into(),
+                value: before + 6.0,
+                sigma: Some(0.3),
+            });
+            let now = p.predict(t)[0].clone();
+            let later = p.predict(t + 20 * MIN)[0].clone();
+            (before + 6.0, now, later)
+        };
+        let (y, now, later) = served_after_an_offset(true);
+        assert_eq!(now.source, Served::Model, "{now:?}");
+        assert!((now.value - y).abs() < 1e-9, "{} vs {y}", now.value);
+        // Twenty minutes on, the anchored value has moved by the model's change only.
+        let (_, raw_now, raw_later) = served_after_an_offset(false);
+        let change = raw_later.model_value - raw_now.model_value;
+        assert!(
+            (later.value - (y + change)).abs() < 0.5,
+            "{later:?} {change}"
+        );
+        // The filter alone takes part of the 6 um as noise of the model.
+        assert!((raw_now.value - y).abs() > 0.1, "{raw_now:?} vs {y}");
+    }
+
+    #[test]
+    fn least_squares_on_the_changes_takes_an_offset_per_run_and_is_served_when_it_wins() {
+        let cfg = ModelConfig {
+            taus_min: vec![6.0],
+            temperatures: vec![TemperatureInput {
+                sensor: "a".into(),
+                taus_min: vec![0.0, 60.0],
+            }],
+            ..Default::default()
+        };
+        // Two runs ten hours apart, each with its own offset; y = 3 um/K of the sensor.
+        let mut obs = Vec::new();
+        for (run, offset) in [(0i64, 10.0), (1, -20.0)] {
+            for k in 0..6 {
+                let x = (k * k) as f64 * 0.5 + run as f64;
+                obs.push(Obs {
+                    t_ns: run * 16 * 60 * MIN + k * 30 * MIN,
+                    row: DVector::from_vec(vec![1.0, 0.0, x, 0.7 * x]),
+                    y: offset + 3.0 * x,
+                    sigma: None,
+                });
+            }
+        }
+        let r = fit_change_regression(&cfg, &obs).unwrap();
+        assert_eq!(r.columns, vec![2]);
+        assert!((r.gains[0] - 3.0).abs() < 1e-6, "{r:?}");
+        // From the last reading, the sensor's change since it.
+        let to = DVector::from_vec(vec![1.0, 0.0, 14.0, 0.0]);
+        assert!((r.value(20.0, &[1.0, 0.0, 13.0, 0.0], &to) - 23.0).abs() < 1e-6);
+        // A guard whose model is 3 off where the regression is 0.2 off serves the regression.
+        let at = |k: i64| k * 30 * MIN;
+        let row = DVector::from_element(1, 1.0);
+        let mut g = Guard::default();
+        for k in 0..=6 {
+            let y = 2.0 * k as f64;
+            let reg = y + if k % 2 == 0 { 0.2 } else { -0.2 };
+            g.observe(
+                y,
+                0.01,
+                (y + 3.0, 0.5),
+                (0.0, 0.1),
+                reg,
+                4,
+                at(k),
+                &row,
+                i64::MAX,
+            );
+        }
+        assert_eq!(g.source(4), Served::Regression);
+        let (v, _, src) = g.serve((100.0, 0.5), (0.0, 0.1), 12.5, 4, at(7));
+        assert_eq!((v, src), (12.5, Served::Regression));
+        assert!(g.reason("EZ0B", 4, src).contains("least squares"));
+        // Held longer than it was judged, it is stale like the last measured value.
+        assert_eq!(
+            g.serve((100.0, 0.5), (0.0, 0.1), 12.5, 4, at(6) + 6 * 60 * MIN)
+                .2,
+            Served::Model
+        );
+    }
+
+    #[test]
     fn the_served_value_falls_back_when_the_model_does_worse_and_says_why() {
         // Observations every 40 min; `obs` scores one before it becomes the last value.
         let at = |k: i64| k * 40 * MIN;
         let mut g = Guard::default();
         // Before min_scored: the model, and it says so.
         let cold = (1.0, 0.1);
-        g.observe(1.0, 0.25, (1.0, 0.5), cold, 4, at(0));
+        let row = DVector::from_element(1, 1.0);
+        g.observe(1.0, 0.25, (1.0, 0.5), cold, 1.0, 4, at(0), &row, i64::MAX);
         for (k, y) in [1.2, 0.8, 1.1].into_iter().enumerate() {
             // The model is 3 off each time; the cold value is close.
-            g.observe(y, 0.25, (y + 3.0, 0.5), cold, 4, at(k as i64 + 1));
+            g.observe(
+                y,
+                0.25,
+                (y + 3.0, 0.5),
+                cold,
+                f64::NAN,
+                4,
+                at(k as i64 + 1),
+                &row,
+                i64::MAX,
+            );
         }
         assert_eq!(g.source(4), Served::Model);
         let r = g.reason("EA0C", 4, g.source(4));
         assert!(r.contains("3 held-out"), "{r}");
-        g.observe(0.9, 0.25, (3.9, 0.5), cold, 4, at(4));
+        g.observe(
+            0.9,
+            0.25,
+            (3.9, 0.5),
+            cold,
+            f64::NAN,
+            4,
+            at(4),
+            &row,
+            i64::MAX,
+        );
         assert_eq!(g.source(4), Served::NoChange);
-        let (v, s, src) = g.serve((100.0, 0.5), cold, 4, at(5));
+        let (v, s, src) = g.serve((100.0, 0.5), cold, 0.9, 4, at(5));
         assert_eq!((v, src), (1.0, Served::NoChange));
         assert!(s.is_finite() && s >= 0.1f64.sqrt(), "{s}");
         let r = g.reason("EA0C", 4, src);
@@ -2262,23 +2596,44 @@ mod tests {
         let mut g = Guard::default();
         for k in 0..=6 {
             let y = 5.0 * k as f64;
-            g.observe(y, 0.01, (y - 6.0, 0.5), (0.0, 0.1), 4, at(k));
+            g.observe(
+                y,
+                0.01,
+                (y - 6.0, 0.5),
+                (0.0, 0.1),
+                f64::NAN,
+                4,
+                at(k),
+                &row,
+                i64::MAX,
+            );
         }
         assert_eq!(g.source(4), Served::LastMeasured);
-        assert_eq!(g.serve((0.0, 1.0), (0.0, 0.1), 4, at(7)).0, 30.0);
+        assert_eq!(g.serve((0.0, 1.0), (0.0, 0.1), 30.0, 4, at(7)).0, 30.0);
         assert_eq!(
-            g.serve((0.0, 1.0), (0.0, 0.1), 4, at(6) + 6 * 60 * MIN).2,
+            g.serve((0.0, 1.0), (0.0, 0.1), 30.0, 4, at(6) + 6 * 60 * MIN)
+                .2,
             Served::Model
         );
         // A model that did best on the scores is served, however wide its band now.
         let mut g = Guard::default();
         for k in 0..=6 {
             let y = 0.1 * k as f64;
-            g.observe(y, 0.01, (y, 0.01), (0.0, 0.01), 4, at(k));
+            g.observe(
+                y,
+                0.01,
+                (y, 0.01),
+                (0.0, 0.01),
+                f64::NAN,
+                4,
+                at(k),
+                &row,
+                i64::MAX,
+            );
         }
         assert_eq!(g.source(4), Served::Model);
         assert_eq!(
-            g.serve((0.3, 100.0), (0.0, 0.01), 4, at(7)).2,
+            g.serve((0.3, 100.0), (0.0, 0.01), 0.6, 4, at(7)).2,
             Served::Model
         );
     }
