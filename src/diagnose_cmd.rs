@@ -360,9 +360,14 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
         );
     }
     for c in &d.channels {
-        if let Some(l) = &c.located_term {
+        for (what, l) in c
+            .located_term
+            .iter()
+            .map(|l| ("located term", l))
+            .chain(c.late_term.iter().map(|l| ("later located term", l)))
+        {
             println!(
-                "{}: located term {}: held-out RMS {:.2} -> {:.2} um, {}",
+                "{}: {what} {}: held-out RMS {:.2} -> {:.2} um, {}",
                 c.channel,
                 l.term,
                 l.heldout_before_um,
@@ -371,7 +376,8 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
                     "accepted into the final model".to_string()
                 } else {
                     format!(
-                        "not confirmed{}",
+                        "not confirmed ({}){}",
+                        l.reason.map_or("", |r| r.words()),
                         l.split_by
                             .as_ref()
                             .map(|s| format!("; what would split it: {s}"))

@@ -150,8 +150,9 @@ pub struct LocatedOutcome {
 fn accepts_sensor(d: &DisplacementDiagnosis, sensor: &str) -> bool {
     d.channels.first().is_some_and(|c| {
         c.located_term
-            .as_ref()
-            .is_some_and(|l| l.accepted && l.sensor == sensor)
+            .iter()
+            .chain(&c.late_term)
+            .any(|l| l.accepted && l.sensor == sensor)
             || c.accepted.iter().any(
                 |t| matches!(&t.input, ModelInput::Temperature { sensor: s, .. } if s == sensor),
             )
@@ -191,8 +192,12 @@ pub fn located_power(
             continue;
         };
         let l = c.located_term.as_ref();
+        // The later departure's term counts as the located one does: accepted on the null
+        // or on another sensor, it is a false term.
         let false_term = l
-            .filter(|l| l.accepted && (rms_um == 0.0 || l.sensor != sensor))
+            .into_iter()
+            .chain(c.late_term.as_ref())
+            .find(|l| l.accepted && (rms_um == 0.0 || l.sensor != sensor))
             .map(|l| l.term.clone());
         out.push(LocatedOutcome {
             channel: channel.to_string(),

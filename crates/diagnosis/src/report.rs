@@ -410,7 +410,12 @@ fn located_table(h: &mut String, d: &crate::displacement::DisplacementDiagnosis)
     let located: Vec<_> = d
         .channels
         .iter()
-        .filter_map(|c| c.located_term.as_ref().map(|l| (c, l)))
+        .flat_map(|c| {
+            c.located_term
+                .iter()
+                .chain(&c.late_term)
+                .map(move |l| (c, l))
+        })
         .collect();
     if located.is_empty() {
         return;
@@ -421,15 +426,7 @@ fn located_table(h: &mut String, d: &crate::displacement::DisplacementDiagnosis)
             None => "accepted".to_string(),
             Some(r) => format!(
                 "not confirmed: {}{}",
-                match r {
-                    crate::displacement::NotConfirmed::TooShort => "too short after the onset",
-                    crate::displacement::NotConfirmed::ConfoundedWithRamp =>
-                        "confounded with a ramp",
-                    crate::displacement::NotConfirmed::ConfoundedWithSensor => {
-                        "confounded with another sensor"
-                    }
-                    crate::displacement::NotConfirmed::NotSupported => "not supported by the data",
-                },
+                r.words(),
                 l.rule
                     .as_ref()
                     .map(|r| format!(" ({r})"))

@@ -26,6 +26,12 @@ pub const RAMP_R: f64 = 0.95;
 /// Hours after the onset that a rolling origin's fit, and the held-out end, need to judge an
 /// onset-gated term (a fit that sees less cannot estimate its gain).
 pub const MIN_AFTER_ONSET_H: f64 = 2.0;
+/// Where the window of the later located search starts, as a share of the training span:
+/// its last 40 %. Inside the span the rolling origins judge (from its middle on), and late
+/// enough that the window's own offset is not the end of an earlier warm-up: at the middle
+/// (0.5) the 78-h spindle run's later onset landed at 23 h, in the rise before the decline
+/// that starts near 29 h; the located bench gave the same false terms at both shares.
+pub const LATE_WINDOW_SHARE: f64 = 0.6;
 /// A departure is tied to a temperature (for an un-gated term) when it follows it this well.
 const MIN_DRIVER_R: f64 = 0.5;
 /// An onset is placed when its drift beats no change by this delta-BIC on the residual's
@@ -77,6 +83,9 @@ pub struct LocatedTerm {
     pub ramp_r: f64,
     /// Other sensors within delta-BIC 10 of it, in the same shape (best first, at most 3).
     pub comparable: Vec<(String, f64)>,
+    /// Held-out RMS of the final model with the same term on each sensor instead (the same
+    /// onset and lag), best first, um: read beside the tie, not a rule.
+    pub heldout_by_sensor: Vec<(String, f64)>,
     pub accepted: bool,
     /// The rule it failed, if any.
     pub rule: Option<String>,
@@ -208,13 +217,35 @@ fn best_pick(
 /// the sensor and the onset row when an onset stands out over no change (delta-BIC of
 /// [`MIN_ONSET_DELTA_BIC`]); else, when `structured`, the sensor that follows its largest departure
 /// best (|r| >= [`MIN_DRIVER_R`]), un-gated.
+///
+/// A later departure is sought in its own window, training rows `from..`: the onset search
+/// sees only them (its offset is theirs), so a smaller drift late in the fit is not swamped
+/// by the misfit of what came before; there the tie is by an onset alone.
 fn tie(
     tt: &[f64],
     rt: &[f64],
     temps: &[(String, Vec<f64>)],
     structured: bool,
+    from: usize,
 ) -> Option<(usize, Option<usize>)> {
     let index = |name: &str| temps.iter().position(|t| t.0 == name);
+    if from > 0 {
+        let window: Vec<(String, Vec<f64>)> = temps
+            .iter()
+            .map(|(n, x)| (n.clone(), x.get(from..).unwrap_or_default().to_vec()))
+            .collect();
+        let (tw, rw) = (tt.get(from..)?, rt.get(from..)?);
+        let o = locate_onset(tw, rw, &window).filter(|o| o.delta_bic >= MIN_ONSET_DELTA_BIC)?;
+        // An onset at the window's first hour is a drift that began before the window: the
+        // tail of the departure the first search took, not a later one (on fl-thermal, such
+        // tails of drifts injected from 20 and 25 h were tied to a neighbouring sensor and
+        // accepted: 5 false terms in 180 injections).
+        let first_h = (tw[0] + 0.1 * (tw[tw.len() - 1] - tw[0])) / 60.0;
+        if onset_row(tw, o.at_h) <= onset_row(tw, first_h) {
+            return None;
+        }
+        return index(&o.sensor).map(|s| (s, Some(from + onset_row(tw, o.at_h))));
+    }
     if let Some(o) = locate_onset(tt, rt, temps).filter(|o| o.delta_bic >= MIN_ONSET_DELTA_BIC) {
         return index(&o.sensor).map(|s| (s, Some(onset_row(tt, o.at_h))));
     }
@@ -242,7 +273,7 @@ fn surrogate_bar(
     tt: &[f64],
     rt: &[f64],
     temps: &[Vec<f64>],
-    structured: bool,
+    (structured, from): (bool, usize),
     seed: u64,
     opts: &DisplacementOptions,
 ) -> f64 {
@@ -257,7 +288,7 @@ fn surrogate_bar(
                 (format!("{k}:{s}"), x)
             })
             .collect();
-        let Some((s, gate)) = tie(tt, rt, &sur, structured) else {
+        let Some((s, gate)) = tie(tt, rt, &sur, structured, from) else {
             continue;
         };
         if let Some(p) = best_pick(w, tt, (s, &sur[s].1), gate) {
@@ -278,7 +309,7 @@ pub(super) fn locate(
     chosen: &[usize],
     t_min: &[f64],
     temps: &[(String, Vec<f64>)],
-    channel: &str,
+    (channel, from_min): (&str, Option<f64>),
     opts: &DisplacementOptions,
 ) -> Option<Found> {
     let m = design.matrix(chosen, base_cols);
@@ -298,7 +329,8 @@ pub(super) fn locate(
     // the term; without one, a temperature that follows the largest departure of a
     // structured residual is tried un-gated.
     let structured = final_fit.ar1 > 0.5 && final_fit.ljung_box_p < 0.01;
-    let (s, gate) = tie(&tt, &rt, &temps_t, structured)?;
+    let from = from_min.map_or(0, |f| tt.partition_point(|t| *t < f));
+    let (s, gate) = tie(&tt, &rt, &temps_t, structured, from)?;
     let w = ColumnScorer::new(design, &m, opts.located_noise);
     let best = best_pick(&w, &tt, (s, &temps_t[s].1), gate)?;
     let sensor = best.sensor;
@@ -307,11 +339,12 @@ pub(super) fn locate(
     } else {
         let seed = opts.seed
             ^ 0x006c_6f63_6174_6564
+            ^ from as u64
             ^ channel
                 .bytes()
                 .fold(0u64, |h, b| h.wrapping_mul(31).wrapping_add(b as u64));
         let xs: Vec<Vec<f64>> = temps_t.iter().map(|t| t.1.clone()).collect();
-        surrogate_bar(&w, &tt, &rt, &xs, structured, seed, opts)
+        surrogate_bar(&w, &tt, &rt, &xs, (structured, from), seed, opts)
     };
     // The candidate on every reading: the lag runs on through the held-out end (a causal
     // filter, so its training part is what was scored).
@@ -323,6 +356,7 @@ pub(super) fn locate(
     let before = design.fit(&m).1.rms_heldout_um;
     let after = design.fit(&m2).1.rms_heldout_um;
     let comparable = comparable(&rt, &temps_t, sensor, gate);
+    let heldout_by_sensor = heldout_by_sensor(design, &m, t_min, temps, (best.tau, k_all));
     let ramp_r = {
         let from = k_all.unwrap_or(0);
         super::corr(&x[from..], &t_min[from..])
@@ -338,6 +372,7 @@ pub(super) fn locate(
         after,
         ramp_r,
         comparable,
+        heldout_by_sensor,
         blocks: design.blocks.len(),
         x,
     };
@@ -364,8 +399,34 @@ pub(super) struct Found {
     pub after: f64,
     ramp_r: f64,
     comparable: Vec<(String, f64)>,
+    heldout_by_sensor: Vec<(String, f64)>,
     blocks: usize,
     pub x: Vec<f64>,
+}
+
+/// The held-out RMS of model `m` with the same term on each sensor instead (the same lag
+/// `tau` and gate `k`), best first: what the held-out end says of which sensor the drift
+/// follows. Not a rule (the sensor is chosen on the training part alone), a figure to read
+/// beside the tie: where the training part cannot tell two sensors apart, the hold-out may.
+fn heldout_by_sensor(
+    design: &Design,
+    m: &nalgebra::DMatrix<f64>,
+    t_min: &[f64],
+    temps: &[(String, Vec<f64>)],
+    (tau, k): (f64, Option<usize>),
+) -> Vec<(String, f64)> {
+    let mut out: Vec<(String, f64)> = temps
+        .iter()
+        .filter_map(|(name, x)| {
+            let x = gated(&lagged(t_min, x, tau), k);
+            let mut m2 = m.clone().insert_column(m.ncols(), 0.0);
+            m2.column_mut(m.ncols()).copy_from_slice(&x);
+            let held = design.fit(&m2).1.rms_heldout_um;
+            held.is_finite().then(|| (name.clone(), held))
+        })
+        .collect();
+    out.sort_by(|a, b| a.1.total_cmp(&b.1));
+    out
 }
 
 /// The rule a located candidate fails, in the forward selection's order (the bar, then
@@ -506,6 +567,7 @@ pub(super) fn verdict(
         heldout_after_um: f.after,
         ramp_r: f.ramp_r,
         comparable: f.comparable,
+        heldout_by_sensor: f.heldout_by_sensor,
         accepted,
         rule,
         reason,
@@ -546,6 +608,7 @@ fn statement(
         "modelled as an added term: held-out RMS {:.2} -> {:.2} um, delta-BIC {:.1} (bar {:.1}), t {:.1}, better predictions from {} of {} rolling origins",
         f.before, f.after, f.score, f.bar, f.judged.t, f.judged.wins, f.blocks
     );
+    let modelled = modelled + &heldout_ranking(f);
     let others = |lead: &str| {
         if f.comparable.is_empty() {
             String::new()
@@ -587,6 +650,45 @@ fn statement(
         }
     };
     format!("{channel}: located: {what}; {modelled}; {verdict}")
+}
+
+/// The held-out end's ranking of the same term on each sensor, in words: the best three,
+/// and where the tied sensor stands when it is not among them.
+fn heldout_ranking(f: &Found) -> String {
+    let rank = &f.heldout_by_sensor;
+    if rank.len() < 2 {
+        return String::new();
+    }
+    let mut shown: Vec<String> = rank
+        .iter()
+        .take(3)
+        .map(|(n, h)| format!("{n} {h:.2}"))
+        .collect();
+    if let Some(k) = rank.iter().skip(3).position(|(n, _)| *n == f.sensor) {
+        shown.push(format!(
+            "... {} {:.2} ({}th)",
+            f.sensor,
+            rank[k + 3].1,
+            k + 4
+        ));
+    }
+    format!(
+        "; the same term on each sensor instead, held-out RMS {} um (of {} sensors)",
+        shown.join(", "),
+        rank.len()
+    )
+}
+
+impl NotConfirmed {
+    /// The reason in a few words.
+    pub fn words(self) -> &'static str {
+        match self {
+            NotConfirmed::TooShort => "too short after the onset",
+            NotConfirmed::ConfoundedWithRamp => "confounded with a ramp",
+            NotConfirmed::ConfoundedWithSensor => "confounded with another sensor",
+            NotConfirmed::NotSupported => "not supported by the data",
+        }
+    }
 }
 
 impl LocatedTerm {
