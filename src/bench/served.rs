@@ -8,7 +8,10 @@
 //! - least squares on every input fitted on the cycles of every day so far (an offset per
 //!   day: the inputs as changes since each day's first cycle), anchored at the last cycle.
 //!
-//! Before the model's first fit the service serves the last cycle, as it does.
+//! Before the model's first fit, while it is suspect (a cycle it predicted outside its band,
+//! `LiveModel::judge`) and where its band is wider than the policy serves, the service keeps
+//! the last set: here the last cycle. (The service also limits each step of a served value;
+//! that is left out here.)
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -16,10 +19,13 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use driftwatch_core::across_runs;
+use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::families::{Family, Grid, grid, rms};
 use driftwatch_core::thermal_model::{Event, Served, TemperatureInput, default_temperature_taus};
 use driftwatch_core::units;
-use driftwatch_machine::compensation::PredictionPolicy;
+use driftwatch_machine::compensation::{
+    CompensationSet, PredictionPolicy, Source, ValidationLimits,
+};
 use driftwatch_machine::live_model::LiveModel;
 use serde::Serialize;
 
@@ -37,12 +43,16 @@ pub struct ServedRow {
     pub channel: String,
     pub cycles: usize,
     pub scored: usize,
+    /// What the service serves (the live model's value through the service's gates).
     pub served_rmse: f64,
+    /// The live model's value (its guard's choice) wherever it has one, gates or not.
+    pub model_rmse: f64,
     pub last_cycle_rmse: f64,
     pub regression_rmse: f64,
     /// Scored points served by the model, the last measured value, no change, the
-    /// regression, and the last cycle (before the first fit, or while the model is suspect).
-    pub sources: [usize; 5],
+    /// regression; and the last cycle kept: before the first fit or while the model is
+    /// suspect, and where the band was wider than the policy serves.
+    pub sources: [usize; 6],
     pub ratio_to_better: f64,
 }
 
@@ -170,8 +180,8 @@ struct Channel {
     fitted: Option<across_runs::RunsFitted>,
     /// The last cycle: its grid index in the current run and value.
     last: Option<(usize, f64)>,
-    errors: [Vec<f64>; 3],
-    sources: [usize; 5],
+    errors: [Vec<f64>; 4],
+    sources: [usize; 6],
     cycles: usize,
 }
 
@@ -183,6 +193,7 @@ fn replay(
     cycle_ns: i64,
 ) -> Vec<ServedRow> {
     let mut model = LiveModel::new(policy_for(set, policy.clone()));
+    let names = stand_ins(&set.channels);
     let mut rows = Vec::new();
     let mut chans: Vec<Channel> = Vec::new();
     let mut start = 0i64;
@@ -199,13 +210,13 @@ fn replay(
             fitted: None,
             last: None,
             errors: Default::default(),
-            sources: [0; 5],
+            sources: [0; 6],
             cycles: 0,
         });
         for ch in chans.iter_mut() {
             ch.last = None;
             ch.errors = Default::default();
-            ch.sources = [0; 5];
+            ch.sources = [0; 6];
             ch.cycles = 0;
         }
         let mut inputs = ev
@@ -231,8 +242,8 @@ fn replay(
                     continue;
                 };
                 let y = g.y[m.k];
-                errors.insert(set.channels[m.channel].clone(), y);
-                sigma.insert(set.channels[m.channel].clone(), CYCLE_SIGMA_UM);
+                errors.insert(names[m.channel].clone(), y);
+                sigma.insert(names[m.channel].clone(), CYCLE_SIGMA_UM);
                 ch.record.push(g, m.k, ch.last.is_none());
                 ch.fitted = ch.record.regression();
                 ch.last = Some((m.k, y));
@@ -240,6 +251,10 @@ fn replay(
                 i += 1;
             }
             if !errors.is_empty() {
+                // As the machine loop does: judged before it learns from the cycle.
+                if let Some(set) = measured_set(&errors, t + shift) {
+                    model.judge(&set, t + shift, t + shift, &ValidationLimits::default());
+                }
                 model.observe(t + shift, &errors, &sigma);
             }
             let predictions = if i < ms.len() && ms[i].t_ns == t {
@@ -254,12 +269,14 @@ fn replay(
                     continue;
                 };
                 let Some((c, held)) = ch.last else { continue };
-                let name = &set.channels[m.channel];
+                let name = &names[m.channel];
                 let p = predictions
                     .as_ref()
                     .and_then(|ps| ps.iter().find(|p| &p.channel == name));
+                // The service's gates: a suspect model, or a band wider than the policy
+                // serves, leaves the last set in place.
                 let served = match p {
-                    Some(p) if model.suspect().is_none() => {
+                    Some(p) if model.suspect().is_none() && p.sigma <= policy.max_sigma_um => {
                         ch.sources[match p.source {
                             Served::Model => 0,
                             Served::LastMeasured => 1,
@@ -267,6 +284,10 @@ fn replay(
                             Served::Regression => 3,
                         }] += 1;
                         p.value
+                    }
+                    Some(_) if model.suspect().is_none() => {
+                        ch.sources[5] += 1;
+                        held
                     }
                     _ => {
                         ch.sources[4] += 1;
@@ -282,7 +303,12 @@ fn replay(
                         .map(|(&j, b)| b * (g.inputs[j][m.k] - g.inputs[j][c]))
                         .sum::<f64>()
                 });
-                for (e, v) in ch.errors.iter_mut().zip([served, held, regression]) {
+                let model_value = p.map_or(held, |p| p.value);
+                for (e, v) in ch
+                    .errors
+                    .iter_mut()
+                    .zip([served, held, regression, model_value])
+                {
                     e.push(v - g.y[m.k]);
                 }
             }
@@ -291,7 +317,7 @@ fn replay(
             if ch.errors[0].is_empty() {
                 continue;
             }
-            let [s, l, r] = [0, 1, 2].map(|j| rms(&ch.errors[j]));
+            let [s, l, r, mv] = [0, 1, 2, 3].map(|j| rms(&ch.errors[j]));
             rows.push(ServedRow {
                 set: set.name.clone(),
                 run: run.name.clone(),
@@ -299,6 +325,7 @@ fn replay(
                 cycles: ch.cycles,
                 scored: ch.errors[0].len(),
                 served_rmse: s,
+                model_rmse: mv,
                 last_cycle_rmse: l,
                 regression_rmse: r,
                 sources: ch.sources,
@@ -307,6 +334,39 @@ fn replay(
         }
     }
     rows
+}
+
+/// The model's name of each channel: a position error's (`EX0A`, `EY0A`, ... `EZ0D`), so that
+/// the service's own check of a prediction against each cycle (`LiveModel::judge`, in um
+/// and um/min) applies; past twelve channels, the channel's own name (not checked).
+fn stand_ins(channels: &[String]) -> Vec<String> {
+    let errors = ['A', 'B', 'C', 'D']
+        .into_iter()
+        .flat_map(|axis| ['X', 'Y', 'Z'].map(|d| format!("E{d}0{axis}")));
+    channels
+        .iter()
+        .zip(errors.map(Some).chain(std::iter::repeat(None)))
+        .map(|(c, e)| e.unwrap_or_else(|| c.clone()))
+        .collect()
+}
+
+/// A cycle's readings as the measured set the service would judge its model by (`None`
+/// when no channel has a stand-in error name).
+fn measured_set(errors: &BTreeMap<String, f64>, t_ns: i64) -> Option<CompensationSet> {
+    let named: BTreeMap<ErrorName, f64> = errors
+        .iter()
+        .filter_map(|(k, v)| ErrorName::parse(k).ok().map(|e| (e, *v)))
+        .collect();
+    (!named.is_empty()).then(|| CompensationSet {
+        version: 0,
+        valid_from_ns: t_ns,
+        source: Source::Measured,
+        cycle: None,
+        sigma: named.keys().map(|e| (*e, CYCLE_SIGMA_UM)).collect(),
+        errors: named,
+        offsets: BTreeMap::new(),
+        reason: String::new(),
+    })
 }
 
 fn shifted(e: &Event, shift: i64) -> Event {
@@ -345,17 +405,26 @@ pub fn served(
                 set.inputs
             );
             println!(
-                "{:<10} {:<10} {:>6} {:>7} {:>8} {:>10} {:>10} {:>6}  served from (model/last/cold/regression/cycle)",
-                "run", "channel", "cycles", "scored", "served", "last cycle", "regression", "ratio"
+                "{:<10} {:<10} {:>6} {:>7} {:>8} {:>8} {:>10} {:>10} {:>6}  served from (model/last/cold/regression; last cycle kept: no model or suspect/wide band)",
+                "run",
+                "channel",
+                "cycles",
+                "scored",
+                "served",
+                "model",
+                "last cycle",
+                "regression",
+                "ratio"
             );
             for r in &rows {
                 println!(
-                    "{:<10} {:<10} {:>6} {:>7} {:>8.2} {:>10.2} {:>10.2} {:>6.2}  {:?}",
+                    "{:<10} {:<10} {:>6} {:>7} {:>8.2} {:>8.2} {:>10.2} {:>10.2} {:>6.2}  {:?}",
                     r.run,
                     r.channel,
                     r.cycles,
                     r.scored,
                     r.served_rmse,
+                    r.model_rmse,
                     r.last_cycle_rmse,
                     r.regression_rmse,
                     r.ratio_to_better,
@@ -384,10 +453,11 @@ pub fn served(
 fn summarise(name: &str, rows: &[ServedRow]) -> (String, serde_json::Value) {
     let n = rows.len();
     let m = |f: &dyn Fn(&ServedRow) -> f64| super::thermal::median(rows.iter().map(f));
-    let (ms, ml, mr) = (
+    let (ms, ml, mr, mm) = (
         m(&|r| r.served_rmse),
         m(&|r| r.last_cycle_rmse),
         m(&|r| r.regression_rmse),
+        m(&|r| r.model_rmse),
     );
     let beats_last = rows
         .iter()
@@ -399,11 +469,11 @@ fn summarise(name: &str, rows: &[ServedRow]) -> (String, serde_json::Value) {
         .count();
     let over = rows.iter().filter(|r| r.ratio_to_better > 1.5).count();
     let line = format!(
-        "  {name}: {n} channel-runs; median RMSE served {ms:.2}, last cycle held {ml:.2}, least squares on the cycles so far {mr:.2}; served beats the last cycle in {beats_last} of {n}, least squares in {beats_reg}; {over} over 1.5x the better baseline"
+        "  {name}: {n} channel-runs; median RMSE served {ms:.2} (the live model's value, gates or not, {mm:.2}), last cycle held {ml:.2}, least squares on the cycles so far {mr:.2}; served beats the last cycle in {beats_last} of {n}, least squares in {beats_reg}; {over} over 1.5x the better baseline"
     );
     (
         line,
-        serde_json::json!({"set": name, "channel_runs": n, "median_served": ms,
+        serde_json::json!({"set": name, "channel_runs": n, "median_served": ms, "median_model": mm,
             "median_last_cycle": ml, "median_regression": mr, "beats_last_cycle": beats_last,
             "beats_regression": beats_reg, "over_1_5": over}),
     )
