@@ -1809,9 +1809,10 @@ fn bench_located_reports_every_run_at_every_size() {
 
 /// `bench served` replays the service's live model on the shipped fl-thermal run with a cycle
 /// every 30 min: every channel is scored between its cycles, the model serves most of them,
-/// and the served value beats the last cycle held on every channel. With `anchored = true`
-/// in the service's configuration (the last cycle moved by the model's change since it) the
-/// model's median is better: the configuration is the one the replay runs.
+/// and the served value beats the last cycle held on every channel. With `anchoring =
+/// "always"` in the service's configuration (the last cycle moved by the model's change since
+/// it) the model's median is better than with "never": the configuration is the one the
+/// replay runs.
 #[test]
 fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
     let dir = tmp("served");
@@ -1857,14 +1858,19 @@ fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
     let config =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/default.toml"))
             .unwrap();
-    assert!(config.contains("anchored = false"));
-    let path = dir.join("anchored.toml");
-    std::fs::write(&path, config.replace("anchored = false", "anchored = true")).unwrap();
-    let anchored = bench(&["--config", path.to_str().unwrap()]);
+    let with = |anchoring: &str| {
+        let shipped = "anchoring = \"held_out\"";
+        assert!(config.contains(shipped));
+        let path = dir.join(format!("{anchoring}.toml"));
+        let text = config.replace(shipped, &format!("anchoring = \"{anchoring}\""));
+        std::fs::write(&path, text).unwrap();
+        bench(&["--config", path.to_str().unwrap()])
+    };
+    let (never, always) = (with("never"), with("always"));
     assert!(
-        median(&anchored) < median(&v),
+        median(&always) < median(&never),
         "anchored {} vs the filter's own value {}",
-        median(&anchored),
-        median(&v)
+        median(&always),
+        median(&never)
     );
 }

@@ -166,7 +166,7 @@ fn within_the_fit_the_last_measured_value_is_the_last_reading_so_far() {
     // The filter's own value: anchored at each 15-s reading, the model predicts the next one
     // as well as that reading does, and no last measured value would be served to check.
     let cfg = ModelConfig {
-        anchored: false,
+        anchoring: driftwatch_core::thermal_model::Anchoring::Never,
         ..spindle_only()
     };
     let m = fit(&cfg, &ev, Some(40 * H)).unwrap();

@@ -1599,8 +1599,9 @@ impl ChannelChoice {
         let beyond_at = beyond.and_then(|p| p.get(i)).copied();
         match self.choice.as_ref().and_then(|c| c.beyond.as_ref()) {
             _ if x <= RANGE_SLACK => (inside[i], Served::Inside(self.family.clone())),
-            // No beyond choice (the CV never went beyond): the inside family.
-            None => (inside[i], Served::Inside(self.family.clone())),
+            // No beyond choice (the CV never went beyond): the inside family, said to serve
+            // where the CV never tested it (warm-up runs leave the range by design).
+            None => (inside[i], Served::BeyondUntested(self.family.clone())),
             Some(b) => match beyond_at {
                 Some(v) => (v, Served::Beyond(b.family)),
                 // A beyond family that could not be run holds the reading.
@@ -1613,9 +1614,10 @@ impl ChannelChoice {
     /// `origin` and the inputs as they happen: each point's value and what gave it. `grey`:
     /// the grey box's free run over the same points and `grey_prev` its value at the last
     /// reading (NaN where [`ChannelChoice::needs_grey`] is false). Inside the fit data's
-    /// range the inside choice serves, beyond it the beyond choice, and beyond what the CV
-    /// tested the last reading is held ([`Choice`]); once a point has left a regime the
-    /// rest of the run stays out of it (warm-up does not come back).
+    /// range the inside choice serves, beyond it the beyond choice ([`Choice`]), or the
+    /// inside choice, said to be untested there, where the CV folds never left their range;
+    /// once a point has left a regime the rest of the run stays out of it (warm-up does not
+    /// come back).
     pub fn serve(
         &self,
         g: &Grid,
@@ -1662,6 +1664,10 @@ impl ChannelChoice {
                     Some(_) => {
                         let (v, s) = self.regime_value(x, i, &inside, beyond.as_ref(), held);
                         if x.is_infinite() {
+                            let s = match s {
+                                Served::BeyondUntested(f) => Served::Inside(f),
+                                s => s,
+                            };
                             (v, Served::Untested(Box::new(s)))
                         } else {
                             (v, s)
@@ -1699,6 +1705,9 @@ pub enum Served {
     Inside(String),
     /// The beyond choice, some input beyond the fit data's range.
     Beyond(Family),
+    /// The inside choice beyond the fit data's range, where the CV folds never went (no
+    /// beyond choice could be made).
+    BeyondUntested(String),
     /// What the regime serves, where an input constant over the fit data has moved.
     Untested(Box<Served>),
     /// The last reading held: the family for the regime could not be run.
@@ -1710,6 +1719,10 @@ impl std::fmt::Display for Served {
         match self {
             Served::Inside(family) => write!(f, "{family}"),
             Served::Beyond(family) => write!(f, "{} (beyond the fit range)", family.as_str()),
+            Served::BeyondUntested(family) => write!(
+                f,
+                "{family} (beyond the fit range, further than the CV folds went: untested)"
+            ),
             Served::Untested(s) => write!(
                 f,
                 "{s} (untested: an input constant over the fit data moved)"
@@ -1830,6 +1843,53 @@ mod tests {
         h.inputs[1].iter_mut().for_each(|v| *v = 2000.0);
         let p = simulate(&f, &h, n - 1, n);
         assert!((p[0] - h.y[n - 1]).abs() < 1e-4, "{p:?}");
+    }
+
+    /// An input that leaves the fit data's range further than any CV fold went: the inside
+    /// family goes on serving, and says it is untested there.
+    #[test]
+    fn beyond_what_the_cv_tested_the_served_value_says_untested() {
+        let n = 300;
+        let u: Vec<f64> = (0..n)
+            .map(|k| {
+                if k < 200 {
+                    (k as f64 / 10.0).sin()
+                } else {
+                    1.0 + 0.05 * (k - 200) as f64
+                }
+            })
+            .collect();
+        let g = Grid {
+            channel: "d".into(),
+            t_ns: (0..n as i64).map(|k| k * MIN).collect(),
+            y: u.iter().map(|v| 2.0 * v).collect(),
+            names: vec!["u".into()],
+            inputs: vec![u.clone()],
+            fresh: vec![true; n],
+        };
+        let ev: Vec<Event> = Vec::new();
+        let fams = [Family::Persistence, Family::Regression];
+        let c = choose(&ev, &g, 200 * MIN, &fams, &grey_box_config(&g), None, 100).unwrap();
+        assert!(
+            c.choice.as_ref().unwrap().beyond.is_none(),
+            "{:?}",
+            c.choice
+        );
+        let served = c.serve(&g, 200, n, &[f64::NAN; 100], f64::NAN);
+        // The range is [-1, 1]: past u = 2 (k = 220) the excursion exceeds half of it.
+        assert!(matches!(served[5].1, Served::Inside(_)), "{:?}", served[5]);
+        assert!(
+            matches!(served[40].1, Served::BeyondUntested(_)),
+            "{:?}",
+            served[40]
+        );
+        assert!(
+            (served[40].0 - 2.0 * u[240]).abs() < 1e-6,
+            "{:?}",
+            served[40]
+        );
+        let text = describe_served(&served, &g, 200);
+        assert!(text.contains("further than the CV folds went"), "{text}");
     }
 
     #[test]

@@ -104,14 +104,46 @@ pub struct ModelConfig {
     /// the least squares the model must beat takes an offset per run (the inputs as changes
     /// within each run), as a thermal test zeroed at each start is read.
     pub run_gap_h: f64,
-    /// Serve the model's change since the last observation added to that observation,
-    /// instead of the filter's own value: the filter weighs each observation against the
-    /// model's scatter as if that scatter were new at every instant, while a model's error
-    /// on a real machine persists from one hour to the next. For as long as the last
-    /// measured value may be held: it was judged at the gaps scored. Off by default: on the
-    /// simulated days it carries the cycles' noise into small orientation errors that barely
-    /// move (`bench compensation`), while on real thermal tests it helps (`bench served`).
-    pub anchored: bool,
+    /// When the model is served as its change since the last observation added to that
+    /// observation, instead of the filter's own value ([`Anchoring`]; the `anchored = true`
+    /// or `false` of earlier files reads as always or never).
+    #[serde(alias = "anchored", deserialize_with = "anchoring_or_bool")]
+    pub anchoring: Anchoring,
+}
+
+/// Whether a channel's model is served anchored at its last observation: its change since
+/// that observation added to it. The filter weighs each observation against the model's
+/// scatter as if that scatter were new at every instant, while a model's error on a real
+/// machine persists from one hour to the next; but an anchor also carries the observation's
+/// own noise into every value until the next one. Only for as long as the last measured
+/// value may be held: it was judged at the gaps scored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Anchoring {
+    /// The filter's own value.
+    Never,
+    /// Anchored where the anchored value beat the filter's own on the channel's scored
+    /// observations beyond chance ([`Guard::anchors`]): on real thermal tests with precise
+    /// readings it does, on small orientation errors that barely move it does not.
+    #[default]
+    HeldOut,
+    /// Always anchored.
+    Always,
+}
+
+/// An [`Anchoring`] by name, or the boolean of earlier files (true: always, false: never).
+fn anchoring_or_bool<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Anchoring, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Repr {
+        Bool(bool),
+        Name(Anchoring),
+    }
+    Ok(match Repr::deserialize(d)? {
+        Repr::Bool(true) => Anchoring::Always,
+        Repr::Bool(false) => Anchoring::Never,
+        Repr::Name(a) => a,
+    })
 }
 
 impl Default for ModelConfig {
@@ -129,7 +161,7 @@ impl Default for ModelConfig {
             min_scored: 4,
             prior_gain_sd: 100.0,
             run_gap_h: 8.0,
-            anchored: false,
+            anchoring: Anchoring::HeldOut,
         }
     }
 }
@@ -715,6 +747,26 @@ pub struct Guard {
     /// last measured value was judged at those gaps, and is not held much longer.
     pub last_t_ns: Option<i64>,
     pub sum_gap_s: f64,
+    /// The model anchored at the last observation against the model as fitted: the
+    /// observations where both were scored, and the sums of the paired differences of
+    /// squared errors (the fitted model's less the anchored one's) and of their squares.
+    pub n_anchor: usize,
+    pub d_anchor: f64,
+    pub d2_anchor: f64,
+}
+
+/// The one-sided Diebold-Mariano test on `n` paired differences of squared errors (sum and
+/// sum of squares): the statistic when their mean is positive by more than [`FALLBACK_T`]
+/// of its standard error.
+fn beyond_chance(n: usize, sum_d: f64, sum_d2: f64) -> Option<f64> {
+    if n < 2 {
+        return None;
+    }
+    let n = n as f64;
+    let mean = sum_d / n;
+    let var = ((sum_d2 / n - mean * mean) * n / (n - 1.0)).max(0.0);
+    let t = mean / (var / n).sqrt().max(1e-300);
+    (mean > 0.0 && t > FALLBACK_T).then_some(t)
 }
 
 /// How many mean scored gaps the last measured value may be held (beyond, it was never
@@ -733,6 +785,9 @@ pub struct GuardSummary {
     /// What is served now, and why.
     pub source: Served,
     pub reason: String,
+    /// The model is served anchored at its last observation (the configuration's
+    /// `anchoring`): the last observation moved by the model's change since it.
+    pub anchored: bool,
     /// The offset walk in force, the channel's unit squared per hour, and whether it was
     /// learned from the channel's own observations.
     pub offset_walk_per_h: f64,
@@ -758,9 +813,14 @@ impl std::fmt::Display for GuardSummary {
         let u = &self.unit;
         write!(
             f,
-            "{:<6} serves {}: {} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} / regression {:.2} {u}; band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {u}^2/h ({})",
+            "{:<6} serves {}{}: {} scored, RMSE model {:.2} / last measured {:.2} / no change {:.2} / regression {:.2} {u}; band x{:.2}: z rms {:.2}, within 1 sigma {:.0} %, 2 sigma {:.0} %; offset walk {} {u}^2/h ({})",
             self.channel,
             self.source.as_str(),
+            if self.anchored && self.source == Served::Model {
+                " (anchored at the last observation)"
+            } else {
+                ""
+            },
             self.scored,
             self.rmse_model,
             self.rmse_last_measured,
@@ -819,14 +879,29 @@ impl Guard {
     /// Diebold-Mariano test), so that a noisy channel does not flip between the model and a
     /// noisy last reading. Returns the statistic when it did.
     fn beaten_by(&self, sum_d: f64, sum_d2: f64) -> Option<f64> {
-        if self.n < 2 {
-            return None;
+        beyond_chance(self.n, sum_d, sum_d2)
+    }
+
+    /// Whether the model is served anchored at the last observation: it beat the model as
+    /// fitted on the scored observations beyond chance (the same test as the fallbacks'),
+    /// once `min_scored` are scored.
+    pub fn anchors(&self, min_scored: usize) -> bool {
+        self.n_anchor >= min_scored
+            && beyond_chance(self.n_anchor, self.d_anchor, self.d2_anchor).is_some()
+    }
+
+    /// Score the model as fitted (`fitted`) and anchored at the last observation
+    /// (`anchored`, NaN where there is no anchor) against the observation `y` at `t_ns`,
+    /// before [`Guard::observe`] takes it: on the observations that one scores.
+    fn score_anchor(&mut self, y: f64, fitted: f64, anchored: f64, t_ns: i64, run_gap_ns: i64) {
+        let new_run = self.last_t_ns.is_some_and(|t| t_ns - t > run_gap_ns);
+        if self.last.is_none() || new_run || !anchored.is_finite() {
+            return;
         }
-        let n = self.n as f64;
-        let mean = sum_d / n;
-        let var = ((sum_d2 / n - mean * mean) * n / (n - 1.0)).max(0.0);
-        let t = mean / (var / n).sqrt().max(1e-300);
-        (mean > 0.0 && t > FALLBACK_T).then_some(t)
+        let d = (y - fitted).powi(2) - (y - anchored).powi(2);
+        self.n_anchor += 1;
+        self.d_anchor += d;
+        self.d2_anchor += d * d;
     }
 
     /// What to serve: the model unless a fallback (the last measured value, no change, or
@@ -1009,13 +1084,20 @@ impl Guard {
         }
     }
 
-    pub fn summary(&self, channel: &str, min_scored: usize, walk: (f64, bool)) -> GuardSummary {
+    pub fn summary(
+        &self,
+        channel: &str,
+        (min_scored, anchoring): (usize, Anchoring),
+        walk: (f64, bool),
+    ) -> GuardSummary {
         let n = self.n.max(1) as f64;
         GuardSummary {
             channel: channel.to_string(),
             unit: channel_unit(channel).to_string(),
             source: self.source(min_scored),
             reason: self.reason(channel, min_scored, self.source(min_scored)),
+            anchored: anchoring == Anchoring::Always
+                || (anchoring == Anchoring::HeldOut && self.anchors(min_scored)),
             offset_walk_per_h: walk.0,
             offset_walk_learned: walk.1,
             scored: self.n,
@@ -1280,15 +1362,25 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
     let walk = learn_walk(cfg, &obs[..n_head], &head).unwrap_or(cfg.offset_walk_per_h);
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
     st.reg = fit_change_regression(cfg, &obs[..n_head]);
-    st.anchored = cfg.anchored;
+    st.anchoring = cfg.anchoring;
     // The head's last observation is only taken (the head's posterior holds it).
     for (i, o) in obs[n_head - 1..].iter().enumerate() {
         st.walk_to(o.t_ns);
         let reg = st.reg_value(&g, &o.row);
+        let gap = crate::units::h_to_ns(cfg.run_gap_h);
+        let (fitted, anchored) = st.model_pair(&g, &o.row, o.t_ns);
+        let served = st.served_model(&g, &o.row, o.t_ns, cfg.min_scored);
+        g.score_anchor(
+            o.y,
+            fitted.0,
+            anchored.map_or(f64::NAN, |a| a.0),
+            o.t_ns,
+            gap,
+        );
         g.observe(
             o.y,
             obs_var(o),
-            st.served_model(&g, &o.row, o.t_ns),
+            served,
             st.cold(0.0),
             reg,
             cfg.min_scored,
@@ -1595,8 +1687,8 @@ struct ChannelState {
     /// Columns held to the fit data's range (see [`ChannelFit::held_to_range`]).
     held: Vec<(usize, f64, f64)>,
     reg: Option<ChangeRegression>,
-    /// [`ModelConfig::anchored`].
-    anchored: bool,
+    /// [`ModelConfig::anchoring`].
+    anchoring: Anchoring,
 }
 
 impl ChannelState {
@@ -1611,7 +1703,7 @@ impl ChannelState {
             guard: c.guard.clone(),
             held: c.held_to_range.clone(),
             reg: c.regression.clone(),
-            anchored: false,
+            anchoring: Anchoring::Never,
         }
     }
 
@@ -1629,28 +1721,51 @@ impl ChannelState {
             guard: Guard::default(),
             held: Vec::new(),
             reg: None,
-            anchored: false,
+            anchoring: Anchoring::Never,
         }
     }
 
     /// The model's value at design row `h` at `t_ns` as served and its variance: anchored at
-    /// `guard`'s last observation when [`ModelConfig::anchored`], for as long as the last
+    /// `guard`'s last observation as [`ModelConfig::anchoring`] says, for as long as the last
     /// measured value may be held (it was judged at the gaps scored; a free run of hours from
     /// one reading is the filter's own).
-    fn served_model(&self, guard: &Guard, h: &DVector<f64>, t_ns: i64) -> (f64, f64) {
-        let (m, v) = self.model_at(h);
-        match guard.last {
-            Some(last)
-                if self.anchored
-                    && !guard.last_is_stale(t_ns)
-                    && guard.last_row.len() == h.len() =>
+    fn served_model(
+        &self,
+        guard: &Guard,
+        h: &DVector<f64>,
+        t_ns: i64,
+        min_scored: usize,
+    ) -> (f64, f64) {
+        let (fitted, anchored) = self.model_pair(guard, h, t_ns);
+        match anchored {
+            Some(a)
+                if self.anchoring == Anchoring::Always
+                    || (self.anchoring == Anchoring::HeldOut && guard.anchors(min_scored)) =>
             {
+                a
+            }
+            _ => fitted,
+        }
+    }
+
+    /// The model's value and variance at design row `h` as fitted, and anchored at `guard`'s
+    /// last observation (`None` without one, or where it is stale).
+    fn model_pair(
+        &self,
+        guard: &Guard,
+        h: &DVector<f64>,
+        t_ns: i64,
+    ) -> ((f64, f64), Option<(f64, f64)>) {
+        let (m, v) = self.model_at(h);
+        let anchored = match guard.last {
+            Some(last) if !guard.last_is_stale(t_ns) && guard.last_row.len() == h.len() => {
                 let (at_last, _) = self.model_at(&DVector::from_column_slice(&guard.last_row));
                 // The anchor's own noise rides on every value until the next observation.
-                (m + last - at_last, v + guard.last_var)
+                Some((m + last - at_last, v + guard.last_var))
             }
-            _ => (m, v),
-        }
+            _ => None,
+        };
+        ((m, v), anchored)
     }
 
     /// The regression's value at design row `h` from `guard`'s last observation (the last
@@ -1742,7 +1857,7 @@ impl Predictor {
                     .offset_walk_per_h
                     .unwrap_or(model.config.offset_walk_per_h);
                 let mut st = ChannelState::of_fit(c, walk / 3600.0, last_obs_ns);
-                st.anchored = model.config.anchored;
+                st.anchoring = model.config.anchoring;
                 (c.name.clone(), st)
             })
             .collect();
@@ -1813,10 +1928,14 @@ impl Predictor {
             .map_or(0.0, |x| x * x);
         s.walk_to(t_ns);
         let (model, cold, reg) = (
-            s.served_model(&s.guard, h, t_ns),
+            s.served_model(&s.guard, h, t_ns, min_scored),
             s.cold(0.0),
             s.reg_value(&s.guard, h),
         );
+        let (fitted, anchored) = s.model_pair(&s.guard, h, t_ns);
+        let anchored = anchored.map_or(f64::NAN, |a| a.0);
+        s.guard
+            .score_anchor(value, fitted.0, anchored, t_ns, run_gap_ns);
         s.guard.observe(
             value, obs_var, model, cold, reg, min_scored, t_ns, h, run_gap_ns,
         );
@@ -1834,7 +1953,7 @@ impl Predictor {
             .iter()
             .map(|(name, s)| {
                 let walk = s.walk_per_s * (t_ns - s.t_ns).max(0) as f64 / 1e9;
-                let (m, v) = s.served_model(&s.guard, &h, t_ns);
+                let (m, v) = s.served_model(&s.guard, &h, t_ns, min_scored);
                 let reg = s.reg_value(&s.guard, &h);
                 let (value, sigma, source) =
                     s.guard
@@ -1871,7 +1990,7 @@ impl Predictor {
                 let s = self.channels.get(&c.name)?;
                 Some(s.guard.summary(
                     &c.name,
-                    min_scored,
+                    (min_scored, self.model.config.anchoring),
                     (s.walk_per_s * 3600.0, c.offset_walk_per_h.is_some()),
                 ))
             })
@@ -2455,7 +2574,11 @@ mod tests {
         let model = fit(&ModelConfig::default(), &ev, Some(cut)).unwrap();
         let served_after_an_offset = |anchored: bool| {
             let mut m = model.clone();
-            m.config.anchored = anchored;
+            m.config.anchoring = if anchored {
+                Anchoring::Always
+            } else {
+                Anchoring::Never
+            };
             let mut p = Predictor::new(&m, 0);
             for e in ev.iter().filter(|e| e.t_ns() <= cut) {
                 p.apply(e);
@@ -2545,6 +2668,55 @@ mod tests {
                 .2,
             Served::Model
         );
+    }
+
+    /// The boolean of earlier model files and configurations reads as always or never.
+    #[test]
+    fn anchoring_reads_by_name_and_as_the_boolean_of_earlier_files() {
+        let read = |text: &str| serde_json::from_str::<ModelConfig>(text).unwrap().anchoring;
+        assert_eq!(read(r#"{"anchored": true}"#), Anchoring::Always);
+        assert_eq!(read(r#"{"anchored": false}"#), Anchoring::Never);
+        assert_eq!(read(r#"{"anchoring": "never"}"#), Anchoring::Never);
+        assert_eq!(read("{}"), Anchoring::HeldOut);
+        assert!(serde_json::from_str::<ModelConfig>(r#"{"anchoring": "sometimes"}"#).is_err());
+    }
+
+    /// The model anchored at the last observation is served where it beat the fitted
+    /// model on the scored observations beyond chance: a fitted model 3 off all along loses
+    /// to its anchored self; where the observations are noise about a fitted model that is
+    /// right, the anchor carries the noise and is not taken.
+    #[test]
+    fn the_model_is_anchored_where_the_anchor_beat_it_on_the_scored_observations() {
+        let at = |k: i64| k * 30 * MIN;
+        let row = DVector::from_element(1, 1.0);
+        let run = |y: &dyn Fn(i64) -> f64, fitted: &dyn Fn(i64) -> f64| {
+            let mut g = Guard::default();
+            for k in 0..8 {
+                let anchored = g.last.map_or(f64::NAN, |l| l + fitted(k) - fitted(k - 1));
+                g.score_anchor(y(k), fitted(k), anchored, at(k), i64::MAX);
+                let m = (fitted(k), 0.1);
+                g.observe(
+                    y(k),
+                    0.01,
+                    m,
+                    (0.0, 0.1),
+                    f64::NAN,
+                    4,
+                    at(k),
+                    &row,
+                    i64::MAX,
+                );
+            }
+            g
+        };
+        let drift = |k: i64| 5.0 + 0.5 * k as f64 + if k % 2 == 0 { 0.05 } else { -0.05 };
+        let g = run(&drift, &|k| 2.0 + 0.5 * k as f64);
+        assert_eq!(g.n_anchor, 7);
+        assert!(g.anchors(4), "{g:?}");
+        assert!(!g.anchors(8), "not before min_scored are scored: {g:?}");
+        let noise = |k: i64| if k % 2 == 0 { 1.0 } else { -1.0 };
+        let g = run(&noise, &|_| 0.0);
+        assert!(!g.anchors(4), "{g:?}");
     }
 
     #[test]
