@@ -62,6 +62,16 @@ fn push(ev: &mut Vec<Event>, m: usize, temps: &[(&str, f64)], value: f64) {
 /// a ramp. White reading noise of 0.6 um, enough that each 5-min step of the warm-up is lost
 /// in it (the forward selection's noise model then differences the warm-up away).
 fn no_speed_late_drift(seed: u64) -> Vec<Event> {
+    no_speed(
+        seed,
+        |h, table_change| {
+            if h >= 25.0 { -3.0 * table_change } else { 0.0 }
+        },
+    )
+}
+
+/// The same warm-up with no spindle log, and `late(h, the table's change since 25 h)` added.
+fn no_speed(seed: u64, late: impl Fn(f64, f64) -> f64) -> Vec<Event> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let noise = Normal::new(0.0, 0.6).expect("sigma");
     let n = 60 * 60;
@@ -86,12 +96,8 @@ fn no_speed_late_drift(seed: u64) -> Vec<Event> {
     let at_onset = table[25 * 60];
     let mut ev = Vec::new();
     for m in 0..n {
-        let late = if h(m) >= 25.0 {
-            -3.0 * (table[m] - at_onset)
-        } else {
-            0.0
-        };
-        let value = 2.0 * (warm[m] - 25.0) + late + noise.sample(&mut rng);
+        let value =
+            2.0 * (warm[m] - 25.0) + late(h(m), table[m] - at_onset) + noise.sample(&mut rng);
         push(
             &mut ev,
             m,
@@ -136,6 +142,29 @@ fn without_a_spindle_log_a_temperature_carries_the_warm_up_and_a_late_drift_is_m
     assert!(c.final_fit.rms_heldout_um < c.baseline.rms_heldout_um);
     // Every sensor was tried in its place on the held-out end.
     assert_eq!(l.heldout_by_sensor.len(), 3);
+}
+
+/// The same warm-up, and in the held-out end (from 40 h) a fall of 0.5 um/h that no logged
+/// temperature follows, down past the training span's mean: the offset alone predicts the
+/// held-out end better than the base does. The held-out veto drops the base with what was
+/// found on it: the final model is the offset's, and the base is reported, with its held-out
+/// figures and the located terms of the search on it, as not kept.
+#[test]
+fn a_thermal_base_worse_on_the_held_out_end_is_vetoed_and_reported() {
+    let ev = no_speed(7, |h, _| if h >= 40.0 { -0.5 * (h - 40.0) } else { 0.0 });
+    let c = diagnose(&ev, 40.0, 20000.0);
+    for s in &c.statements {
+        println!("{s}");
+    }
+    let base = c.thermal_base.as_ref().expect("a thermal base");
+    assert!(base.term.term.starts_with("bearing"), "{}", base.statement);
+    assert!(!base.kept, "{}", base.statement);
+    assert!(base.searched_heldout_um > base.offset_searched_heldout_um);
+    assert!(base.statement.contains("vetoed"), "{}", base.statement);
+    // The final model is the search on the offset alone: the base is not among its terms.
+    assert!(!c.accepted.iter().any(|t| t.term == base.term.term));
+    assert!((c.final_fit.rms_heldout_um - base.offset_searched_heldout_um).abs() < 1e-9);
+    assert!(c.statements.iter().any(|s| s == &base.statement));
 }
 
 /// The same recording with the spindle logged: the baseline's spindle mode carries the
