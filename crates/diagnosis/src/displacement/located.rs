@@ -5,8 +5,8 @@
 //! by the forward selection's own rules (whitened delta-BIC against a surrogate bar that
 //! replays this search, |t|, the rolling origins, the footprint, the held-out veto). Where
 //! the recording cannot confirm it, the reason is named (too little after the onset, a drift
-//! that any ramp fits as well, a sensor that cannot be told from another) with the recording
-//! that would split it. Without an onset, a temperature that follows the residual's largest
+//! that the baseline's warm-up or any ramp fits as well, a sensor that cannot be told from
+//! another) with the recording that would split it. Without an onset, a temperature that follows the residual's largest
 //! departure is tried un-gated, with the same lags.
 
 use super::scoring::ColumnScorer;

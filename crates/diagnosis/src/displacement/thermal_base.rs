@@ -8,9 +8,12 @@
 //! of the warm-up. The base is therefore the forward selection's first step over the logged
 //! temperatures and their lags, scored as the located term is (each model with the noise
 //! model of its own residual), against the same surrogate bar, |t|, rolling origins and
-//! footprint. Like the spindle mode it stands for, it is part of the baseline the search then
-//! works on, and the held-out veto does not drop it; its held-out figures are reported, and
-//! said when they are worse than the offset's.
+//! footprint. Like the spindle mode it stands for, it is part of the baseline the whole search
+//! then runs on again. The held-out veto judges the base with what was found on it: the search
+//! on the base is kept when its final model is no worse on the held-out end than the search on
+//! the offset alone; otherwise the base and its located terms are reported beside the final
+//! model with their figures. (Exempt from the veto, a base of one temperature replaced better
+//! terms: on fl-thermal without its spindle log ch3's held-out RMS rose 5.79 -> 10.07 um.)
 
 use super::{
     Design, DisplacementOptions, LocatedTerm, RefusedTerm, Scope, Search, Selection, Term, search,
@@ -43,7 +46,7 @@ pub struct ThermalBase {
     pub statement: String,
 }
 
-/// The base's candidate (its index) and term, and the refusals of its search.
+/// The base's candidate (its index) and term.
 struct Found {
     k: usize,
     term: Term,
