@@ -359,12 +359,38 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
             "not carried into the model (a clock term, or a drift gated at an onset the thermal model has no input for): {n}"
         );
     }
+    print_located(&d);
+    println!(
+        "wrote {} and {}; {model_note}",
+        json_path.display(),
+        html_path.display(),
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Each located term of `d` in one line: where, its held-out RMS before and after, and its
+/// verdict.
+fn print_located(d: &DisplacementDiagnosis) {
     for c in &d.channels {
+        // A thermal base the held-out veto dropped keeps its located terms beside it: what
+        // was found on a baseline that models the warm-up, not in the final model.
+        let vetoed = c.thermal_base.as_ref().filter(|b| !b.kept);
+        let on_base = vetoed.into_iter().flat_map(|b| {
+            b.located_term
+                .iter()
+                .map(|l| ("located term on the vetoed thermal base", l))
+                .chain(
+                    b.late_term
+                        .iter()
+                        .map(|l| ("later located term on the vetoed thermal base", l)),
+                )
+        });
         for (what, l) in c
             .located_term
             .iter()
             .map(|l| ("located term", l))
             .chain(c.late_term.iter().map(|l| ("later located term", l)))
+            .chain(on_base)
         {
             println!(
                 "{}: {what} {}: held-out RMS {:.2} -> {:.2} um, {}",
@@ -387,12 +413,6 @@ fn displacement(a: &DiagnoseArgs, recs: &[Recording]) -> Result<ExitCode> {
             );
         }
     }
-    println!(
-        "wrote {} and {}; {model_note}",
-        json_path.display(),
-        html_path.display(),
-    );
-    Ok(ExitCode::SUCCESS)
 }
 
 /// Fit `config` on `events` and write it to `path` as the new model version; a fit that

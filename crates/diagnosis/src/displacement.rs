@@ -28,10 +28,12 @@ use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
 mod located;
 mod scoring;
+mod thermal_base;
 pub use located::{
     LATE_WINDOW_SHARE, LOCATED_TAUS_MIN, LocatedTerm, MIN_AFTER_ONSET_H, NotConfirmed, RAMP_R,
 };
 pub use scoring::NoiseModel;
+pub use thermal_base::ThermalBase;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DisplacementError {
@@ -461,6 +463,10 @@ pub struct ChannelDiagnosis {
     pub transients: Vec<Transient>,
     /// What the final model leaves, located (none without readings).
     pub unexplained: Option<Unexplained>,
+    /// Without a spindle log, when the forward selection took no term: the temperature that
+    /// carries the warm-up in a baseline the search runs on again (when kept, also the first
+    /// of `accepted`); none otherwise, or when no temperature passes the selection's rules.
+    pub thermal_base: Option<ThermalBase>,
     /// What the forward selection left, located, tied to a temperature and made a term:
     /// accepted into the final model (then also in `accepted`) or not confirmed, with the
     /// reason. None when nothing was tied to a temperature.
@@ -1003,17 +1009,7 @@ fn diagnose_channel(
     let pick = |v: &[f64]| -> Vec<f64> { keep.iter().map(|&i| v[i]).collect() };
     let times: Vec<i64> = keep.iter().map(|&i| c.t_ns[i]).collect();
     let t_min: Vec<f64> = times.iter().map(|t| (t - t0) as f64 / 6e10).collect();
-    let train: Vec<usize> = (0..keep.len()).filter(|&i| times[i] < holdout).collect();
-    let test: Vec<usize> = (0..keep.len()).filter(|&i| times[i] >= holdout).collect();
-    if train.len() < 30 {
-        return Err(DisplacementError::TooFewTraining(
-            channel.into(),
-            train.len(),
-        ));
-    }
-    if test.is_empty() {
-        return Err(DisplacementError::NoHeldOut(channel.into()));
-    }
+    let (train, test) = split(&times, holdout, channel)?;
 
     // A spindle that never turned (no spindle log) gives columns of zeros: no spindle
     // candidate and no spindle mode in the baseline, or every design is singular.
@@ -1067,8 +1063,16 @@ fn diagnose_channel(
         .collect();
     let periodic = periodic_of(&design.train, &t_min, &resid, &temps_now, opts);
 
-    let (sel, located_term, late_term) =
-        select_and_locate(&design, &base_cols, k0, (&t_min, &temps_now), channel, opts);
+    let span = (t_min.as_slice(), temps_now.as_slice());
+    let (run, thermal_base) = search_channel(&design, &base_cols, (k0, spins), span, channel, opts);
+    let Search {
+        sel,
+        located_term,
+        late_term,
+        final_pred,
+        final_fit,
+        ..
+    } = run;
     let Selection {
         chosen,
         mut accepted,
@@ -1076,15 +1080,6 @@ fn diagnose_channel(
         candidates_tested,
         surrogate_bars,
     } = sel;
-    let final_cols = final_columns(
-        &design,
-        &base_cols,
-        &chosen,
-        &[&located_term, &late_term],
-        &mut accepted,
-    );
-    let mf = design.matrix(&chosen, &final_cols);
-    let (final_pred, final_fit) = design.fit(&mf);
     let final_resid: Vec<f64> = (0..keep.len())
         .map(|i| design.y[i] - final_pred[i])
         .collect();
@@ -1110,7 +1105,9 @@ fn diagnose_channel(
             .filter(|l| l.accepted)
             .map(LocatedTerm::as_term),
     );
-
+    if let Some(b) = thermal_base.as_ref().filter(|b| b.kept) {
+        accepted.insert(0, b.term.clone());
+    }
     let mut d = ChannelDiagnosis {
         channel: channel.to_string(),
         n_train: design.train.len(),
@@ -1122,6 +1119,7 @@ fn diagnose_channel(
         periodic,
         transients,
         unexplained,
+        thermal_base,
         located_term,
         late_term,
         candidates_tested,
@@ -1140,17 +1138,99 @@ fn diagnose_channel(
     Ok(d)
 }
 
+/// The training and held-out rows of thinned samples at `times`: before `holdout` and from
+/// it; an error when either is too small to diagnose.
+fn split(
+    times: &[i64],
+    holdout: i64,
+    channel: &str,
+) -> Result<(Vec<usize>, Vec<usize>), DisplacementError> {
+    let train: Vec<usize> = (0..times.len()).filter(|&i| times[i] < holdout).collect();
+    let test: Vec<usize> = (0..times.len()).filter(|&i| times[i] >= holdout).collect();
+    if train.len() < 30 {
+        return Err(DisplacementError::TooFewTraining(
+            channel.into(),
+            train.len(),
+        ));
+    }
+    if test.is_empty() {
+        return Err(DisplacementError::NoHeldOut(channel.into()));
+    }
+    Ok((train, test))
+}
+
+/// The search on the baseline `base_cols` (spindle mode `k0`, if the spindle turned);
+/// without a spindle log, when it takes nothing, again on a thermal base (a temperature
+/// carries the warm-up, as the spindle mode would), kept when the held-out veto keeps it.
+fn search_channel(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    (k0, spins): (Option<usize>, bool),
+    span: (&[f64], &[(String, Vec<f64>)]),
+    channel: &str,
+    opts: &DisplacementOptions,
+) -> (Search, Option<ThermalBase>) {
+    let mut run = search(design, base_cols, (k0, spins), span, channel, opts);
+    let base = if spins || !run.sel.chosen.is_empty() {
+        None
+    } else {
+        thermal_base::settle(design, base_cols, &mut run, span, channel, opts)
+    };
+    (run, base)
+}
+
+/// One search on a baseline: the selection, the located terms, and the final model (its
+/// columns beside the chosen candidates, its prediction on every reading and its fit).
+struct Search {
+    sel: Selection,
+    located_term: Option<LocatedTerm>,
+    late_term: Option<LocatedTerm>,
+    final_cols: Vec<Vec<f64>>,
+    final_pred: DVector<f64>,
+    final_fit: Fit,
+}
+
+/// The forward selection, the located terms and the final model on the baseline
+/// `base_cols` (candidate `k0` is in it; `warm_up`: the baseline models the warm-up).
+fn search(
+    design: &Design,
+    base_cols: &[Vec<f64>],
+    (k0, warm_up): (Option<usize>, bool),
+    span: (&[f64], &[(String, Vec<f64>)]),
+    channel: &str,
+    opts: &DisplacementOptions,
+) -> Search {
+    let (mut sel, located_term, late_term) =
+        select_and_locate(design, base_cols, (k0, warm_up), span, channel, opts);
+    let final_cols = final_columns(
+        design,
+        base_cols,
+        &sel.chosen,
+        &[&located_term, &late_term],
+        &mut sel.accepted,
+    );
+    let (final_pred, final_fit) = design.fit(&design.matrix(&sel.chosen, &final_cols));
+    Search {
+        sel,
+        located_term,
+        late_term,
+        final_cols,
+        final_pred,
+        final_fit,
+    }
+}
+
 /// The forward selection with its held-out veto, then what it leaves tied to a temperature
 /// and made a term, settled by the veto over the model with it.
 fn select_and_locate(
     design: &Design,
     base_cols: &[Vec<f64>],
-    k0: Option<usize>,
+    (k0, warm_up): (Option<usize>, bool),
     (t_min, temps_now): (&[f64], &[(String, Vec<f64>)]),
     channel: &str,
     opts: &DisplacementOptions,
 ) -> (Selection, Option<LocatedTerm>, Option<LocatedTerm>) {
-    let mut sel = select(design, design.cands, base_cols, k0, channel, opts);
+    let mut sel = select(design, base_cols, k0, channel, opts, Scope::all(opts));
     // The selection's own veto first: the located search works on what its final model
     // leaves (located on the model before the veto, a late drift is sought in the misfit
     // of terms the veto drops, and fl-thermal's injected t11_C drift was tied to t4_C).
@@ -1180,7 +1260,7 @@ fn select_and_locate(
             design,
             base_cols,
             &mut sel,
-            (first, k0.is_some()),
+            (first, warm_up),
             (t_min, temps_now),
             channel,
             opts,
@@ -1200,7 +1280,7 @@ fn late_located(
     design: &Design,
     base_cols: &[Vec<f64>],
     sel: &mut Selection,
-    (first, spins): (&LocatedTerm, bool),
+    (first, warm_up): (&LocatedTerm, bool),
     (t_min, temps_now): (&[f64], &[(String, Vec<f64>)]),
     channel: &str,
     opts: &DisplacementOptions,
@@ -1229,7 +1309,7 @@ fn late_located(
         let split = format!(
             "the final model leaves the largest departure ({}) unexplained, and its misfit is in every score of this later one: a recording whose earlier drift the model explains ({}) would judge it on what that leaves",
             first.term,
-            if spins {
+            if warm_up {
                 "e.g. one that goes on steady for longer before the later drift"
             } else {
                 "with the spindle speed logged, the baseline would model the warm-up"
@@ -1515,6 +1595,17 @@ fn statements_of(
         ));
     }
     statements.extend(accepted.iter().map(|t| t.statement.clone()));
+    if let Some(b) = d.thermal_base.as_ref().filter(|b| !b.kept) {
+        statements.push(b.statement.clone());
+        for (what, l) in [("", &b.located_term), ("later departure, ", &b.late_term)] {
+            if let Some(l) = l {
+                statements.push(format!(
+                    "(on the vetoed thermal base, {what}not in the final model) {}",
+                    l.statement
+                ));
+            }
+        }
+    }
     if candidates_tested == 0 {
         statements.push(format!(
             "{channel}: no candidate could be tested: every design with one was singular (an input that never changes?)"
@@ -1686,6 +1777,31 @@ fn judge_column(
     }
 }
 
+/// What a forward selection may take and how it scores it: the whole search ([`Scope::all`])
+/// or the thermal base ([`thermal_base`]).
+#[derive(Debug, Clone, Copy)]
+struct Scope {
+    /// The noise model a candidate is scored with.
+    noise: NoiseModel,
+    /// Only candidates of this effect (none: every one).
+    only: Option<&'static str>,
+    max_terms: usize,
+    /// Mixed into the surrogates' seed, so that two selections on one channel draw apart.
+    seed_tag: u64,
+}
+
+impl Scope {
+    /// The forward selection of the search: every candidate, the options' rules.
+    fn all(opts: &DisplacementOptions) -> Scope {
+        Scope {
+            noise: opts.noise,
+            only: None,
+            max_terms: opts.max_terms,
+            seed_tag: 0,
+        }
+    }
+}
+
 /// What the selection keeps of one channel: the chosen candidates (indices), their terms,
 /// each refused candidate's last refusal, how many could be scored, the surrogate bars.
 struct Selection {
@@ -1701,12 +1817,13 @@ struct Selection {
 /// [`DisplacementOptions`].
 fn select(
     design: &Design,
-    cands: &[Candidate],
     base_cols: &[Vec<f64>],
     k0: Option<usize>,
     channel: &str,
     opts: &DisplacementOptions,
+    scope: Scope,
 ) -> Selection {
+    let cands = design.cands;
     let n_w = design.train.len() - design.ar_max;
     let mut scoring = DisplacementScoring {
         design,
@@ -1716,6 +1833,7 @@ fn select(
         channel,
         opts,
         n_w,
+        scope,
         ln_n: (n_w as f64).ln(),
         m: DMatrix::zeros(0, 0),
         phis: Vec::new(),
@@ -1727,7 +1845,7 @@ fn select(
         surrogate_bars: Vec::new(),
     };
     let rules = Rules {
-        max_terms: opts.max_terms,
+        max_terms: scope.max_terms,
         tries: 10,
         min_worth: opts.min_delta_bic,
     };
@@ -1823,6 +1941,8 @@ struct DisplacementScoring<'d> {
     k0: Option<usize>,
     channel: &'d str,
     opts: &'d DisplacementOptions,
+    /// What the selection may take and how it scores it ([`Scope`]).
+    scope: Scope,
     /// Whitened training rows, and `ln` of them.
     n_w: usize,
     ln_n: f64,
@@ -1864,6 +1984,7 @@ impl DisplacementScoring<'_> {
             })
             .collect();
         let seed = opts.seed
+            ^ self.scope.seed_tag
             ^ self.channel.bytes().fold(chosen.len() as u64, |h, b| {
                 h.wrapping_mul(31).wrapping_add(b as u64)
             });
@@ -1878,10 +1999,15 @@ impl Scoring for DisplacementScoring<'_> {
     fn rank(&mut self, chosen: &[usize]) -> Vec<(usize, f64)> {
         let design = self.design;
         self.m = design.matrix(chosen, self.base_cols);
-        let scorer = scoring::ColumnScorer::new(design, &self.m, self.opts.noise);
+        let scorer = scoring::ColumnScorer::new(design, &self.m, self.scope.noise);
         self.phis = vec![Vec::new(); self.cands.len()];
         let mut scored: Vec<(f64, usize)> = Vec::new();
-        for j in (0..self.cands.len()).filter(|j| Some(*j) != self.k0 && !chosen.contains(j)) {
+        let only = self.scope.only;
+        for j in (0..self.cands.len()).filter(|j| {
+            Some(*j) != self.k0
+                && !chosen.contains(j)
+                && only.is_none_or(|e| self.cands[*j].effect == e)
+        }) {
             let x: Vec<f64> = design.train.iter().map(|&i| self.cands[j].x[i]).collect();
             if let Some(s) = scorer.score(&x, 0) {
                 scored.push((s.delta_bic, j));

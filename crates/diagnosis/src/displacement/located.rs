@@ -5,8 +5,8 @@
 //! by the forward selection's own rules (whitened delta-BIC against a surrogate bar that
 //! replays this search, |t|, the rolling origins, the footprint, the held-out veto). Where
 //! the recording cannot confirm it, the reason is named (too little after the onset, a drift
-//! that any ramp fits as well, a sensor that cannot be told from another) with the recording
-//! that would split it. Without an onset, a temperature that follows the residual's largest
+//! that the baseline's warm-up or any ramp fits as well, a sensor that cannot be told from
+//! another) with the recording that would split it. Without an onset, a temperature that follows the residual's largest
 //! departure is tried un-gated, with the same lags.
 
 use super::scoring::ColumnScorer;
@@ -47,6 +47,10 @@ pub enum NotConfirmed {
     /// The recording holds too little after the onset for the rolling origins or the
     /// held-out end to judge the term.
     TooShort,
+    /// The candidate moves with the baseline's warm-up (its spindle mode, or the thermal
+    /// base) over the span it is claimed on (|r| > [`RAMP_R`]): a hall ramped while the
+    /// machine warms up.
+    ConfoundedWithWarmUp,
     /// The candidate moves with time over the span it is claimed on (|r| > [`RAMP_R`]).
     ConfoundedWithRamp,
     /// Another sensor explains it within delta-BIC 10 and the term failed a rule.
@@ -81,6 +85,9 @@ pub struct LocatedTerm {
     /// Correlation of the candidate with a ramp from the onset (with time, un-gated) over
     /// every reading from the onset on.
     pub ramp_r: f64,
+    /// Correlation of the candidate with the baseline's warm-up column (the spindle mode, or
+    /// the thermal base) over the same readings; none when the baseline is the offset alone.
+    pub warmup_r: Option<f64>,
     /// Other sensors within delta-BIC 10 of it, in the same shape (best first, at most 3).
     pub comparable: Vec<(String, f64)>,
     /// Held-out RMS of the final model with the same term on each sensor instead (the same
@@ -357,10 +364,13 @@ pub(super) fn locate(
     let after = design.fit(&m2).1.rms_heldout_um;
     let comparable = comparable(&rt, &temps_t, sensor, gate);
     let heldout_by_sensor = heldout_by_sensor(design, &m, t_min, temps, (best.tau, k_all));
-    let ramp_r = {
-        let from = k_all.unwrap_or(0);
-        super::corr(&x[from..], &t_min[from..])
-    };
+    // What a drift of anything would fit as well over the span the term is claimed on: a
+    // ramp, or the baseline's own warm-up (its column after the offset).
+    let from = k_all.unwrap_or(0);
+    let ramp_r = super::corr(&x[from..], &t_min[from..]);
+    let warmup_r = base_cols
+        .get(1)
+        .map(|w| super::corr(&x[from..], &w[from..]));
     let found = Found {
         sensor: temps[sensor].0.clone(),
         tau: best.tau,
@@ -371,6 +381,7 @@ pub(super) fn locate(
         before,
         after,
         ramp_r,
+        warmup_r,
         comparable,
         heldout_by_sensor,
         blocks: design.blocks.len(),
@@ -398,6 +409,7 @@ pub(super) struct Found {
     pub before: f64,
     pub after: f64,
     ramp_r: f64,
+    warmup_r: Option<f64>,
     comparable: Vec<(String, f64)>,
     heldout_by_sensor: Vec<(String, f64)>,
     blocks: usize,
@@ -510,8 +522,19 @@ pub(super) fn verdict(
         .collect::<Vec<_>>()
         .join(", ");
     let ramp = f.ramp_r.abs() > RAMP_R;
+    let warm_up = f.warmup_r.is_some_and(|r| r.abs() > RAMP_R);
     let short = f.onset_min.and_then(|o| shortfall(design, t_min, o, opts));
-    let (reason, split_by) = if ramp {
+    let (reason, split_by) = if warm_up {
+        // The baseline's warm-up column would carry the same drift: only a run where the
+        // machine warms up as here while the sensor stays put (or the sensor moves while the
+        // machine does not) tells them apart.
+        (
+            Some(NotConfirmed::ConfoundedWithWarmUp),
+            Some(format!(
+                "a run at the same spindle schedule with {sensor}'s source (the hall, a coolant) held constant: the warm-up goes on there without {sensor}'s drift"
+            )),
+        )
+    } else if ramp {
         (
             Some(NotConfirmed::ConfoundedWithRamp),
             Some(format!(
@@ -566,6 +589,7 @@ pub(super) fn verdict(
         heldout_before_um: f.before,
         heldout_after_um: f.after,
         ramp_r: f.ramp_r,
+        warmup_r: f.warmup_r,
         comparable: f.comparable,
         heldout_by_sensor: f.heldout_by_sensor,
         accepted,
@@ -627,6 +651,11 @@ fn statement(
         format!("accepted into the final model{}", others("; "))
     } else {
         let why = match reason {
+            Some(NotConfirmed::ConfoundedWithWarmUp) => format!(
+                "confounded with the warm-up: the candidate follows the baseline's warm-up term (r {:.2}; with time, r {:.2}), so the warm-up would carry the same drift",
+                f.warmup_r.unwrap_or(f64::NAN),
+                f.ramp_r
+            ),
             Some(NotConfirmed::ConfoundedWithRamp) => format!(
                 "confounded with a ramp: the candidate follows the time since {} (r {:.2}), so a drift of anything would fit as well",
                 if f.onset_min.is_some() {
@@ -684,6 +713,7 @@ impl NotConfirmed {
     pub fn words(self) -> &'static str {
         match self {
             NotConfirmed::TooShort => "too short after the onset",
+            NotConfirmed::ConfoundedWithWarmUp => "confounded with the warm-up",
             NotConfirmed::ConfoundedWithRamp => "confounded with a ramp",
             NotConfirmed::ConfoundedWithSensor => "confounded with another sensor",
             NotConfirmed::NotSupported => "not supported by the data",
