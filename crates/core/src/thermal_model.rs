@@ -131,6 +131,17 @@ pub enum Anchoring {
     Always,
 }
 
+impl Anchoring {
+    /// Whether the model is served anchored, given the channel's guard.
+    fn applies(self, guard: &Guard, min_scored: usize) -> bool {
+        match self {
+            Anchoring::Never => false,
+            Anchoring::HeldOut => guard.anchors(min_scored),
+            Anchoring::Always => true,
+        }
+    }
+}
+
 /// An [`Anchoring`] by name, or the boolean of earlier files (true: always, false: never).
 fn anchoring_or_bool<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Anchoring, D::Error> {
     #[derive(Deserialize)]
@@ -1096,8 +1107,7 @@ impl Guard {
             unit: channel_unit(channel).to_string(),
             source: self.source(min_scored),
             reason: self.reason(channel, min_scored, self.source(min_scored)),
-            anchored: anchoring == Anchoring::Always
-                || (anchoring == Anchoring::HeldOut && self.anchors(min_scored)),
+            anchored: anchoring.applies(self, min_scored),
             offset_walk_per_h: walk.0,
             offset_walk_learned: walk.1,
             scored: self.n,
@@ -1363,30 +1373,16 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
     st.reg = fit_change_regression(cfg, &obs[..n_head]);
     st.anchoring = cfg.anchoring;
+    let gap = crate::units::h_to_ns(cfg.run_gap_h);
     // The head's last observation is only taken (the head's posterior holds it).
     for (i, o) in obs[n_head - 1..].iter().enumerate() {
         st.walk_to(o.t_ns);
-        let reg = st.reg_value(&g, &o.row);
-        let gap = crate::units::h_to_ns(cfg.run_gap_h);
-        let (fitted, anchored) = st.model_pair(&g, &o.row, o.t_ns);
-        let served = st.served_model(&g, &o.row, o.t_ns, cfg.min_scored);
-        g.score_anchor(
-            o.y,
-            fitted.0,
-            anchored.map_or(f64::NAN, |a| a.0),
-            o.t_ns,
-            gap,
-        );
-        g.observe(
-            o.y,
-            obs_var(o),
-            served,
-            st.cold(0.0),
-            reg,
-            cfg.min_scored,
-            o.t_ns,
+        st.score_into(
+            &mut g,
+            (o.y, obs_var(o)),
             &o.row,
-            crate::units::h_to_ns(cfg.run_gap_h),
+            o.t_ns,
+            (cfg.min_scored, gap),
         );
         if i > 0 {
             st.correct(&o.row, o.y, obs_var(o));
@@ -1736,16 +1732,50 @@ impl ChannelState {
         t_ns: i64,
         min_scored: usize,
     ) -> (f64, f64) {
-        let (fitted, anchored) = self.model_pair(guard, h, t_ns);
+        self.pick(self.model_pair(guard, h, t_ns), guard, min_scored)
+    }
+
+    /// Of the model's value as fitted and anchored ([`ChannelState::model_pair`]), the one
+    /// served.
+    fn pick(
+        &self,
+        (fitted, anchored): ((f64, f64), Option<(f64, f64)>),
+        guard: &Guard,
+        min_scored: usize,
+    ) -> (f64, f64) {
         match anchored {
-            Some(a)
-                if self.anchoring == Anchoring::Always
-                    || (self.anchoring == Anchoring::HeldOut && guard.anchors(min_scored)) =>
-            {
-                a
-            }
+            Some(a) if self.anchoring.applies(guard, min_scored) => a,
             _ => fitted,
         }
+    }
+
+    /// Score the observation `y` (stated variance `obs_var`, design row `h`, at `t_ns`) into
+    /// `guard` before it corrects the filter: the model as served and as fitted and anchored,
+    /// the cold value and the regression; then the guard takes it as its last value.
+    fn score_into(
+        &self,
+        guard: &mut Guard,
+        (y, obs_var): (f64, f64),
+        h: &DVector<f64>,
+        t_ns: i64,
+        (min_scored, run_gap_ns): (usize, i64),
+    ) {
+        let pair = self.model_pair(guard, h, t_ns);
+        let served = self.pick(pair, guard, min_scored);
+        let reg = self.reg_value(guard, h);
+        let anchored = pair.1.map_or(f64::NAN, |a| a.0);
+        guard.score_anchor(y, pair.0.0, anchored, t_ns, run_gap_ns);
+        guard.observe(
+            y,
+            obs_var,
+            served,
+            self.cold(0.0),
+            reg,
+            min_scored,
+            t_ns,
+            h,
+            run_gap_ns,
+        );
     }
 
     /// The model's value and variance at design row `h` as fitted, and anchored at `guard`'s
@@ -1927,18 +1957,15 @@ impl Predictor {
             .filter(|x| crate::units::positive(*x))
             .map_or(0.0, |x| x * x);
         s.walk_to(t_ns);
-        let (model, cold, reg) = (
-            s.served_model(&s.guard, h, t_ns, min_scored),
-            s.cold(0.0),
-            s.reg_value(&s.guard, h),
+        let mut guard = std::mem::take(&mut s.guard);
+        s.score_into(
+            &mut guard,
+            (value, obs_var),
+            h,
+            t_ns,
+            (min_scored, run_gap_ns),
         );
-        let (fitted, anchored) = s.model_pair(&s.guard, h, t_ns);
-        let anchored = anchored.map_or(f64::NAN, |a| a.0);
-        s.guard
-            .score_anchor(value, fitted.0, anchored, t_ns, run_gap_ns);
-        s.guard.observe(
-            value, obs_var, model, cold, reg, min_scored, t_ns, h, run_gap_ns,
-        );
+        s.guard = guard;
         s.correct(h, value, obs_var);
         true
     }
