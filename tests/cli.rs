@@ -1854,7 +1854,11 @@ fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
             "the model serves most readings: {r}"
         );
         assert!(f("served_rmse") < f("last_cycle_rmse"), "{r}");
+        // Judged gap by gap against the better baseline: never worse beyond chance here.
+        assert!(r["gaps"].as_u64().unwrap() >= 80, "{r}");
+        assert!(r["worse_beyond_chance"].is_null(), "{r}");
     }
+    assert_eq!(v["summary"][0]["worse_beyond_chance"], 0, "{v}");
     let median = |v: &Value| v["summary"][0]["median_model"].as_f64().unwrap();
     let config =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/default.toml"))

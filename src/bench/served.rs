@@ -21,7 +21,9 @@ use anyhow::Result;
 use driftwatch_core::across_runs;
 use driftwatch_core::error_name::ErrorName;
 use driftwatch_core::families::{Family, Grid, grid, rms};
-use driftwatch_core::thermal_model::{Event, Served, TemperatureInput, default_temperature_taus};
+use driftwatch_core::thermal_model::{
+    Event, Served, TemperatureInput, beyond_chance, default_temperature_taus,
+};
 use driftwatch_core::units;
 use driftwatch_machine::compensation::{
     CompensationSet, PredictionPolicy, Source, ValidationLimits,
@@ -54,6 +56,13 @@ pub struct ServedRow {
     /// suspect, and where the band was wider than the policy serves.
     pub sources: [usize; 6],
     pub ratio_to_better: f64,
+    /// The served value against the better baseline of the channel-run (the one with the
+    /// smaller RMSE): the one-sided paired test of the service's fallbacks on the mean
+    /// difference of squared errors of each gap between cycles (one value per gap: within
+    /// a gap the errors share their anchor and are far from independent). The statistic
+    /// when served was worse beyond chance, and the gaps it had.
+    pub worse_beyond_chance: Option<f64>,
+    pub gaps: usize,
 }
 
 /// One scored point or one cycle of a channel, in time order.
@@ -181,6 +190,8 @@ struct Channel {
     /// The last cycle: its grid index in the current run and value.
     last: Option<(usize, f64)>,
     errors: [Vec<f64>; 4],
+    /// The gap between cycles each scored point lies in (the cycles before it).
+    gap: Vec<usize>,
     sources: [usize; 6],
     cycles: usize,
 }
@@ -210,12 +221,14 @@ fn replay(
             fitted: None,
             last: None,
             errors: Default::default(),
+            gap: Vec::new(),
             sources: [0; 6],
             cycles: 0,
         });
         for ch in chans.iter_mut() {
             ch.last = None;
             ch.errors = Default::default();
+            ch.gap.clear();
             ch.sources = [0; 6];
             ch.cycles = 0;
         }
@@ -311,6 +324,7 @@ fn replay(
                 {
                     e.push(v - g.y[m.k]);
                 }
+                ch.gap.push(ch.cycles);
             }
         }
         for (c, ch) in chans.iter().enumerate() {
@@ -318,6 +332,8 @@ fn replay(
                 continue;
             }
             let [s, l, r, mv] = [0, 1, 2, 3].map(|j| rms(&ch.errors[j]));
+            let better = if l <= r { 1 } else { 2 };
+            let (gaps, worse) = worse_by_gap(&ch.errors[0], &ch.errors[better], &ch.gap);
             rows.push(ServedRow {
                 set: set.name.clone(),
                 run: run.name.clone(),
@@ -330,10 +346,30 @@ fn replay(
                 regression_rmse: r,
                 sources: ch.sources,
                 ratio_to_better: s / l.min(r),
+                worse_beyond_chance: worse,
+                gaps,
             });
         }
     }
     rows
+}
+
+/// Whether the errors `served` are worse than `base`'s beyond chance: the paired differences
+/// of squared errors averaged over each gap (`gap`, non-decreasing), tested one-sided as the
+/// service's fallbacks are ([`beyond_chance`]). The gaps, and the statistic when worse.
+fn worse_by_gap(served: &[f64], base: &[f64], gap: &[usize]) -> (usize, Option<f64>) {
+    let mut means = Vec::new();
+    let mut i = 0;
+    while i < gap.len() {
+        let j = i + gap[i..].partition_point(|&g| g == gap[i]);
+        let d = (i..j).map(|k| served[k].powi(2) - base[k].powi(2));
+        means.push(d.sum::<f64>() / (j - i) as f64);
+        i = j;
+    }
+    let (sum, sum2) = means
+        .iter()
+        .fold((0.0, 0.0), |(a, b), d| (a + d, b + d * d));
+    (means.len(), beyond_chance(means.len(), sum, sum2))
 }
 
 /// The model's name of each channel: a position error's (`EX0A`, `EY0A`, ... `EZ0D`), so that
@@ -468,13 +504,42 @@ fn summarise(name: &str, rows: &[ServedRow]) -> (String, serde_json::Value) {
         .filter(|r| r.served_rmse < r.regression_rmse)
         .count();
     let over = rows.iter().filter(|r| r.ratio_to_better > 1.5).count();
+    let worse = rows
+        .iter()
+        .filter(|r| r.worse_beyond_chance.is_some())
+        .count();
     let line = format!(
-        "  {name}: {n} channel-runs; median RMSE served {ms:.2} (the live model's value, gates or not, {mm:.2}), last cycle held {ml:.2}, least squares on the cycles so far {mr:.2}; served beats the last cycle in {beats_last} of {n}, least squares in {beats_reg}; {over} over 1.5x the better baseline"
+        "  {name}: {n} channel-runs; median RMSE served {ms:.2} (the live model's value, gates or not, {mm:.2}), last cycle held {ml:.2}, least squares on the cycles so far {mr:.2}; served beats the last cycle in {beats_last} of {n}, least squares in {beats_reg}; {over} over 1.5x the better baseline; worse than the better baseline beyond chance (paired over the gaps between cycles) in {worse}"
     );
     (
         line,
         serde_json::json!({"set": name, "channel_runs": n, "median_served": ms, "median_model": mm,
             "median_last_cycle": ml, "median_regression": mr, "beats_last_cycle": beats_last,
-            "beats_regression": beats_reg, "over_1_5": over}),
+            "beats_regression": beats_reg, "over_1_5": over, "worse_beyond_chance": worse}),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::worse_by_gap;
+
+    /// One value per gap: a series worse in every gap is worse beyond chance however many
+    /// points each gap has; the same series against itself, or against a worse one, is not.
+    #[test]
+    fn served_is_judged_worse_by_the_gaps_between_cycles() {
+        let gap: Vec<usize> = (0..40).map(|i| i / 4).collect();
+        let base: Vec<f64> = (0..40).map(|i| (i % 3) as f64 - 1.0).collect();
+        let worse: Vec<f64> = base
+            .iter()
+            .enumerate()
+            .map(|(i, b)| b + 1.0 + 0.1 * (i % 4) as f64)
+            .collect();
+        let (gaps, t) = worse_by_gap(&worse, &base, &gap);
+        assert_eq!(gaps, 10);
+        assert!(t.is_some_and(|t| t > 1.645), "{t:?}");
+        assert_eq!(worse_by_gap(&base, &base, &gap).1, None);
+        assert_eq!(worse_by_gap(&base, &worse, &gap).1, None);
+        // A single gap is no evidence either way.
+        assert_eq!(worse_by_gap(&worse[..4], &base[..4], &gap[..4]), (1, None));
+    }
 }

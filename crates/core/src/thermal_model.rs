@@ -769,7 +769,7 @@ pub struct Guard {
 /// The one-sided Diebold-Mariano test on `n` paired differences of squared errors (sum and
 /// sum of squares): the statistic when their mean is positive by more than [`FALLBACK_T`]
 /// of its standard error.
-fn beyond_chance(n: usize, sum_d: f64, sum_d2: f64) -> Option<f64> {
+pub fn beyond_chance(n: usize, sum_d: f64, sum_d2: f64) -> Option<f64> {
     if n < 2 {
         return None;
     }
