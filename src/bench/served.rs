@@ -59,8 +59,9 @@ pub struct ServedRow {
     /// The served value against the better baseline of the channel-run (the one with the
     /// smaller RMSE): the one-sided paired test of the service's fallbacks on the mean
     /// difference of squared errors of each gap between cycles (one value per gap: within
-    /// a gap the errors share their anchor and are far from independent). The statistic
-    /// when served was worse beyond chance, and the gaps it had.
+    /// a gap the errors share their anchor and are far from independent), judged from
+    /// `min_scored` gaps on as the service judges. The statistic when served was worse
+    /// beyond chance, and the gaps it had.
     pub worse_beyond_chance: Option<f64>,
     pub gaps: usize,
 }
@@ -334,6 +335,8 @@ fn replay(
             let [s, l, r, mv] = [0, 1, 2, 3].map(|j| rms(&ch.errors[j]));
             let better = if l <= r { 1 } else { 2 };
             let (gaps, worse) = worse_by_gap(&ch.errors[0], &ch.errors[better], &ch.gap);
+            // As the service: no verdict on fewer gaps than it needs to judge a fallback.
+            let worse = worse.filter(|_| gaps >= policy.model.min_scored);
             rows.push(ServedRow {
                 set: set.name.clone(),
                 run: run.name.clone(),
