@@ -30,6 +30,38 @@ mod fleet;
 pub mod located;
 pub mod served;
 pub mod thermal;
+pub mod unexplained;
+
+/// `f` over `jobs` on every core (each job single-threaded and independent), the results in
+/// job order whatever order they finish in.
+pub fn par_map<J: Sync, R: Send>(jobs: &[J], f: impl Fn(&J) -> R + Sync) -> Vec<R> {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let next = AtomicUsize::new(0);
+    let done: Mutex<Vec<Option<R>>> = Mutex::new((0..jobs.len()).map(|_| None).collect());
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(jobs.len().max(1));
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| {
+                loop {
+                    let k = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(job) = jobs.get(k) else { break };
+                    let r = f(job);
+                    if let Ok(mut d) = done.lock() {
+                        d[k] = Some(r);
+                    }
+                }
+            });
+        }
+    });
+    done.into_inner()
+        .unwrap_or_default()
+        .into_iter()
+        .flatten()
+        .collect()
+}
 pub use fleet::{FleetBackend, FleetOptions, fleet};
 
 fn size_of(p: &Path) -> u64 {

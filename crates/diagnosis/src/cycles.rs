@@ -139,6 +139,7 @@ use nalgebra::{DMatrix, DVector};
 
 mod search;
 use search::Search;
+pub use search::{SerialCorrelation, UNEXPLAINED_P};
 
 /// The baseline's spindle pole basis, min.
 pub const DIAGNOSIS_TAUS_MIN: [f64; 10] =
@@ -368,6 +369,10 @@ pub struct Unexplained {
     pub chi2_dof: f64,
     /// Smallest Ljung-Box p over the channels, and that channel.
     pub ljung_box_p: f64,
+    /// The same over all the channels tested (Sidak: `1 - (1 - p)^m`): what is held against
+    /// 0.001, so that a clean recording is flagged at that rate however many channels it has.
+    pub ljung_box_p_channels: f64,
+    pub channels_tested: usize,
     pub channel: String,
     /// Where: the largest located mismatches of the final residuals.
     pub located: Vec<Mismatch>,
@@ -390,6 +395,8 @@ pub struct ChannelFigures {
     pub rms_train_after_um: f64,
     pub rms_heldout_before_um: f64,
     pub rms_heldout_after_um: f64,
+    /// Ljung-Box p (10 lags) of the final residuals in time order (none: too few readings).
+    pub ljung_box_p_after: Option<f64>,
 }
 
 /// One outlier reading.
@@ -991,6 +998,14 @@ pub fn diagnose(
     // The final fit, each term's figures and its ambiguity group.
     let fin = s.final_fit(base_eff, sel.chosen, sel.blocks_better, coincidences);
     let (accepted, footprints) = s.accepted(&fin, &sensors);
+    // One verdict per effect: what the search accepted (named, or in an accepted term's
+    // group) was identified on this plan, whatever the energy rule said before the search.
+    let mut not_identifiable = not_identifiable;
+    not_identifiable.retain(|n| {
+        !accepted
+            .iter()
+            .any(|a| a.effect == n.effect || a.ambiguity_group.iter().any(|g| g.effect == n.effect))
+    });
     let mut refused = sel.refused;
     refused.retain(|r| {
         !accepted
@@ -1000,7 +1015,7 @@ pub fn diagnose(
     // Per channel, before and after; what stays structured.
     let channels = s.channels(&baseline, &fin);
     let periodic = periodic.map(|(found, kb)| s.size_periodic(&fin, found, kb));
-    let unexplained = s.unexplained(&fin, &phase, periodic);
+    let unexplained = s.unexplained(&fin, &phase, periodic, &channels);
     let series = series(&s, &baseline, &fin, resid_um, footprints, q0);
     Ok(Diagnosis {
         sigma_um: opts.sigma_um,

@@ -31,6 +31,10 @@ pub struct Effect {
     pub parameters: &'static str,
     /// The change to the measurement plan that separates it from what it can be confused with.
     pub split_by: &'static str,
+    /// The parts of that change a plan's own readings can show (any one of them splits it in
+    /// principle): advice a plan already follows is not given again ([`advice`]).
+    #[serde(skip)]
+    pub splits: &'static [PlanFeature],
     /// Largest plausible effect on a reading, um: a larger fitted footprint is refused.
     pub max_um: f64,
     /// Needs at least two days of data (slow or daily terms).
@@ -47,6 +51,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "the feed of each approach (a feed change or two feeds); a step at a time located by likelihood (an NC parameter or firmware change)",
         parameters: "t_d, ms (latency beyond the calibrated one, or its change at the step)",
         split_by: "probe at two feeds",
+        splits: &[PlanFeature::TwoFeeds],
         max_um: 50.0,
         slow: false,
     },
@@ -58,6 +63,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "(n/n_ref)^2 at the reading's spindle speed",
         parameters: "radius change at n_ref, um",
         split_by: "probe at two spindle speeds",
+        splits: &[PlanFeature::TwoSpeeds],
         max_um: 20.0,
         slow: false,
     },
@@ -69,6 +75,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "a step at a time located by likelihood",
         parameters: "radius change at the step, um",
         split_by: "probe at two feeds (a latency change moves the readings with the feed, a radius change does not) or from both sides of the beam",
+        splits: &[PlanFeature::TwoFeeds, PlanFeature::BothSides],
         max_um: 20.0,
         slow: false,
     },
@@ -80,6 +87,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "spindle heat lags",
         parameters: "gain per lag, um",
         split_by: "a bed-fixed reference artefact, or a prior from a spindle-only test",
+        splits: &[],
         max_um: 200.0,
         slow: false,
     },
@@ -91,6 +99,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "(n/n_ref)^2 at the reading's spindle speed",
         parameters: "shift at n_ref, um",
         split_by: "cycles at two or more spindle speeds",
+        splits: &[PlanFeature::TwoSpeeds],
         max_um: 30.0,
         slow: false,
     },
@@ -102,6 +111,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "spindle heat lags",
         parameters: "gain per lag, um",
         split_by: "a second tool length or a bed-fixed reference",
+        splits: &[],
         max_um: 100.0,
         slow: false,
     },
@@ -113,6 +123,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature and its 60/120/240-min lags; 24-h Fourier pair when no temperature explains it; a step at a time located by likelihood (the setter knocked or moved)",
         parameters: "um per K (or um per Fourier term, or um at the step)",
         split_by: "probe at B = +90 and B = -90, or a second setter height",
+        splits: &[PlanFeature::BPlusMinus90],
         max_um: 30.0,
         slow: false,
     },
@@ -124,6 +135,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "constant, spindle heat lags, logged temperatures",
         parameters: "urad (per unit of the shape)",
         split_by: "a second tool length or Z stand-off",
+        splits: &[],
         max_um: 30.0,
         slow: false,
     },
@@ -135,6 +147,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature and its lags; 24-h Fourier pair",
         parameters: "ppm (per K)",
         split_by: "probe at positions farther apart along the axis",
+        splits: &[],
         max_um: 30.0,
         slow: false,
     },
@@ -146,6 +159,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "spindle heat lags of 1200 and 2400 min (beyond the baseline's 600)",
         parameters: "um per unit heat",
         split_by: "longer records, idle days",
+        splits: &[],
         max_um: 100.0,
         slow: true,
     },
@@ -157,6 +171,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature and its 60/120/240-min lags; 24-h and 12-h Fourier pairs when the air is not logged",
         parameters: "um per K (or um per Fourier term)",
         split_by: "log the hall temperature",
+        splits: &[],
         max_um: 50.0,
         slow: true,
     },
@@ -168,6 +183,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "lags (15, 60 min) of the tilt duty (|B| > 45 deg) the detections show",
         parameters: "um (urad) per unit duty",
         split_by: "log the B motor current; vary the time spent tilted",
+        splits: &[],
         max_um: 30.0,
         slow: false,
     },
@@ -179,6 +195,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "the sense of the axis' last move (+1/-1)",
         parameters: "half the backlash, urad",
         split_by: "reach each pose from both senses",
+        splits: &[PlanFeature::BothSenses],
         max_um: 20.0,
         slow: false,
     },
@@ -190,6 +207,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "first and second harmonic of the C angle (cos, sin)",
         parameters: "urad per harmonic",
         split_by: "put the beam off the C axis (d != 0) or probe more C angles",
+        splits: &[],
         max_um: 20.0,
         slow: false,
     },
@@ -201,6 +219,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "a step at a time located by likelihood",
         parameters: "um (urad) at the step",
         split_by: "a bed-fixed reference artefact, or a second setter: a location error moves both, the setter only one",
+        splits: &[],
         max_um: 100.0,
         slow: false,
     },
@@ -212,6 +231,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "the baseline's own response to the cycles' spins that the spindle log lacks (one switch)",
         parameters: "scale of that response (1: the cycles heat the machine as production does)",
         split_by: "log the spindle speed during cycles",
+        splits: &[],
         max_um: 100.0,
         slow: false,
     },
@@ -223,6 +243,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "built into the baseline",
         parameters: "none",
         split_by: "time-symmetric cycles",
+        splits: &[PlanFeature::TimeSymmetric],
         max_um: 0.0,
         slow: false,
     },
@@ -234,6 +255,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "the spindle heat input (n/n_ref)^gamma through each lag of the 10-pole basis",
         parameters: "um per unit heat input",
         split_by: "runs and stops of different lengths (a mode shows in the shape of the warm-up and of the recovery)",
+        splits: &[],
         max_um: 200.0,
         slow: false,
     },
@@ -245,6 +267,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature and its 60/120/240-min lags",
         parameters: "um/K",
         split_by: "vary that temperature's source independently of the spindle",
+        splits: &[],
         max_um: 200.0,
         slow: false,
     },
@@ -256,6 +279,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature less its 60-min lag (its fast swing)",
         parameters: "um/K",
         split_by: "log the coolant temperature; hold the chiller steady",
+        splits: &[],
         max_um: 50.0,
         slow: false,
     },
@@ -267,6 +291,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "the located temperature's change since the located onset, (T(t) - T(t_on)) 1[t >= t_on], itself or through a 30/120/480-min lag; without an onset, the temperature itself and its lags",
         parameters: "um/K",
         split_by: "a run where that temperature and time do not move together (its source held constant for a day, or cycled), long enough after the onset for the held-out end",
+        splits: &[],
         max_um: 200.0,
         slow: false,
     },
@@ -278,6 +303,7 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "none",
         parameters: "count",
         split_by: "double touches",
+        splits: &[],
         max_um: 0.0,
         slow: false,
     },
@@ -285,6 +311,100 @@ pub const EFFECTS: &[Effect] = &[
 
 pub fn effect(id: &str) -> Option<&'static Effect> {
     EFFECTS.iter().find(|e| e.id == id)
+}
+
+/// A way of probing that splits effects apart, as far as a plan's readings show it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlanFeature {
+    /// Readings at two or more feeds.
+    TwoFeeds,
+    /// Readings at two or more spindle speeds.
+    TwoSpeeds,
+    /// The beam touched from both sides along some axis.
+    BothSides,
+    /// Some pose reached from both senses of a rotary axis.
+    BothSenses,
+    /// Readings at B = +90 and B = -90.
+    BPlusMinus90,
+    /// Each measurement made twice in a cycle (time-symmetric cycles).
+    TimeSymmetric,
+}
+
+impl PlanFeature {
+    /// How `rows` show this feature, when they do.
+    pub fn shown_by(self, rows: &Rows) -> Option<String> {
+        let distinct = |v: &mut Vec<i64>| {
+            v.sort_unstable();
+            v.dedup();
+            v.len()
+        };
+        let r = &rows.rows;
+        match self {
+            PlanFeature::TwoFeeds => {
+                let mut f: Vec<i64> = r.iter().map(|x| x.feed_mm_min.round() as i64).collect();
+                let n = distinct(&mut f);
+                (n >= 2).then(|| format!("probes at {n} feeds"))
+            }
+            PlanFeature::TwoSpeeds => {
+                let mut f: Vec<i64> = r
+                    .iter()
+                    .filter(|x| x.spindle_rpm > 0.0)
+                    .map(|x| x.spindle_rpm.round() as i64)
+                    .collect();
+                let n = distinct(&mut f);
+                (n >= 2).then(|| format!("probes at {n} spindle speeds"))
+            }
+            PlanFeature::BothSides => {
+                let sides = |d: i8| {
+                    r.iter()
+                        .filter(|x| x.direction == d)
+                        .map(|x| x.axis.index())
+                        .collect::<std::collections::BTreeSet<_>>()
+                };
+                (!sides(1).is_disjoint(&sides(-1)))
+                    .then(|| "touches the beam from both sides".to_string())
+            }
+            PlanFeature::BothSenses => {
+                let mut seen: BTreeMap<(i64, i64, usize), [bool; 2]> = BTreeMap::new();
+                for x in r {
+                    for (i, &sense) in x.rotary_sense.iter().enumerate() {
+                        if sense != 0 {
+                            let pose = (x.b_deg.round() as i64, x.c_deg.round() as i64, i);
+                            seen.entry(pose).or_default()[usize::from(sense > 0)] = true;
+                        }
+                    }
+                }
+                seen.values()
+                    .any(|s| s[0] && s[1])
+                    .then(|| "reaches a pose from both senses".to_string())
+            }
+            PlanFeature::BPlusMinus90 => {
+                let at = |b: f64| r.iter().any(|x| (x.b_deg - b).abs() < 1.0);
+                (at(90.0) && at(-90.0)).then(|| "probes at B = +90 and B = -90".to_string())
+            }
+            PlanFeature::TimeSymmetric => {
+                let mut per: BTreeMap<(i64, &str), usize> = BTreeMap::new();
+                for x in r {
+                    *per.entry((x.cycle, x.step.as_str())).or_default() += 1;
+                }
+                per.values()
+                    .any(|&k| k >= 2)
+                    .then(|| "makes each measurement twice in a cycle".to_string())
+            }
+        }
+    }
+}
+
+/// The plan change that would split `e` from its look-alikes on a recording with `rows`: its
+/// `split_by`, unless the plan already does what splits it, which is then said instead (the
+/// same advice again would be no advice).
+pub fn advice(e: &Effect, rows: &Rows) -> String {
+    match e.splits.iter().find_map(|f| f.shown_by(rows)) {
+        Some(done) => format!(
+            "this plan already {done}, which splits it in principle but not on these readings (more cycles where it differs, or a larger difference)"
+        ),
+        None => e.split_by.to_string(),
+    }
 }
 
 /// One candidate: an effect's signature times a time shape, `columns` (one or a Fourier pair)
@@ -939,4 +1059,76 @@ pub fn signature_unit(name: &str) -> &'static str {
             },
             |(_, u)| *u,
         )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{PlanFeature, advice, effect};
+    use crate::rows::{DetectionRow, Rows};
+    use driftwatch_core::measurement::Axis;
+
+    fn row(cycle: i64, step: &str, feed: f64, rpm: f64, b: f64, dir: i8) -> DetectionRow {
+        DetectionRow {
+            t_ns: cycle * 1_800_000_000_000,
+            cycle,
+            step: step.into(),
+            b_deg: b,
+            c_deg: 0.0,
+            axis: Axis::X,
+            direction: dir,
+            feed_mm_min: feed,
+            spindle_rpm: rpm,
+            t_in_cycle_s: 0.0,
+            rotary_sense: Default::default(),
+            deviation_um: 0.0,
+            sensitivity: Vec::new(),
+            signature: Vec::new(),
+        }
+    }
+
+    fn rows(rows: Vec<DetectionRow>) -> Rows {
+        Rows {
+            params: Vec::new(),
+            locations: Vec::new(),
+            signatures: Vec::new(),
+            rows,
+        }
+    }
+
+    /// Advice is what the plan does not do yet: "probe at two feeds" on a one-feed plan, and on
+    /// a plan that already has two feeds a statement that it does; likewise for speeds.
+    #[test]
+    fn advice_already_followed_by_the_plan_is_not_given_again() {
+        let latency = effect("skip_latency").unwrap();
+        let speed = effect("radius_speed").unwrap();
+        let one = rows(vec![
+            row(1, "a", 100.0, 8000.0, 0.0, 1),
+            row(2, "a", 100.0, 8000.0, 0.0, 1),
+        ]);
+        let two = rows(vec![
+            row(1, "a", 100.0, 8000.0, 0.0, 1),
+            row(2, "a", 200.0, 20000.0, 0.0, -1),
+        ]);
+        assert_eq!(advice(latency, &one), latency.split_by);
+        assert_eq!(advice(speed, &one), speed.split_by);
+        assert!(
+            advice(latency, &two).contains("already probes at 2 feeds"),
+            "{}",
+            advice(latency, &two)
+        );
+        assert!(advice(speed, &two).contains("already probes at 2 spindle speeds"));
+        assert!(PlanFeature::BothSides.shown_by(&two).is_some());
+        assert!(PlanFeature::BothSides.shown_by(&one).is_none());
+        assert!(PlanFeature::TimeSymmetric.shown_by(&one).is_none());
+        let twice = rows(vec![
+            row(1, "a", 100.0, 0.0, 90.0, 1),
+            row(1, "a", 100.0, 0.0, -90.0, 1),
+        ]);
+        assert!(PlanFeature::TimeSymmetric.shown_by(&twice).is_some());
+        assert!(PlanFeature::BPlusMinus90.shown_by(&twice).is_some());
+        assert!(PlanFeature::BPlusMinus90.shown_by(&two).is_none());
+        // An effect no plan feature splits keeps its advice.
+        let ambient = effect("ambient").unwrap();
+        assert_eq!(advice(ambient, &two), ambient.split_by);
+    }
 }

@@ -131,10 +131,12 @@ fn found(h: &mut String, d: &Diagnosis) {
     }
     for u in &d.unexplained {
         h.push_str(&format!(
-            "<p><b>Unexplained</b>: chi2/dof {} after the search, Ljung-Box p {:.2e} on {}; a discrepancy of {} um RMS beyond the noise. Where: {}.</p>",
+            "<p><b>Unexplained</b>: chi2/dof {} after the search, Ljung-Box p {:.2e} on {} ({:.2e} over the {} channels tested); a discrepancy of {} um RMS beyond the noise. Where: {}.</p>",
             f(u.chi2_dof),
             u.ljung_box_p,
             esc(&u.channel),
+            u.ljung_box_p_channels,
+            u.channels_tested,
             f(u.discrepancy_um),
             esc(&u
                 .located

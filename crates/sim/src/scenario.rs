@@ -539,6 +539,32 @@ impl Scenario {
         out
     }
 
+    /// Three production days as the diagnosis' simulated recordings have them (the suite of
+    /// docs/physics.md 4.8), on `machine` with its `plan`: this scenario's program each day
+    /// (the two-shift one of `ambient_swing`), a cycle every 30 min, 0.5-um noise, the hall
+    /// at a constant 20 C (logged), no thermal truth (an injection adds its own). Day 2 starts
+    /// two hours late and day 3 (the held-out day) has the first shift only: days alike would
+    /// let the spindle's daily rhythm stand in for any other daily one.
+    pub fn diagnosis_days(&self, machine: &str, plan: &str, seed: u64) -> Scenario {
+        let mut scn = self.repeated_days(3).with_cycles_every(30.0);
+        scn.machine = machine.to_string();
+        scn.plan = plan.to_string();
+        scn.spindle
+            .retain(|s| !(s.at_min > 2880.0 + 840.0 && s.at_min < 2880.0 + 1320.0));
+        for s in &mut scn.spindle {
+            match (s.at_min / 1440.0).floor() as i64 {
+                1 if s.at_min > 1440.0 => s.at_min += 120.0,
+                2 if s.at_min == 2880.0 + 840.0 => s.rpm = 0.0,
+                _ => {}
+            }
+        }
+        scn.seed = seed;
+        scn.noise.sigma_um = 0.5;
+        scn.ambient.amplitude_k = 0.0;
+        scn.truth.channels.clear();
+        scn
+    }
+
     /// Cycle start times, min, sorted.
     pub fn cycle_times_min(&self) -> Vec<f64> {
         let mut t = self.cycles.at_min.clone();

@@ -187,7 +187,7 @@ struct Naming {
     named: bool,
     group: Vec<GroupMember>,
     coincides: Option<GroupMember>,
-    split_by: Vec<&'static str>,
+    split_by: Vec<String>,
 }
 
 /// The search over one recording.
@@ -494,7 +494,7 @@ impl<'a> Search<'a> {
                 confounded_with: best,
                 cos: best_cos,
                 reason,
-                split_by: e.split_by.into(),
+                split_by: crate::effects::advice(e, &self.rows),
             });
         }
         out
@@ -886,9 +886,10 @@ impl<'a> Search<'a> {
                 .cmp(&a.comparable)
                 .then(b.cos.total_cmp(&a.cos))
         });
-        let mut split_by: Vec<&'static str> = Vec::new();
+        let mut split_by: Vec<String> = Vec::new();
         for g in group.iter().map(|g| g.effect.as_str()).chain([c.effect]) {
-            if let Some(s) = crate::effects::effect(g).map(|e| e.split_by)
+            if let Some(s) =
+                crate::effects::effect(g).map(|e| crate::effects::advice(e, &self.rows))
                 && !split_by.contains(&s)
             {
                 split_by.push(s);
@@ -1150,9 +1151,14 @@ impl<'a> Search<'a> {
             let ms = |v: &DVector<f64>, ix: &[usize]| {
                 ix.iter().map(|i| v[*i].powi(2)).sum::<f64>() / ix.len().max(1) as f64
             };
+            let mut by_time = idx.clone();
+            by_time.sort_by_key(|i| rows.rows[*i].t_ns);
+            let series: Vec<f64> = by_time.iter().map(|i| fin_resid[*i] * sigma).collect();
             channels.push(ChannelFigures {
                 channel: s.clone(),
                 n: idx.len(),
+                ljung_box_p_after: driftwatch_core::stats::ljung_box(&series, 10)
+                    .map(|lb| lb.p_value),
                 chi2_dof_before: ms(base_resid, &idx) / frac0.max(1e-9),
                 chi2_dof_after: ms(fin_resid, &idx) / frac.max(1e-9),
                 rms_train_before_um: ms(base_resid, &tr).sqrt() * sigma,
@@ -1225,22 +1231,13 @@ impl<'a> Search<'a> {
         fin: &Final,
         phase: &[&'static str],
         periodic: Option<PeriodicResidual>,
+        channels: &[ChannelFigures],
     ) -> Vec<Unexplained> {
         let (n, rows, sigma) = (self.n, &self.rows, self.sigma);
         let fin_um: Vec<f64> = fin.fit.resid.iter().map(|v| v * sigma).collect();
-        let mut worst = (1.0_f64, String::new());
-        for s in &self.steps() {
-            let mut idx: Vec<usize> = (0..n).filter(|i| &rows.rows[*i].step == s).collect();
-            idx.sort_by_key(|i| rows.rows[*i].t_ns);
-            let series: Vec<f64> = idx.iter().map(|i| fin_um[*i]).collect();
-            if let Some(lb) = driftwatch_core::stats::ljung_box(&series, 10)
-                && lb.p_value < worst.0
-            {
-                worst = (lb.p_value, s.clone());
-            }
-        }
+        let serial = SerialCorrelation::of(channels);
         let final_fig = &fin.fit.figures;
-        if !(final_fig.chi2_dof > 1.2 || worst.0 < 1e-3 || periodic.is_some()) {
+        if !(final_fig.chi2_dof > 1.2 || serial.p_channels < UNEXPLAINED_P || periodic.is_some()) {
             return Vec::new();
         }
         let mut where_ = locate(rows, &fin_um, sigma, 4.0);
@@ -1269,8 +1266,10 @@ impl<'a> Search<'a> {
         let ms = fin_um.iter().map(|v| v * v).sum::<f64>() / n as f64;
         vec![Unexplained {
             chi2_dof: final_fig.chi2_dof,
-            ljung_box_p: worst.0,
-            channel: worst.1.clone(),
+            ljung_box_p: serial.p,
+            ljung_box_p_channels: serial.p_channels,
+            channels_tested: serial.tested,
+            channel: serial.channel,
             located: where_,
             when,
             discrepancy_um: match &periodic {
@@ -1282,6 +1281,52 @@ impl<'a> Search<'a> {
             periodic,
         }]
     }
+}
+
+/// The false-flag rate of the "unexplained" serial-correlation test on a clean recording: over
+/// all its channels together, not per channel (a recording has about 18; tested each at this
+/// level, one clean recording in fifty would be flagged).
+pub const UNEXPLAINED_P: f64 = 1e-3;
+
+/// Serial correlation left in the final residuals, over the channels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SerialCorrelation {
+    /// The smallest Ljung-Box p of a channel, and that channel.
+    pub p: f64,
+    pub channel: String,
+    /// Channels with enough readings to test.
+    pub tested: usize,
+    /// The smallest p judged over every channel tested ([`sidak`]).
+    pub p_channels: f64,
+}
+
+impl SerialCorrelation {
+    pub fn of(channels: &[ChannelFigures]) -> Self {
+        let tested: Vec<(f64, &str)> = channels
+            .iter()
+            .filter_map(|c| Some((c.ljung_box_p_after?, c.channel.as_str())))
+            .collect();
+        let (p, channel) = tested
+            .iter()
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map_or((1.0, String::new()), |(p, c)| (*p, c.to_string()));
+        SerialCorrelation {
+            p,
+            channel,
+            tested: tested.len(),
+            p_channels: sidak(p, tested.len()),
+        }
+    }
+}
+
+/// The probability that the smallest of `m` independent p-values is at most `p_min` when
+/// nothing is there (Sidak): the family-wise p of the most serially correlated channel.
+fn sidak(p_min: f64, m: usize) -> f64 {
+    if m == 0 {
+        return 1.0;
+    }
+    // 1 - (1 - p)^m without losing a small p to rounding.
+    -(m as f64 * (-p_min.clamp(0.0, 1.0)).ln_1p()).exp_m1()
 }
 
 /// The periodic discrepancy in words, carried by `carried`.
@@ -1422,5 +1467,21 @@ impl Scoring for CycleScoring<'_, '_> {
                 d - s.k_of(*i)
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::sidak;
+
+    /// The smallest of 18 channels' p-values at 0.00085 is no rare event over the 18 (about
+    /// 1.5 %); one channel's p is its own; a p far below rounding keeps its size.
+    #[test]
+    fn the_smallest_p_is_judged_over_every_channel_tested() {
+        assert!((sidak(0.00085, 18) - 0.01519).abs() < 1e-4);
+        assert!((sidak(0.00085, 1) - 0.00085).abs() < 1e-15);
+        assert!((sidak(1e-20, 18) / 18e-20 - 1.0).abs() < 1e-9);
+        assert_eq!(sidak(0.3, 0), 1.0);
+        assert!((sidak(1.0, 5) - 1.0).abs() < 1e-15);
     }
 }
