@@ -483,20 +483,24 @@ pub fn signature_classes(rows: &Rows) -> Vec<(&'static str, Vec<String>)> {
     out
 }
 
-/// The effect a signature class stands for under a time shape (`None`: that product is the
-/// baseline itself or no effect of the library).
+/// The effect a signature class stands for under a time shape: only where that effect's
+/// physics allows the shape (the shapes the library gives it, [`Effect::shapes`]). `None`:
+/// that product is the baseline itself, or nothing of the machine moves so (a tool-setter
+/// mount that follows the spindle speed, a scale that flips with the approach sense, a
+/// latency that warms with the hall), and it joins no ambiguity group.
 pub fn class_effect(class: &str, kind: ShapeKind) -> Option<&'static str> {
     use ShapeKind::*;
     Some(match (class, kind) {
-        ("latency", _) => "skip_latency",
+        ("latency", Feed | Step | Constant) => "skip_latency",
         ("radius", Speed2) => "radius_speed",
-        ("radius", _) => "radius_change",
-        ("setter", _) => "setter_drift",
-        ("scale", _) => "scale_expansion",
-        ("squareness", _) => "squareness",
-        ("angle_C", Sense) | ("angle_other", Sense) => "rotary_backlash",
-        ("angle_C", _) => "c_indexing",
-        ("angle_other", _) => "b_tilt_heating",
+        ("radius", Step) => "radius_change",
+        ("setter", Temperature | Fourier | Step) => "setter_drift",
+        ("scale", Temperature | Fourier) => "scale_expansion",
+        // Fourier: a 24-h pair stands for a temperature not logged, as for the hall.
+        ("squareness", Constant | SpindleLag | Temperature | Fourier) => "squareness",
+        ("angle_C" | "angle_other", Sense) => "rotary_backlash",
+        ("angle_C", Harmonic) => "c_indexing",
+        ("angle_other", Tilt) => "b_tilt_heating",
         ("location", Step) => "location_step",
         ("location", Temperature | Fourier) => "ambient",
         ("location", SpindleLag) => "slow_mode",
