@@ -1746,8 +1746,9 @@ fn a_thermal_test_of_several_runs_is_learnt_across_runs_and_a_new_run_predicted_
 }
 
 /// `bench located --data` on a small set: two 9-h runs cut from fl-thermal, four
-/// temperatures, one channel. Each run gives a row with the rule's sensor and onset and an
-/// outcome at every size, and the table has a row per size with every run as a trial.
+/// temperatures, one channel. Under each sensor rule, each run gives a row with the rule's
+/// sensor and onset and an outcome at every size (or, under `separable`, why no sensor
+/// qualifies), and the table has a row per rule and size with every judged run as a trial.
 #[test]
 fn bench_located_reports_every_run_at_every_size() {
     let dir = tmp("located");
@@ -1777,7 +1778,20 @@ fn bench_located_reports_every_run_at_every_size() {
     ]);
     assert!(ok, "{out}{err}");
     let v: Value = serde_json::from_str(&out).unwrap();
-    let runs = v["runs"].as_array().unwrap();
+    let all = v["runs"].as_array().unwrap();
+    assert_eq!(all.len(), 4, "{out}");
+    for r in all.iter().filter(|r| r["rule"] == "separable") {
+        // A sensor that moves apart from time and the warm-up, or the reason there is none.
+        assert!(
+            r["error"].is_null()
+                || r["error"]
+                    .as_str()
+                    .unwrap()
+                    .contains("moves apart from time and the warm-up"),
+            "{r}"
+        );
+    }
+    let runs: Vec<&Value> = all.iter().filter(|r| r["rule"] == "range").collect();
     assert_eq!(runs.len(), 2, "{out}");
     for r in runs {
         assert!(r["error"].is_null(), "{r}");
@@ -1793,17 +1807,27 @@ fn bench_located_reports_every_run_at_every_size() {
         assert_eq!(sizes, [0.0, 1.5, 3.0, 6.0], "{r}");
     }
     let table = v["sizes"].as_array().unwrap();
-    assert_eq!(table.len(), 4, "{out}");
+    assert_eq!(table.len(), 8, "{out}");
     for s in table {
-        assert_eq!(s["trials"], 2, "{s}");
-        assert!(s["found"].as_u64().unwrap() <= 2, "{s}");
+        let judged = 2 - s["not_judged"].as_u64().unwrap();
+        assert_eq!(s["trials"], judged, "{s}");
+        assert!(s["found"].as_u64().unwrap() <= judged, "{s}");
     }
+    assert!(
+        table
+            .iter()
+            .any(|s| s["rule"] == "range" && s["trials"] == 2)
+    );
     // The text form: a line per run and the table.
     let (ok, out, err) = run(&["bench", "located", "--data", dir.to_str().unwrap()]);
     assert!(ok, "{out}{err}");
     assert!(out.contains("day0") && out.contains("day1"), "{out}");
     assert!(
         out.contains("found and modelled") && out.contains("wall time"),
+        "{out}"
+    );
+    assert!(
+        out.contains("sensor rule range") && out.contains("sensor rule separable"),
         "{out}"
     );
 }
