@@ -427,6 +427,12 @@ fn check_on(machine: &str, case: &Case, seed: u64) -> Result<String, String> {
                     d.refused
                 ));
             }
+            // No term without a cause: every accepted term is the injected effect's, or has it
+            // in its group (a look-alike, or a term that coincides with it in time and was
+            // kept on the held-out blocks).
+            if hit.len() < d.accepted.len() {
+                return Err(format!("terms unrelated to the injection: {named:?}"));
+            }
             // What the thermal model can take over: terms on a location error driven by the
             // spindle or a logged temperature; measurement-model effects never.
             for h in &hit {

@@ -697,7 +697,9 @@ impl<'a> Search<'a> {
                 continue;
             };
             let cos = (be.tr_mul(v).norm_squared() / vv).sqrt();
-            if cos > self.opts.ambiguity_cos {
+            if cos > self.opts.ambiguity_cos
+                || same_cause(cands[ei].shape_kind, cands[ti].shape_kind)
+            {
                 return Some((ei, cos));
             }
         }
@@ -1281,6 +1283,15 @@ impl<'a> Search<'a> {
             periodic,
         }]
     }
+}
+
+/// Whether two time shapes share their cause whatever their footprints' overlap: the tilt duty
+/// and the cycles' spins missing from the log both follow the cycle schedule (a cycle tilts B
+/// and spins the spindle), so a tilt term beside an accepted measurement-heating term may be
+/// more of the cycles' unlogged heat; it stays only if the held-out blocks justify it.
+fn same_cause(a: crate::effects::ShapeKind, b: crate::effects::ShapeKind) -> bool {
+    use crate::effects::ShapeKind::{MissingSpins, Tilt};
+    matches!((a, b), (MissingSpins, Tilt) | (Tilt, MissingSpins))
 }
 
 /// The false-flag rate of the "unexplained" serial-correlation test on a clean recording: over
