@@ -329,32 +329,40 @@ fn replay(
             }
         }
         for (c, ch) in chans.iter().enumerate() {
-            if ch.errors[0].is_empty() {
-                continue;
+            if !ch.errors[0].is_empty() {
+                let at = (
+                    set.name.as_str(),
+                    run.name.as_str(),
+                    set.channels[c].as_str(),
+                );
+                rows.push(row_of(at, ch, policy.model.min_scored));
             }
-            let [s, l, r, mv] = [0, 1, 2, 3].map(|j| rms(&ch.errors[j]));
-            let better = if l <= r { 1 } else { 2 };
-            let (gaps, worse) = worse_by_gap(&ch.errors[0], &ch.errors[better], &ch.gap);
-            // As the service: no verdict on fewer gaps than it needs to judge a fallback.
-            let worse = worse.filter(|_| gaps >= policy.model.min_scored);
-            rows.push(ServedRow {
-                set: set.name.clone(),
-                run: run.name.clone(),
-                channel: set.channels[c].clone(),
-                cycles: ch.cycles,
-                scored: ch.errors[0].len(),
-                served_rmse: s,
-                model_rmse: mv,
-                last_cycle_rmse: l,
-                regression_rmse: r,
-                sources: ch.sources,
-                ratio_to_better: s / l.min(r),
-                worse_beyond_chance: worse,
-                gaps,
-            });
         }
     }
     rows
+}
+
+/// A channel-run's row from what its replay scored (`at`: set, run, channel).
+fn row_of((set, run, channel): (&str, &str, &str), ch: &Channel, min_scored: usize) -> ServedRow {
+    let [s, l, r, mv] = [0, 1, 2, 3].map(|j| rms(&ch.errors[j]));
+    let better = if l <= r { 1 } else { 2 };
+    let (gaps, worse) = worse_by_gap(&ch.errors[0], &ch.errors[better], &ch.gap);
+    ServedRow {
+        set: set.to_string(),
+        run: run.to_string(),
+        channel: channel.to_string(),
+        cycles: ch.cycles,
+        scored: ch.errors[0].len(),
+        served_rmse: s,
+        model_rmse: mv,
+        last_cycle_rmse: l,
+        regression_rmse: r,
+        sources: ch.sources,
+        ratio_to_better: s / l.min(r),
+        // As the service: no verdict on fewer gaps than it needs to judge a fallback.
+        worse_beyond_chance: worse.filter(|_| gaps >= min_scored),
+        gaps,
+    }
 }
 
 /// Whether the errors `served` are worse than `base`'s beyond chance: the paired differences
