@@ -327,6 +327,18 @@ fn cases() -> Vec<Case> {
             strip_spins: true,
             expect: Expect::Found,
         },
+        Case {
+            effect: "radius_speed",
+            concealment: "d: 1 um at 20000 min^-1, every cycle at one speed",
+            setup: nothing,
+            inject: |s| {
+                s.truth
+                    .channels
+                    .insert("radius".into(), channel("instant = 1.0"));
+            },
+            strip_spins: false,
+            expect: Expect::NotIdentifiable,
+        },
     ]
 }
 
@@ -604,6 +616,67 @@ fn injected_concealed_effects_are_named_sized_and_improve_the_held_out_fit() {
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
+}
+
+/// The advice is checked by doing it: for each effect the plan cannot identify and whose
+/// advice is a change the plan's own readings can show (two feeds, two spindle speeds), the
+/// same truth and seed with that change made is diagnosed again, and the effect is then
+/// accepted and named, and the new plan shows the feature the advice asked for.
+#[test]
+fn the_advice_to_split_an_effect_names_it_once_followed() {
+    use driftwatch_diagnosis::effects::{PlanFeature, effect};
+    let follow = |f: PlanFeature| -> Option<fn(&mut Scenario)> {
+        match f {
+            PlanFeature::TwoFeeds => Some(raise_feed),
+            PlanFeature::TwoSpeeds => Some(alternate_speed_wide),
+            _ => None,
+        }
+    };
+    let mut checked = 0;
+    for (i, case) in cases().iter().enumerate() {
+        if !matches!(case.expect, Expect::NotIdentifiable) {
+            continue;
+        }
+        let Some(e) = effect(case.effect) else {
+            continue;
+        };
+        let Some((feature, change)) = e.splits.iter().find_map(|f| Some((*f, follow(*f)?))) else {
+            continue;
+        };
+        let seed = 100 + i as u64;
+        let mut scn = three_days(seed);
+        (case.setup)(&mut scn);
+        (case.inject)(&mut scn);
+        let d = diagnose_inputs(&scn, &record(&scn, false));
+        let listed = d.not_identifiable.iter().find(|n| n.effect == case.effect);
+        assert_eq!(
+            listed.map(|n| n.split_by.as_str()),
+            Some(e.split_by),
+            "{}: {:?}",
+            case.effect,
+            d.not_identifiable
+        );
+        change(&mut scn);
+        let inputs = record(&scn, false);
+        let d = diagnose_inputs(&scn, &inputs);
+        let k = Kinematics::load(&scn.machine).unwrap();
+        let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+        assert!(feature.shown_by(&rows).is_some(), "{feature:?}");
+        let named: Vec<(&str, bool)> = d
+            .accepted
+            .iter()
+            .map(|a| (a.effect.as_str(), a.named))
+            .collect();
+        println!("{} after the advice ({feature:?}): {named:?}", case.effect);
+        assert!(
+            named.contains(&(case.effect, true)),
+            "{}: the advice followed, still {named:?}; not identifiable {:?}",
+            case.effect,
+            d.not_identifiable
+        );
+        checked += 1;
+    }
+    assert!(checked >= 3, "{checked}");
 }
 
 /// The diagnosis on every other machine family: its effect library and signatures come from
