@@ -618,6 +618,64 @@ fn injected_concealed_effects_are_named_sized_and_improve_the_held_out_fit() {
     assert!(failures.is_empty(), "{failures:?}");
 }
 
+/// A clean recording as a plant's log has it: a cycle lost whole every so often, one aborted
+/// halfway, and touches that did not trip and were retried a few seconds later. None of it
+/// is an effect: nothing is accepted and nothing flagged unexplained.
+#[test]
+fn lost_aborted_and_retried_cycles_make_no_term_and_no_flag() {
+    use driftwatch_core::recording::DetectionStatus;
+    let scn = three_days(4000);
+    let mut inputs = record(&scn, false);
+    let cycles: Vec<i64> = {
+        let mut c: Vec<i64> = inputs.detections.iter().map(|d| d.msg.cycle).collect();
+        c.dedup();
+        c
+    };
+    // Every 11th cycle lost; the 20th aborted after half its touches.
+    let lost: Vec<i64> = cycles.iter().copied().skip(5).step_by(11).collect();
+    let aborted = cycles[20];
+    let in_aborted = inputs
+        .detections
+        .iter()
+        .filter(|d| d.msg.cycle == aborted)
+        .count();
+    let mut seen_aborted = 0;
+    let mut out = Vec::new();
+    for (i, d) in inputs.detections.iter().enumerate() {
+        if lost.contains(&d.msg.cycle) {
+            continue;
+        }
+        if d.msg.cycle == aborted {
+            seen_aborted += 1;
+            if seen_aborted > in_aborted / 2 {
+                continue;
+            }
+        }
+        // Every 37th touch first misses (no trip) and is retried 3 s later.
+        if i % 37 == 0 {
+            let mut miss = d.clone();
+            miss.msg.status = Some(DetectionStatus::NoTrip);
+            out.push(miss);
+            let mut retry = d.clone();
+            retry.t_ns += 3_000_000_000;
+            out.push(retry);
+            continue;
+        }
+        out.push(d.clone());
+    }
+    assert!(out.len() < inputs.detections.len());
+    inputs.detections = out;
+    let d = diagnose_inputs(&scn, &inputs);
+    let accepted: Vec<&str> = d.accepted.iter().map(|a| a.term.as_str()).collect();
+    assert!(accepted.is_empty(), "{accepted:?}");
+    assert!(d.unexplained.is_empty(), "{:?}", d.unexplained);
+    assert!(
+        d.cycles < cycles.len() - lost.len() + 1,
+        "{} cycles",
+        d.cycles
+    );
+}
+
 /// The advice is checked by doing it: for each effect the plan cannot identify and whose
 /// advice is a change the plan's own readings can show (two feeds, two spindle speeds), the
 /// same truth and seed with that change made is diagnosed again, and the effect is then
