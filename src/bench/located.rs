@@ -31,8 +31,6 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::ExitCode;
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::Result;
@@ -321,34 +319,10 @@ fn jobs(set: &ThermalData) -> Vec<(usize, &str, SensorRule)> {
 /// Every job of `set` on every core (the diagnosis is single-threaded and the runs are
 /// independent), the rows in job order whatever order they finish in.
 fn run_set(set: &ThermalData) -> Vec<RunRow> {
-    let jobs = jobs(set);
-    let next = AtomicUsize::new(0);
-    let done: Mutex<Vec<Option<RunRow>>> = Mutex::new((0..jobs.len()).map(|_| None).collect());
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .min(jobs.len().max(1));
-    std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| {
-                loop {
-                    let k = next.fetch_add(1, Ordering::Relaxed);
-                    let Some(&(i, channel, rule)) = jobs.get(k) else {
-                        break;
-                    };
-                    let run = &set.runs[i];
-                    let row = judge(&set.name, &run.name, &run.events, channel, rule);
-                    if let Ok(mut d) = done.lock() {
-                        d[k] = Some(row);
-                    }
-                }
-            });
-        }
-    });
-    done.into_inner()
-        .unwrap_or_default()
-        .into_iter()
-        .flatten()
-        .collect()
+    super::par_map(&jobs(set), |&(i, channel, rule)| {
+        let run = &set.runs[i];
+        judge(&set.name, &run.name, &run.events, channel, rule)
+    })
 }
 
 /// One size of one outcome, in a few words.
