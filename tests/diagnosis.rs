@@ -162,6 +162,10 @@ fn alternate_speed_wide(scn: &mut Scenario) {
     scn.cycles.rpm_sequence = vec![20000.0, 4000.0];
 }
 fn nothing(_: &mut Scenario) {}
+/// The patent's sequential order: every pose reached from one sense of B only.
+fn sequential(scn: &mut Scenario) {
+    scn.plan = "patent_sequential".into();
+}
 
 fn cases() -> Vec<Case> {
     vec![
@@ -338,6 +342,14 @@ fn cases() -> Vec<Case> {
             },
             strip_spins: false,
             expect: Expect::NotIdentifiable,
+        },
+        Case {
+            effect: "rotary_backlash",
+            concealment: "b: 20 urad of B backlash, each pose reached from one sense only (sequential order)",
+            setup: sequential,
+            inject: |s| s.rotary.backlash_urad = vec![20.0],
+            strip_spins: false,
+            expect: Expect::Found,
         },
     ]
 }
@@ -1283,4 +1295,343 @@ fn a_squareness_is_blamed_measured_by_the_step_diagonal_and_gone_once_loaded() {
         sxz_terms(&after).is_empty(),
         "still blamed after the geometry was loaded"
     );
+}
+
+/// One effect of the power curve: the plan that shows it, the candidate term whose threshold
+/// the diagnosis states, and the injection at an amplitude in that term's unit (the simulator's
+/// parameter in the same unit and, for lags, at the same lag as the candidate).
+struct PowerCase {
+    effect: &'static str,
+    term: &'static str,
+    setup: fn(&mut Scenario),
+    inject: fn(&mut Scenario, f64),
+}
+
+fn put(s: &mut Scenario, name: &str, toml_text: String) {
+    s.truth.channels.insert(name.into(), channel(&toml_text));
+}
+
+fn power_cases() -> Vec<PowerCase> {
+    vec![
+        PowerCase {
+            effect: "setter_drift",
+            term: "setter_z x ambient lag 60 min",
+            setup: swing,
+            inject: |s, a| {
+                put(
+                    s,
+                    "setter_z",
+                    format!("ambient = [{{ gain = {a}, tau_min = 60.0 }}]"),
+                )
+            },
+        },
+        PowerCase {
+            effect: "ambient",
+            term: "EZ0B x ambient lag 60 min",
+            setup: swing,
+            inject: |s, a| {
+                put(
+                    s,
+                    "EZ0B",
+                    format!(
+                        "spindle = [{{ gain = 48.0, tau_min = 120.0 }}]\nambient = [{{ gain = {a}, tau_min = 60.0 }}]"
+                    ),
+                )
+            },
+        },
+        PowerCase {
+            effect: "skip_latency",
+            term: "latency x feed",
+            setup: raise_feed,
+            inject: |s, a| s.skip.latency_ms = a,
+        },
+        PowerCase {
+            effect: "radius_speed",
+            term: "radius x (n/n_ref)^2",
+            setup: alternate_speed,
+            inject: |s, a| put(s, "radius", format!("instant = {a}")),
+        },
+        PowerCase {
+            effect: "speed_shift",
+            term: "sz x (n/n_ref)^2",
+            setup: alternate_speed_wide,
+            inject: |s, a| {
+                put(
+                    s,
+                    "sz",
+                    format!("instant = {a}\nspindle = [{{ gain = -41.0, tau_min = 11.0 }}]"),
+                )
+            },
+        },
+        PowerCase {
+            effect: "scale_expansion",
+            term: "kx x ambient lag 120 min",
+            setup: swing,
+            inject: |s, a| {
+                put(
+                    s,
+                    "kx",
+                    format!("ambient = [{{ gain = {a}, tau_min = 120.0 }}]"),
+                )
+            },
+        },
+        PowerCase {
+            effect: "squareness",
+            term: "sxz x ambient lag 120 min",
+            setup: swing,
+            inject: |s, a| {
+                put(
+                    s,
+                    "sxz",
+                    format!("ambient = [{{ gain = {a}, tau_min = 120.0 }}]"),
+                )
+            },
+        },
+        PowerCase {
+            effect: "rotary_backlash",
+            // The term is half the backlash: each sense is off by half of it.
+            term: "angle_B x B approach sense",
+            setup: nothing,
+            inject: |s, a| s.rotary.backlash_urad = vec![2.0 * a],
+        },
+        PowerCase {
+            effect: "slow_mode",
+            term: "EZ0B x spindle lag 1200 min",
+            setup: nothing,
+            inject: |s, a| {
+                put(
+                    s,
+                    "EZ0B",
+                    format!(
+                        "spindle = [{{ gain = 48.0, tau_min = 120.0 }}, {{ gain = {a}, tau_min = 1200.0 }}]"
+                    ),
+                )
+            },
+        },
+    ]
+}
+
+/// What one injected recording gave: the effect accepted (named or in a group), accepted and
+/// named, and the number of accepted terms unrelated to it.
+#[derive(Default, Clone, Copy)]
+struct Power {
+    found: usize,
+    named: usize,
+    unrelated: usize,
+    runs: usize,
+}
+
+/// The power curve (physics 4.3): each effect injected at 0.5, 1 and 2 times the threshold the
+/// diagnosis states for its candidate term on that plan (read from a clean recording of the
+/// same plan), over `POWER_SEEDS` seeds (default 12). Run with
+/// `cargo test --release --test diagnosis power_curve -- --ignored --nocapture`.
+#[test]
+#[ignore = "about 350 diagnoses: run in release with --ignored"]
+fn power_curve_at_half_one_and_two_thresholds() {
+    let n: u64 = std::env::var("POWER_SEEDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(12);
+    let factors = [0.5, 1.0, 2.0];
+    let cases = power_cases();
+    // The stated threshold of each case's term, from a clean recording of its plan.
+    let thresholds: Vec<f64> = cases
+        .iter()
+        .map(|c| {
+            let mut scn = three_days(5000);
+            (c.setup)(&mut scn);
+            let d = diagnose_inputs(&scn, &record(&scn, false));
+            d.thresholds
+                .iter()
+                .find(|t| t.term == c.term)
+                .unwrap_or_else(|| panic!("{}: no threshold for {}", c.effect, c.term))
+                .amplitude
+        })
+        .collect();
+    let jobs: Vec<(usize, usize, u64)> = (0..cases.len())
+        .flat_map(|c| (0..factors.len()).flat_map(move |f| (0..n).map(move |s| (c, f, s))))
+        .collect();
+    let run = |&(c, f, s): &(usize, usize, u64)| -> Power {
+        let case = &cases[c];
+        let mut scn = three_days(5100 + s);
+        (case.setup)(&mut scn);
+        (case.inject)(&mut scn, factors[f] * thresholds[c]);
+        let d = diagnose_inputs(&scn, &record(&scn, false));
+        let of_it = |a: &driftwatch_diagnosis::cycles::Accepted| {
+            a.effect == case.effect || a.ambiguity_group.iter().any(|m| m.effect == case.effect)
+        };
+        let found = d.accepted.iter().filter(|a| of_it(a)).count();
+        Power {
+            found: usize::from(found > 0),
+            named: usize::from(
+                d.accepted
+                    .iter()
+                    .any(|a| a.named && a.effect == case.effect),
+            ),
+            unrelated: d.accepted.len() - found,
+            runs: 1,
+        }
+    };
+    let workers = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let results: Vec<(usize, Power)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..workers)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut out = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(job) = jobs.get(i) else { break };
+                        out.push((i, run(job)));
+                    }
+                    out
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap())
+            .collect()
+    });
+    let mut table = vec![[Power::default(); 3]; cases.len()];
+    for (i, p) in results {
+        let (c, f, _) = jobs[i];
+        let t = &mut table[c][f];
+        t.found += p.found;
+        t.named += p.named;
+        t.unrelated += p.unrelated;
+        t.runs += p.runs;
+    }
+    println!("| effect | term | threshold | found (named) at 0.5x | 1x | 2x | unrelated terms |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut weak = Vec::new();
+    for (c, case) in cases.iter().enumerate() {
+        let cell = |p: &Power| format!("{}/{} ({})", p.found, p.runs, p.named);
+        let unrelated: usize = table[c].iter().map(|p| p.unrelated).sum();
+        println!(
+            "| {} | {} | {:.4} | {} | {} | {} | {unrelated} |",
+            case.effect,
+            case.term,
+            thresholds[c],
+            cell(&table[c][0]),
+            cell(&table[c][1]),
+            cell(&table[c][2])
+        );
+        // Twice the threshold is found on most seeds, and power does not fall with amplitude.
+        let [half, one, two] = table[c];
+        if 2 * two.found < two.runs || half.found > two.found || one.found > two.found {
+            weak.push(case.effect);
+        }
+    }
+    // For each effect not always named at twice the threshold: its group on the first seed
+    // where it was found unnamed, with each member's cosine and the plan change that splits it.
+    for (c, case) in cases.iter().enumerate() {
+        if table[c][2].named == table[c][2].runs {
+            continue;
+        }
+        for s in 0..n {
+            let mut scn = three_days(5100 + s);
+            (case.setup)(&mut scn);
+            (case.inject)(&mut scn, 2.0 * thresholds[c]);
+            let d = diagnose_inputs(&scn, &record(&scn, false));
+            let Some(a) = d.accepted.iter().find(|a| {
+                !a.named
+                    && (a.effect == case.effect
+                        || a.ambiguity_group.iter().any(|m| m.effect == case.effect))
+            }) else {
+                continue;
+            };
+            let members: Vec<String> = a
+                .ambiguity_group
+                .iter()
+                .map(|m| {
+                    let mark = if m.comparable { ", comparable" } else { "" };
+                    format!("{}: {} (cos {:.3}{mark})", m.effect, m.term, m.cos)
+                })
+                .collect();
+            println!(
+                "{} at 2x, seed {}: accepted {}: {}; group [{}]; split by: {}",
+                case.effect,
+                5100 + s,
+                a.effect,
+                a.term,
+                members.join("; "),
+                a.split_by
+            );
+            break;
+        }
+    }
+    assert!(weak.is_empty(), "{weak:?}");
+}
+
+/// Two effects at once, each at twice the threshold the diagnosis states for it on the plan
+/// that shows both (from a clean recording of that plan): both are accepted (named, or in a
+/// group), and nothing else is. The pairs join effects of different drivers (feed, speed,
+/// approach sense, the hall, the spindle's slow heat).
+#[test]
+fn two_effects_at_once_are_both_found_and_nothing_else() {
+    let cases = power_cases();
+    let by = |e: &str| cases.iter().position(|c| c.effect == e).unwrap();
+    let pairs = [
+        (by("skip_latency"), by("squareness")),
+        (by("radius_speed"), by("setter_drift")),
+        (by("speed_shift"), by("scale_expansion")),
+        (by("rotary_backlash"), by("ambient")),
+        (by("slow_mode"), by("skip_latency")),
+    ];
+    // More seeds for the closing note's figure: `PAIR_SEEDS=10 cargo test --release --test
+    // diagnosis two_effects -- --nocapture`.
+    let seeds: u64 = std::env::var("PAIR_SEEDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let mut failures = Vec::new();
+    for (p, &(a, b)) in pairs.iter().enumerate() {
+        for s in 0..seeds {
+            let (ca, cb) = (&cases[a], &cases[b]);
+            let plan = |seed: u64| {
+                let mut scn = three_days(seed);
+                (ca.setup)(&mut scn);
+                (cb.setup)(&mut scn);
+                scn
+            };
+            let clean = plan(6000 + p as u64 + 10 * s);
+            let d = diagnose_inputs(&clean, &record(&clean, false));
+            let threshold = |c: &PowerCase| {
+                d.thresholds
+                    .iter()
+                    .find(|t| t.term == c.term)
+                    .map(|t| t.amplitude)
+                    .unwrap_or_else(|| panic!("no threshold for {}", c.term))
+            };
+            let (ta, tb) = (threshold(ca), threshold(cb));
+            let mut scn = plan(6100 + p as u64 + 10 * s);
+            (ca.inject)(&mut scn, 2.0 * ta);
+            (cb.inject)(&mut scn, 2.0 * tb);
+            let d = diagnose_inputs(&scn, &record(&scn, false));
+            let of = |e: &str, x: &driftwatch_diagnosis::cycles::Accepted| {
+                x.effect == e || x.ambiguity_group.iter().any(|m| m.effect == e)
+            };
+            let terms: Vec<String> = d
+                .accepted
+                .iter()
+                .map(|x| format!("{} {} (named {})", x.effect, x.term, x.named))
+                .collect();
+            let found_a = d.accepted.iter().any(|x| of(ca.effect, x));
+            let found_b = d.accepted.iter().any(|x| of(cb.effect, x));
+            let unrelated = d
+                .accepted
+                .iter()
+                .filter(|x| !of(ca.effect, x) && !of(cb.effect, x))
+                .count();
+            println!(
+                "{} ({ta:.4}) + {} ({tb:.4}) at 2x: {terms:?}",
+                ca.effect, cb.effect
+            );
+            if !found_a || !found_b || unrelated > 0 {
+                failures.push(format!("{} + {}: {terms:?}", ca.effect, cb.effect));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
 }
