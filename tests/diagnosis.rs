@@ -1412,27 +1412,29 @@ fn power_cases() -> Vec<PowerCase> {
 }
 
 /// What one injected recording gave: the effect accepted (named or in a group), accepted and
-/// named, and the number of accepted terms unrelated to it.
+/// named, the number of accepted terms unrelated to it, and of terms named as another effect
+/// (a confident wrong label).
 #[derive(Default, Clone, Copy)]
 struct Power {
     found: usize,
     named: usize,
     unrelated: usize,
+    wrong: usize,
     runs: usize,
 }
 
-/// The power curve (physics 4.3): each effect injected at 0.5, 1 and 2 times the threshold the
-/// diagnosis states for its candidate term on that plan (read from a clean recording of the
-/// same plan), over `POWER_SEEDS` seeds (default 12). Run with
+/// The power curve (physics 4.3): each effect injected at 0.5, 1, 2, 4 and 8 times the
+/// threshold the diagnosis states for its candidate term on that plan (read from a clean
+/// recording of the same plan), over `POWER_SEEDS` seeds (default 12). Run with
 /// `cargo test --release --test diagnosis power_curve -- --ignored --nocapture`.
 #[test]
-#[ignore = "about 350 diagnoses: run in release with --ignored"]
+#[ignore = "about 550 diagnoses: run in release with --ignored"]
 fn power_curve_at_half_one_and_two_thresholds() {
     let n: u64 = std::env::var("POWER_SEEDS")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(12);
-    let factors = [0.5, 1.0, 2.0];
+    let factors = [0.5, 1.0, 2.0, 4.0, 8.0];
     let cases = power_cases();
     // The stated threshold of each case's term, from a clean recording of its plan.
     let thresholds: Vec<f64> = cases
@@ -1469,6 +1471,11 @@ fn power_curve_at_half_one_and_two_thresholds() {
                     .any(|a| a.named && a.effect == case.effect),
             ),
             unrelated: d.accepted.len() - found,
+            wrong: d
+                .accepted
+                .iter()
+                .filter(|a| a.named && a.effect != case.effect)
+                .count(),
             runs: 1,
         }
     };
@@ -1493,33 +1500,43 @@ fn power_curve_at_half_one_and_two_thresholds() {
             .flat_map(|h| h.join().unwrap())
             .collect()
     });
-    let mut table = vec![[Power::default(); 3]; cases.len()];
+    let mut table = vec![[Power::default(); 5]; cases.len()];
     for (i, p) in results {
         let (c, f, _) = jobs[i];
         let t = &mut table[c][f];
         t.found += p.found;
         t.named += p.named;
         t.unrelated += p.unrelated;
+        t.wrong += p.wrong;
         t.runs += p.runs;
     }
-    println!("| effect | term | threshold | found (named) at 0.5x | 1x | 2x | unrelated terms |");
-    println!("|---|---|---|---|---|---|---|");
+    println!(
+        "| effect | term | threshold | found (named) at 0.5x | 1x | 2x | 4x | 8x | unrelated terms | named as another effect |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     let mut weak = Vec::new();
     for (c, case) in cases.iter().enumerate() {
         let cell = |p: &Power| format!("{}/{} ({})", p.found, p.runs, p.named);
         let unrelated: usize = table[c].iter().map(|p| p.unrelated).sum();
+        let wrong: usize = table[c].iter().map(|p| p.wrong).sum();
+        let cells: Vec<String> = table[c].iter().map(cell).collect();
         println!(
-            "| {} | {} | {:.4} | {} | {} | {} | {unrelated} |",
+            "| {} | {} | {:.4} | {} | {unrelated} | {wrong} |",
             case.effect,
             case.term,
             thresholds[c],
-            cell(&table[c][0]),
-            cell(&table[c][1]),
-            cell(&table[c][2])
+            cells.join(" | ")
         );
-        // Twice the threshold is found on most seeds, and power does not fall with amplitude.
-        let [half, one, two] = table[c];
-        if 2 * two.found < two.runs || half.found > two.found || one.found > two.found {
+        // Twice the threshold is found on most seeds, power does not fall with amplitude, and
+        // no term is named as an effect that was not injected.
+        let [half, one, two, four, eight] = table[c];
+        if 2 * two.found < two.runs
+            || half.found > two.found
+            || one.found > two.found
+            || four.found < two.found
+            || eight.found < two.found
+            || wrong > 0
+        {
             weak.push(case.effect);
         }
     }
@@ -1634,4 +1651,94 @@ fn two_effects_at_once_are_both_found_and_nothing_else() {
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
+}
+
+/// A term the diagnosis does not name states the amplitude at which it would be: B backlash
+/// at twice its threshold sits in a group with a static XZ squareness (cos about 0.98); the
+/// factor the diagnosis states is checked by injecting 0.6 and 1.5 times that amplitude on the
+/// same seeds: not named below it, named above it.
+#[test]
+fn a_term_not_named_is_named_at_the_amplitude_it_states() {
+    let cases = power_cases();
+    let case = cases
+        .iter()
+        .find(|c| c.effect == "rotary_backlash")
+        .expect("the backlash case");
+    let mut scn = three_days(5000);
+    (case.setup)(&mut scn);
+    let d = diagnose_inputs(&scn, &record(&scn, false));
+    let threshold = d
+        .thresholds
+        .iter()
+        .find(|t| t.term == case.term)
+        .expect("its threshold")
+        .amplitude;
+    let named_at = |seed: u64, amplitude: f64| {
+        let mut scn = three_days(seed);
+        (case.setup)(&mut scn);
+        (case.inject)(&mut scn, amplitude);
+        let d = diagnose_inputs(&scn, &record(&scn, false));
+        let a = d
+            .accepted
+            .iter()
+            .find(|a| a.effect == case.effect)
+            .unwrap_or_else(|| panic!("seed {seed}: not accepted: {:?}", d.accepted));
+        (a.named, a.named_at, a.statement.clone())
+    };
+    let (mut below, mut above) = (0, 0);
+    for seed in 5100..5103 {
+        let amplitude = 2.0 * threshold;
+        let (named, f, statement) = named_at(seed, amplitude);
+        assert!(!named, "seed {seed}: named at twice the threshold");
+        let f = f.unwrap_or_else(|| panic!("seed {seed}: no factor: {statement}"));
+        assert!(f > 1.05, "seed {seed}: {f}");
+        assert!(statement.contains("would be named at about"), "{statement}");
+        below += usize::from(!named_at(seed, 0.6 * f * amplitude).0);
+        above += usize::from(named_at(seed, 1.5 * f * amplitude).0);
+        println!("seed {seed}: named at {f:.2} x; {statement}");
+    }
+    assert!(below >= 2 && above >= 2, "below {below}/3, above {above}/3");
+}
+
+/// A squareness that follows the hall has a static part the baseline does not hold, while a
+/// location error following the hall gets its static part free from the baseline: judged
+/// against the squareness without its static part, EX0B was named on this seed at five times
+/// the squareness threshold. With the static part beside it, the squareness is a fair rival and
+/// nothing is named as an effect that was not injected.
+#[test]
+fn a_squareness_following_the_hall_is_not_named_as_a_location_error() {
+    let cases = power_cases();
+    let case = cases
+        .iter()
+        .find(|c| c.effect == "squareness")
+        .expect("the squareness case");
+    let mut scn = three_days(5000);
+    (case.setup)(&mut scn);
+    let d = diagnose_inputs(&scn, &record(&scn, false));
+    let threshold = d
+        .thresholds
+        .iter()
+        .find(|t| t.term == case.term)
+        .expect("its threshold")
+        .amplitude;
+    let mut scn = three_days(5101);
+    (case.setup)(&mut scn);
+    (case.inject)(&mut scn, 5.0 * threshold);
+    let d = diagnose_inputs(&scn, &record(&scn, false));
+    let terms: Vec<(&str, &str, bool)> = d
+        .accepted
+        .iter()
+        .map(|a| (a.effect.as_str(), a.term.as_str(), a.named))
+        .collect();
+    assert!(
+        d.accepted.iter().any(|a| a.effect == "squareness"
+            || a.ambiguity_group.iter().any(|m| m.effect == "squareness")),
+        "{terms:?}"
+    );
+    assert!(
+        !d.accepted
+            .iter()
+            .any(|a| a.named && a.effect != "squareness"),
+        "{terms:?}"
+    );
 }

@@ -234,6 +234,13 @@ pub struct GroupMember {
     /// or `min(footprint_left_chi2, delta_chi2) + 2 x (its parameters beyond the term's)`
     /// is under `min_delta_bic`.
     pub comparable: bool,
+    /// For a comparable member the plan can tell apart in principle: the factor by which the
+    /// term's amplitude would have to grow for this member to fit the data worse by
+    /// `min_delta_bic` (its `footprint_left_chi2` grows with the square of the amplitude, and
+    /// so does the expected `delta_chi2`). Null when it is not comparable (already split), when
+    /// it carries the footprint at any amplitude, or when it is in the group because it
+    /// coincides in time.
+    pub splits_at: Option<f64>,
     /// Why it is in the group.
     pub reason: String,
 }
@@ -245,6 +252,7 @@ struct Alternative {
     data: f64,
     parameters: usize,
     comparable: bool,
+    splits_at: Option<f64>,
 }
 
 /// A term the search accepted.
@@ -268,6 +276,11 @@ pub struct Accepted {
     /// delta-chi2 `min_delta_bic`) and it does not coincide in time with another accepted
     /// effect. Otherwise the term is reported as one of its group, not as `effect`.
     pub named: bool,
+    /// For a term not named: the factor by which its amplitude would have to grow for it to
+    /// be named on this plan (the largest `splits_at` of its comparable members of other
+    /// effects). Null when it is named, when some member carries its footprint at any
+    /// amplitude or coincides with it in time (no amplitude names it on this plan).
+    pub named_at: Option<f64>,
     /// The located time of a step term, ns.
     pub step_ns: Option<i64>,
     /// Empty when no other candidate explains it; otherwise the group and how to split it.

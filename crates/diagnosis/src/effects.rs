@@ -170,7 +170,10 @@ pub const EFFECTS: &[Effect] = &[
         signature: "a location error (any of them) following the air",
         shapes: "each logged temperature and its 60/120/240-min lags; 24-h and 12-h Fourier pairs when the air is not logged",
         parameters: "um per K (or um per Fourier term)",
-        split_by: "log the hall temperature",
+        // What tells a location error following the air from the setter or a scale following
+        // it; logging the air names the driver (a Fourier term's statement says so), it does
+        // not split the group.
+        split_by: "a bed-fixed reference artefact, or a second setter: a location error moves both, the setter only one",
         splits: &[],
         max_um: 50.0,
         slow: true,

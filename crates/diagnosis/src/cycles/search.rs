@@ -135,12 +135,19 @@ impl Rival<'_> {
         // Two per parameter beyond the term's (Akaike's charge: does it predict the data
         // as well, not would BIC pick it).
         let extra = ((bs.ncols() + profiled) as f64 - self.k_term).max(0.0) * 2.0;
+        let bar = self.opts.min_delta_bic;
+        let inseparable = miss < 1e-3 * self.vv;
+        let comparable = inseparable || miss.min(data) + extra < bar;
         Some(Alternative {
             cos: (dv / self.vv).sqrt(),
             miss,
             data,
             parameters: bs.ncols() + profiled,
-            comparable: miss < 1e-3 * self.vv || miss.min(data) + extra < self.opts.min_delta_bic,
+            comparable,
+            // What is left grows with the square of the amplitude: the factor that brings the
+            // expected misfit to the bar.
+            splits_at: (comparable && !inseparable)
+                .then(|| ((bar - extra).max(0.0) / miss).sqrt().max(1.0)),
         })
     }
 
@@ -159,6 +166,7 @@ impl Rival<'_> {
             footprint_left_chi2: a.miss,
             parameters: a.parameters,
             comparable: a.comparable,
+            splits_at: a.splits_at,
             reason: format!(
                 "{why}: cos {:.3} with its footprint, which it carries but for chi2 {:.1}; the data fit {} by chi2 {:.1} with it in place of the term ({} parameter{}){}",
                 a.cos,
@@ -185,6 +193,7 @@ impl Rival<'_> {
 /// with, and how to split them.
 struct Naming {
     named: bool,
+    named_at: Option<f64>,
     group: Vec<GroupMember>,
     coincides: Option<GroupMember>,
     split_by: Vec<String>,
@@ -722,6 +731,7 @@ impl<'a> Search<'a> {
             footprint_left_chi2: (1.0 - cos * cos).max(0.0) * vv,
             parameters: self.xs[c].ncols() + self.cands[c].profiled,
             comparable,
+            splits_at: None,
             reason,
         }
     }
@@ -808,6 +818,7 @@ impl<'a> Search<'a> {
                 blocks_improved: improved,
                 blocks: self.blocks.len(),
                 named: naming.named,
+                named_at: naming.named_at,
                 step_ns: c.step_ns,
                 ambiguity_group: naming.group,
                 split_by: naming.split_by.join("; "),
@@ -881,8 +892,19 @@ impl<'a> Search<'a> {
         if let Some(m) = &coincides {
             group.push(m.clone());
         }
-        let named =
-            coincides.is_none() && !group.iter().any(|g| g.effect != c.effect && g.comparable);
+        let rivals: Vec<&GroupMember> = group
+            .iter()
+            .filter(|g| g.effect != c.effect && g.comparable)
+            .collect();
+        let named = coincides.is_none() && rivals.is_empty();
+        let named_at = if named || coincides.is_some() {
+            None
+        } else {
+            rivals
+                .iter()
+                .map(|g| g.splits_at)
+                .try_fold(1.0_f64, |m, f| f.map(|f| m.max(f)))
+        };
         group.sort_by(|a, b| {
             b.comparable
                 .cmp(&a.comparable)
@@ -899,6 +921,7 @@ impl<'a> Search<'a> {
         }
         Naming {
             named,
+            named_at,
             group,
             coincides,
             split_by,
@@ -938,18 +961,50 @@ impl<'a> Search<'a> {
     fn ambiguity_group(&self, chosen: &[usize], i: usize, rival: &Rival) -> Vec<GroupMember> {
         let c = &self.cands[i];
         let mut group: Vec<GroupMember> = Vec::new();
+        let mut constant_alone: BTreeMap<usize, bool> = BTreeMap::new();
         for (j, x) in self.xs.iter().enumerate() {
             if j == i || chosen.contains(&j) || self.structural[j] || !self.allowed[j] {
                 continue;
             }
-            if let Some(a) = rival.alt(x, self.cands[j].profiled)
-                && rival.close(&a)
-            {
+            let Some(a) = rival.alt(x, self.cands[j].profiled) else {
+                continue;
+            };
+            if rival.close(&a) {
                 group.push(rival.member(
                     self.cands[j].effect,
                     self.cands[j].term.clone(),
                     &a,
                     "another candidate",
+                ));
+            }
+            // A signature whose static value the baseline does not hold (a squareness) never
+            // follows a temperature from zero: the candidate with its own constant beside it,
+            // one parameter more, is the fair rival of a term whose constant the baseline
+            // holds (a location error following the same temperature).
+            if a.comparable {
+                continue;
+            }
+            // (Only where the constant alone does not already explain the term: then the
+            // pair says nothing the constant does not.)
+            if let Some(k) = self.constant_sibling(j)
+                && k != i
+                && !chosen.contains(&k)
+                && !*constant_alone.entry(k).or_insert_with(|| {
+                    rival
+                        .alt(&self.xs[k], self.cands[k].profiled)
+                        .is_some_and(|a| a.comparable)
+                })
+                && let Some(a2) = rival.alt(
+                    &hstack(x, &[&self.xs[k]]),
+                    self.cands[j].profiled + self.cands[k].profiled,
+                )
+                && a2.comparable
+            {
+                group.push(rival.member(
+                    self.cands[j].effect,
+                    format!("{} with {}", self.cands[j].term, self.cands[k].term),
+                    &a2,
+                    "another candidate with its static part",
                 ));
             }
         }
@@ -981,6 +1036,23 @@ impl<'a> Search<'a> {
         }
         self.pose_shaped(c, rival, &mut group);
         group
+    }
+
+    /// The searched constant-shape candidate of candidate `j`'s signature, when `j` has
+    /// another shape: its static part where the baseline does not hold it.
+    fn constant_sibling(&self, j: usize) -> Option<usize> {
+        let c = &self.cands[j];
+        if c.shape_kind == crate::effects::ShapeKind::Constant || c.columns.len() != 1 {
+            return None;
+        }
+        (0..self.cands.len()).find(|&k| {
+            let o = &self.cands[k];
+            k != j
+                && o.signature == c.signature
+                && o.shape_kind == crate::effects::ShapeKind::Constant
+                && self.allowed[k]
+                && !self.structural[k]
+        })
     }
 
     /// The other effects' classes in the term's time shape together (`others`): when they
@@ -1096,7 +1168,7 @@ impl<'a> Search<'a> {
         };
         let split_by = &naming.split_by;
         format!(
-            "{}: {} = {} ({}); it moves the readings by {:.2} um RMS, {:.2} um at most, against a reading noise of {:.2} um; held-out RMS {:.3} -> {:.3} um.{}",
+            "{}: {} = {} ({}); it moves the readings by {:.2} um RMS, {:.2} um at most, against a reading noise of {:.2} um; held-out RMS {:.3} -> {:.3} um.{}{}",
             head,
             c.term,
             parameters
@@ -1120,10 +1192,23 @@ impl<'a> Search<'a> {
                 )
             } else {
                 format!(
-                    " The plan cannot tell it from {}; to split them: {}.",
+                    " The plan cannot tell it from {}; to split them: {}.{}",
                     other_effects.join(", "),
-                    split_by.join("; ")
+                    split_by.join("; "),
+                    match (naming.named_at, &naming.coincides) {
+                        (Some(f), _) if f > 1.05 => format!(
+                            " If it is the cause, it would be named at about {f:.1} times this amplitude on this plan."
+                        ),
+                        (Some(_), _) => " If it is the cause, most recordings of this amplitude would name it; on this one the noise leaves a rival as good.".to_string(),
+                        (None, None) => " No amplitude names it on this plan.".to_string(),
+                        (None, Some(_)) => String::new(),
+                    }
                 )
+            },
+            if c.shape_kind == crate::effects::ShapeKind::Fourier {
+                " Its time shape is a daily pair because no logged temperature explains it as well: log the temperature that drives it (the hall's air, most often) to name its driver."
+            } else {
+                ""
             }
         )
     }
