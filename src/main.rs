@@ -209,8 +209,8 @@ struct PlanArgs {
     /// head_d45_table_c, trunnion_ac).
     #[arg(long, required = true)]
     machine: Option<String>,
-    /// Plan TOML or built-in name (patent, patent_sequential, a family's own); default the
-    /// machine file's `plan`.
+    /// Plan TOML or built-in name (patent, patent_sequential, patent_both_sides, a family's
+    /// own); default the machine file's `plan`.
     #[arg(long)]
     plan: Option<String>,
     /// One-reading standard uncertainty, um (default: the machine's).

@@ -1425,7 +1425,8 @@ struct Power {
 
 /// The power curve (physics 4.3): each effect injected at 0.5, 1, 2, 4 and 8 times the
 /// threshold the diagnosis states for its candidate term on that plan (read from a clean
-/// recording of the same plan), over `POWER_SEEDS` seeds (default 12). Run with
+/// recording of the same plan), over `POWER_SEEDS` seeds (default 12), on each case's plan or
+/// on `POWER_PLAN` (a built-in name or a path) where given. Run with
 /// `cargo test --release --test diagnosis power_curve -- --ignored --nocapture`.
 #[test]
 #[ignore = "about 550 diagnoses: run in release with --ignored"]
@@ -1435,6 +1436,12 @@ fn power_curve_at_half_one_and_two_thresholds() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(12);
     let factors = [0.5, 1.0, 2.0, 4.0, 8.0];
+    let plan = std::env::var("POWER_PLAN").ok();
+    let on_plan = |scn: &mut Scenario| {
+        if let Some(p) = &plan {
+            scn.plan = p.clone();
+        }
+    };
     let cases = power_cases();
     // The stated threshold of each case's term, from a clean recording of its plan.
     let thresholds: Vec<f64> = cases
@@ -1442,6 +1449,7 @@ fn power_curve_at_half_one_and_two_thresholds() {
         .map(|c| {
             let mut scn = three_days(5000);
             (c.setup)(&mut scn);
+            on_plan(&mut scn);
             let d = diagnose_inputs(&scn, &record(&scn, false));
             d.thresholds
                 .iter()
@@ -1457,6 +1465,7 @@ fn power_curve_at_half_one_and_two_thresholds() {
         let case = &cases[c];
         let mut scn = three_days(5100 + s);
         (case.setup)(&mut scn);
+        on_plan(&mut scn);
         (case.inject)(&mut scn, factors[f] * thresholds[c]);
         let d = diagnose_inputs(&scn, &record(&scn, false));
         let of_it = |a: &driftwatch_diagnosis::cycles::Accepted| {
@@ -1549,6 +1558,7 @@ fn power_curve_at_half_one_and_two_thresholds() {
         for s in 0..n {
             let mut scn = three_days(5100 + s);
             (case.setup)(&mut scn);
+            on_plan(&mut scn);
             (case.inject)(&mut scn, 2.0 * thresholds[c]);
             let d = diagnose_inputs(&scn, &record(&scn, false));
             let Some(a) = d.accepted.iter().find(|a| {
@@ -1741,4 +1751,71 @@ fn a_squareness_following_the_hall_is_not_named_as_a_location_error() {
             .any(|a| a.named && a.effect != "squareness"),
         "{terms:?}"
     );
+}
+
+/// An effect that no amplitude names on one plan is named on the plan its advice asks for: a
+/// setter mount drift and an EZ0B following the hall, at four times their threshold, are
+/// accepted on `patent` in a group whose combination of scales, squarenesses and location
+/// errors carries them whatever their size (`named_at` null) and are advised to be touched from
+/// both sides of the beam; the same truth and seeds on `patent_both_sides` name them.
+#[test]
+fn an_effect_no_amplitude_names_is_named_on_the_plan_its_advice_asks_for() {
+    use driftwatch_diagnosis::effects::{PlanFeature, effect};
+    let cases = power_cases();
+    for name in ["setter_drift", "ambient"] {
+        let case = cases
+            .iter()
+            .find(|c| c.effect == name)
+            .expect("the power case");
+        let e = effect(name).expect("in the catalogue");
+        assert!(e.splits.contains(&PlanFeature::BothSides), "{name}");
+        let mut clean = three_days(5000);
+        (case.setup)(&mut clean);
+        let d = diagnose_inputs(&clean, &record(&clean, false));
+        let threshold = d
+            .thresholds
+            .iter()
+            .find(|t| t.term == case.term)
+            .expect("its threshold")
+            .amplitude;
+        for seed in 5100..5102 {
+            let mut scn = three_days(seed);
+            (case.setup)(&mut scn);
+            (case.inject)(&mut scn, 4.0 * threshold);
+            let d = diagnose_inputs(&scn, &record(&scn, false));
+            let of_it: Vec<&driftwatch_diagnosis::cycles::Accepted> = d
+                .accepted
+                .iter()
+                .filter(|a| a.effect == name || a.ambiguity_group.iter().any(|m| m.effect == name))
+                .collect();
+            assert!(!of_it.is_empty(), "{name} seed {seed}: {:?}", d.accepted);
+            for a in &of_it {
+                assert!(
+                    !a.named && a.named_at.is_none(),
+                    "{name} seed {seed}: {a:?}"
+                );
+                assert!(
+                    a.split_by.contains(e.split_by),
+                    "{name} seed {seed}: {}",
+                    a.split_by
+                );
+            }
+            scn.plan = "patent_both_sides".into();
+            let inputs = record(&scn, false);
+            let k = Kinematics::load(&scn.machine).unwrap();
+            let rows = detection_rows(&k, &inputs.detections, &SolveOptions::new(0.5)).unwrap();
+            assert!(PlanFeature::BothSides.shown_by(&rows).is_some());
+            let d = diagnose_inputs(&scn, &inputs);
+            let named: Vec<(&str, bool)> = d
+                .accepted
+                .iter()
+                .map(|a| (a.effect.as_str(), a.named))
+                .collect();
+            println!("{name} seed {seed} on patent_both_sides: {named:?}");
+            assert!(
+                named.contains(&(name, true)),
+                "{name} seed {seed}: {named:?}"
+            );
+        }
+    }
 }

@@ -22,6 +22,10 @@ pub const BUILTIN_PLANS: &[(&str, &str)] = &[
         include_str!("../../../config/plans/patent_sequential.toml"),
     ),
     (
+        "patent_both_sides",
+        include_str!("../../../config/plans/patent_both_sides.toml"),
+    ),
+    (
         "table_bc_designed",
         include_str!("../../../config/plans/table_bc_designed.toml"),
     ),
@@ -634,6 +638,29 @@ mod tests {
                 .windows(2)
                 .all(|w| w[1].t_start_s > w[0].t_start_s)
         );
+    }
+
+    /// The both-sides plan meets each B = 0 pose's beam from both senses of its lateral axis,
+    /// and only there (the tilted poses as in `patent`).
+    #[test]
+    fn both_sides_plan_touches_each_upright_pose_from_both_sides() {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let plan = Plan::build(&k, &PlanConfig::load("patent_both_sides").unwrap()).unwrap();
+        assert_eq!(plan.steps.len(), 32);
+        let mut sides: std::collections::BTreeMap<(i64, i64), Vec<(Axis, i8)>> = Default::default();
+        for s in plan.steps.iter().filter(|s| s.approach.axis != Axis::Z) {
+            let v = sides
+                .entry((s.b_deg.round() as i64, s.c_deg.round() as i64))
+                .or_default();
+            if !v.contains(&(s.approach.axis, s.approach.direction)) {
+                v.push((s.approach.axis, s.approach.direction));
+            }
+        }
+        for ((b, c), v) in &sides {
+            let both = v.len() == 2 && v[0].0 == v[1].0 && v[0].1 == -v[1].1;
+            assert_eq!(both, *b == 0, "B{b} C{c}: {v:?}");
+        }
+        assert_eq!(sides.len(), 6);
     }
 
     #[test]

@@ -122,8 +122,10 @@ pub const EFFECTS: &[Effect] = &[
         signature: "the beam's place in the table frame: x, y (lateral readings) or z (z readings)",
         shapes: "each logged temperature and its 60/120/240-min lags; 24-h Fourier pair when no temperature explains it; a step at a time located by likelihood (the setter knocked or moved)",
         parameters: "um per K (or um per Fourier term, or um at the step)",
-        split_by: "probe at B = +90 and B = -90, or a second setter height",
-        splits: &[PlanFeature::BPlusMinus90],
+        // In simulation, B = +90 and -90 alone do not split it from the scales, squarenesses
+        // and location errors in its time shape (docs/physics.md 4.3); both sides do.
+        split_by: "touch the beam from both sides on the lateral approaches (as the patent_both_sides plan does), or a second setter height",
+        splits: &[PlanFeature::BothSides],
         max_um: 30.0,
         slow: false,
     },
@@ -171,10 +173,10 @@ pub const EFFECTS: &[Effect] = &[
         shapes: "each logged temperature and its 60/120/240-min lags; 24-h and 12-h Fourier pairs when the air is not logged",
         parameters: "um per K (or um per Fourier term)",
         // What tells a location error following the air from the setter or a scale following
-        // it; logging the air names the driver (a Fourier term's statement says so), it does
-        // not split the group.
-        split_by: "a bed-fixed reference artefact, or a second setter: a location error moves both, the setter only one",
-        splits: &[],
+        // it (both sides: in simulation, docs/physics.md 4.3); logging the air names the driver
+        // (a Fourier term's statement says so), it does not split the group.
+        split_by: "touch the beam from both sides on the lateral approaches (as the patent_both_sides plan does), a bed-fixed reference artefact, or a second setter",
+        splits: &[PlanFeature::BothSides],
         max_um: 50.0,
         slow: true,
     },
@@ -323,12 +325,10 @@ pub enum PlanFeature {
     TwoFeeds,
     /// Readings at two or more spindle speeds.
     TwoSpeeds,
-    /// The beam touched from both sides along some axis.
+    /// The beam touched from both sides along some axis at one pose.
     BothSides,
     /// Some pose reached from both senses of a rotary axis.
     BothSenses,
-    /// Readings at B = +90 and B = -90.
-    BPlusMinus90,
     /// Each measurement made twice in a cycle (time-symmetric cycles).
     TimeSymmetric,
 }
@@ -358,14 +358,20 @@ impl PlanFeature {
                 (n >= 2).then(|| format!("probes at {n} spindle speeds"))
             }
             PlanFeature::BothSides => {
-                let sides = |d: i8| {
-                    r.iter()
-                        .filter(|x| x.direction == d)
-                        .map(|x| x.axis.index())
-                        .collect::<std::collections::BTreeSet<_>>()
-                };
-                (!sides(1).is_disjoint(&sides(-1)))
-                    .then(|| "touches the beam from both sides".to_string())
+                // At one pose: opposite approaches at different C angles meet different sides
+                // of a beam that turns with C, but each pose then sees one side only.
+                let mut seen: BTreeMap<(i64, i64, usize), [bool; 2]> = BTreeMap::new();
+                for x in r {
+                    let pose = (
+                        x.b_deg.round() as i64,
+                        x.c_deg.round() as i64,
+                        x.axis.index(),
+                    );
+                    seen.entry(pose).or_default()[usize::from(x.direction > 0)] = true;
+                }
+                seen.values()
+                    .any(|s| s[0] && s[1])
+                    .then(|| "touches the beam from both sides at a pose".to_string())
             }
             PlanFeature::BothSenses => {
                 let mut seen: BTreeMap<(i64, i64, usize), [bool; 2]> = BTreeMap::new();
@@ -380,10 +386,6 @@ impl PlanFeature {
                 seen.values()
                     .any(|s| s[0] && s[1])
                     .then(|| "reaches a pose from both senses".to_string())
-            }
-            PlanFeature::BPlusMinus90 => {
-                let at = |b: f64| r.iter().any(|x| (x.b_deg - b).abs() < 1.0);
-                (at(90.0) && at(-90.0)).then(|| "probes at B = +90 and B = -90".to_string())
             }
             PlanFeature::TimeSymmetric => {
                 let mut per: BTreeMap<(i64, &str), usize> = BTreeMap::new();
@@ -1132,10 +1134,14 @@ mod tests {
             row(1, "a", 100.0, 0.0, -90.0, 1),
         ]);
         assert!(PlanFeature::TimeSymmetric.shown_by(&twice).is_some());
-        assert!(PlanFeature::BPlusMinus90.shown_by(&twice).is_some());
-        assert!(PlanFeature::BPlusMinus90.shown_by(&two).is_none());
         // An effect no plan feature splits keeps its advice.
-        let ambient = effect("ambient").unwrap();
-        assert_eq!(advice(ambient, &two), ambient.split_by);
+        let squareness = effect("squareness").unwrap();
+        assert_eq!(advice(squareness, &two), squareness.split_by);
+        // The setter and the hall's effects: both sides of the beam.
+        let setter = effect("setter_drift").unwrap();
+        assert_eq!(advice(setter, &one), setter.split_by);
+        assert!(
+            advice(setter, &two).contains("already touches the beam from both sides at a pose")
+        );
     }
 }
