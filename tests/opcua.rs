@@ -1,11 +1,11 @@
 //! The `opcua` link against a real OPC UA server: the Python `asyncua` package
 //! (`pip install asyncua`; CI installs it) running `tests/python/opcua_machine.py`, a simulated
-//! machine that implements the node contract from the README alone. driftwatch follows it,
-//! orders a cycle, reads the detections back, validates and serves the result and writes it to
-//! the server; the server is then killed and started again (with another spindle speed, so
-//! that updates after the restart are seen to arrive), and driftwatch reconnects with nothing
-//! lost: the stored result still served, the set written back to the new server, a second
-//! cycle completed.
+//! machine that implements the node contract from docs/integrate-nc.md ("The node contract")
+//! alone. driftwatch follows it, orders a cycle, reads the detections back, validates and
+//! serves the result and writes it to the server; the server is then killed and started again
+//! (with another spindle speed, so that updates after the restart are seen to arrive), and
+//! driftwatch reconnects with nothing lost: the stored result still served, the set written
+//! back to the new server, a second cycle completed.
 //!
 //! The service runs on a manual clock that the test keeps at the wall clock (the server stamps
 //! its values with the wall clock, as a real NC does); every wait polls with a deadline.

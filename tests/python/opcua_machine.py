@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """A simulated machine tool as an OPC UA server (the `asyncua` package), for the OPC UA link's
-test. It implements driftwatch's node contract (README, "The OPC UA link") from the documents
-alone, with no driftwatch code:
+test. It implements driftwatch's node contract (docs/integrate-nc.md, "The OPC UA link", "The
+node contract") from the documents alone, with no driftwatch code:
 
 - publishes the spindle speed (Double), the active program's state (LocalizedText, OPC 40501
   values Running / Ended) and two temperatures (Double), changing a little every second;

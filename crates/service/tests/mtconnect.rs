@@ -4,7 +4,8 @@
 //! Events; MTConnectError OUT_OF_RANGE for a `from` that left the buffer, as cppagent answers).
 //! The agent can restart with a new instanceId and overrun its small buffer while the link
 //! cannot reach it, to make a gap. No PyPI or Debian package of a real agent that follows the
-//! standard's sequence protocol could be installed (see the README).
+//! standard's sequence protocol could be installed (see docs/integrate-nc.md, "The MTConnect
+//! link").
 //!
 //! The network is real (loopback), so the test polls for a condition with a timeout; nothing
 //! waits a fixed time to pass.
