@@ -672,13 +672,13 @@ fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::therma
 /// The displacement diagnosis on every shipped real data set and on null recordings made
 /// from the first: the terms that worsen the held-out end, the false positives on `n_nulls`
 /// nulls, and the power on injected temperature effects; each under the acceptance rules
-/// before issue 14 and now.
+/// in force before and now.
 pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
     use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
     use driftwatch_diagnosis::displacement::{DisplacementOptions, diagnose_displacements};
     use driftwatch_diagnosis::surrogates::Null;
     let rules = [
-        ("before", DisplacementOptions::before_issue_14()),
+        ("before", DisplacementOptions::earlier_rules()),
         ("now", DisplacementOptions::default()),
     ];
     let sets = real_sets();

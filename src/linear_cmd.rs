@@ -1,5 +1,5 @@
 //! `driftwatch diagonal simulate|solve` and `driftwatch correction-table`: the linear axes
-//! (issue 19; seeds 004 and 003). The library (`driftwatch-linear`) computes; this reads and
+//! (seeds 004 and 003). The library (`driftwatch-linear`) computes; this reads and
 //! writes the files.
 
 use std::path::PathBuf;

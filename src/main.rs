@@ -360,7 +360,7 @@ enum BenchWhich {
     Thermal,
     /// The displacement diagnosis on the shipped real data and on null recordings made from
     /// it: terms that worsen the held-out end, false positives on --n nulls (40 unless given
-    /// below 20000), power on injected effects; before issue 14's acceptance rules and now.
+    /// below 20000), power on injected effects; under the earlier acceptance rules and now.
     Nulls,
     /// The located term's power on every data set under --data: a drift that follows one
     /// temperature after an onset injected into each run's real readings at 1.5, 3 and 6 um

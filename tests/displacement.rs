@@ -100,7 +100,7 @@ fn fl_thermal_diagnosis() {
             .iter()
             .all(|t| t.excursion_um >= 2.0 && t.baseline_excursion_um < 0.5)
     );
-    // (Before issue 14 a second spindle mode of opposite sign was accepted here; under the
+    // (Under the earlier rules a second spindle mode of opposite sign was accepted here; under the
     // surrogate bar the fast swing of t1_C is, and makes the overshoot as well.)
     let made: f64 = stops.iter().map(|t| t.final_excursion_um).sum::<f64>()
         / stops.iter().map(|t| t.excursion_um).sum::<f64>();
@@ -144,7 +144,7 @@ fn no_accepted_term_worsens_the_held_out_end() {
 
 /// Forty nulls made from fl-thermal, ten of each kind (the readings replaced by a random
 /// walk or slow AR noise; the temperatures phase-randomised or block-shuffled), the channels
-/// in turn: at most 5 % hold a false term. Figures, before issue 14's rules and now:
+/// in turn: at most 5 % hold a false term. Figures, under the earlier rules and now:
 /// `cargo run --release -- bench nulls`.
 #[test]
 fn forty_realistic_nulls_hold_at_most_two_false_terms() {

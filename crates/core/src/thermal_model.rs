@@ -2464,7 +2464,7 @@ mod tests {
     #[test]
     fn a_noisy_channel_without_thermal_gain_is_never_served_worse_than_no_change() {
         // EZ0B: a strong lag the model follows. EA0C: no thermal change at all, 2.5 urad of
-        // noise in every cycle (the failure of issue 12: gains about zero, the offset walk
+        // noise in every cycle (a failure seen before: gains about zero, the offset walk
         // chasing each noisy cycle).
         let chans = [
             Chan {

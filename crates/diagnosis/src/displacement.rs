@@ -70,7 +70,7 @@ pub struct DisplacementOptions {
     /// Smallest post-change excursion reported as an overshoot, um.
     pub min_overshoot_um: f64,
     /// Largest order of the AR noise model the acceptance whitens with; the order is chosen
-    /// by BIC on the residual up to it (1: AR(1), as before issue 14).
+    /// by BIC on the residual up to it (1: AR(1), as in the earlier rules).
     pub ar_max: usize,
     /// Where the AR noise model a candidate of the forward selection is scored with comes
     /// from ([`NoiseModel`]).
@@ -78,7 +78,7 @@ pub struct DisplacementOptions {
     /// The same for the located term.
     pub located_noise: NoiseModel,
     /// The folds a term must improve: rolling origins (fit on what came before, predict the
-    /// rest of the training span), or leave-one-block-out blocks (as before issue 14).
+    /// rest of the training span), or leave-one-block-out blocks (as in the earlier rules).
     pub rolling_origin: bool,
     /// Drop a final term that worsens the held-out end (then the held-out RMS is a
     /// validation figure the selection has seen, and is labelled so).
@@ -96,9 +96,9 @@ pub struct DisplacementOptions {
 }
 
 impl DisplacementOptions {
-    /// The acceptance rules before issue 14 (AR(1) whitening, leave-one-block-out blocks, no
+    /// The earlier acceptance rules (AR(1) whitening, leave-one-block-out blocks, no
     /// held-out veto): kept to measure what the change did.
-    pub fn before_issue_14() -> Self {
+    pub fn earlier_rules() -> Self {
         DisplacementOptions {
             ar_max: 1,
             noise: NoiseModel::WithoutCandidate,

@@ -1,4 +1,4 @@
-//! The linear axes (seed 004; issue 19): their component errors and the laser step diagonal
+//! The linear axes (seed 004): their component errors and the laser step diagonal
 //! measurement that finds straightness and squareness with a laser interferometer alone.
 //!
 //! Pure library code: no I/O, deterministic for a seed. [`axis_errors`] is the simulation's

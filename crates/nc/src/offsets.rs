@@ -1184,7 +1184,7 @@ mod tests {
     }
 
     /// table_bc on FANUC: the B line's move in the rotary table position, the C line's move
-    /// relative to B in the intersection offset (EX0C, EY0C: the README's C_pivot_x - B_pivot_x),
+    /// relative to B in the intersection offset (EX0C, EY0C: docs/integrate-nc.md's C_pivot_x - B_pivot_x),
     /// nominal + offset in increments, rounded to the nearest; the tilts not written.
     #[test]
     fn table_bc_on_fanuc_writes_nominal_plus_offset_in_increments() {

@@ -6,7 +6,7 @@
 //! `measuring` state after posting detections of the order (a failed approach it did not
 //! retry), or when the scheduler's timeout abandons it.
 //!
-//! Handshake (documented in the README):
+//! Handshake (documented in docs/integrate-nc.md):
 //! 1. `POST /api/v1/machines/{id}/nc/events` `{"events": [{"topic": "/spindle", "t_ns": ..,
 //!    "msg": {"rpm": ..}}, ...]}` at every change (and at least once a minute while turning).
 //!    A batch is taken whole or refused whole (400 naming the bad event), so a retry loses

@@ -10,7 +10,7 @@
 //! `measuring` after detections). All network I/O runs in a background task; the service loop's
 //! `poll` only takes what that task has queued, so a slow or dead server never holds it up.
 //!
-//! The node contract (README, "The OPC UA link"):
+//! The node contract (docs/integrate-nc.md, "The node contract"):
 //! - `cycle_request` (String, written by driftwatch): the order as JSON, the shape of nc_push's
 //!   `GET .../nc/request` answer (`cycle`, `plan`, `spindle_rpm`, `steps`), or `""` when
 //!   nothing is asked (written when the cycle closes or is aborted). The NC runs a cycle number
