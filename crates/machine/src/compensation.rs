@@ -90,7 +90,47 @@ pub struct ValidationLimits {
     pub max_rate_urad_per_min: f64,
 }
 
+/// The step limit between a served set and a later one: `base + rate x minutes`, the largest
+/// change of an error from the served value that many minutes after it (a machine that cooled
+/// overnight has legitimately moved more than one step). The one place the rule is written:
+/// validation, the ramp of served sets and the NC writer's check all use it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepLimit {
+    pub base: f64,
+    /// Per minute.
+    pub rate: f64,
+    pub minutes: f64,
+}
+
+impl StepLimit {
+    /// From a set valid from `from_ns` to one at `to_ns` (a time before `from_ns` counts as
+    /// no time).
+    pub fn new(base: f64, rate: f64, from_ns: i64, to_ns: i64) -> Self {
+        StepLimit {
+            base,
+            rate,
+            minutes: units::ns_to_min(to_ns - from_ns).max(0.0),
+        }
+    }
+
+    /// The limit itself.
+    pub fn max(&self) -> f64 {
+        self.base + self.rate * self.minutes
+    }
+}
+
 impl ValidationLimits {
+    /// The step limit of an orientation (`angular`) or position error from a set valid from
+    /// `from_ns` to one at `to_ns`.
+    pub fn step_limit(&self, angular: bool, from_ns: i64, to_ns: i64) -> StepLimit {
+        let (base, rate) = if angular {
+            (self.max_step_urad, self.max_rate_urad_per_min)
+        } else {
+            (self.max_step_um, self.max_rate_um_per_min)
+        };
+        StepLimit::new(base, rate, from_ns, to_ns)
+    }
+
     /// Every limit finite and in range: a NaN or negative limit would reject every cycle (or
     /// pass every one), so it is refused at start with its name.
     pub fn check(&self) -> Result<(), String> {
@@ -264,9 +304,9 @@ pub fn validate(
                     } else {
                         limit.max_rate_um_per_min
                     };
-                    let minutes = (units::ns_to_min(result.t_ns - prev.valid_from_ns)).max(0.0);
                     if let Some(base) = max_step {
-                        let max = base + rate * minutes;
+                        let grown = StepLimit::new(base, rate, prev.valid_from_ns, result.t_ns);
+                        let (max, minutes) = (grown.max(), grown.minutes);
                         if !within(step, max) {
                             reasons.push(format!(
                                 "{name} step {} {u} from the served value {} {u} to {} {u} over \
@@ -364,10 +404,12 @@ fn ramped(
     limits: &ValidationLimits,
     layout: &NcLayout,
 ) -> CompensationSet {
-    let minutes = (units::ns_to_min(to.valid_from_ns - from.valid_from_ns)).max(0.0);
-    let step_um = limits.max_step_um + limits.max_rate_um_per_min * minutes;
-    let step_urad = limits.max_step_urad + limits.max_rate_urad_per_min * minutes;
-    let errors = ramp(from, &to.errors, step_um, step_urad);
+    let step = |angular| {
+        limits
+            .step_limit(angular, from.valid_from_ns, to.valid_from_ns)
+            .max()
+    };
+    let errors = ramp(from, &to.errors, step(false), step(true));
     let held: Vec<String> = to
         .errors
         .iter()

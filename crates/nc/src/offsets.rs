@@ -351,16 +351,12 @@ fn check_step(
             previous: prev.version,
         });
     }
-    let minutes = units::ns_to_min(set.valid_from_ns - prev.valid_from_ns).max(0.0);
     let mut steps = Vec::new();
     for (n, v) in &set.errors {
         let from = prev.errors.get(n).copied().unwrap_or(0.0);
-        let (base, rate) = if n.is_angular() {
-            (limits.max_step_urad, limits.max_rate_urad_per_min)
-        } else {
-            (limits.max_step_um, limits.max_rate_um_per_min)
-        };
-        let max = base + rate * minutes;
+        let max = limits
+            .step_limit(n.is_angular(), prev.valid_from_ns, set.valid_from_ns)
+            .max();
         let step = v - from;
         // 1e-9: the ramp's own rounding; a NaN limit refuses.
         if !within(step.abs(), max + 1e-9) {
