@@ -19,7 +19,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::families::{Family, Grid, forward_select, least_squares, rms, sign_test_wins};
+use crate::families::{Family, Grid, forward_select, rms, sign_test_wins};
+use crate::least_squares::least_squares;
 
 /// The families that compete across runs (the grey box's filter needs one timeline).
 pub const FAMILIES: [Family; 4] = [

@@ -14,6 +14,7 @@ pub mod families;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;
+pub mod least_squares;
 pub mod linear_axes;
 pub mod measurement;
 pub mod patent_relations;

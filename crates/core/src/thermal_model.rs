@@ -650,7 +650,7 @@ fn fit_change_regression(cfg: &ModelConfig, obs: &[Obs]) -> Option<ChangeRegress
         .filter(|&c| x[c].iter().any(|v| v.abs() > 1e-9))
         .collect();
     let design = DMatrix::from_fn(y.len(), keep.len(), |i, k| x[keep[k]][i]);
-    let gains = crate::families::least_squares(&design, &DVector::from_vec(y))?;
+    let gains = crate::least_squares::least_squares(&design, &DVector::from_vec(y))?;
     Some(ChangeRegression {
         columns: keep.iter().map(|&c| cols[c]).collect(),
         gains: gains.iter().copied().collect(),
