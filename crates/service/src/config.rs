@@ -153,10 +153,10 @@ pub enum LinkConfig {
     /// A real NC (or its gateway) posting events and polling for cycle orders over HTTP.
     NcPush {
         /// How far ahead of the service clock an event may be stamped, s.
-        #[serde(default = "default_max_ahead_s")]
+        #[serde(default = "crate::nc_push::default_max_ahead_s")]
         max_ahead_s: f64,
         /// How far behind it (a gateway's buffer after an outage), s.
-        #[serde(default = "default_max_behind_s")]
+        #[serde(default = "crate::nc_push::default_max_behind_s")]
         max_behind_s: f64,
     },
     /// An MTConnect agent's `current` and `sample` streams, followed over HTTP. It observes
@@ -175,9 +175,9 @@ pub enum LinkConfig {
         /// Observations asked for per `sample` request.
         #[serde(default = "default_count")]
         count: u32,
-        #[serde(default = "default_max_ahead_s")]
+        #[serde(default = "crate::nc_push::default_max_ahead_s")]
         max_ahead_s: f64,
-        #[serde(default = "default_max_behind_s")]
+        #[serde(default = "crate::nc_push::default_max_behind_s")]
         max_behind_s: f64,
     },
     /// A real NC (or its PLC or gateway) as an OPC UA server (`crate::opcua`).
@@ -190,14 +190,6 @@ fn default_poll_ms() -> u64 {
 
 fn default_count() -> u32 {
     1000
-}
-
-pub(crate) fn default_max_ahead_s() -> f64 {
-    60.0
-}
-
-pub(crate) fn default_max_behind_s() -> f64 {
-    86_400.0
 }
 
 impl LinkConfig {

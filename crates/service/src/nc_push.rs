@@ -98,6 +98,16 @@ impl Default for ClockTolerance {
     }
 }
 
+/// The default of every link's `max_ahead_s`, s: [`ClockTolerance::default`]'s.
+pub(crate) fn default_max_ahead_s() -> f64 {
+    ClockTolerance::default().ahead_ns as f64 / 1e9
+}
+
+/// The default of every link's `max_behind_s`, s: [`ClockTolerance::default`]'s.
+pub(crate) fn default_max_behind_s() -> f64 {
+    ClockTolerance::default().behind_ns as f64 / 1e9
+}
+
 /// One event as the NC posts it: a contract topic, its time, its message.
 #[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]

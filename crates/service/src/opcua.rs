@@ -204,9 +204,9 @@ pub struct OpcuaConfig {
     #[serde(default = "default_reconnect_max_s")]
     pub reconnect_max_s: f64,
     /// As for `nc_push`: how far ahead of / behind the service clock a value may be stamped, s.
-    #[serde(default = "crate::config::default_max_ahead_s")]
+    #[serde(default = "crate::nc_push::default_max_ahead_s")]
     pub max_ahead_s: f64,
-    #[serde(default = "crate::config::default_max_behind_s")]
+    #[serde(default = "crate::nc_push::default_max_behind_s")]
     pub max_behind_s: f64,
 }
 
