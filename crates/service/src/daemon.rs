@@ -13,11 +13,16 @@
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tokio_util::sync::CancellationToken;
 
 use thiserror::Error;
 use tracing::{error, info, warn};
 
+use crate::clock::ServiceClock;
 use crate::link::{LinkEvent, MachineLink};
+use crate::nc_push::NcPushHandle;
 use crate::recorder::{ClosedFile, Recorder, RecorderError};
 use crate::store::{AlertEventKind, DetectionRow, FileStatus, NewAlertEvent, Store, StoreError};
 use driftwatch_core::cycle::CycleChecks;
@@ -25,6 +30,7 @@ use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 use driftwatch_core::recording as rec;
 use driftwatch_core::thermal_model::Event;
+use driftwatch_core::units::{NS_PER_MIN, NS_PER_S};
 use driftwatch_machine::compensation::{self, CompensationSet};
 use driftwatch_machine::machine_core::{
     CoreError, Effect, Input, Level, MachineCore, Record, Restored,
@@ -44,6 +50,30 @@ pub enum DaemonError {
     Core { machine: String, source: CoreError },
 }
 
+/// Who runs a machine, as the API shows it.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, utoipa::ToSchema)]
+pub struct FleetView {
+    /// The process holding the machine's lease (none: nobody runs it now).
+    pub holder: Option<String>,
+    /// Where the holder's API answers, if it said.
+    pub url: Option<String>,
+    pub term: Option<i64>,
+    /// Whether this process runs it.
+    pub here: bool,
+}
+
+/// What the API and the fleet hold of a running machine: its view, its inbox, its NC door
+/// (`nc_push` links) and its kinematics.
+#[derive(Clone)]
+pub struct MachineHandle {
+    pub view: Arc<Mutex<MachineView>>,
+    pub inbox: Arc<Mutex<Inbox>>,
+    /// Set for machines on the `nc_push` link.
+    pub nc: Option<NcPushHandle>,
+    /// The machine's kinematics, for diagnoses of its stored data.
+    pub kinematics: Option<Arc<driftwatch_core::kinematics::Kinematics>>,
+}
+
 /// What the API may see of a machine, shared with the loop: one part per aggregate.
 #[derive(Debug, Clone, Default)]
 pub struct MachineView {
@@ -61,7 +91,7 @@ pub struct MachineView {
     pub thermal: ThermalView,
     pub health: LoopHealth,
     /// In a fleet: who runs the machine (absent: this process runs every machine alone).
-    pub fleet: Option<crate::fleet::FleetView>,
+    pub fleet: Option<FleetView>,
 }
 
 /// The machine loop's own health.
@@ -832,4 +862,76 @@ fn input_of(ev: LinkEvent) -> Option<Input> {
         LinkEvent::CycleDone { cycle, t_ns } => Input::CycleDone { cycle, t_ns },
         LinkEvent::Truth(_) | LinkEvent::ClockSkew { .. } => return None,
     })
+}
+
+/// The loops look at their inboxes (operator requests, acknowledgements) at least this often.
+const INBOX_WALL: Duration = Duration::from_millis(200);
+/// A failing loop waits this much machine time before it tries again, doubling up to
+/// [`MAX_RETRY_NS`].
+const FIRST_RETRY_NS: i64 = NS_PER_S;
+const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
+
+/// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
+/// recorder that cannot write) is logged, counted in its view (and so in `/metrics`) and
+/// tried again with a doubling wait, and never stops the other machines or the API.
+pub(crate) async fn run_machine(
+    mut rt: MachineRuntime,
+    clock: ServiceClock,
+    start_ns: i64,
+    end: Option<i64>,
+    shutdown: CancellationToken,
+) {
+    let mut retry_ns = FIRST_RETRY_NS;
+    let mut last = i64::MIN;
+    // The first step is at the clock's start, however far the clock has gone since.
+    let mut wake = start_ns;
+    loop {
+        let target = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+        // Step at each time the loop asked to be called, up to the clock: a clock that jumped
+        // ahead (a manual clock, a machine that slept) is caught up with as if it had run,
+        // not in one stride that would start every due cycle late.
+        let now = target.min(wake.max(last.saturating_add(1)));
+        last = now;
+        let stepped = rt.step(now).await;
+        if let Ok(mut v) = rt.view.lock() {
+            v.health.attempt_ns = Some(now);
+        }
+        wake = match stepped {
+            Ok(wake) => {
+                retry_ns = FIRST_RETRY_NS;
+                if let Ok(mut v) = rt.view.lock() {
+                    v.health.clock_ns = Some(now);
+                    v.health.failing = false;
+                }
+                wake
+            }
+            Err(e) => {
+                error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
+                if let Ok(mut v) = rt.view.lock() {
+                    v.health.faults += 1;
+                    v.health.failing = true;
+                    v.health.last_fault = Some((now, e.to_string()));
+                }
+                let at = now.saturating_add(retry_ns);
+                retry_ns = (retry_ns * 2).min(MAX_RETRY_NS);
+                at
+            }
+        };
+        if end.is_some_and(|e| now >= e) || shutdown.is_cancelled() {
+            break;
+        }
+        if now < target {
+            continue;
+        }
+        tokio::select! {
+            _ = clock.sleep_until(wake, INBOX_WALL) => {}
+            _ = shutdown.cancelled() => {}
+        }
+    }
+    let now = end
+        .map_or(clock.now_ns(), |e| clock.now_ns().min(e))
+        .max(last);
+    if let Err(e) = rt.shutdown(now).await {
+        error!(machine = %rt.id, error = %e, "the machine loop could not close its recordings cleanly");
+    }
 }

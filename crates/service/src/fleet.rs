@@ -24,27 +24,14 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
-use crate::api::MachineHandle;
 use crate::clock::ServiceClock;
-use crate::daemon::{MachineRuntime, NcBody, Settings};
+use crate::daemon::{FleetView, MachineHandle, MachineRuntime, NcBody, Settings, run_machine};
 use crate::link::{LinkError, LinkEvent, MachineLink};
 use crate::recorder::Recorder;
 use crate::store::{Lease, LeaseRow, Store, StoreError};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 use driftwatch_core::recording::MachineInfo;
-
-/// Who runs a machine, as the API shows it.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, utoipa::ToSchema)]
-pub struct FleetView {
-    /// The process holding the machine's lease (none: nobody runs it now).
-    pub holder: Option<String>,
-    /// Where the holder's API answers, if it said.
-    pub url: Option<String>,
-    pub term: Option<i64>,
-    /// Whether this process runs it.
-    pub here: bool,
-}
 
 /// A machine's link shared between the loops that run it one after another in this process
 /// (a lease lost and taken again): the loop borrows it, the slot keeps it.
@@ -266,13 +253,8 @@ impl Fleet {
             Ok(rt) => {
                 info!(machine = %id, term = lease.term, process = %self.process, "fleet: running the machine");
                 let stop = shutdown.child_token();
-                let task = tokio::spawn(crate::launch::run_machine(
-                    rt,
-                    self.clock.clone(),
-                    now,
-                    None,
-                    stop.clone(),
-                ));
+                let task =
+                    tokio::spawn(run_machine(rt, self.clock.clone(), now, None, stop.clone()));
                 self.slots[i].running = Some(Running {
                     lease,
                     stop,

@@ -22,10 +22,12 @@ use driftwatch_core::thermal_model::ThermalModel;
 use driftwatch_core::units::{NS_PER_MIN, NS_PER_S, min_to_ns};
 use driftwatch_sim::scenario::Scenario;
 
-use crate::api::{ApiState, Auth, MachineHandle, router};
+use crate::api::{ApiState, Auth, router};
 use crate::clock::{ManualClock, ServiceClock};
 use crate::config::{LinkConfig, ServiceConfig};
-use crate::daemon::{DaemonError, MachineRuntime, MachineView, Settings};
+use crate::daemon::{
+    DaemonError, MachineHandle, MachineRuntime, MachineView, Settings, run_machine,
+};
 use crate::link::{MachineLink, Simulated};
 use crate::mtconnect_link::{MtconnectLink, MtconnectSettings};
 use crate::nc_push::nc_push;
@@ -586,78 +588,6 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
         })
         .collect();
     Ok((linked, t0))
-}
-
-/// The loops look at their inboxes (operator requests, acknowledgements) at least this often.
-const INBOX_WALL: Duration = Duration::from_millis(200);
-/// A failing loop waits this much machine time before it tries again, doubling up to
-/// [`MAX_RETRY_NS`].
-const FIRST_RETRY_NS: i64 = NS_PER_S;
-const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
-
-/// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
-/// recorder that cannot write) is logged, counted in its view (and so in `/metrics`) and
-/// tried again with a doubling wait, and never stops the other machines or the API.
-pub(crate) async fn run_machine(
-    mut rt: MachineRuntime,
-    clock: ServiceClock,
-    start_ns: i64,
-    end: Option<i64>,
-    shutdown: CancellationToken,
-) {
-    let mut retry_ns = FIRST_RETRY_NS;
-    let mut last = i64::MIN;
-    // The first step is at the clock's start, however far the clock has gone since.
-    let mut wake = start_ns;
-    loop {
-        let target = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
-        // Step at each time the loop asked to be called, up to the clock: a clock that jumped
-        // ahead (a manual clock, a machine that slept) is caught up with as if it had run,
-        // not in one stride that would start every due cycle late.
-        let now = target.min(wake.max(last.saturating_add(1)));
-        last = now;
-        let stepped = rt.step(now).await;
-        if let Ok(mut v) = rt.view.lock() {
-            v.health.attempt_ns = Some(now);
-        }
-        wake = match stepped {
-            Ok(wake) => {
-                retry_ns = FIRST_RETRY_NS;
-                if let Ok(mut v) = rt.view.lock() {
-                    v.health.clock_ns = Some(now);
-                    v.health.failing = false;
-                }
-                wake
-            }
-            Err(e) => {
-                error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
-                if let Ok(mut v) = rt.view.lock() {
-                    v.health.faults += 1;
-                    v.health.failing = true;
-                    v.health.last_fault = Some((now, e.to_string()));
-                }
-                let at = now.saturating_add(retry_ns);
-                retry_ns = (retry_ns * 2).min(MAX_RETRY_NS);
-                at
-            }
-        };
-        if end.is_some_and(|e| now >= e) || shutdown.is_cancelled() {
-            break;
-        }
-        if now < target {
-            continue;
-        }
-        tokio::select! {
-            _ = clock.sleep_until(wake, INBOX_WALL) => {}
-            _ = shutdown.cancelled() => {}
-        }
-    }
-    let now = end
-        .map_or(clock.now_ns(), |e| clock.now_ns().min(e))
-        .max(last);
-    if let Err(e) = rt.shutdown(now).await {
-        error!(machine = %rt.id, error = %e, "the machine loop could not close its recordings cleanly");
-    }
 }
 
 impl Service {

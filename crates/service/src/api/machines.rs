@@ -85,7 +85,7 @@ pub struct MachineSummary {
     /// In a fleet of processes: who runs the machine (absent: this process runs every
     /// machine alone). A machine run by another process is shown from the database: its
     /// served set and cycles, not its phase, alerts or predictions.
-    pub fleet: Option<crate::fleet::FleetView>,
+    pub fleet: Option<crate::daemon::FleetView>,
 }
 
 /// Detections an open cycle has received of those its plan expects.

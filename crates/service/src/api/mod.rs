@@ -24,7 +24,7 @@ pub use error::{ApiError, ErrorBody, ErrorCode};
 pub use metrics::Metrics;
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use axum::Json;
 use axum::Router;
@@ -35,20 +35,11 @@ use axum::routing::{MethodRouter, get};
 use serde::Deserialize;
 
 use crate::config::Role;
-use crate::daemon::{Inbox, MachineView};
-use crate::nc_push::{EventBatch, NcPushHandle};
+pub use crate::daemon::MachineHandle;
+use crate::daemon::MachineView;
+use crate::nc_push::EventBatch;
 use crate::store::Store;
 use crate::webhook::WebhookStats;
-
-#[derive(Clone)]
-pub struct MachineHandle {
-    pub view: Arc<Mutex<MachineView>>,
-    pub inbox: Arc<Mutex<Inbox>>,
-    /// Set for machines on the `nc_push` link.
-    pub nc: Option<NcPushHandle>,
-    /// The machine's kinematics, for diagnoses of its stored data.
-    pub kinematics: Option<Arc<driftwatch_core::kinematics::Kinematics>>,
-}
 
 pub struct Auth {
     /// (holder, token, role)
