@@ -1411,6 +1411,31 @@ fn power_cases() -> Vec<PowerCase> {
     ]
 }
 
+/// The power case of `effect`.
+fn power_case(effect: &str) -> PowerCase {
+    power_cases()
+        .into_iter()
+        .find(|c| c.effect == effect)
+        .unwrap_or_else(|| panic!("no power case for {effect}"))
+}
+
+/// The detection threshold the diagnosis states for `term` on the clean recording `scn`.
+fn stated_threshold(scn: &Scenario, term: &str) -> f64 {
+    diagnose_inputs(scn, &record(scn, false))
+        .thresholds
+        .iter()
+        .find(|t| t.term == term)
+        .unwrap_or_else(|| panic!("no threshold for {term}"))
+        .amplitude
+}
+
+/// [`stated_threshold`] of a case's term on a clean recording of its plan (seed 5000).
+fn case_threshold(case: &PowerCase) -> f64 {
+    let mut scn = three_days(5000);
+    (case.setup)(&mut scn);
+    stated_threshold(&scn, case.term)
+}
+
 /// What one injected recording gave: the effect accepted (named or in a group), accepted and
 /// named, the number of accepted terms unrelated to it, and of terms named as another effect
 /// (a confident wrong label).
@@ -1450,12 +1475,7 @@ fn power_curve_at_half_one_and_two_thresholds() {
             let mut scn = three_days(5000);
             (c.setup)(&mut scn);
             on_plan(&mut scn);
-            let d = diagnose_inputs(&scn, &record(&scn, false));
-            d.thresholds
-                .iter()
-                .find(|t| t.term == c.term)
-                .unwrap_or_else(|| panic!("{}: no threshold for {}", c.effect, c.term))
-                .amplitude
+            stated_threshold(&scn, c.term)
         })
         .collect();
     let jobs: Vec<(usize, usize, u64)> = (0..cases.len())
@@ -1623,15 +1643,10 @@ fn two_effects_at_once_are_both_found_and_nothing_else() {
                 scn
             };
             let clean = plan(6000 + p as u64 + 10 * s);
-            let d = diagnose_inputs(&clean, &record(&clean, false));
-            let threshold = |c: &PowerCase| {
-                d.thresholds
-                    .iter()
-                    .find(|t| t.term == c.term)
-                    .map(|t| t.amplitude)
-                    .unwrap_or_else(|| panic!("no threshold for {}", c.term))
-            };
-            let (ta, tb) = (threshold(ca), threshold(cb));
+            let (ta, tb) = (
+                stated_threshold(&clean, ca.term),
+                stated_threshold(&clean, cb.term),
+            );
             let mut scn = plan(6100 + p as u64 + 10 * s);
             (ca.inject)(&mut scn, 2.0 * ta);
             (cb.inject)(&mut scn, 2.0 * tb);
@@ -1669,20 +1684,8 @@ fn two_effects_at_once_are_both_found_and_nothing_else() {
 /// same seeds: not named below it, named above it.
 #[test]
 fn a_term_not_named_is_named_at_the_amplitude_it_states() {
-    let cases = power_cases();
-    let case = cases
-        .iter()
-        .find(|c| c.effect == "rotary_backlash")
-        .expect("the backlash case");
-    let mut scn = three_days(5000);
-    (case.setup)(&mut scn);
-    let d = diagnose_inputs(&scn, &record(&scn, false));
-    let threshold = d
-        .thresholds
-        .iter()
-        .find(|t| t.term == case.term)
-        .expect("its threshold")
-        .amplitude;
+    let case = &power_case("rotary_backlash");
+    let threshold = case_threshold(case);
     let named_at = |seed: u64, amplitude: f64| {
         let mut scn = three_days(seed);
         (case.setup)(&mut scn);
@@ -1717,20 +1720,8 @@ fn a_term_not_named_is_named_at_the_amplitude_it_states() {
 /// nothing is named as an effect that was not injected.
 #[test]
 fn a_squareness_following_the_hall_is_not_named_as_a_location_error() {
-    let cases = power_cases();
-    let case = cases
-        .iter()
-        .find(|c| c.effect == "squareness")
-        .expect("the squareness case");
-    let mut scn = three_days(5000);
-    (case.setup)(&mut scn);
-    let d = diagnose_inputs(&scn, &record(&scn, false));
-    let threshold = d
-        .thresholds
-        .iter()
-        .find(|t| t.term == case.term)
-        .expect("its threshold")
-        .amplitude;
+    let case = &power_case("squareness");
+    let threshold = case_threshold(case);
     let mut scn = three_days(5101);
     (case.setup)(&mut scn);
     (case.inject)(&mut scn, 5.0 * threshold);
@@ -1761,23 +1752,11 @@ fn a_squareness_following_the_hall_is_not_named_as_a_location_error() {
 #[test]
 fn an_effect_no_amplitude_names_is_named_on_the_plan_its_advice_asks_for() {
     use driftwatch_diagnosis::effects::{PlanFeature, effect};
-    let cases = power_cases();
     for name in ["setter_drift", "ambient"] {
-        let case = cases
-            .iter()
-            .find(|c| c.effect == name)
-            .expect("the power case");
+        let case = &power_case(name);
         let e = effect(name).expect("in the catalogue");
         assert!(e.splits.contains(&PlanFeature::BothSides), "{name}");
-        let mut clean = three_days(5000);
-        (case.setup)(&mut clean);
-        let d = diagnose_inputs(&clean, &record(&clean, false));
-        let threshold = d
-            .thresholds
-            .iter()
-            .find(|t| t.term == case.term)
-            .expect("its threshold")
-            .amplitude;
+        let threshold = case_threshold(case);
         for seed in 5100..5102 {
             let mut scn = three_days(seed);
             (case.setup)(&mut scn);
