@@ -13,11 +13,11 @@ use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_core::recording::{self as rec, Timed};
+use driftwatch_lab::bench;
 use driftwatch_sim::experiment;
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::simulate;
 
-mod bench;
 mod diagnose_cmd;
 mod linear_cmd;
 mod model_cmd;
@@ -26,7 +26,6 @@ mod nc_program_cmd;
 mod plan_design_cmd;
 mod rtest_cmd;
 mod serve;
-mod thermal_sets;
 
 /// Print to stdout; a closed pipe (`driftwatch solve ... | head`) ends the command quietly.
 macro_rules! out {
@@ -652,7 +651,7 @@ fn cmd_simulate(
     // A scenario that lists no cycles gets the service's schedule: warm-up and after
     // spindle stops, never while cutting.
     if scn.cycle_times_min().is_empty() {
-        scn.cycles.at_min = driftwatch_sim::strategies::scheduled_cycles(
+        scn.cycles.at_min = driftwatch_lab::strategies::scheduled_cycles(
             &scn,
             &plan,
             &driftwatch_machine::scheduler::SchedulePolicy::default(),

@@ -10,7 +10,7 @@ use clap::ValueEnum;
 
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_nc::check::against_truth;
+use driftwatch_lab::nc_check::against_truth;
 use driftwatch_nc::dialect::Dialect;
 use driftwatch_nc::program::{ProgramOptions, write};
 use driftwatch_sim::scenario::Scenario;

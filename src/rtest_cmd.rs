@@ -221,7 +221,7 @@ pub fn cmd_rtest(cmd: RtestCmd) -> Result<()> {
 
 fn cmd_crosscheck(a: CrosscheckArgs) -> Result<()> {
     use driftwatch_core::plan::{Plan, PlanConfig};
-    use driftwatch_rtest::crosscheck::{CrossOptions, run};
+    use driftwatch_lab::rtest_crosscheck::{CrossOptions, run};
     let scn = driftwatch_sim::scenario::Scenario::load(&a.scenario)
         .with_context(|| format!("scenario '{}'", a.scenario))?;
     let k = Kinematics::load(&scn.machine).with_context(|| format!("machine '{}'", scn.machine))?;

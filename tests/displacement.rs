@@ -4,11 +4,11 @@
 //! `cargo test --release --test displacement -- --nocapture`.
 
 use driftwatch_core::thermal_model::{Event, ModelInput};
-use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
 use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
-use driftwatch_diagnosis::surrogates::Null;
+use driftwatch_lab::calibration::{null_trial, power_trial, worsening_terms};
+use driftwatch_lab::null_recordings::Null;
 
 const H: i64 = 3_600_000_000_000;
 

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use common::child::Serve;
-use driftwatch_service::scratch_pg::ScratchPg;
+use driftwatch_scratch_pg::ScratchPg;
 use driftwatch_service::store::Store;
 
 const MACHINES: [&str; 3] = ["f1", "f2", "f3"];

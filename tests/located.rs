@@ -7,11 +7,11 @@
 //! onsets, sensors and channels: `cargo test --test located -- --ignored --nocapture`.
 
 use driftwatch_core::thermal_model::Event;
-use driftwatch_diagnosis::calibration::{LocatedOutcome, located_power, worsening_terms};
 use driftwatch_diagnosis::displacement::{
     ChannelDiagnosis, DisplacementOptions, NotConfirmed, diagnose_displacements,
 };
-use driftwatch_diagnosis::surrogates::with_temperature_effect;
+use driftwatch_lab::calibration::{LocatedOutcome, located_power, worsening_terms};
+use driftwatch_lab::null_recordings::with_temperature_effect;
 
 const H: i64 = 3_600_000_000_000;
 

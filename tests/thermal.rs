@@ -206,7 +206,7 @@ fn within_the_fit_the_last_measured_value_is_the_last_reading_so_far() {
 
 #[test]
 fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
-    use driftwatch_sim::strategies::{BENCH_SCENARIOS, bench_scenario};
+    use driftwatch_lab::strategies::{BENCH_SCENARIOS, bench_scenario};
     for (name, _) in BENCH_SCENARIOS {
         let sc = bench_scenario(name, &Default::default(), true).unwrap();
         let c = &sc.adaptive;
@@ -332,7 +332,7 @@ fn on_fl_thermal_least_squares_serves_where_no_challenger_wins_beyond_chance() {
 fn on_a_simulated_two_shift_run_the_grey_box_wins_beyond_chance_and_reaches_the_noise() {
     use driftwatch_core::families::{Family, compete, grey_box_config, grid};
     let sigma = 0.5;
-    let ev = driftwatch_sim::strategies::sensor_view("two_shift", 3, sigma).unwrap();
+    let ev = driftwatch_lab::strategies::sensor_view("two_shift", 3, sigma).unwrap();
     let t0 = ev[0].t_ns();
     assert!(
         ev.iter()

@@ -36,7 +36,7 @@ pub fn scratch(name: &str) -> PathBuf {
 /// file): the tests that take their store from here then run against PostgreSQL instead of
 /// SQLite (`.ci/run` runs them both ways).
 pub fn test_database_url(dir: &std::path::Path) -> Option<String> {
-    use driftwatch_service::scratch_pg::ScratchPg;
+    use driftwatch_scratch_pg::ScratchPg;
     static SERVER: std::sync::OnceLock<ScratchPg> = std::sync::OnceLock::new();
     static BY_DIR: std::sync::Mutex<Vec<(PathBuf, String)>> = std::sync::Mutex::new(Vec::new());
     match std::env::var("DRIFTWATCH_TEST_BACKEND").as_deref() {

@@ -5,7 +5,6 @@
 //! (`facing`: a correction table as a program). No I/O: text in, text out.
 
 mod blocks;
-pub mod check;
 pub mod dialect;
 pub mod facing;
 pub mod offsets;

@@ -9,7 +9,6 @@
 //! [`report`] (SVG plots and an HTML page as strings), [`recording`] (runs as the
 //! `/rtest/setup` and `/rtest/reading` messages and back, and device CSV exports).
 
-pub mod crosscheck;
 pub mod identify;
 pub mod instrument;
 pub mod kinematic_test;

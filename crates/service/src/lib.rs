@@ -17,6 +17,5 @@ pub mod mtconnect_link;
 pub mod nc_push;
 pub mod opcua;
 pub mod recorder;
-pub mod scratch_pg;
 pub mod store;
 pub mod webhook;

@@ -259,7 +259,7 @@ mod tests {
                 $(
                     #[tokio::test]
                     async fn $name() {
-                        let $db: &str = &crate::scratch_pg::test_database().await;
+                        let $db: &str = &driftwatch_scratch_pg::test_database().await;
                         $body
                     }
                 )*
@@ -299,7 +299,7 @@ mod tests {
     /// naming the first; once the first lets go, the second takes it.
     #[tokio::test]
     async fn a_machine_on_postgres_is_held_by_one_process_outside_a_fleet() {
-        let db = crate::scratch_pg::test_database().await;
+        let db = driftwatch_scratch_pg::test_database().await;
         let store = Store::connect(&db).await.unwrap();
         let ids = ["m1".to_string(), "m2".to_string()];
         let first = store

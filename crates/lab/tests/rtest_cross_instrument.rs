@@ -8,7 +8,7 @@
 
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_rtest::crosscheck::{CrossOptions, run};
+use driftwatch_lab::rtest_crosscheck::{CrossOptions, run};
 use driftwatch_sim::scenario::Scenario;
 
 #[test]
@@ -62,7 +62,7 @@ fn tool_setter_and_r_test_agree_on_the_patent_scenario() {
     // Without moving the setter to the R-test's time the comparison fails (drift in minutes).
     assert!(c.rms_z_without_transfer > 2.0 * c.rms_z);
     // Each against the truth at the R-test's time: the R-test and the setter moved there.
-    let z = |f: &dyn Fn(&driftwatch_rtest::crosscheck::Compared) -> f64| {
+    let z = |f: &dyn Fn(&driftwatch_lab::rtest_crosscheck::Compared) -> f64| {
         c.sessions
             .iter()
             .flat_map(|s| s.errors.values())

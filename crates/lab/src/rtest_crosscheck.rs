@@ -37,10 +37,10 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Serialize;
 
-use crate::identify::{Options, identify};
-use crate::instrument::{Imperfections, Instrument, Setting, calibrate};
-use crate::kinematic_test::{Setup, TestKind, TestSpec, simulate};
-use crate::process::process;
+use driftwatch_rtest::identify::{Options, identify};
+use driftwatch_rtest::instrument::{Imperfections, Instrument, Setting, calibrate};
+use driftwatch_rtest::kinematic_test::{Setup, TestKind, TestSpec, simulate};
+use driftwatch_rtest::process::process;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct CrossOptions {
@@ -261,14 +261,14 @@ fn rows_at(model: &ThermalModel, spindle: &[Event], times: &[i64]) -> Vec<nalgeb
 struct Raw {
     t_min: f64,
     setters: [SetterResult; 2],
-    rtest: crate::identify::Identification,
+    rtest: driftwatch_rtest::identify::Identification,
     truth: BTreeMap<String, f64>,
 }
 
 /// The R-test device of the day and how it sits: drawn, calibrated, the ball's offset.
 struct Device {
     inst: Instrument,
-    cal: crate::instrument::Calibration,
+    cal: driftwatch_rtest::instrument::Calibration,
     setup: Setup,
     specs: Vec<TestSpec>,
 }
@@ -316,7 +316,13 @@ impl Drive<'_> {
         dev: &Device,
         opts: &CrossOptions,
         rng: &mut ChaCha8Rng,
-    ) -> Result<(crate::identify::Identification, BTreeMap<String, f64>), String> {
+    ) -> Result<
+        (
+            driftwatch_rtest::identify::Identification,
+            BTreeMap<String, f64>,
+        ),
+        String,
+    > {
         let before = self.vm.clone();
         let mut processed = Vec::new();
         for spec in &dev.specs {

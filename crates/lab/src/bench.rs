@@ -307,7 +307,7 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 /// the service's model rebuilt from an earlier simulated day of the same machine, and the
 /// service's schedule against a fixed cadence with as many cycles.
 pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode> {
-    use driftwatch_sim::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
+    use crate::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
     let mut policy = driftwatch_machine::scheduler::SchedulePolicy::default();
     let own_schedule = after_stop.is_none();
     if let Some(a) = after_stop {
@@ -333,11 +333,11 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
     }
     println!(
         "residual against the truth, every minute; tool tip at ({}, {}, {}) mm on the table at B {} C {} deg",
-        driftwatch_sim::strategies::REFERENCE_POINT_MM[0],
-        driftwatch_sim::strategies::REFERENCE_POINT_MM[1],
-        driftwatch_sim::strategies::REFERENCE_POINT_MM[2],
-        driftwatch_sim::strategies::REFERENCE_POSE_DEG[0],
-        driftwatch_sim::strategies::REFERENCE_POSE_DEG[1]
+        crate::strategies::REFERENCE_POINT_MM[0],
+        crate::strategies::REFERENCE_POINT_MM[1],
+        crate::strategies::REFERENCE_POINT_MM[2],
+        crate::strategies::REFERENCE_POSE_DEG[0],
+        crate::strategies::REFERENCE_POSE_DEG[1]
     );
     for (name, start, sc) in &all {
         print_scenario(name, start, sc);
@@ -347,7 +347,7 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
 
 /// One scenario of `bench compensation`: each channel's residual by strategy, the tool tip,
 /// and the service's schedule against a fixed cadence.
-fn print_scenario(name: &str, start: &str, sc: &driftwatch_sim::strategies::ScheduleComparison) {
+fn print_scenario(name: &str, start: &str, sc: &crate::strategies::ScheduleComparison) {
     let c = &sc.adaptive;
     println!(
         "\n{name}: {} min, {} cycles ({} ok); model from {start}",
@@ -365,7 +365,7 @@ fn print_scenario(name: &str, start: &str, sc: &driftwatch_sim::strategies::Sche
     );
     let names: Vec<&String> = c.none.errors.keys().collect();
     for n in names {
-        let f = |r: &driftwatch_sim::strategies::StrategyResult| {
+        let f = |r: &crate::strategies::StrategyResult| {
             let s = r.errors[n];
             format!("{:>8.2} / {:>8.2}", s.rms, s.max)
         };
@@ -405,7 +405,7 @@ fn print_scenario(name: &str, start: &str, sc: &driftwatch_sim::strategies::Sche
     for g in &c.served {
         println!("    {g}");
     }
-    let t = |s: driftwatch_sim::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
+    let t = |s: crate::strategies::Stats| format!("{:>8.2} / {:>8.2}", s.rms, s.max);
     println!(
         "  {:<9} {:>19} {:>19} {:>19}",
         "tool tip",
@@ -422,12 +422,11 @@ fn print_scenario(name: &str, start: &str, sc: &driftwatch_sim::strategies::Sche
 }
 
 /// The service's schedule against a fixed cadence with as many cycles.
-fn print_schedule(sc: &driftwatch_sim::strategies::ScheduleComparison) {
+fn print_schedule(sc: &crate::strategies::ScheduleComparison) {
     let c = &sc.adaptive;
     let f = &sc.fixed;
-    let ez = |r: &driftwatch_sim::strategies::StrategyResult| {
-        r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max)
-    };
+    let ez =
+        |r: &crate::strategies::StrategyResult| r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max);
     println!(
         "  schedule, {} cycles each: the service's (after stops, warm-up cadence) vs a fixed cadence (idle minutes only)",
         sc.adaptive_min.len()
@@ -674,9 +673,9 @@ fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::therma
 /// nulls, and the power on injected temperature effects; each under the acceptance rules
 /// in force before and now.
 pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
-    use driftwatch_diagnosis::calibration::{null_trial, power_trial, worsening_terms};
+    use crate::calibration::{null_trial, power_trial, worsening_terms};
+    use crate::null_recordings::Null;
     use driftwatch_diagnosis::displacement::{DisplacementOptions, diagnose_displacements};
-    use driftwatch_diagnosis::surrogates::Null;
     let rules = [
         ("before", DisplacementOptions::earlier_rules()),
         ("now", DisplacementOptions::default()),
@@ -774,7 +773,7 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
             if !json {
                 println!(
                     "power, rule {rule:<7} t11_C effect of {rms:>4} um RMS in {} um AR noise: found {found} of {trials}",
-                    driftwatch_diagnosis::calibration::NULL_NOISE_UM
+                    crate::calibration::NULL_NOISE_UM
                 );
             }
             power_rows.push(

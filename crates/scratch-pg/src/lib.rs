@@ -276,10 +276,9 @@ impl ScratchPg {
     }
 }
 
-/// For the library's own tests: one server per test binary under the target directory, and
-/// the URL of a fresh database on it (panics: a test without its server fails).
-#[cfg(test)]
-pub(crate) async fn test_database() -> String {
+/// For a crate's own tests: one server per test binary under the target directory, and the
+/// URL of a fresh database on it (panics: a test without its server fails).
+pub async fn test_database() -> String {
     static SERVER: std::sync::OnceLock<ScratchPg> = std::sync::OnceLock::new();
     let server: &'static ScratchPg = tokio::task::spawn_blocking(|| {
         SERVER.get_or_init(|| {

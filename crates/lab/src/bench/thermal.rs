@@ -31,8 +31,8 @@ const SIM_SIGMA: f64 = 0.5;
 /// identified error that moves by more than ten times the sensor noise is a channel.
 fn simulated_sets() -> Result<Vec<ThermalData>> {
     let mut out = Vec::new();
-    for (name, _) in driftwatch_sim::strategies::BENCH_SCENARIOS {
-        let events = driftwatch_sim::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
+    for (name, _) in crate::strategies::BENCH_SCENARIOS {
+        let events = crate::strategies::sensor_view(name, SIM_DAYS, SIM_SIGMA)?;
         let mut range: std::collections::BTreeMap<&str, (f64, f64)> = Default::default();
         for e in &events {
             if let Event::Observation { channel, value, .. } = e {

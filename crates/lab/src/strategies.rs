@@ -14,8 +14,6 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
-use crate::scenario::Scenario;
-use crate::simulator::{SimError, Simulation, simulate};
 use driftwatch_core::cycle::{CycleChecks, CycleOutcome, process_all};
 use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::Kinematics;
@@ -25,6 +23,8 @@ use driftwatch_machine::compensation::PredictionPolicy;
 use driftwatch_machine::live_model::LiveModel;
 use driftwatch_machine::phase::{PhaseConfig, PhaseTracker};
 use driftwatch_machine::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
+use driftwatch_sim::scenario::Scenario;
+use driftwatch_sim::simulator::{SimError, Simulation, simulate};
 
 const MIN: i64 = units::NS_PER_MIN;
 
@@ -442,7 +442,7 @@ pub fn compare(
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
     #[error(transparent)]
-    Scenario(#[from] crate::scenario::ScenarioError),
+    Scenario(#[from] driftwatch_sim::scenario::ScenarioError),
     #[error(transparent)]
     Machine(#[from] driftwatch_core::kinematics::MachineError),
     #[error(transparent)]

@@ -1,5 +1,5 @@
 //! The displacement diagnosis judged on recordings whose truth is known: how often it
-//! accepts a term on a null (false positives, [`crate::surrogates`]), how often it finds an
+//! accepts a term on a null (false positives, [`crate::null_recordings`]), how often it finds an
 //! effect injected at a known size (power), and whether any accepted term worsens the
 //! held-out end of a real recording. The located term's power is measured on any recording
 //! as it is ([`located_power`]): a drift that follows one temperature after an onset,
@@ -7,12 +7,12 @@
 //!
 //! Pure: plain data in and out, deterministic given the seeds.
 
-use crate::displacement::{
+use crate::null_recordings::{Null, null_recording, with_temperature_effect};
+use driftwatch_core::thermal_model::{Event, ModelInput};
+use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementError, DisplacementOptions, NotConfirmed,
     diagnose_displacements,
 };
-use crate::surrogates::{Null, null_recording, with_temperature_effect};
-use driftwatch_core::thermal_model::{Event, ModelInput};
 
 /// Grid of the temperature surrogates, ns (the diagnosis thins to 5 min).
 pub const SURROGATE_STEP_NS: i64 = 300_000_000_000;

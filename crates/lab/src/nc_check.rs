@@ -15,8 +15,8 @@ use driftwatch_core::recording::{DetectionIssue, DetectionMsg, DetectionStatus, 
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::{SimError, VirtualMachine};
 
-use crate::dialect::Dialect;
-use crate::reader::{ReadError, ReplayError, read, replay};
+use driftwatch_nc::dialect::Dialect;
+use driftwatch_nc::reader::{ReadError, ReplayError, read, replay};
 
 #[derive(Debug, Error)]
 pub enum CheckError {

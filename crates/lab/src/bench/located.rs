@@ -33,10 +33,10 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
+use crate::calibration::{LocatedOutcome, located_power};
 use anyhow::Result;
 use driftwatch_core::thermal_model::Event;
 use driftwatch_core::units;
-use driftwatch_diagnosis::calibration::{LocatedOutcome, located_power};
 use driftwatch_diagnosis::cycles::DIAGNOSIS_TAUS_MIN;
 use driftwatch_diagnosis::displacement::{DisplacementOptions, RAMP_R};
 

@@ -17,10 +17,10 @@ use rand::{Rng, SeedableRng};
 use tokio_util::sync::CancellationToken;
 
 use driftwatch_core::units::{NS_PER_H, NS_PER_MIN};
+use driftwatch_scratch_pg::ScratchPg;
 use driftwatch_service::config::{LinkConfig, ServiceConfig};
 use driftwatch_service::daemon::MachineView;
 use driftwatch_service::launch::{ClockKind, LaunchOptions, Service, launch_with};
-use driftwatch_service::scratch_pg::ScratchPg;
 use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
