@@ -565,3 +565,258 @@ fn apparent_errors_follow_the_documented_rule_of_each_family() {
         }
     }
 }
+
+/// The error of `name` on `s` (um or urad).
+fn get(k: &Kinematics, s: &MachineState, name: &str) -> f64 {
+    let id = k.error_id(name).unwrap();
+    s.loc[id.axis][id.slot] / id.scale()
+}
+
+/// Each line's actual direction is its nominal one turned first about the first orientation
+/// error's direction, then about the second's (fixed directions, right-handed), exactly as
+/// the contract writes it per family; with tilts large enough that the order and the first
+/// order approximation both show.
+#[test]
+fn line_directions_are_the_stated_exact_rotations_on_every_family() {
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let (xd, yd, zd) = (Vec3::x(), Vec3::new(0.0, h, h), Vec3::new(0.0, -h, h));
+    for name in FAMILIES {
+        let k = machine(name);
+        let mut s = k.nominal_state();
+        let (first, second) = (0.05, -0.03);
+        for ax in &k.rotary {
+            set(&k, &mut s, ax.error_names[2].as_str(), first * 1e6);
+            set(&k, &mut s, ax.error_names[3].as_str(), second * 1e6);
+        }
+        let (_, dirs) = k.lines(&s);
+        for (i, ax) in k.rotary.iter().enumerate() {
+            let (a, b) = (first, second);
+            let want = match ax.name.as_str() {
+                // u_B = Rz(EC0B) Rx(EA0B) Y
+                "B" => Vec3::new(-b.sin() * a.cos(), b.cos() * a.cos(), a.sin()),
+                // u_C = Ry(EB0C) Rx(EA0C) Z
+                "C" => Vec3::new(a.cos() * b.sin(), -a.sin(), a.cos() * b.cos()),
+                // u_D = Rot(Z', EC0D) Rot(X', EA0D) Y'
+                "D" => xd * (-b.sin() * a.cos()) + yd * (b.cos() * a.cos()) + zd * a.sin(),
+                // u_A = Rz(EC0A) Ry(EB0A) X
+                "A" => Vec3::new(b.cos() * a.cos(), b.sin() * a.cos(), -a.sin()),
+                other => panic!("{other}"),
+            };
+            assert!(
+                close(dirs[i], want, 1e-15),
+                "{name} {}: {} vs {want}",
+                ax.name,
+                dirs[i]
+            );
+        }
+    }
+}
+
+/// The apparent errors exactly, tilted lines included: each line shifted by -s is named where
+/// it crosses the plane through its nominal point square to its nominal direction, so a
+/// tilted line's position errors also take `s.u0` times its tilt (tan, over cos), and a line
+/// measured from its parent takes the difference of the two. The contract's formulas per
+/// family, with tilts large enough that the first-order forms would fail.
+#[test]
+fn apparent_errors_are_exact_for_tilted_lines_on_every_family() {
+    let (sx, sy, sz) = (30.0, -20.0, -200.0);
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    // Components of s in the D frame (X', Y' = D, Z').
+    let (sdy, sdz) = ((sy + sz) * h, (sz - sy) * h);
+    let tilts = [
+        ("EA0B", 0.05),
+        ("EC0B", -0.03),
+        ("EA0C", 0.04),
+        ("EB0C", -0.06),
+        ("EA0D", 0.05),
+        ("EC0D", -0.03),
+        ("EB0A", 0.05),
+        ("EC0A", -0.03),
+    ];
+    let positions = [("EX0", 11.0), ("EY0", -7.0), ("EZ0", 5.0)];
+    for name in FAMILIES {
+        let k = machine(name);
+        let mut s = k.nominal_state();
+        for ax in &k.rotary {
+            for (slot, n) in ax.error_names.iter().enumerate().take(4) {
+                let n = n.as_str();
+                let v = match slot {
+                    0 | 1 => positions.iter().find(|p| n.starts_with(p.0)).unwrap().1,
+                    _ => tilts.iter().find(|t| t.0 == n).unwrap().1 * 1e6,
+                };
+                set(&k, &mut s, n, v);
+            }
+        }
+        s.tool_tip = Vec3::new(sx, sy, sz) * 1e-3;
+        let a = k.apparent_state(&s);
+        let e = |n: &str| get(&k, &s, n);
+        let t = |n: &str| (e(n) * 1e-6).tan();
+        let c = |n: &str| (e(n) * 1e-6).cos();
+        // EX0C and EY0C of an absolute C line.
+        let c_abs = [
+            ("EX0C", e("EX0C") - sx + sz * t("EB0C")),
+            ("EY0C", e("EY0C") - sy - sz * t("EA0C") / c("EB0C")),
+        ];
+        let want: Vec<(&str, f64)> = match name {
+            "table_bc" => vec![
+                ("EX0B", e("EX0B") - sx - sy * t("EC0B")),
+                ("EZ0B", e("EZ0B") - sz + sy * t("EA0B") / c("EC0B")),
+                ("EX0C", e("EX0C") + sz * t("EB0C") + sy * t("EC0B")),
+                ("EY0C", e("EY0C") - sy - sz * t("EA0C") / c("EB0C")),
+            ],
+            "head_b_table_c" => vec![
+                ("EX0B", e("EX0B") - sx - sy * t("EC0B")),
+                ("EZ0B", e("EZ0B") - sz + sy * t("EA0B") / c("EC0B")),
+                c_abs[0],
+                c_abs[1],
+            ],
+            "table_d45_c" => vec![
+                ("EX0D", e("EX0D") - sx - sdy * t("EC0D")),
+                ("EZ0D", e("EZ0D") - sdz + sdy * t("EA0D") / c("EC0D")),
+                ("EX0C", e("EX0C") + sz * t("EB0C") + sdy * t("EC0D")),
+                (
+                    "EY0C",
+                    e("EY0C") - (sy + sz) / 2.0 - sz * t("EA0C") / c("EB0C")
+                        + sdy * h * t("EA0D") / c("EC0D"),
+                ),
+            ],
+            "head_d45_table_c" => vec![
+                ("EX0D", e("EX0D") - sx - sdy * t("EC0D")),
+                ("EZ0D", e("EZ0D") - sdz + sdy * t("EA0D") / c("EC0D")),
+                c_abs[0],
+                c_abs[1],
+            ],
+            "trunnion_ac" => vec![
+                ("EY0A", e("EY0A") - sy + sx * t("EC0A")),
+                ("EZ0A", e("EZ0A") - sz - sx * t("EB0A") / c("EC0A")),
+                ("EX0C", e("EX0C") - sx + sz * t("EB0C")),
+                (
+                    "EY0C",
+                    e("EY0C") - sz * t("EA0C") / c("EB0C") - sx * t("EC0A"),
+                ),
+            ],
+            other => panic!("{other}"),
+        };
+        for (n, w) in want {
+            let got = get(&k, &a, n);
+            assert!((got - w).abs() < 1e-9, "{name} {n}: {got} vs {w}");
+        }
+        // Orientations and zero angles are not moved by s.
+        for ax in &k.rotary {
+            for n in &ax.error_names[2..] {
+                assert_eq!(
+                    get(&k, &a, n.as_str()),
+                    get(&k, &s, n.as_str()),
+                    "{name} {n}"
+                );
+            }
+        }
+    }
+}
+
+/// The zero-angle error (EB0D here; EB0B, EC0C and EA0A alike) is added to the commanded
+/// angle: unlike the four line errors it turns the axis at D = 0 too. On table_d45_c, EB0D
+/// turns the table by -EB0D about the D line at D = 0 (the table top tilts by EB0D/sqrt2
+/// towards -X) and every D pose reads as D + EB0D; on head_d45_table_c it turns the head by
+/// +EB0D at D = 0, moving the tip by (I - R) q_D and tilting the tool. The line errors
+/// EX0D, EZ0D, EA0D, EC0D leave the zero pose alone.
+#[test]
+fn the_zero_angle_error_turns_a_d_axis_at_d_0_and_the_line_errors_do_not() {
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let u = Vec3::new(0.0, h, h);
+    let eps = 100e-6;
+    // table_d45_c.
+    let k = machine("table_d45_c");
+    let mut lines_only = k.nominal_state();
+    for (n, v) in [
+        ("EX0D", 20.0),
+        ("EZ0D", -15.0),
+        ("EA0D", 80.0),
+        ("EC0D", -60.0),
+    ] {
+        set(&k, &mut lines_only, n, v);
+    }
+    let t = k.pose_transform(&lines_only, &[0.0, 0.0]);
+    assert!(close(t.vector(&Vec3::z()), Vec3::z(), 1e-15) && t.t.norm() < 1e-15);
+    let mut s = k.nominal_state();
+    set(&k, &mut s, "EB0D", eps * 1e6);
+    let t = k.pose_transform(&s, &[0.0, 0.0]);
+    let rot = driftwatch_core::geometry::rotation(&u, -eps);
+    assert!((t.r - rot).norm() < 1e-15 && t.t.norm() < 1e-15);
+    // The table top tilts by eps/sqrt2 towards -X; the setter's point (0, -100, 70) moves
+    // by -eps u x p = -eps (170, 0, 0)/sqrt2 (along the beam), the beam rises along +X.
+    let normal = t.vector(&Vec3::z());
+    assert!(
+        (normal.x + eps * h).abs() < 1e-8 && normal.y.abs() < 1e-8,
+        "{normal}"
+    );
+    let (p, dir) = k.beam_in_machine(&s, &[0.0, 0.0]);
+    assert!(close(p, rot * Vec3::new(0.0, -100.0, 70.0), 1e-12));
+    assert!(
+        close(p, Vec3::new(-170.0 * h * eps, -100.0, 70.0), 1e-6),
+        "{p}"
+    );
+    assert!((dir.z - eps * h).abs() < 1e-8 && (dir.y + eps * h).abs() < 1e-8);
+    // Elsewhere it reads as a commanded D + EB0D, whatever the pose.
+    for (d, c) in [(0.0, -90.0), (-90.0, -135.0), (180.0, 0.0)] {
+        let a = k.pose_transform(&s, &[d, c]);
+        let b = k.pose_transform(&k.nominal_state(), &[d + eps.to_degrees(), c]);
+        assert!((a.r - b.r).norm() < 1e-12 && (a.t - b.t).norm() < 1e-12);
+    }
+    // So the C cycle at D = 0 sees it: the end face reads the beam's slope, r eps/sqrt2.
+    let ap = Approach {
+        axis: Axis::Z,
+        direction: -1,
+        feed_mm_min: 100.0,
+    };
+    let at = Vec3::new(0.0, -100.0, 0.0);
+    let z0 = latched(&k, &k.nominal_state(), &[0.0, 0.0], &ap, &at, None).unwrap();
+    let z1 = latched(&k, &s, &[0.0, 0.0], &ap, &at, None).unwrap();
+    let slope_rise = 5.0 * eps * h;
+    assert!((z1 - z0 - slope_rise).abs() < 1e-5, "{}", z1 - z0);
+    // head_d45_table_c: the head turns by +EB0D about the D line, 200 mm above the tip.
+    let k = machine("head_d45_table_c");
+    let mut lines_only = k.nominal_state();
+    for (n, v) in [
+        ("EX0D", 20.0),
+        ("EZ0D", -15.0),
+        ("EA0D", 80.0),
+        ("EC0D", -60.0),
+    ] {
+        set(&k, &mut lines_only, n, v);
+    }
+    let t = k.pose_geometry(&lines_only, &[0.0, 0.0]).tool;
+    assert!(close(t.actual, Vec3::zeros(), 1e-15) && close(t.axis, Vec3::z(), 1e-15));
+    let mut s = k.nominal_state();
+    set(&k, &mut s, "EB0D", eps * 1e6);
+    let t = k.pose_geometry(&s, &[0.0, 0.0]).tool;
+    let q = Vec3::new(0.0, 0.0, 200.0);
+    let rot = driftwatch_core::geometry::rotation(&u, eps);
+    assert!(close(t.nominal, Vec3::zeros(), 1e-15));
+    assert!(close(t.actual, q - rot * q, 1e-15), "{}", t.actual);
+    assert!(close(t.axis, rot * Vec3::z(), 1e-15));
+    // About -200 mm eps/sqrt2 along X: -14.1 um.
+    assert!((t.actual.x + 200.0 * eps * h).abs() < 1e-8, "{}", t.actual);
+    // Held at 0, a real EB0D is read as other errors (the contract's figures, noise-free):
+    // on the D table mostly as EB0C near -EB0D/sqrt2, on the D head as the tip's shift at
+    // D = 0 in EX0D and EX0C alike.
+    for (name, want) in [
+        ("table_d45_c", vec![("EB0C", -80.0, -65.0)]),
+        (
+            "head_d45_table_c",
+            vec![("EX0D", 13.6, 14.0), ("EX0C", 13.6, 14.0)],
+        ),
+    ] {
+        let k = machine(name);
+        for p in [own_plan(&k), Plan::build(&k, &patent_config(&k)).unwrap()] {
+            let mut truth = k.nominal_state();
+            set(&k, &mut truth, "EB0D", eps * 1e6);
+            let obs = p.observations(&k, &truth).unwrap();
+            let sol = identify(&k, &obs, &SolveOptions::new(0.5)).unwrap();
+            for (n, lo, hi) in &want {
+                let v = sol.error(n).unwrap().value;
+                assert!(*lo < v && v < *hi, "{name} {}: {n} {v}", p.name);
+            }
+        }
+    }
+}
