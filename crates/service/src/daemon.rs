@@ -36,7 +36,6 @@ use driftwatch_machine::machine_core::{
     CoreError, Effect, Input, Level, MachineCore, Record, Restored,
 };
 use driftwatch_machine::phase::{PastEvent, PhaseInfo};
-use driftwatch_sim::simulator::TruthSample;
 
 pub use driftwatch_machine::machine_core::{CycleView, Settings, ThermalView};
 
@@ -151,12 +150,17 @@ pub fn settings_from_config(cfg: &crate::config::ServiceConfig) -> Settings {
 }
 
 /// A piece of work for the executor: the core's effects, and what the executor does on its
-/// own behalf in the same order (the truth samples a simulated machine reports, the store
+/// own behalf in the same order (the messages a link asks to have recorded as they are, the store
 /// rows of a recording file that opened or closed).
 #[derive(Debug)]
 enum Job {
     Core(Effect),
-    Truth(TruthSample),
+    /// A link's message recorded as it is (`LinkEvent::Record`).
+    Record {
+        topic: &'static str,
+        t_ns: i64,
+        json: crate::link::RawJson,
+    },
     FileOpened(std::path::PathBuf),
     FileClosed(ClosedFile),
     /// An alert event already shown and sent (the loop's health alert, raised while the
@@ -496,7 +500,9 @@ impl MachineRuntime {
         }
         while let Some(ev) = self.events.pop_front() {
             match ev {
-                LinkEvent::Truth(t) => self.queue.push_back(Job::Truth(t)),
+                LinkEvent::Record { topic, t_ns, json } => {
+                    self.queue.push_back(Job::Record { topic, t_ns, json })
+                }
                 ev => {
                     if let Some(input) = input_of(ev) {
                         self.feed(input, now_ns);
@@ -582,7 +588,7 @@ impl MachineRuntime {
         let core_jobs = |effects: Vec<Effect>| effects.into_iter().map(Job::Core).collect();
         let effect = match job {
             Job::Core(e) => e,
-            Job::Truth(t) => return self.record(rec::TOPIC_TRUTH, t.t_ns, &t.rounded(1e-4)),
+            Job::Record { topic, t_ns, json } => return self.record(topic, *t_ns, json),
             Job::FileOpened(path) => {
                 self.store
                     .mcap_file_opened(&self.id, &path.display().to_string(), now)
@@ -860,7 +866,7 @@ fn input_of(ev: LinkEvent) -> Option<Input> {
         LinkEvent::Temperature(m) => Input::Temperature(m),
         LinkEvent::Detection(m) => Input::Detection(m),
         LinkEvent::CycleDone { cycle, t_ns } => Input::CycleDone { cycle, t_ns },
-        LinkEvent::Truth(_) | LinkEvent::ClockSkew { .. } => return None,
+        LinkEvent::Record { .. } | LinkEvent::ClockSkew { .. } => return None,
     })
 }
 

@@ -1,90 +1,16 @@
-//! How the service talks to a machine: one trait, polled with the current time. `Simulated`
-//! runs the truth simulator's virtual machine through a day program in the caller's time, so
-//! the service can run hours of a plant day in seconds on an injectable clock.
-
-use thiserror::Error;
+//! The simulated link: the truth simulator's virtual machine run through a scenario's day
+//! program in the caller's time, so the service can run hours of a plant day in seconds on an
+//! injectable clock. Its ground truth is recorded beside what it reports, never served.
 
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 use driftwatch_core::recording::{
-    DetectionMsg, MachineStateKind, SpindleMsg, StateMsg, TemperatureMsg, Timed,
+    self as rec, MachineStateKind, SpindleMsg, StateMsg, TemperatureMsg, Timed,
 };
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::{SimError, TruthSample, VirtualMachine};
 
-/// Something the machine reported.
-#[derive(Debug, Clone, PartialEq)]
-pub enum LinkEvent {
-    Spindle(Timed<SpindleMsg>),
-    State(Timed<StateMsg>),
-    Temperature(Timed<TemperatureMsg>),
-    Detection(Timed<DetectionMsg>),
-    /// The machine finished the cycle's program (every expected step has been sent).
-    CycleDone {
-        cycle: i64,
-        t_ns: i64,
-    },
-    /// A simulated machine's ground truth (never used to compute what is served).
-    Truth(TruthSample),
-    /// Since the last poll the link refused `refused` events stamped too far from the service
-    /// clock (`t_ns`, the poll's time); `worst_skew_ns` is the largest skew, signed (positive:
-    /// ahead of the clock).
-    ClockSkew {
-        t_ns: i64,
-        refused: u64,
-        worst_skew_ns: i64,
-    },
-}
-
-impl LinkEvent {
-    pub fn t_ns(&self) -> i64 {
-        match self {
-            LinkEvent::Spindle(m) => m.t_ns,
-            LinkEvent::State(m) => m.t_ns,
-            LinkEvent::Temperature(m) => m.t_ns,
-            LinkEvent::Detection(m) => m.t_ns,
-            LinkEvent::CycleDone { t_ns, .. } => *t_ns,
-            LinkEvent::Truth(t) => t.t_ns,
-            LinkEvent::ClockSkew { t_ns, .. } => *t_ns,
-        }
-    }
-}
-
-#[derive(Debug, Error, PartialEq)]
-pub enum LinkError {
-    #[error("the machine is {0:?}, not idle: a cycle runs only when it is idle")]
-    NotIdle(MachineStateKind),
-    #[error("cycle {0} is already running")]
-    Busy(i64),
-    #[error(
-        "the NC has not reported its state yet: a cycle runs only once it reports idle (the state shown is inferred)"
-    )]
-    NoState,
-    #[error(
-        "the {0} link only observes the machine and cannot order a cycle: cycles must be ordered by another route (an nc_push gateway, or the NC's own program)"
-    )]
-    ObserveOnly(&'static str),
-    /// The link cannot reach the NC now (a network link between sessions).
-    #[error("the NC cannot be reached: {0}")]
-    Unavailable(String),
-}
-
-pub trait MachineLink: Send {
-    /// Everything that happened up to `now_ns`, in time order.
-    fn poll(&mut self, now_ns: i64) -> Vec<LinkEvent>;
-    /// Ask the machine to run measurement cycle `number` now.
-    fn request_cycle(&mut self, number: i64, now_ns: i64) -> Result<(), LinkError>;
-    /// Stop a cycle (timeout or shutdown).
-    fn abort_cycle(&mut self, number: i64, now_ns: i64);
-    /// The earliest time the machine will report something by itself.
-    fn next_event_ns(&self) -> Option<i64>;
-    /// The compensation set served from now on (validated: the loop publishes only those). A
-    /// link that writes it to the NC does so; the others ignore it.
-    fn serve(&mut self, _set: &driftwatch_machine::compensation::CompensationSet) {}
-    /// Bring a simulated machine to `t_ns` unobserved (a fleet process taking it over); a
-    /// real machine is where it is.
-    fn resume_at(&mut self, _t_ns: i64) {}
-}
+use super::{LinkError, LinkEvent, MachineLink, RawJson};
 
 struct ActiveCycle {
     number: i64,
@@ -269,8 +195,17 @@ impl Simulated {
                     msg: TemperatureMsg { sensor, celsius },
                 }));
             }
-            self.pending
-                .push(LinkEvent::Truth(self.vm.truth(&self.k, rpm, None)));
+            // At 1e-4 um (0.1 nm): far more than any measurement sees, and it compresses
+            // several times better than every binary64 digit.
+            let truth = self.vm.truth(&self.k, rpm, None).rounded(1e-4);
+            match serde_json::value::to_raw_value(&truth) {
+                Ok(json) => self.pending.push(LinkEvent::Record {
+                    topic: rec::TOPIC_TRUTH,
+                    t_ns: truth.t_ns,
+                    json: RawJson(json),
+                }),
+                Err(e) => tracing::warn!("the simulated truth at {t_ns} ns is not recorded: {e}"),
+            }
             self.next_sample_s = t_s + self.scn.sample_s;
         }
         let Some(c) = &mut self.active else { return };
