@@ -995,18 +995,11 @@ fn predict_family(
     let mut next_row = from;
     let mut series = Vec::new();
     let mut out = std::io::stdout().lock();
-    let mut errors = Vec::new();
-    let mut persistence = Vec::new();
     for (i, (v, by)) in p.iter().enumerate() {
         let k = origin + i;
         let y = g.y[k];
         // The band widens with the time since the last reading used.
         let (b68, b95) = c.band_at(i);
-        // Scored on the readings the sensor updated (a held value is not a reading).
-        if g.fresh[k] {
-            errors.push((i, v - y));
-            persistence.push(g.y[origin - 1] - y);
-        }
         if g.t_ns[k] >= from {
             series.push((units::ns_to_h(g.t_ns[k] - t0), *v, b68));
         }
@@ -1042,33 +1035,21 @@ fn predict_family(
         }
     }
     drop(out);
-    let rms = driftwatch_core::families::rms;
-    let (cover68, cover95) = match &c.bands {
-        Some(b) => b.coverage(&errors),
-        None => {
-            let e: Vec<(usize, f64)> = errors.iter().map(|&(_, e)| (0, e)).collect();
-            let flat = driftwatch_core::families::Bands {
-                edges: Vec::new(),
-                b68: vec![c.band68],
-                b95: vec![c.band95],
-            };
-            flat.coverage(&e)
-        }
-    };
-    let errors: Vec<f64> = errors.into_iter().map(|(_, e)| e).collect();
+    let values: Vec<f64> = p.iter().map(|(v, _)| *v).collect();
+    let score = driftwatch_core::families::score_free_run(g, origin, &values, &c.bands_or_pooled());
     eprintln!(
         "{}: {} ({}), free run from {:.2} h, {} updated readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band by horizon: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
         c.channel,
         c.family,
         c.fitted.describe(g),
         units::ns_to_h(g.t_ns[origin.min(g.len() - 1)] - t0),
-        errors.len(),
+        score.errors.len(),
         units::ns_to_min(c.step_ns),
-        rms(&errors),
-        rms(&persistence),
-        errors.iter().fold(0.0f64, |m, e| m.max(e.abs())),
-        100.0 * cover68,
-        100.0 * cover95,
+        score.rmse,
+        score.persistence_rmse,
+        score.max_abs,
+        100.0 * score.within68,
+        100.0 * score.within95,
     );
     Ok(series)
 }

@@ -881,6 +881,47 @@ fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> 
     Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
+/// How a free run from `origin` did: `values[i]` was served at grid point `origin + i`, from the
+/// readings before `origin` alone. Scored on the readings the sensor updated (a held value is
+/// no reading), against holding the last reading before `origin` (persistence), with the
+/// shares of errors within the bands at their horizons.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FreeRunScore {
+    /// Served minus measured, on the updated readings.
+    pub errors: Vec<f64>,
+    pub rmse: f64,
+    pub persistence_rmse: f64,
+    /// The largest |error|.
+    pub max_abs: f64,
+    pub within68: f64,
+    pub within95: f64,
+}
+
+/// Score a free run (see [`FreeRunScore`]); `origin` must be at least 1 (a last reading).
+pub fn score_free_run(g: &Grid, origin: usize, values: &[f64], bands: &Bands) -> FreeRunScore {
+    let held = origin.checked_sub(1).and_then(|k| g.y.get(k)).copied();
+    let mut by_horizon = Vec::new();
+    let mut persistence = Vec::new();
+    for (i, v) in values.iter().enumerate() {
+        let k = origin + i;
+        let (Some(&y), Some(true)) = (g.y.get(k), g.fresh.get(k).copied()) else {
+            continue;
+        };
+        by_horizon.push((i, v - y));
+        persistence.push(held.map_or(f64::NAN, |h| h - y));
+    }
+    let (within68, within95) = bands.coverage(&by_horizon);
+    let errors: Vec<f64> = by_horizon.into_iter().map(|(_, e)| e).collect();
+    FreeRunScore {
+        rmse: rms(&errors),
+        persistence_rmse: rms(&persistence),
+        max_abs: errors.iter().fold(0.0f64, |m, e| m.max(e.abs())),
+        errors,
+        within68,
+        within95,
+    }
+}
+
 /// The share of errors within `band` (NaN without errors).
 pub fn coverage(errors: &[f64], band: f64) -> f64 {
     if errors.is_empty() {
@@ -1544,6 +1585,16 @@ pub struct ChannelChoice {
 }
 
 impl ChannelChoice {
+    /// The band by horizon, or the pooled band at every horizon in model files written
+    /// before bands by horizon.
+    pub fn bands_or_pooled(&self) -> Bands {
+        self.bands.clone().unwrap_or_else(|| Bands {
+            edges: Vec::new(),
+            b68: vec![self.band68],
+            b95: vec![self.band95],
+        })
+    }
+
     /// The 68 % and 95 % half-widths `horizon` grid steps after the last reading used.
     pub fn band_at(&self, horizon: usize) -> (f64, f64) {
         self.bands
@@ -1908,6 +1959,38 @@ mod tests {
         assert_eq!(back.cv_rmse, 1.0);
     }
     use super::*;
+
+    /// A free run is scored on the updated readings only, against the last reading before the
+    /// origin held, each error judged by the band of its horizon.
+    #[test]
+    fn a_free_run_is_scored_on_updated_readings_with_the_band_of_each_horizon() {
+        let g = Grid {
+            channel: "d".into(),
+            t_ns: (0..6).map(|k| k * MIN).collect(),
+            y: vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+            names: vec![],
+            inputs: vec![],
+            // Index 4 holds the reading before it: not scored, whatever was served there.
+            fresh: vec![true, true, true, true, false, true],
+        };
+        let bands = Bands {
+            edges: vec![1],
+            b68: vec![0.6, 0.01],
+            b95: vec![1.0, 0.5],
+        };
+        let s = score_free_run(&g, 2, &[2.5, 3.2, 40.0, 5.0], &bands);
+        assert_eq!(s.errors.len(), 3, "{s:?}");
+        assert!(
+            (s.rmse - ((0.25 + 0.04) / 3.0f64).sqrt()).abs() < 1e-12,
+            "{s:?}"
+        );
+        // Holding y[1] = 1: errors -1, -2, -4.
+        assert!((s.persistence_rmse - 7.0f64.sqrt()).abs() < 1e-12, "{s:?}");
+        assert!((s.max_abs - 0.5).abs() < 1e-12, "{s:?}");
+        // 0.5 at horizon 0 is within 0.6; 0.2 at horizon 1 is not within 0.01 but within 0.5.
+        assert!((s.within68 - 2.0 / 3.0).abs() < 1e-12, "{s:?}");
+        assert!((s.within95 - 1.0).abs() < 1e-12, "{s:?}");
+    }
 
     const MIN: i64 = units::NS_PER_MIN;
 
