@@ -8,7 +8,6 @@ pub mod calibration;
 pub mod cycles;
 pub mod displacement;
 pub mod effects;
-pub mod lsq;
 pub mod report;
 pub mod rows;
 mod stepwise;
