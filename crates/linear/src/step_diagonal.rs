@@ -260,10 +260,8 @@ impl Estimate {
                 let v = if k == 0 { 0.0 } else { values[k - 1] };
                 v - slope * k as f64 * step_mm * 1e3
             });
-            match a.svd(true, true).solve(&b, 1e-12) {
-                Ok(c) => [c[1], c[2], c[3]],
-                Err(_) => [0.0; 3],
-            }
+            let c = lsq(&a, &b).beta;
+            [c[1], c[2], c[3]]
         };
         const AXES: [char; 3] = ['X', 'Y', 'Z'];
         for (j, axis) in AXES.iter().enumerate() {
