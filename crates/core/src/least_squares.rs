@@ -1,15 +1,16 @@
-//! Least squares, in one place: every linear fit of the workspace goes through here.
+//! Least squares, in one place: the workspace's linear fits and their covariances.
 //!
 //! * [`lsq`]: the workhorse. Minimises `chi2(beta) = |y - M beta|^2` for a design `M`
 //!   (n x p) whose rows are already whitened (divided by their standard deviation, or
 //!   multiplied by `sqrt(w)` for weights `w`: see [`weighted`]). The columns are scaled to
 //!   unit norm first, `M = Ms D` with `D = diag(|m_j|)`, so that units do not decide the rank;
 //!   then a Householder QR `Ms = Q R` and the SVD of the p x p triangle `R = U S V^T`.
-//!   Singular values below `tol * s_max` are dropped (a truncated pseudo-inverse):
-//!   `beta = D^-1 V S^+ U^T Q^T y`, `cov = D^-1 V S^+2 V^T D^-1 = (M^T M)^+` (in the scaled
-//!   columns), with the rank and the dropped directions (the *ties*: moving `beta` along one
-//!   leaves the fit unchanged) reported. QR first because the SVD of the long design itself
-//!   would sweep every rotation across all n rows.
+//!   Singular values at or below `tol * s_max` are dropped (a truncated pseudo-inverse):
+//!   `beta = D^-1 V S^+ U^T Q^T y`, `cov = D^-1 V S^+2 V^T D^-1`, which is `(M^T M)^-1` at
+//!   full rank (below it, the pseudo-inverse taken in the scaled columns); the rank and the
+//!   dropped directions (the *ties*: moving `beta` along one leaves the fit unchanged) are
+//!   reported. QR first because the SVD of the long design itself would sweep every rotation
+//!   across all n rows.
 //! * [`weighted`]: the same with weights per row: `chi2 = sum_i w_i (y_i - m_i beta)^2`,
 //!   `cov = (M^T W M)^-1`.
 //! * [`constrained`]: the same under exact linear constraints `C beta = 0` (a gauge), by
@@ -49,7 +50,8 @@ pub enum LeastSquaresError {
 pub struct Lsq {
     /// The minimum-norm (in the scaled columns) least-squares solution.
     pub beta: DVector<f64>,
-    /// `(M^T M)^+` in the unscaled columns: the covariance of `beta` for whitened rows.
+    /// `(M^T M)^-1` at full rank (the pseudo-inverse in the scaled columns below it), in the
+    /// parameters' own units: the covariance of `beta` for whitened rows.
     pub cov: DMatrix<f64>,
     /// `|y - M beta|^2`.
     pub chi2: f64,
@@ -496,11 +498,9 @@ mod tests {
             d += wi * j[(i, 1)] * j[(i, 1)];
         }
         let det = a * d - b * b;
-        let inv = [[d / det, -b / det], [-b / det, a / det]];
-        for r in 0..2 {
-            for c in 0..2 {
-                assert!(close(f.cov[(r, c)], inv[r][c], 1e-12), "{r},{c}");
-            }
+        let inv = DMatrix::from_row_slice(2, 2, &[d / det, -b / det, -b / det, a / det]);
+        for (got, want) in f.cov.iter().zip(inv.iter()) {
+            assert!(close(*got, *want, 1e-12), "{} vs {inv}", f.cov);
         }
     }
 
