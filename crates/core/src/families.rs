@@ -324,7 +324,7 @@ fn fit_linear(g: &Grid, inputs: &[usize], end: usize) -> Option<Fitted> {
         }
     });
     let y = DVector::from_iterator(rows.len(), rows.iter().map(|&k| g.y[k]));
-    let coef = least_squares(&x, &y)?;
+    let coef = least_squares(&x, &y).ok()?;
     Some(Fitted::Linear {
         inputs: inputs.to_vec(),
         coef: coef.iter().copied().collect(),
@@ -351,7 +351,7 @@ fn fit_arx(g: &Grid, na: usize, nb: usize, inputs: &[usize], end: usize) -> Opti
         }
     });
     let y = DVector::from_fn(rows, |r, _| g.y[r + lag]);
-    let theta = least_squares(&x, &y)?;
+    let theta = least_squares(&x, &y).ok()?;
     let a: Vec<f64> = theta.iter().take(na).copied().collect();
     // Run freely, the model must be stable: every root of z^na - a1 z^(na-1) - ... inside
     // the unit circle (checked for the orders used here, 1 and 2).

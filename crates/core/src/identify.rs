@@ -14,6 +14,7 @@ use thiserror::Error;
 use crate::geometry::{Vec3, wrap_deg};
 use crate::kinematics::PoseGeometry;
 use crate::kinematics::{ErrorId, Kinematics, MAX_ROTARY, MachineState};
+use crate::least_squares::{lsq, lsq_with_tol, redundant_part};
 use crate::measurement::{Approach, Axis, NoTrip, latched_at};
 
 /// One detection as the solver sees it.
@@ -710,6 +711,7 @@ fn weighted(j: &DMatrix<f64>, w: &[f64], sigma: f64) -> DMatrix<f64> {
     wj
 }
 
+/// The Gauss-Newton step: the weighted least-squares solution of `J d = m - f`.
 fn gn_step(j: &DMatrix<f64>, m: &[f64], f: &[f64], w: &[f64], sigma: f64) -> DVector<f64> {
     let wj = weighted(j, w, sigma);
     let rw = DVector::from_iterator(
@@ -719,21 +721,18 @@ fn gn_step(j: &DMatrix<f64>, m: &[f64], f: &[f64], w: &[f64], sigma: f64) -> DVe
             .zip(w)
             .map(|((mi, fi), wi)| (mi - fi) * 1e3 * wi.sqrt() / sigma),
     );
-    let qr = wj.qr();
-    let mut qtr = rw;
-    qr.q_tr_mul(&mut qtr);
-    let p = j.ncols();
-    let r = qr.r();
-    let rhs = qtr.rows(0, p).into_owned();
-    r.solve_upper_triangular(&rhs)
-        .unwrap_or_else(|| DVector::zeros(p))
+    lsq(&wj, &rw).beta
 }
 
+/// `(J^T W J)^-1` from the weighted sensitivities; NaN where the design is rank deficient
+/// (the constructor has already refused such a plan).
 fn covariance_from_weighted(wj: &DMatrix<f64>) -> DMatrix<f64> {
-    let info = wj.transpose() * wj;
-    info.clone()
-        .try_inverse()
-        .unwrap_or_else(|| DMatrix::from_element(info.nrows(), info.ncols(), f64::NAN))
+    let (n, p) = (wj.nrows(), wj.ncols());
+    let f = lsq(wj, &DVector::zeros(n));
+    if f.rank < p {
+        return DMatrix::from_element(p, p, f64::NAN);
+    }
+    f.cov
 }
 
 fn covariance(j: &DMatrix<f64>, sigma: f64) -> DMatrix<f64> {
@@ -742,21 +741,17 @@ fn covariance(j: &DMatrix<f64>, sigma: f64) -> DMatrix<f64> {
 
 /// Variances (up to sigma^2) of the first `k` parameters for sensitivities `j`.
 fn variances(j: &DMatrix<f64>, k: usize) -> Vec<f64> {
-    let info = j.transpose() * j;
-    match info.try_inverse() {
-        Some(c) => (0..k).map(|i| c[(i, i)]).collect(),
-        None => vec![f64::INFINITY; k],
+    let f = lsq(j, &DVector::zeros(j.nrows()));
+    if f.rank < j.ncols() {
+        return vec![f64::INFINITY; k];
     }
+    (0..k).map(|i| f.cov[(i, i)]).collect()
 }
 
 /// Components of the residuals in the left null space of the (weighted) sensitivity matrix.
 fn redundancy(wj: &DMatrix<f64>, residuals_um: &[f64], sigma: f64) -> Vec<f64> {
-    let n = wj.nrows();
-    let p = wj.ncols();
-    let qr = wj.clone().qr();
-    let mut v = DVector::from_iterator(n, residuals_um.iter().map(|r| r / sigma));
-    qr.q_tr_mul(&mut v);
-    v.rows(p, n - p).iter().map(|x| x * sigma).collect()
+    let v = DVector::from_iterator(wj.nrows(), residuals_um.iter().map(|r| r / sigma));
+    redundant_part(wj, &v).iter().map(|x| x * sigma).collect()
 }
 
 /// The parameter combinations the sensitivity matrix cannot see, in words.
@@ -773,24 +768,12 @@ fn null_combinations(j: &DMatrix<f64>, names: &[String]) -> Vec<String> {
         return out;
     }
     let names: Vec<String> = live.iter().map(|c| names[*c].clone()).collect();
-    let norms: Vec<f64> = live.iter().map(|c| norms[*c]).collect();
-    let mut jn = j.select_columns(&live);
-    for (c, nrm) in norms.iter().enumerate() {
-        jn.column_mut(c).unscale_mut(*nrm);
-    }
-    let svd = jn.svd(false, true);
-    let Some(vt) = svd.v_t else {
-        return vec!["(singular value decomposition failed)".into()];
-    };
-    let smax = svd.singular_values.max();
-    for (i, s) in svd.singular_values.iter().enumerate() {
-        if *s > RANK_TOL * smax {
-            continue;
-        }
-        // Back to physical units, largest component 1.
-        let v: Vec<f64> = (0..names.len()).map(|c| vt[(i, c)] / norms[c]).collect();
-        let big = v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
-        let terms: Vec<String> = v
+    let jl = j.select_columns(&live);
+    let fit = lsq_with_tol(&jl, &DVector::zeros(j.nrows()), RANK_TOL);
+    for tie in &fit.ties {
+        // In physical units, largest component 1.
+        let big = tie.amax();
+        let terms: Vec<String> = tie
             .iter()
             .zip(&names)
             .filter(|(x, _)| x.abs() > 1e-3 * big)

@@ -414,10 +414,12 @@ fn drift_alias(
     n_loc: usize,
 ) -> Result<Vec<(Axis, Vec<f64>)>, String> {
     let t_ref = mean_time_ns(obs.iter().map(|o| o.t_ns));
-    let info = j.transpose() * j;
-    let inv = info
-        .try_inverse()
-        .ok_or("the information matrix is singular")?;
+    // `(J^T J)^-1` once, for every axis' `d`.
+    let fit = crate::least_squares::lsq(j, &DVector::zeros(j.nrows()));
+    if fit.rank < j.ncols() {
+        return Err("the information matrix is singular".into());
+    }
+    let inv = fit.cov;
     let mut out = Vec::new();
     for axis in [Axis::X, Axis::Y, Axis::Z] {
         if !obs.iter().any(|o| o.approach.axis == axis) {

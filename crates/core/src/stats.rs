@@ -262,8 +262,7 @@ pub fn partial_correlation(
     let z = DMatrix::from_fn(n, p, |i, j| if j == 0 { 1.0 } else { controls[j - 1][i] });
     let resid = |v: &[f64]| -> Option<DVector<f64>> {
         let v = DVector::from_column_slice(v);
-        let beta = z.clone().svd(true, true).solve(&v, 1e-12).ok()?;
-        Some(&v - &z * beta)
+        Some(crate::least_squares::residual_of(&z, &v))
     };
     let (ry, rx) = (resid(y)?, resid(x)?);
     let (syy, sxx) = (ry.dot(&ry), rx.dot(&rx));

@@ -20,6 +20,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::least_squares;
 use crate::recording::{Recording, ResultStatus};
 
 #[derive(Debug, Error, PartialEq)]
@@ -650,7 +651,7 @@ fn fit_change_regression(cfg: &ModelConfig, obs: &[Obs]) -> Option<ChangeRegress
         .filter(|&c| x[c].iter().any(|v| v.abs() > 1e-9))
         .collect();
     let design = DMatrix::from_fn(y.len(), keep.len(), |i, k| x[keep[k]][i]);
-    let gains = crate::least_squares::least_squares(&design, &DVector::from_vec(y))?;
+    let gains = least_squares::least_squares(&design, &DVector::from_vec(y)).ok()?;
     Some(ChangeRegression {
         columns: keep.iter().map(|&c| cols[c]).collect(),
         gains: gains.iter().copied().collect(),
@@ -1274,18 +1275,10 @@ pub fn fit_rows(
     })
 }
 
-/// Posterior mean and precision matrix for weights `w` and prior precision `lambda`.
-fn solve(obs: &[&Obs], w: &[f64], lambda: &[f64]) -> Option<(DVector<f64>, DMatrix<f64>)> {
-    let n = lambda.len();
-    let mut a = DMatrix::from_diagonal(&DVector::from_column_slice(lambda));
-    let mut b = DVector::zeros(n);
-    for (o, wi) in obs.iter().zip(w) {
-        a.ger(*wi, &o.row, &o.row, 1.0);
-        b.axpy(wi * o.y, &o.row, 1.0);
-    }
-    let a = (a.clone() + a.transpose()) * 0.5;
-    let chol = a.clone().cholesky()?;
-    Some((chol.solve(&b), a))
+/// Posterior mean and precision matrix for weights `w` and prior precision `lambda` (the
+/// Bayesian ridge of `least_squares::posterior`).
+fn solve(obs: &[&Obs], w: &[f64], lambda: &[f64]) -> Option<least_squares::Posterior> {
+    least_squares::posterior(obs.iter().zip(w).map(|(o, wi)| (&o.row, o.y, *wi)), lambda).ok()
 }
 
 /// One channel's fit: the posterior on every observation, the offset walk learned from
@@ -1420,10 +1413,11 @@ fn fit_posterior(
     let d2 = p.discrepancy(best.1)?;
     let w = p.weights(d2);
     let lambda = p.with_ridge(best.1);
-    let (beta, a) = solve(&p.all, &w, &lambda).ok_or_else(|| err("singular fit".into()))?;
-    let cov = a
-        .try_inverse()
-        .ok_or_else(|| err("singular posterior".into()))?;
+    let post = solve(&p.all, &w, &lambda).ok_or_else(|| err("singular fit".into()))?;
+    let cov = post
+        .covariance()
+        .map_err(|_| err("singular posterior".into()))?;
+    let beta = post.mean;
     let held_to_range = held_temperature_columns(cfg, obs, &beta, &cov);
     let resid: Vec<f64> = obs.iter().map(|o| o.y - o.row.dot(&beta)).collect();
     let rms = (resid.iter().map(|r| r * r).sum::<f64>() / resid.len() as f64).sqrt();
@@ -1537,8 +1531,9 @@ impl<'a> Posterior<'a> {
         let dof = self.dof;
         let mut d2 = 0.0;
         for _ in 0..3 {
-            let (beta, _) = solve(&self.all, &self.weights(d2), &self.with_ridge(k))
-                .ok_or_else(|| channel_error(self.name, "singular fit".into()))?;
+            let beta = solve(&self.all, &self.weights(d2), &self.with_ridge(k))
+                .ok_or_else(|| channel_error(self.name, "singular fit".into()))?
+                .mean;
             let r2: Vec<(f64, f64)> = obs
                 .iter()
                 .map(|o| {
@@ -1592,7 +1587,9 @@ impl<'a> Posterior<'a> {
                 let hi = (b + 1) * obs.len() / blocks;
                 let train: Vec<&Obs> = obs[..lo].iter().chain(&obs[hi..]).collect();
                 let wt: Vec<f64> = w[..lo].iter().chain(&w[hi..]).copied().collect();
-                let Some((beta, _)) = solve(&train, &wt, &self.with_ridge(k)) else {
+                let Some(least_squares::Posterior { mean: beta, .. }) =
+                    solve(&train, &wt, &self.with_ridge(k))
+                else {
                     continue;
                 };
                 for o in &obs[lo..hi] {

@@ -12,10 +12,10 @@ use driftwatch_core::identify::SolveOptions;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::recording::{DetectionMsg, Timed};
 
-use crate::lsq::{basis, lsq, residual_of, scan};
 pub use crate::rows::{
     DetectionRow, DiagnosisError, Rows, SIGMA_UM_RANGE, SIGNATURES, detection_rows,
 };
+use driftwatch_core::least_squares::{basis, lsq, residual_of, scan};
 
 /// The baseline of docs/physics.md 4.6.1: every design parameter (the location errors and the
 /// nuisances) as an offset plus gains on the spindle pole basis, fitted jointly to every

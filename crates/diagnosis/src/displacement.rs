@@ -22,8 +22,8 @@ use serde::Serialize;
 
 use crate::cycles::DIAGNOSIS_TAUS_MIN;
 use crate::effects::TEMPERATURE_TAUS_MIN;
-use crate::lsq::lsq;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
+use driftwatch_core::least_squares::lsq;
 use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
 
 mod located;

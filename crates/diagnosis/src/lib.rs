@@ -6,7 +6,6 @@
 pub mod cycles;
 pub mod displacement;
 pub mod effects;
-pub mod lsq;
 pub mod report;
 pub mod rows;
 mod stepwise;

@@ -42,6 +42,7 @@
 //! rate along its beam, `m . D`, is estimated with the rest (`Estimate::drift_um_per_min`).
 
 use driftwatch_core::geometry::Vec3;
+use driftwatch_core::least_squares::{constrained, lsq};
 use nalgebra::{DMatrix, DVector};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -259,10 +260,8 @@ impl Estimate {
                 let v = if k == 0 { 0.0 } else { values[k - 1] };
                 v - slope * k as f64 * step_mm * 1e3
             });
-            match a.svd(true, true).solve(&b, 1e-12) {
-                Ok(c) => [c[1], c[2], c[3]],
-                Err(_) => [0.0; 3],
-            }
+            let c = lsq(&a, &b).beta;
+            [c[1], c[2], c[3]]
         };
         const AXES: [char; 3] = ['X', 'Y', 'Z'];
         for (j, axis) in AXES.iter().enumerate() {
@@ -425,8 +424,8 @@ pub fn conventional(runs: &[DiagonalRun; 4], setup: &Setup) -> Result<Estimate, 
         for k in 0..n {
             // Rows: the three diagonals' moves of axis j over interval k (a diagonal that
             // runs negatively along j covers it at its step n-1-k); columns dE_xj, dE_yj, dE_zj.
-            let mut m = nalgebra::Matrix3::zeros();
-            let mut y = nalgebra::Vector3::zeros();
+            let mut m = DMatrix::zeros(3, 3);
+            let mut y = DVector::zeros(3);
             for (row, r) in runs[..3].iter().enumerate() {
                 let s = r.signs;
                 // The move of axis j covering interval k.
@@ -436,7 +435,12 @@ pub fn conventional(runs: &[DiagonalRun; 4], setup: &Setup) -> Result<Estimate, 
                 }
                 y[row] = inc[row][3 * kk + j];
             }
-            let sol = m.try_inverse().ok_or(SolveError::Singular)? * y;
+            // Three equations, three unknowns: least squares is the exact solve.
+            let fit = lsq(&m, &y);
+            if fit.rank < 3 {
+                return Err(SolveError::Singular);
+            }
+            let sol = fit.beta;
             for (row, v) in de.iter_mut().zip(sol.iter()) {
                 row[j][k] = *v;
             }
@@ -505,7 +509,7 @@ pub fn robust(
     let nu = nd + 8 + if oab { 4 } else { 0 };
     let at = |i: usize, j: usize, k: usize| (3 * i + j) * n + k;
     let per_run = if oab { 6 * n } else { 3 * n };
-    let rows = 4 * per_run + 3 * n + 3;
+    let rows = 4 * per_run + 3 * n;
     let mut m = DMatrix::zeros(rows, nu);
     let mut y = DVector::zeros(rows);
     let w = 1.0 / (3f64.sqrt() * setup.noise_um.max(1e-6));
@@ -556,17 +560,21 @@ pub fn robust(
             r += 1;
         }
     }
-    // Gauge: X's straightness in y and z, and Y's in z, have no end-point slope.
-    let big = 1e4 * w.max(wp);
-    for (i, j) in [(1, 0), (2, 0), (2, 1)] {
+    // Gauge: X's straightness in y and z, and Y's in z, have no end-point slope (the sum of
+    // their increments is zero). Exact constraints, not heavy rows: the readings do not fix
+    // these three sums (they set the frame), and a heavy row only approaches the constraint
+    // as its weight grows, at the price of rounding in everything else.
+    let mut gauge = DMatrix::zeros(3, nu);
+    for (g, (i, j)) in [(1, 0), (2, 0), (2, 1)].into_iter().enumerate() {
         for k in 0..n {
-            m[(r, at(i, j, k))] = big;
+            gauge[(g, at(i, j, k))] = 1.0;
         }
-        r += 1;
     }
-    let mtm = m.transpose() * &m;
-    let cov = mtm.try_inverse().ok_or(SolveError::Singular)?;
-    let x = &cov * (m.transpose() * &y);
+    let fit = constrained(&m, &y, &gauge);
+    if fit.rank < nu {
+        return Err(SolveError::Singular);
+    }
+    let (x, cov) = (fit.beta, fit.cov);
     let de: [[Vec<f64>; 3]; 3] =
         std::array::from_fn(|i| std::array::from_fn(|j| (0..n).map(|k| x[at(i, j, k)]).collect()));
     // A squareness is the sum of one profile's increments over the range (the other's is

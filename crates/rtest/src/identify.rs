@@ -25,6 +25,7 @@ use std::collections::BTreeMap;
 
 use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::{ErrorId, Kinematics, MachineState};
+use driftwatch_core::least_squares::{lsq, lsq_with_tol};
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
@@ -406,7 +407,7 @@ fn select(jac: &DMatrix<f64>, candidates: &[(Param, String)]) -> (Vec<usize>, Ve
     for c in 0..candidates.len() {
         let mut trial = kept.clone();
         trial.push(c);
-        if rank(&scaled_columns(jac, &trial)) == trial.len() {
+        if rank(jac, &trial) == trial.len() {
             kept = trial;
         } else {
             not_identifiable.push(tie_message(jac, &kept, c, candidates));
@@ -522,9 +523,13 @@ pub fn identify(
         let j = cols.iter().position(|&c| c == hc).unwrap_or(0);
         a[(n + r, j)] = 1.0 / prior;
     }
-    let ata = a.transpose() * &a;
-    let cov_random = ata.try_inverse().ok_or(IdentifyError::Singular)?;
-    let x = &cov_random * (a.transpose() * &b);
+    // The kept columns have full rank (`select`) and the head's columns their priors' rows, so
+    // the design has full rank; one that does not is refused, as the inverse refused it.
+    let fit = lsq(&a, &b);
+    if fit.rank < m {
+        return Err(IdentifyError::Singular);
+    }
+    let (x, cov_random) = (fit.beta, fit.cov);
     let (cal_cov, cal_chi2) = calibration_cov(runs, &whiten, &cov_random, &a, n);
     let (form_cov, form_chi2) = form_cov(runs, &whiten, &cov_random, &a);
     let systematic = cal_cov + form_cov;
@@ -708,26 +713,18 @@ fn form_cov(
     )
 }
 
-/// Columns scaled to unit norm (so that the rank test does not depend on units).
-fn scaled_columns(jac: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
-    let mut m = DMatrix::zeros(jac.nrows(), cols.len());
-    for (j, &c) in cols.iter().enumerate() {
-        let col = jac.column(c);
-        let norm = col.norm();
-        if norm > 0.0 {
-            m.set_column(j, &(col / norm));
-        }
-    }
-    m
-}
-
-fn rank(m: &DMatrix<f64>) -> usize {
-    if m.ncols() == 0 {
+/// The rank of the columns `cols` of `jac`, scaled to unit norm (so that the rank test does
+/// not depend on units): singular values above 1e-6 of the largest.
+fn rank(jac: &DMatrix<f64>, cols: &[usize]) -> usize {
+    if cols.is_empty() {
         return 0;
     }
-    let sv = m.clone().svd(false, false).singular_values;
-    let max = sv.iter().cloned().fold(0.0, f64::max);
-    sv.iter().filter(|s| **s > max * 1e-6 && **s > 1e-9).count()
+    lsq_with_tol(
+        &jac.select_columns(cols),
+        &DVector::zeros(jac.nrows()),
+        1e-6,
+    )
+    .rank
 }
 
 /// "EC0C: not separable from table_object_x (-1.00), ..." from the least-squares fit of the
@@ -744,9 +741,8 @@ fn tie_message(
         return format!("{name}: these tests do not see it at all");
     }
     let sub = DMatrix::from_columns(&kept.iter().map(|&k| jac.column(k)).collect::<Vec<_>>());
-    let Ok(coef) = sub.svd(true, true).solve(&col, 1e-12) else {
-        return format!("{name}: not separable from the other parameters");
-    };
+    // The kept columns have full rank (`select`), so the fit is unique.
+    let coef = lsq(&sub, &col).beta;
     let ties: Vec<String> = kept
         .iter()
         .zip(coef.iter())

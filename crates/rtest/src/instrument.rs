@@ -488,17 +488,24 @@ pub fn calibrate(
             }
         }
     }
-    // readings_i = g_i . d: three independent least-squares fits on the same design.
-    let mut dtd = Mat3::zeros();
-    let mut dtr = Mat3::zeros();
-    for (d, r) in &rows {
-        dtd += d * d.transpose();
-        dtr += d * Vec3::new(r[0], r[1], r[2]).transpose();
+    // readings_i = g_i . d: three independent least-squares fits on the same design, with
+    // the one covariance `(D^T D)^-1`.
+    let design = nalgebra::DMatrix::from_fn(rows.len(), 3, |i, j| rows[i].0[j]);
+    let mut g = Mat3::zeros();
+    let mut inv = Mat3::zeros();
+    for k in 0..3 {
+        let y = nalgebra::DVector::from_fn(rows.len(), |i, _| rows[i].1[k]);
+        let fit = driftwatch_core::least_squares::lsq(&design, &y);
+        if fit.rank < 3 {
+            return Err(ReadingError::Calibration);
+        }
+        for j in 0..3 {
+            g[(k, j)] = fit.beta[j];
+            for l in 0..3 {
+                inv[(j, l)] = fit.cov[(j, l)];
+            }
+        }
     }
-    let Some(inv) = dtd.try_inverse() else {
-        return Err(ReadingError::Calibration);
-    };
-    let g = (inv * dtr).transpose();
     let ss: f64 = rows
         .iter()
         .map(|(d, r)| (Vec3::new(r[0], r[1], r[2]) - g * d).norm_squared())

@@ -234,9 +234,6 @@ pub fn first_harmonic(angles_deg: &[f64], v: &[f64]) -> Option<(f64, f64)> {
             _ => t.sin(),
         }
     });
-    let sol = a
-        .svd(true, true)
-        .solve(&DVector::from_column_slice(v), 1e-12)
-        .ok()?;
+    let sol = driftwatch_core::least_squares::lsq(&a, &DVector::from_column_slice(v)).beta;
     Some((sol[1].hypot(sol[2]), sol[2].atan2(sol[1]).to_degrees()))
 }

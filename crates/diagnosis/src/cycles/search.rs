@@ -17,9 +17,9 @@ use super::{
     periodic_scan, screen_outliers, step_candidates,
 };
 use crate::effects::{Candidate, Drivers};
-use crate::lsq::{Lsq, basis, beyond, hstack, lsq, residual_of, scan};
 use crate::rows::Rows;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
+use driftwatch_core::least_squares::{Lsq, basis, beyond, hstack, lsq, residual_of, scan};
 
 /// `rows` without the readings that are outliers against a robust baseline
 /// ([`screen_outliers`]), and those readings.

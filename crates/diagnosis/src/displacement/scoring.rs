@@ -12,7 +12,7 @@
 //! what a persistent residual lets a chance column reach is in the bar.
 
 use super::{Design, ar_by_bic, ar1};
-use crate::lsq::lsq;
+use driftwatch_core::least_squares::lsq;
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
