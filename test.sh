@@ -117,12 +117,13 @@ check() {
 step "build the tests"
 cargo test --locked --no-run
 check "cargo test (every test binary)" cargo test --locked --no-fail-fast
-# The integration tests that take their store from tests/common run again on PostgreSQL (the
-# fault injection of tests/service.rs uses SQLite triggers and the crash test reads the SQLite
-# file: they stay on SQLite; the fleet test is PostgreSQL's own).
+# The modules of the integration tests (tests/it, one binary) that take their store from
+# tests/it/common run again on PostgreSQL, chosen by their module paths (the fault injection of
+# tests/it/service.rs uses SQLite triggers and the crash test reads the SQLite file: they stay
+# on SQLite; the fleet test is PostgreSQL's own).
 check "integration tests on PostgreSQL" env DRIFTWATCH_TEST_BACKEND=postgres \
-    cargo test --locked --no-fail-fast --test api --test daemon --test nc_offsets \
-    --test nc_push --test opcua --test verification
+    cargo test --locked --no-fail-fast --test it -- api:: daemon:: nc_offsets:: nc_push:: \
+    opcua:: verification::
 
 out="$(mktemp -d)"
 # The binary `cargo test` built for the command-line tests.

@@ -1,7 +1,7 @@
 //! The displacement diagnosis on real data from another lab (fl-thermal, MIT;
 //! tests/data/fl-thermal): 46 h of a spindle thermal test with 5 displacement probes and 16
 //! temperatures. Trained on 0-40 h, held out 40-46.3 h. Figures:
-//! `cargo test --release --test displacement -- --nocapture`.
+//! `cargo test --release --test it -- displacement:: --nocapture`.
 
 use driftwatch_core::thermal_model::{Event, ModelInput};
 use driftwatch_diagnosis::displacement::{
@@ -12,8 +12,7 @@ use driftwatch_lab::null_recordings::Null;
 
 const H: i64 = 3_600_000_000_000;
 
-#[path = "common/fl_thermal.rs"]
-mod fl;
+use crate::common::fl_thermal as fl;
 
 fn events(spindle: bool) -> Vec<Event> {
     fl::events(spindle, &fl::CHANNELS)
@@ -232,7 +231,7 @@ fn a_late_drift_in_real_data_is_located_and_tied_to_its_temperature() {
     let d = diagnose_displacements(&ev, &["ch1_um".to_string()], &opts).unwrap();
     let c = &d.channels[0];
     // What the selection leaves is located on the training part and made a term (its
-    // verdict is tests/located.rs's subject): t11_C, within hours of 25 h, with its gain.
+    // verdict is tests/it/located.rs's subject): t11_C, within hours of 25 h, with its gain.
     let l = c.located_term.as_ref().unwrap();
     println!("{l:?}");
     assert_eq!(l.sensor, "t11_C", "{l:?}");

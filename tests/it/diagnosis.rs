@@ -593,7 +593,7 @@ fn null_selections_on(machine: &str, from: u64, n: u64) -> Vec<String> {
 
 // Forty clean recordings in four tests (they run in parallel); at most two selections in all
 // is the bar, so each quarter may make at most two and the sum is checked by the
-// closing note's command (`cargo test --release --test diagnosis clean -- --nocapture`).
+// closing note's command (`cargo test --release --test it diagnosis::clean -- --nocapture`).
 #[test]
 fn clean_recordings_select_nothing_1() {
     let s = null_selections(1000);
@@ -1103,8 +1103,8 @@ fn confounded_physics_is_named_grouped_or_unexplained_never_wrongly_named() {
     assert!(failures.is_empty(), "{failures:?}");
 }
 
-/// One confounded case in detail (`CASE=i SEED=s cargo test --release --test diagnosis
-/// debug_confounded -- --ignored --nocapture`): every group member with its reason.
+/// One confounded case in detail (`CASE=i SEED=s cargo test --release --test it
+/// diagnosis::debug_confounded -- --ignored --nocapture`): every group member with its reason.
 #[test]
 #[ignore]
 fn debug_confounded() {
@@ -1140,7 +1140,7 @@ fn debug_confounded() {
 }
 
 /// One injected case over a few seeds (`CASE=measurement_heating SEEDS=119,120 cargo test
-/// --test diagnosis debug_injected -- --ignored --nocapture`), with every accepted term's
+/// --test it diagnosis::debug_injected -- --ignored --nocapture`), with every accepted term's
 /// group.
 #[test]
 #[ignore]
@@ -1185,7 +1185,7 @@ fn debug_injected() {
 /// Twenty clean recordings per family (80 diagnoses: slow in a debug build, so not in the
 /// default run): the false-selection rate of each family against the bar of the table_bc
 /// nulls (at most 2 in 40). Run with
-/// `cargo test --release --test diagnosis clean_recordings_of_every_family -- --ignored --nocapture`.
+/// `cargo test --release --test it diagnosis::clean_recordings_of_every_family -- --ignored --nocapture`.
 #[test]
 #[ignore = "80 diagnoses: run in release with --ignored"]
 fn clean_recordings_of_every_family_select_at_most_one_in_twenty() {
@@ -1452,7 +1452,7 @@ struct Power {
 /// threshold the diagnosis states for its candidate term on that plan (read from a clean
 /// recording of the same plan), over `POWER_SEEDS` seeds (default 12), on each case's plan or
 /// on `POWER_PLAN` (a built-in name or a path) where given. Run with
-/// `cargo test --release --test diagnosis power_curve -- --ignored --nocapture`.
+/// `cargo test --release --test it diagnosis::power_curve -- --ignored --nocapture`.
 #[test]
 #[ignore = "about 550 diagnoses: run in release with --ignored"]
 fn power_curve_at_half_one_and_two_thresholds() {
@@ -1626,8 +1626,8 @@ fn two_effects_at_once_are_both_found_and_nothing_else() {
         (by("rotary_backlash"), by("ambient")),
         (by("slow_mode"), by("skip_latency")),
     ];
-    // More seeds for the closing note's figure: `PAIR_SEEDS=10 cargo test --release --test
-    // diagnosis two_effects -- --nocapture`.
+    // More seeds for the closing note's figure: `PAIR_SEEDS=10 cargo test --release --test it
+    // diagnosis::two_effects -- --nocapture`.
     let seeds: u64 = std::env::var("PAIR_SEEDS")
         .ok()
         .and_then(|v| v.parse().ok())

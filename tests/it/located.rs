@@ -4,7 +4,7 @@
 //! real readings, is modelled and the held-out error falls; the recording as it is gets no
 //! located term that worsens its held-out end; a drift that follows a temperature rising
 //! as steadily as time is reported as confounded with a ramp. The power table over sizes,
-//! onsets, sensors and channels: `cargo test --test located -- --ignored --nocapture`.
+//! onsets, sensors and channels: `cargo test --test it -- located:: --ignored --nocapture`.
 
 use driftwatch_core::thermal_model::Event;
 use driftwatch_diagnosis::displacement::{
@@ -15,8 +15,7 @@ use driftwatch_lab::null_recordings::with_temperature_effect;
 
 const H: i64 = 3_600_000_000_000;
 
-#[path = "common/fl_thermal.rs"]
-mod fl;
+use crate::common::fl_thermal as fl;
 
 fn events() -> Vec<Event> {
     fl::events(true, &fl::CHANNELS)

@@ -9,7 +9,7 @@
 //! the package, without it). Leases run on the wall clock: the waits poll and are bounded.
 #![cfg(unix)]
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::fs;

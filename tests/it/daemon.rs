@@ -1,7 +1,7 @@
 //! The service loop on a simulated machine through a simulated day, on simulated time: no
 //! wall clock, hours in seconds.
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};

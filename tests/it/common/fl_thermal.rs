@@ -1,6 +1,5 @@
 //! fl-thermal (MIT; tests/data/fl-thermal) as events, for the tests that judge models and
-//! diagnoses on it. Included with `#[path]` so that those tests need not build the service
-//! helpers of `common`.
+//! diagnoses on it (`thermal`, `displacement`, `located`).
 
 use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
 use driftwatch_core::thermal_model::{Event, events_from};

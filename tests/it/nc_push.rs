@@ -2,7 +2,7 @@
 //! the truth simulator), posts its events, polls for cycle orders and runs them; the service
 //! loop runs on simulated time.
 
-mod common;
+use crate::common;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};

@@ -10,7 +10,7 @@
 //! The service runs on a manual clock that the test keeps at the wall clock (the server stamps
 //! its values with the wall clock, as a real NC does); every wait polls with a deadline.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -75,6 +75,8 @@ impl Rig {
     /// a warm-up at 20 000 min^-1), one per step label, for the server to play back.
     fn new(name: &str) -> Rig {
         // The link's and the client's log, with RUST_LOG (e.g. RUST_LOG=info), for a failure.
+        // The subscriber is the process's: once installed it also takes the logs of the other
+        // modules' services that run at the same time (only printed for a failing test).
         let _ = tracing_subscriber::fmt()
             .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
             .with_test_writer()

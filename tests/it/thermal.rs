@@ -1,6 +1,6 @@
 //! The thermal model on real data from another lab (fl-thermal, MIT; tests/data/fl-thermal):
 //! 46 h of a spindle thermal test. Fit on 0-40 h, predict 40-46.3 h without corrections.
-//! No accuracy goal yet: the figures are printed (`cargo test --test thermal -- --nocapture`)
+//! No accuracy goal yet: the figures are printed (`cargo test --test it -- thermal:: --nocapture`)
 //! and the assertions check what must hold whatever the numbers.
 
 use driftwatch_core::thermal_model::{
@@ -14,8 +14,7 @@ fn events() -> Vec<Event> {
     fl_thermal(true, &["ch1_um", "ch3_um"])
 }
 
-#[path = "common/fl_thermal.rs"]
-mod fl;
+use crate::common::fl_thermal as fl;
 
 /// fl-thermal imported with or without its spindle column, all 16 temperatures and `channels`.
 fn fl_thermal(spindle: bool, channels: &[&str]) -> Vec<Event> {

@@ -2,7 +2,7 @@
 //! program and the JSON list made from the set the NC is served, the default body unchanged,
 //! an unknown format and a missing FANUC nominal refused, a step beyond the limit refused.
 
-mod common;
+use crate::common;
 
 use axum::http::{StatusCode, header};
 use serde_json::Value;

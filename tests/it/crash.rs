@@ -7,7 +7,7 @@
 //! waiting on the wall clock is polling that child (every wait is bounded).
 #![cfg(unix)]
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeSet;
 use std::fs::{self, File};

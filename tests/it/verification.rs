@@ -3,7 +3,7 @@
 //! time (nearest, interpolated), stored, listed, refused when it cannot be taken or has no
 //! setter result near it, and alerted on when it exceeds. The clock is the tests' manual one.
 
-mod common;
+use crate::common;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};

@@ -2,10 +2,11 @@
 //! `launch`, on a listener bound to port 0 that the test keeps, on a manual clock that the test
 //! moves (hours of a plant day in seconds; nothing sleeps on the wall clock to pass).
 
-// Each test binary uses a part of this module.
+// Each test module uses a part of this module.
 #![allow(dead_code)]
 
 pub mod child;
+pub mod fl_thermal;
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -22,7 +23,9 @@ use driftwatch_service::store::Store;
 
 pub const MIN: i64 = driftwatch_core::units::NS_PER_MIN;
 
-/// An empty scratch directory under the test target's temporary directory.
+/// An empty scratch directory under the test target's temporary directory. Every module of
+/// `tests/it` runs in the one process at the same time: each names its directories with its own
+/// prefix (`api-`, `faults-`, ...), so no two tests share one.
 pub fn scratch(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
     let _ = std::fs::remove_dir_all(&d);
@@ -31,10 +34,10 @@ pub fn scratch(name: &str) -> PathBuf {
 }
 
 /// With `DRIFTWATCH_TEST_BACKEND=postgres`, the URL of the database of data directory `dir` on
-/// a throwaway PostgreSQL server (one per test binary; a fresh database the first time a
-/// directory asks, the same one after, as a restart on the same directory finds its SQLite
-/// file): the tests that take their store from here then run against PostgreSQL instead of
-/// SQLite (`.ci/run` runs them both ways).
+/// a throwaway PostgreSQL server (one per test process, so one for every module of `tests/it`;
+/// a fresh database the first time a directory asks, the same one after, as a restart on the
+/// same directory finds its SQLite file): the tests that take their store from here then run
+/// against PostgreSQL instead of SQLite (`.ci/run` runs them both ways).
 pub fn test_database_url(dir: &std::path::Path) -> Option<String> {
     use driftwatch_scratch_pg::ScratchPg;
     static SERVER: std::sync::OnceLock<ScratchPg> = std::sync::OnceLock::new();

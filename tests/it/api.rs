@@ -1,12 +1,10 @@
 //! The HTTP API over a machine loop run on simulated time: the NC's compensation endpoint with
 //! ETag and 304, operator requests and their authorisation, errors as JSON.
 
-mod common;
-// The dashboard in headless Chromium (in this binary: no link of its own).
-#[path = "api/dashboard.rs"]
+use crate::common;
+// The dashboard in headless Chromium.
 mod dashboard;
 // The server's connection limits: timeouts, the cap.
-#[path = "api/connections.rs"]
 mod connections;
 
 use axum::body::Body;
@@ -247,8 +245,8 @@ fn grafana_queries_only_exported_metrics(metrics_text: &str) {
 }
 
 /// The OpenAPI document is pinned: a change to the API shows in `docs/openapi.json` (rewrite
-/// it with `UPDATE_SNAPSHOTS=1 cargo test --test api`) and is reviewed there. Every answer of
-/// every operation has a schema, except those without a body (204, 304).
+/// it with `UPDATE_SNAPSHOTS=1 cargo test --test it -- api::`) and is reviewed there. Every
+/// answer of every operation has a schema, except those without a body (204, 304).
 #[test]
 fn the_openapi_document_matches_its_snapshot_and_every_answer_has_a_schema() {
     use utoipa::OpenApi as _;
@@ -282,7 +280,7 @@ fn the_openapi_document_matches_its_snapshot_and_every_answer_has_a_schema() {
     assert!(
         pinned == text,
         "the API's OpenAPI document differs from docs/openapi.json: review the change and \
-         rewrite it with UPDATE_SNAPSHOTS=1 cargo test --test api"
+         rewrite it with UPDATE_SNAPSHOTS=1 cargo test --test it -- api::"
     );
 }
 

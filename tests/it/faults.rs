@@ -6,7 +6,7 @@
 //!
 //! SQLite only (the write faults are SQLite triggers; the database file is damaged by hand).
 
-mod common;
+use crate::common;
 
 use axum::body::Body;
 use axum::http::Request;

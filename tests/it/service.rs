@@ -2,7 +2,7 @@
 //! that the test keeps, with a manual clock that the test moves (hours of a plant day in
 //! seconds, nothing sleeps on the wall clock to pass).
 
-mod common;
+use crate::common;
 
 use common::{MIN, TestService, config, launch_test, refuse_inserts, scratch};
 use driftwatch_service::config::ServiceConfig;
