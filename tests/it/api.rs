@@ -618,7 +618,7 @@ async fn a_diagnosis_runs_on_a_stored_window_and_is_kept() {
     );
 }
 
-/// Issue 13, case 5: cycles, diagnoses and alert events come in pages (`?limit=&before=`,
+/// Cycles, diagnoses and alert events come in pages (`?limit=&before=`,
 /// the next one named in a Link header or `next_before`), and the stored diagnoses are capped.
 #[tokio::test]
 async fn lists_are_paged_and_stored_diagnoses_are_capped() {
@@ -703,7 +703,7 @@ async fn lists_are_paged_and_stored_diagnoses_are_capped() {
     assert_eq!(rest[0]["id"], 3);
 }
 
-/// Issue 13, case 7: the API's conformance: 413 for a body too large, the JSON error for
+/// The API's conformance: 413 for a body too large, the JSON error for
 /// every failure the framework answers itself, the bearer scheme in any case, /metrics and
 /// /readyz behind anonymous_read, token holders' names only for authenticated readers, and an
 /// idempotent acknowledgement.

@@ -980,7 +980,7 @@ fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model
     assert!(err.contains("ch9_um"), "{err}");
 }
 
-/// Issue 13, case 7: `--time-scale` may not bypass the configuration's refusal to run a real
+/// `--time-scale` may not bypass the configuration's refusal to run a real
 /// NC (`nc_push`) on anything but the wall clock; the service stops before it listens.
 #[test]
 fn the_command_line_cannot_bypass_a_configuration_check() {
@@ -1229,7 +1229,7 @@ fn rtest_csv_exports_are_imported_and_bad_cells_refused_by_line() {
 /// `diagonal simulate` and `solve` (seed 004): mirror tilts push the conventional squareness
 /// far off, the set-up-robust one stays on the truth; `correction-table` (seed 003) loops to
 /// GOOD and builds a table from a measured section, refusing a bad cell by line.
-/// Issue 19's round trip from the command line: a static X-Z squareness of 40 urad in the
+/// A round trip from the command line: a static X-Z squareness of 40 urad in the
 /// virtual machine; `diagnose` blames `squareness`; `diagonal simulate --scenario` measures the
 /// same machine's axes and `diagonal solve --geometry-out` writes the geometry; `diagnose
 /// --geometry` with it no longer finds the squareness.

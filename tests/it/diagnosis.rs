@@ -1208,7 +1208,7 @@ fn clean_recordings_of_every_family_select_at_most_one_in_twenty() {
     assert!(over.is_empty(), "{over:?}");
 }
 
-/// Issue 19's round trip: a static X-Z squareness in the virtual machine is blamed on
+/// A round trip: a static X-Z squareness in the virtual machine is blamed on
 /// `squareness` by the diagnosis of its setter cycles, measured independently by the laser
 /// step diagonal (the seed's set-up, mirror tilts and all), the two agree within their
 /// uncertainties, and once the measured geometry is the machine's the diagnosis of the same

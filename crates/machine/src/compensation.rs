@@ -1203,7 +1203,7 @@ mod tests {
         assert!(none.is_none() && r == solver_no);
     }
 
-    /// Issue 13, case 3: a prediction 150 combined sigmas from a measurement 11 s old is
+    /// A prediction 150 combined sigmas from a measurement 11 s old is
     /// caught, while one that drifted as far as the rate limits allow is not; and the next
     /// true measurement is not rejected for its step from a far predicted set: it is
     /// admitted, and the NC gets it ramped from the served set.

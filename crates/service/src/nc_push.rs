@@ -748,7 +748,7 @@ mod tests {
         assert_eq!(link.request_cycle(1, 1), Ok(()));
     }
 
-    /// Issue 13, case 7: a detection of the ordered cycle made at another spindle speed or a
+    /// A detection of the ordered cycle made at another spindle speed or a
     /// feed the order does not have is refused at the door, naming it.
     #[test]
     fn a_detection_not_made_as_ordered_is_refused() {
@@ -802,7 +802,7 @@ mod tests {
         );
     }
 
-    /// Issue 13, case 5: detections of no ordered cycle are counted, not kept, and a flood
+    /// Detections of no ordered cycle are counted, not kept, and a flood
     /// faster than the loop polls is told to come back; memory stays bounded either way.
     #[test]
     fn stray_detections_are_counted_not_kept_and_the_queue_is_bounded() {
