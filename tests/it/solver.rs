@@ -1,4 +1,5 @@
-//! Acceptance tests of the core library: conventions, identification, statistics,
+//! Acceptance tests of the core library (the module is not named `core`, which would shadow the
+//! language's own crate here): conventions, identification, statistics,
 //! cross-check, identifiability, in-cycle drift and the patent experiment.
 
 use driftwatch_core::cycle::CycleChecks;
