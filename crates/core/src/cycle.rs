@@ -207,15 +207,53 @@ pub fn group_by_cycle(detections: &[Entry]) -> (BTreeMap<i64, Vec<Entry>>, Unass
 
 /// The tripped measurements of one cycle's readable detections, with how often each tripped.
 fn tripped(entries: &[Entry]) -> ExpectedMeasurements {
-    let mut m = ExpectedMeasurements::new();
+    let mut tally = Tally::default();
     for e in entries {
-        if let Ok(d) = &e.msg
-            && d.status() == DetectionStatus::Ok
-        {
-            *m.entry(MeasurementKey::of_detection(d)).or_default() += 1;
+        if let Ok(d) = &e.msg {
+            tally.add(e.t_ns, d);
         }
     }
-    m
+    tally.counts
+}
+
+/// The measurements a cycle has tripped so far, each delivered reading counted once (the same
+/// message at the same time twice is a retried upload): the one rule by which the NC door
+/// closes a cycle and the solver finds it complete.
+#[derive(Debug, Clone, Default)]
+pub struct Tally {
+    counts: ExpectedMeasurements,
+    seen: Vec<(i64, DetectionMsg)>,
+}
+
+impl Tally {
+    /// Count a reading if it tripped and was not counted before.
+    pub fn add(&mut self, t_ns: i64, d: &DetectionMsg) {
+        if d.status() != DetectionStatus::Ok || self.seen.iter().any(|(t, m)| *t == t_ns && m == d)
+        {
+            return;
+        }
+        self.seen.push((t_ns, d.clone()));
+        *self
+            .counts
+            .entry(MeasurementKey::of_detection(d))
+            .or_default() += 1;
+    }
+
+    /// The expected measurements tripped fewer times than needed, with the counts.
+    pub fn short_of<'a>(
+        &'a self,
+        expected: &'a ExpectedMeasurements,
+    ) -> impl Iterator<Item = (&'a MeasurementKey, usize, usize)> + 'a {
+        expected.iter().filter_map(|(key, need)| {
+            let got = self.counts.get(key).copied().unwrap_or(0);
+            (got < *need).then_some((key, got, *need))
+        })
+    }
+
+    /// Every expected measurement has tripped as often as needed.
+    pub fn covers(&self, expected: &ExpectedMeasurements) -> bool {
+        self.short_of(expected).next().is_none()
+    }
 }
 
 /// The measurements shared by most cycles (at least two), to check the others against.
@@ -375,21 +413,18 @@ fn missing_measurements(
     ok: &[(i64, &DetectionMsg)],
 ) -> Option<String> {
     // A detection that could not be read is reported above; the count says what is short.
-    let mut have = ExpectedMeasurements::new();
-    for (_, m) in ok {
-        *have.entry(MeasurementKey::of_detection(m)).or_default() += 1;
+    let mut have = Tally::default();
+    for (t, m) in ok {
+        have.add(*t, m);
     }
-    let missing: Vec<String> = expected
-        .iter()
-        .filter_map(|(key, need)| {
-            let got = have.get(key).copied().unwrap_or(0);
-            (got < *need).then(|| {
-                if *need == 1 {
-                    key.to_string()
-                } else {
-                    format!("{key} ({got} of {need})")
-                }
-            })
+    let missing: Vec<String> = have
+        .short_of(expected)
+        .map(|(key, got, need)| {
+            if need == 1 {
+                key.to_string()
+            } else {
+                format!("{key} ({got} of {need})")
+            }
         })
         .collect();
     (!missing.is_empty()).then(|| {

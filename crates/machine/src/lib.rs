@@ -5,8 +5,10 @@
 
 pub mod alerts;
 pub mod compensation;
+pub mod link_event;
 pub mod live_model;
 pub mod machine_core;
+pub mod nc_door;
 pub mod nc_offsets;
 pub mod phase;
 pub mod scheduler;

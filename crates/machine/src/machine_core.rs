@@ -31,6 +31,7 @@ use thiserror::Error;
 
 use crate::alerts::{Alert, AlertEngine, AlertEvent, AlertState, ClockInput, LoggedAlerts, Rule};
 use crate::compensation::{self, CompensationSet, PredictionPolicy, ValidationLimits};
+use crate::link_event::{LinkEvent, RawJson};
 use crate::live_model::{LiveModel, ModelView};
 use crate::nc_offsets::NcLayout;
 use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
@@ -55,22 +56,8 @@ pub enum CoreError {
 /// What the machine core is told.
 #[derive(Debug, Clone)]
 pub enum Input {
-    Spindle(Timed<SpindleMsg>),
-    State(Timed<StateMsg>),
-    Temperature(Timed<TemperatureMsg>),
-    Detection(Timed<DetectionMsg>),
-    /// The machine finished cycle `cycle`'s program at `t_ns`.
-    CycleDone {
-        cycle: i64,
-        t_ns: i64,
-    },
-    /// Since the last step the link refused `refused` events stamped too far from the
-    /// service clock; the largest skew was `worst_skew_ns` (signed). Sent once per step, also
-    /// with nothing refused, so that a quiet clock lets its alert resolve.
-    ClockSkew {
-        refused: u64,
-        worst_skew_ns: i64,
-    },
+    /// What the machine's link reported, as the link reported it.
+    Link(LinkEvent),
     /// An operator asks for a cycle.
     Request {
         by: String,
@@ -120,8 +107,20 @@ pub enum Record {
     State(Timed<StateMsg>),
     Temperature(Timed<TemperatureMsg>),
     Detection(Timed<DetectionMsg>),
-    Compensation { t_ns: i64, set: CompensationSet },
-    Result { t_ns: i64, result: CycleResultMsg },
+    Compensation {
+        t_ns: i64,
+        set: CompensationSet,
+    },
+    Result {
+        t_ns: i64,
+        result: CycleResultMsg,
+    },
+    /// A link's message recorded as it is under its own topic.
+    Raw {
+        topic: &'static str,
+        t_ns: i64,
+        json: RawJson,
+    },
 }
 
 /// A per-minute sample for the time series.
@@ -470,6 +469,8 @@ pub struct MachineCore {
     /// Times the last step said the core wants to be called again.
     next_due_ns: Option<i64>,
     phase_changes_ns: Option<i64>,
+    /// The link's clock-skew refusals since the last step's end, and the last worst skew.
+    skew: (u64, i64),
     view: View,
 }
 
@@ -579,6 +580,7 @@ impl MachineCore {
             last_refusal: None,
             next_due_ns: None,
             phase_changes_ns: None,
+            skew: (0, 0),
             view,
         };
         Ok((core, out))
@@ -621,32 +623,7 @@ impl MachineCore {
     pub fn handle(&mut self, input: Input, now_ns: i64) -> Vec<Effect> {
         let mut out = Vec::new();
         match input {
-            Input::Spindle(m) => self.on_spindle(m, &mut out),
-            Input::State(m) => {
-                let _ = self.phase.on_state(m.t_ns, m.msg.state);
-                out.push(Effect::Record(Box::new(Record::State(m))));
-            }
-            Input::Temperature(m) => self.on_temperature(m, &mut out),
-            Input::Detection(d) => self.on_detection(d, &mut out),
-            Input::CycleDone { cycle, t_ns } => {
-                if self.open.as_ref().is_some_and(|o| o.number == cycle) {
-                    self.finish_cycle(t_ns, &mut out);
-                }
-            }
-            Input::ClockSkew {
-                refused,
-                worst_skew_ns,
-            } => {
-                let skew = ClockInput {
-                    t_ns: now_ns,
-                    refused,
-                    worst_skew_s: worst_skew_ns as f64 / 1e9,
-                };
-                let events = self
-                    .alerts
-                    .evaluate(&crate::alerts::Input::Clock(skew), now_ns);
-                raise(events, &mut out);
-            }
+            Input::Link(ev) => self.on_link(ev, &mut out),
             Input::Request { by } => self.sched.request(by, now_ns),
             Input::Verification(v) => self.on_verification(&v, now_ns, &mut out),
             Input::Geometry { label, geometry } => {
@@ -801,6 +778,47 @@ impl MachineCore {
         }
     }
 
+    fn on_link(&mut self, ev: LinkEvent, out: &mut Vec<Effect>) {
+        match ev {
+            LinkEvent::Spindle(m) => self.on_spindle(m, out),
+            LinkEvent::State(m) => {
+                let _ = self.phase.on_state(m.t_ns, m.msg.state);
+                out.push(Effect::Record(Box::new(Record::State(m))));
+            }
+            LinkEvent::Temperature(m) => self.on_temperature(m, out),
+            LinkEvent::Detection(d) => self.on_detection(d, out),
+            LinkEvent::CycleDone { cycle, t_ns } => {
+                if self.open.as_ref().is_some_and(|o| o.number == cycle) {
+                    self.finish_cycle(t_ns, out);
+                }
+            }
+            LinkEvent::Record { topic, t_ns, json } => {
+                out.push(Effect::Record(Box::new(Record::Raw { topic, t_ns, json })))
+            }
+            // Summed until the end of the step, where the clock alert looks at them.
+            LinkEvent::ClockSkew {
+                refused,
+                worst_skew_ns,
+                ..
+            } => self.skew = (self.skew.0 + refused, worst_skew_ns),
+        }
+    }
+
+    /// The link's clock-skew refusals since the last step, judged at every step's end, also
+    /// with none, so that a quiet clock lets its alert resolve.
+    fn judge_clock(&mut self, now_ns: i64, out: &mut Vec<Effect>) {
+        let (refused, worst_skew_ns) = std::mem::take(&mut self.skew);
+        let skew = ClockInput {
+            t_ns: now_ns,
+            refused,
+            worst_skew_s: worst_skew_ns as f64 / 1e9,
+        };
+        let events = self
+            .alerts
+            .evaluate(&crate::alerts::Input::Clock(skew), now_ns);
+        raise(events, out);
+    }
+
     fn on_detection(&mut self, d: Timed<DetectionMsg>, out: &mut Vec<Effect>) {
         out.push(Effect::Record(Box::new(Record::Detection(d.clone()))));
         if let Some(open) = self.open.as_mut().filter(|o| o.number == d.msg.cycle) {
@@ -840,6 +858,7 @@ impl MachineCore {
 
     /// The end of a step: the prediction, the scheduler's decision, the view.
     fn tick(&mut self, now_ns: i64, out: &mut Vec<Effect>) {
+        self.judge_clock(now_ns, out);
         self.predict_and_serve(now_ns, out);
         let phase = self.phase.phase(now_ns);
         self.phase_changes_ns = phase.changes_at_ns;

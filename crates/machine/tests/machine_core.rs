@@ -11,6 +11,7 @@ use driftwatch_core::recording::{
     DetectionMsg, MachineStateKind, ResultStatus, SpindleMsg, StateMsg, TemperatureMsg, Timed,
 };
 use driftwatch_core::units::NS_PER_MIN;
+use driftwatch_machine::link_event::LinkEvent;
 use driftwatch_machine::machine_core::{
     Effect, Input, MachineCore, Record, Restored, Sample, Settings, SolveJob,
     TEMPERATURE_HEARTBEAT_MIN,
@@ -57,13 +58,13 @@ fn rig() -> Rig {
 }
 
 fn idle(t_ns: i64) -> Input {
-    Input::State(Timed {
+    Input::Link(LinkEvent::State(Timed {
         t_ns,
         msg: StateMsg {
             state: MachineStateKind::Idle,
             program: None,
         },
-    })
+    }))
 }
 
 /// Every step of the plan read where the nominal machine puts it, but for a few tenths of a
@@ -76,7 +77,7 @@ fn readings(rig: &Rig, cycle: i64, t_ns: i64) -> Vec<Input> {
         .map(|(i, s)| {
             let mut pos = s.start;
             pos[s.approach.axis.index()] = s.expected + 3e-4 * ((i * 7 % 5) as f64 - 2.0);
-            Input::Detection(Timed {
+            Input::Link(LinkEvent::Detection(Timed {
                 t_ns: t_ns + i as i64 * 1_000_000_000,
                 msg: DetectionMsg {
                     cycle,
@@ -93,7 +94,7 @@ fn readings(rig: &Rig, cycle: i64, t_ns: i64) -> Vec<Input> {
                     z_mm: pos.z,
                     status: None,
                 },
-            })
+            }))
         })
         .collect()
 }
@@ -155,10 +156,10 @@ fn ask(rig: &mut Rig, at: i64, answer: Result<(), String>) -> (Option<i64>, Vec<
 fn run_cycle(rig: &mut Rig, number: i64, at: i64) -> (Vec<Effect>, Vec<Effect>) {
     let now = min(at);
     let mut inputs = readings(rig, number, now);
-    inputs.push(Input::CycleDone {
+    inputs.push(Input::Link(LinkEvent::CycleDone {
         cycle: number,
         t_ns: now + NS_PER_MIN,
-    });
+    }));
     let before = feed(&mut rig.core, inputs, now + NS_PER_MIN);
     let job = solve_job(&before)
         .expect("a finished cycle is solved")
@@ -244,10 +245,10 @@ fn a_failed_solve_abandons_the_cycle_with_its_reason_and_a_retry_follows() {
     let mut rig = rig();
     ask(&mut rig, 0, Ok(()));
     let mut inputs = readings(&rig, 1, min(1));
-    inputs.push(Input::CycleDone {
+    inputs.push(Input::Link(LinkEvent::CycleDone {
         cycle: 1,
         t_ns: min(2),
-    });
+    }));
     feed(&mut rig.core, inputs, min(2));
     let fx = rig.core.handle(
         Input::Solved {
@@ -344,19 +345,19 @@ fn samples_are_stored_in_ten_minute_batches_and_a_steady_temperature_as_a_heartb
         let fx = feed(
             &mut rig.core,
             [
-                Input::Spindle(Timed {
+                Input::Link(LinkEvent::Spindle(Timed {
                     t_ns: t,
                     msg: SpindleMsg {
                         rpm: if m < 20 { 1000.0 } else { 2000.0 },
                     },
-                }),
-                Input::Temperature(Timed {
+                })),
+                Input::Link(LinkEvent::Temperature(Timed {
                     t_ns: t,
                     msg: TemperatureMsg {
                         sensor: "hall".into(),
                         celsius: 20.0,
                     },
-                }),
+                })),
             ],
             t,
         );

@@ -150,17 +150,11 @@ pub fn settings_from_config(cfg: &crate::config::ServiceConfig) -> Settings {
 }
 
 /// A piece of work for the executor: the core's effects, and what the executor does on its
-/// own behalf in the same order (the messages a link asks to have recorded as they are, the store
-/// rows of a recording file that opened or closed).
+/// own behalf in the same order (the store rows of a recording file that opened or closed, an
+/// alert already sent).
 #[derive(Debug)]
 enum Job {
     Core(Effect),
-    /// A link's message recorded as it is (`LinkEvent::Record`).
-    Record {
-        topic: &'static str,
-        t_ns: i64,
-        json: crate::link::RawJson,
-    },
     FileOpened(std::path::PathBuf),
     FileClosed(ClosedFile),
     /// An alert event already shown and sent (the loop's health alert, raised while the
@@ -183,9 +177,6 @@ pub struct MachineRuntime {
     /// Every alert event so far (also stored), newest last.
     pub alert_log: Vec<driftwatch_machine::alerts::AlertEvent>,
     notifier: crate::webhook::Notifier,
-    /// Clock-skew refusals the link reported and the core has not been told yet: count and
-    /// the last worst skew, ns.
-    skew: (u64, i64),
     /// The newest set the store holds: the only set that may be shown to the API or written
     /// to the NC. The core decides a set before the executor has stored it, so its view may
     /// be ahead of the store; a set becomes this only once its row is committed.
@@ -396,7 +387,6 @@ impl MachineRuntime {
             inbox: Arc::new(Mutex::new(Inbox::default())),
             alert_log: Vec::new(),
             notifier: Default::default(),
-            skew: (0, 0),
             stored_set,
             published: (view_version, 0),
             clock_ns: now_ns,
@@ -486,40 +476,11 @@ impl MachineRuntime {
         self.clock_ns = now_ns;
         // What a failed step left: its effects first, then its events.
         self.drain().await?;
-        for ev in self.link.poll(now_ns) {
-            if let LinkEvent::ClockSkew {
-                refused,
-                worst_skew_ns,
-                ..
-            } = ev
-            {
-                self.skew = (self.skew.0 + refused, worst_skew_ns);
-            } else {
-                self.events.push_back(ev);
-            }
-        }
+        self.events.extend(self.link.poll(now_ns));
         while let Some(ev) = self.events.pop_front() {
-            match ev {
-                LinkEvent::Record { topic, t_ns, json } => {
-                    self.queue.push_back(Job::Record { topic, t_ns, json })
-                }
-                ev => {
-                    if let Some(input) = input_of(ev) {
-                        self.feed(input, now_ns);
-                    }
-                }
-            }
+            self.feed(Input::Link(ev), now_ns);
             self.drain().await?;
         }
-        // Every step, so that a quiet clock lets the alert resolve.
-        let (refused, worst_skew_ns) = std::mem::take(&mut self.skew);
-        self.feed(
-            Input::ClockSkew {
-                refused,
-                worst_skew_ns,
-            },
-            now_ns,
-        );
         let (requests, acks, verifications, geometries) = match self.inbox.lock() {
             Ok(mut inbox) => (
                 std::mem::take(&mut inbox.requests),
@@ -588,7 +549,6 @@ impl MachineRuntime {
         let core_jobs = |effects: Vec<Effect>| effects.into_iter().map(Job::Core).collect();
         let effect = match job {
             Job::Core(e) => e,
-            Job::Record { topic, t_ns, json } => return self.record(topic, *t_ns, json),
             Job::FileOpened(path) => {
                 self.store
                     .mcap_file_opened(&self.id, &path.display().to_string(), now)
@@ -758,6 +718,7 @@ impl MachineRuntime {
                 &compensation::compensation_message(set),
             ),
             Record::Result { t_ns, result } => self.record(rec::TOPIC_RESULT, *t_ns, result),
+            Record::Raw { topic, t_ns, json } => self.record(topic, *t_ns, json),
         }
     }
 
@@ -856,18 +817,6 @@ impl MachineRuntime {
     pub fn store(&self) -> &Store {
         &self.store
     }
-}
-
-/// The core's input for a link event (the truth and the clock skew are the executor's).
-fn input_of(ev: LinkEvent) -> Option<Input> {
-    Some(match ev {
-        LinkEvent::Spindle(m) => Input::Spindle(m),
-        LinkEvent::State(m) => Input::State(m),
-        LinkEvent::Temperature(m) => Input::Temperature(m),
-        LinkEvent::Detection(m) => Input::Detection(m),
-        LinkEvent::CycleDone { cycle, t_ns } => Input::CycleDone { cycle, t_ns },
-        LinkEvent::Record { .. } | LinkEvent::ClockSkew { .. } => return None,
-    })
 }
 
 /// The loops look at their inboxes (operator requests, acknowledgements) at least this often.

@@ -39,8 +39,8 @@ pub(super) async fn nc_events(
     })?;
     let taken = nc.post(&batch).map_err(|e| {
         let code = match e {
-            crate::nc_push::NcPushError::ClockSkew { .. } => ErrorCode::ClockSkew,
-            crate::nc_push::NcPushError::Busy { .. } => ErrorCode::Busy,
+            crate::nc_push::NcDoorError::ClockSkew { .. } => ErrorCode::ClockSkew,
+            crate::nc_push::NcDoorError::Busy { .. } => ErrorCode::Busy,
             _ => ErrorCode::BadEvent,
         };
         ApiError::new(code, e.to_string())
