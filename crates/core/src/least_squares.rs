@@ -380,12 +380,15 @@ pub fn scan(q: &DMatrix<f64>, e: &DVector<f64>, x: &DMatrix<f64>) -> (f64, f64) 
     if free < 1e-12 {
         return (0.0, free.max(0.0));
     }
-    let b = x.tr_mul(e);
-    let d = match a.clone().cholesky() {
-        Some(c) => b.dot(&c.solve(&b)),
-        None => 0.0,
-    };
+    let d = inverse_form(a, &x.tr_mul(e)).unwrap_or(0.0);
     (d.max(0.0), free)
+}
+
+/// `b^T A^-1 b` for a symmetric positive definite `A` (by Cholesky), `None` when `A` is not:
+/// the sum of squares a fit explains (`A = X^T X`, `b = X^T y`), or a Wald statistic squared
+/// (`A` an estimate's covariance, `b` the estimate).
+pub fn inverse_form(a: DMatrix<f64>, b: &DVector<f64>) -> Option<f64> {
+    a.cholesky().map(|c| b.dot(&c.solve(b)))
 }
 
 /// An orthonormal basis of what the columns of `x` add to the orthonormal basis `q`:

@@ -1625,10 +1625,8 @@ fn held_temperature_columns(
     }
     let b = beta.rows(first, n_temp).into_owned();
     let c = cov.view((first, first), (n_temp, n_temp)).into_owned();
-    let significant = match c.try_inverse() {
-        Some(ci) => (b.transpose() * ci * &b)[(0, 0)] > crate::stats::chi2_quantile(0.95, n_temp),
-        None => false,
-    };
+    let significant = crate::least_squares::inverse_form(c, &b)
+        .is_some_and(|w| w > crate::stats::chi2_quantile(0.95, n_temp));
     if significant {
         return Vec::new();
     }

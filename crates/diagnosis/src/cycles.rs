@@ -15,7 +15,7 @@ use driftwatch_core::recording::{DetectionMsg, Timed};
 pub use crate::rows::{
     DetectionRow, DiagnosisError, Rows, SIGMA_UM_RANGE, SIGNATURES, detection_rows,
 };
-use driftwatch_core::least_squares::{basis, lsq, residual_of, scan};
+use driftwatch_core::least_squares::{basis, inverse_form, lsq, residual_of, scan};
 
 /// The baseline of docs/physics.md 4.6.1: every design parameter (the location errors and the
 /// nuisances) as an offset plus gains on the spindle pole basis, fitted jointly to every
@@ -721,7 +721,7 @@ fn periodic_scan(
         for i in 0..a.nrows() {
             a[(i, i)] += ridge;
         }
-        a.cholesky().map_or(0.0, |c| b.dot(&c.solve(&b)))
+        inverse_form(a, &b).unwrap_or(0.0)
     };
     let df = 1.0 / (2.0 * span);
     let mut coarse = Vec::new();
@@ -915,16 +915,12 @@ fn redundancy(rows: &Rows, sigma_um: f64) -> Redundancy {
     for (c, idx) in &by_cycle {
         let s = DMatrix::from_fn(idx.len(), p, |i, j| rows.rows[idx[i]].sensitivity[j]);
         let y = DVector::from_iterator(idx.len(), idx.iter().map(|i| rows.rows[*i].deviation_um));
-        let svd = s.svd(true, false);
-        let Some(u) = svd.u else { continue };
-        let tol = svd.singular_values.max() * 1e-9;
-        let rank = svd.singular_values.iter().filter(|v| **v > tol).count();
-        let dof = idx.len().saturating_sub(rank);
+        let q = basis(&s);
+        let dof = idx.len().saturating_sub(q.ncols());
         if dof == 0 {
             continue;
         }
-        // The full left null space needs the full U; complete it by projecting.
-        let q = u.columns(0, rank).into_owned();
+        // What no parameter of the cycle's design can absorb: the residual of its projection.
         let resid = &y - &q * q.tr_mul(&y);
         let chi2 = resid.norm_squared() / sigma_um.powi(2);
         // Components of the residual in an orthonormal basis of the null space have the

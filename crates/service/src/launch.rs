@@ -17,18 +17,17 @@ use tracing::{error, info, warn};
 
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_core::recording::{MachineInfo, MachineStateKind};
+use driftwatch_core::recording::MachineInfo;
 use driftwatch_core::thermal_model::ThermalModel;
 use driftwatch_core::units::{NS_PER_MIN, NS_PER_S, min_to_ns};
-use driftwatch_sim::scenario::Scenario;
 
 use crate::api::{ApiState, Auth, router};
 use crate::clock::{ManualClock, ServiceClock};
-use crate::config::{LinkConfig, ServiceConfig};
+use crate::config::{LinkConfig, MachineConfigEntry, ServiceConfig};
 use crate::daemon::{
     DaemonError, MachineHandle, MachineRuntime, MachineView, Settings, run_machine,
 };
-use crate::link::{MachineLink, Simulated};
+use crate::link::MachineLink;
 use crate::mtconnect_link::{MtconnectLink, MtconnectSettings};
 use crate::nc_push::nc_push;
 use crate::recorder::Recorder;
@@ -428,7 +427,7 @@ type Linked = (
 
 /// A machine's link before the clock's start is known.
 enum Pending {
-    Simulated(Box<Simulated>),
+    Simulated(Box<dyn MachineLink>),
     Nc(Box<dyn MachineLink>, crate::nc_push::NcPushHandle),
     /// A real machine's link the API has no door for (MTConnect observes; OPC UA: the service
     /// is the client).
@@ -497,30 +496,14 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
         }
         let link = match &m.link {
             LinkConfig::Simulated { scenario, seed } => {
-                let mut scn = Scenario::load(scenario).map_err(|e| fail(e.to_string()))?;
-                scn.machine_id = m.id.clone();
-                // The configured machine is the one simulated, whatever the scenario names.
-                scn.machine = m.machine.clone();
-                if let Some(seed) = seed {
-                    scn.seed = *seed;
-                }
-                let first_on_min = scn
-                    .spindle
-                    .iter()
-                    .find(|s| s.state != MachineStateKind::Off)
-                    .map_or(0.0, |s| s.at_min);
-                let lead_ns = min_to_ns((first_on_min - 5.0).max(0.0));
-                if real {
-                    scn.start_utc =
-                        chrono::DateTime::from_timestamp_nanos(wall_now - lead_ns).to_rfc3339();
-                }
-                let link = Simulated::new(k.clone(), plan.clone(), scn)
-                    .map_err(|e| fail(e.to_string()))?;
-                t0 = t0.min(link.start_ns() + lead_ns);
+                let (link, start_ns) =
+                    simulated_link(m, scenario, *seed, (&k, &plan), real, wall_now)
+                        .map_err(fail)?;
+                t0 = t0.min(start_ns);
                 if let Some(t) = store.latest_time(&m.id).await? {
                     resume = resume.max(t);
                 }
-                Pending::Simulated(Box::new(link))
+                Pending::Simulated(link)
             }
             LinkConfig::NcPush { .. } => {
                 let tolerance = m.link.clock_tolerance().unwrap_or_default();
@@ -581,13 +564,62 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
         .map(|(id, k, plan, settings, link)| match link {
             Pending::Simulated(mut sim) => {
                 sim.resume_at(t0);
-                (id, k, plan, sim as Box<dyn MachineLink>, settings, None)
+                (id, k, plan, sim, settings, None)
             }
             Pending::Nc(link, handle) => (id, k, plan, link, settings, Some(handle)),
             Pending::Real(link) => (id, k, plan, link, settings, None),
         })
         .collect();
     Ok((linked, t0))
+}
+
+/// A simulated machine's link (the configured machine, whatever the scenario names) and the
+/// machine time its clock would start at: five minutes before its first power-on.
+#[cfg(feature = "simulated")]
+fn simulated_link(
+    m: &MachineConfigEntry,
+    scenario: &str,
+    seed: Option<u64>,
+    (k, plan): (&Kinematics, &Plan),
+    real: bool,
+    wall_now: i64,
+) -> Result<(Box<dyn MachineLink>, i64), String> {
+    use driftwatch_core::recording::MachineStateKind;
+    let mut scn = driftwatch_sim::scenario::Scenario::load(scenario).map_err(|e| e.to_string())?;
+    scn.machine_id = m.id.clone();
+    scn.machine = m.machine.clone();
+    if let Some(seed) = seed {
+        scn.seed = seed;
+    }
+    let first_on_min = scn
+        .spindle
+        .iter()
+        .find(|s| s.state != MachineStateKind::Off)
+        .map_or(0.0, |s| s.at_min);
+    let lead_ns = min_to_ns((first_on_min - 5.0).max(0.0));
+    if real {
+        scn.start_utc = chrono::DateTime::from_timestamp_nanos(wall_now - lead_ns).to_rfc3339();
+    }
+    let link =
+        crate::link::Simulated::new(k.clone(), plan.clone(), scn).map_err(|e| e.to_string())?;
+    let start_ns = link.start_ns() + lead_ns;
+    Ok((Box::new(link), start_ns))
+}
+
+/// Without the `simulated` feature the service has no truth simulator: a simulated machine in
+/// the configuration is refused at start, with the reason.
+#[cfg(not(feature = "simulated"))]
+fn simulated_link(
+    _m: &MachineConfigEntry,
+    scenario: &str,
+    _seed: Option<u64>,
+    _machine: (&Kinematics, &Plan),
+    _real: bool,
+    _wall_now: i64,
+) -> Result<(Box<dyn MachineLink>, i64), String> {
+    Err(format!(
+        "link kind \"simulated\" (scenario {scenario}) needs the simulated machine, which this build leaves out (built without the service's `simulated` feature): give the machine a real link, or use a build with the feature"
+    ))
 }
 
 impl Service {

@@ -19,7 +19,9 @@ use super::{
 use crate::effects::{Candidate, Drivers};
 use crate::rows::Rows;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
-use driftwatch_core::least_squares::{Lsq, basis, beyond, hstack, lsq, residual_of, scan};
+use driftwatch_core::least_squares::{
+    Lsq, basis, beyond, hstack, inverse_form, lsq, residual_of, scan,
+};
 
 /// `rows` without the readings that are outliers against a robust baseline
 /// ([`screen_outliers`]), and those readings.
@@ -852,10 +854,7 @@ impl<'a> Search<'a> {
             .collect();
         let mrest = self.model_with(&fin.base_eff, &rest);
         let dbic = lsq(&mrest, y).chi2 - fin.f.chi2 - self.k_of(i);
-        let t = match cov.clone().cholesky() {
-            Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
-            None => 0.0,
-        };
+        let t = inverse_form(cov.clone(), &b).map_or(0.0, f64::sqrt);
         let (ho_before, ho_after) = {
             let sse = |m: &DMatrix<f64>| heldout_sse(m, y, &self.train_last, &self.test_last);
             let rms = |s: f64| (s / self.test_last.len().max(1) as f64).sqrt() * sigma;
@@ -1501,10 +1500,7 @@ impl Scoring for CycleScoring<'_, '_> {
         let off = mw.ncols() - k;
         let b = f.beta.rows(off, k).into_owned();
         let c = f.cov.view((off, off), (k, k)).into_owned() * scale;
-        let t = match c.clone().cholesky() {
-            Some(ch) => b.dot(&ch.solve(&b)).sqrt(),
-            None => 0.0,
-        };
+        let t = inverse_form(c.clone(), &b).map_or(0.0, f64::sqrt);
         let foot = &xs[i] * &b * s.sigma;
         let peak = foot.amax();
         let max_um = crate::effects::effect(cands[i].effect).map_or(f64::INFINITY, |e| e.max_um);

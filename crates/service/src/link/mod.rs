@@ -1,10 +1,13 @@
 //! How the service talks to a machine: one trait, polled with the current time, and the events
 //! every link reports in. The simulated machine is a link of its own (`simulated`): the only
-//! part of the service that runs the truth simulator.
+//! part of the service that runs the truth simulator, built with the `simulated` feature (on
+//! by default; a build without it takes no simulator into the NC's path).
 
 pub use driftwatch_machine::link_event::{LinkError, LinkEvent, RawJson};
 
+#[cfg(feature = "simulated")]
 mod simulated;
+#[cfg(feature = "simulated")]
 pub use simulated::Simulated;
 
 pub trait MachineLink: Send {

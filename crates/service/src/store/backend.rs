@@ -6,19 +6,45 @@
 //! timeout), creating the file, `WITHOUT ROWID` tables (in its migrations only) and
 //! `PRAGMA integrity_check` / `journal_mode`.
 
+use std::borrow::Cow;
 use std::path::Path;
-use std::sync::Once;
+use std::sync::{LazyLock, Once};
 
 use sqlx::AnyPool;
+use sqlx::SqlSafeStr;
 use sqlx::any::AnyPoolOptions;
-use sqlx::migrate::Migrator;
+use sqlx::migrate::{Migration, MigrationType, Migrator};
 
 use super::StoreError;
 
+/// Every migration file, `(version, description, text)` (written by the crate's build script).
+mod embedded {
+    include!(concat!(env!("OUT_DIR"), "/migrations.rs"));
+}
+
 /// The SQLite schema (`migrations/sqlite/`).
-static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("../../migrations/sqlite");
+static SQLITE_MIGRATIONS: LazyLock<Migrator> = LazyLock::new(|| migrator(embedded::SQLITE));
 /// The same schema in PostgreSQL's types (`migrations/postgres/`).
-static POSTGRES_MIGRATIONS: Migrator = sqlx::migrate!("../../migrations/postgres");
+static POSTGRES_MIGRATIONS: LazyLock<Migrator> = LazyLock::new(|| migrator(embedded::POSTGRES));
+
+/// The migrations as sqlx resolves a directory of them: the checksum of each file's text (the
+/// one a store created earlier holds), in a transaction unless the text opts out.
+fn migrator(files: &[(i64, &str, &'static str)]) -> Migrator {
+    Migrator::with_migrations(
+        files
+            .iter()
+            .map(|(version, description, sql)| {
+                Migration::new(
+                    *version,
+                    Cow::Owned(description.to_string()),
+                    MigrationType::Simple,
+                    sqlx::AssertSqlSafe(*sql).into_sql_str(),
+                    sql.starts_with("-- no-transaction"),
+                )
+            })
+            .collect(),
+    )
+}
 
 /// Which engine a store runs on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -254,5 +280,35 @@ mod tests {
             "postgres://u@h:5/db"
         );
         assert_eq!(redacted("postgres://h/db"), "postgres://h/db");
+    }
+
+    /// The embedded migrations are what sqlx itself reads from the directories (as its
+    /// `migrate!` macro, which earlier builds used, did): the same versions, descriptions and
+    /// checksums, so a store created by an earlier build opens and is not migrated again.
+    #[tokio::test]
+    async fn the_embedded_migrations_are_the_files_as_sqlx_reads_them() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../migrations");
+        for (engine, embedded) in [
+            ("sqlite", &*SQLITE_MIGRATIONS),
+            ("postgres", &*POSTGRES_MIGRATIONS),
+        ] {
+            let read = Migrator::new(root.join(engine)).await.unwrap();
+            let key = |m: &Migration| {
+                (
+                    m.version,
+                    m.description.to_string(),
+                    m.checksum.to_vec(),
+                    m.no_tx,
+                    m.migration_type,
+                )
+            };
+            let want: Vec<_> = read.iter().map(key).collect();
+            assert!(want.len() >= 3, "{engine}: {want:?}");
+            assert_eq!(
+                embedded.iter().map(key).collect::<Vec<_>>(),
+                want,
+                "{engine}"
+            );
+        }
     }
 }
