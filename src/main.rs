@@ -24,6 +24,7 @@ mod model_cmd;
 mod nc_cmd;
 mod nc_program_cmd;
 mod plan_design_cmd;
+mod prediction_plot;
 mod rtest_cmd;
 mod serve;
 

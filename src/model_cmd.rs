@@ -7,13 +7,13 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 
+use crate::prediction_plot::Panel;
 use driftwatch_core::csv_import::{
     CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_columns,
     split_runs,
 };
 use driftwatch_core::families::{ChannelChoice, Family};
 use driftwatch_core::kinematics::Kinematics;
-use driftwatch_core::prediction_plot::Panel;
 use driftwatch_core::recording::Recording;
 use driftwatch_core::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
 use driftwatch_core::thermal_model::{
@@ -181,7 +181,7 @@ fn parse_time(text: &str, t0_ns: i64) -> Result<i64> {
     {
         return Ok(t);
     }
-    let d = driftwatch_core::series::parse_every(text).map_err(|_| {
+    let d = driftwatch_service::series::parse_every(text).map_err(|_| {
         anyhow::anyhow!(
             "'{text}' is neither a duration after the start (40h, 90m, 3600) nor an RFC 3339 time"
         )
@@ -917,7 +917,7 @@ fn write_plot(
             p
         })
         .collect();
-    let svg = driftwatch_core::prediction_plot::svg(&list)
+    let svg = crate::prediction_plot::svg(&list)
         .map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))?;
     std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
     eprintln!("plot of {} channel(s) -> {}", list.len(), path.display());

@@ -17,5 +17,6 @@ pub mod mtconnect_link;
 pub mod nc_push;
 pub mod opcua;
 pub mod recorder;
+pub mod series;
 pub mod store;
 pub mod webhook;

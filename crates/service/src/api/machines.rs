@@ -9,7 +9,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use serde::Deserialize;
 
-use driftwatch_core::series::{ErrorBucket, ErrorSample};
+use crate::series::{ErrorBucket, ErrorSample};
 use driftwatch_core::thermal_model::{GuardSummary, Prediction, TemperatureInput};
 use driftwatch_core::units::NS_PER_H;
 use driftwatch_machine::compensation::CompensationSet;
@@ -467,7 +467,7 @@ pub(super) async fn errors(
     if from > to {
         return Err(ApiError::new(ErrorCode::BadWindow, "'from' is after 'to'"));
     }
-    let every = match w.every.as_deref().map(driftwatch_core::series::parse_every) {
+    let every = match w.every.as_deref().map(crate::series::parse_every) {
         None => None,
         Some(Ok(e)) => Some(e),
         Some(Err(m)) => return Err(ApiError::new(ErrorCode::BadEvery, m)),
@@ -489,7 +489,7 @@ pub(super) async fn errors(
         .await?;
     Ok(Json(match every {
         None => ErrorSeries::Samples(samples),
-        Some(e) => ErrorSeries::Buckets(driftwatch_core::series::downsample(&samples, e)),
+        Some(e) => ErrorSeries::Buckets(crate::series::downsample(&samples, e)),
     }))
 }
 

@@ -72,7 +72,7 @@ pub enum StoreError {
     Held { machine: String, holders: String },
 }
 
-pub use driftwatch_core::series::ErrorSample;
+pub use crate::series::ErrorSample;
 
 #[derive(Clone)]
 pub struct Store {

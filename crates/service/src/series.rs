@@ -7,8 +7,7 @@ use serde::Serialize;
 
 /// One value of one error: measured (at a cycle's reference time) or predicted (when the
 /// service served it).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct ErrorSample {
     pub t_ns: i64,
     /// The cycle that measured it, or the last cycle before a prediction.
@@ -21,8 +20,7 @@ pub struct ErrorSample {
 }
 
 /// The samples of one error and source that fall in one bucket.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct ErrorBucket {
     /// Start of the bucket (a multiple of its width since the Unix epoch), ns.
     pub t_ns: i64,
@@ -121,7 +119,7 @@ pub fn downsample(samples: &[ErrorSample], every_ns: i64) -> Vec<ErrorBucket> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::units;
+    use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
 
