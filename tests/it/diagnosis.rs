@@ -592,8 +592,8 @@ fn null_selections_on(machine: &str, from: u64, n: u64) -> Vec<String> {
 }
 
 // Forty clean recordings in four tests (they run in parallel); at most two selections in all
-// is the bar, so each quarter may make at most two and the sum is checked by the
-// closing note's command (`cargo test --release --test it diagnosis::clean -- --nocapture`).
+// is the acceptance bar, so each quarter may make at most two and the sum is checked by the
+// command (`cargo test --release --test it diagnosis::clean -- --nocapture`).
 #[test]
 fn clean_recordings_select_nothing_1() {
     let s = null_selections(1000);

@@ -187,7 +187,7 @@ fn pareto_front_is_sorted_and_non_dominated() {
 /// Where the shipped `patent` plan sits: never below the front (it is one of the plans
 /// searched), but not near it either: with the setter nuisances still estimated, the search
 /// finds plans (repeated touches, B = +-45 poses) with a worst sigma (EA0C) a third lower in
-/// the same time, the second figure. Its first (the patent's worst sigma in 60 % of
+/// the same time, the design goal's second figure. Its first (the patent's worst sigma in 60 % of
 /// its time) is not reached: the front needs about 71 %.
 #[test]
 fn patent_sits_above_the_front_on_table_bc() {

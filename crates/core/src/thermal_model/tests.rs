@@ -146,8 +146,8 @@ fn shifts(days: i64, chans: &[Chan], seed: u64) -> (Vec<Event>, Vec<Truth>) {
     (ev, truth)
 }
 
-/// How the service did before this issue: one offset walk of 1 unit^2/h for every
-/// channel, the model always served, its band unscaled.
+/// How the service did before the walk was learnt and the model guarded: one offset walk of
+/// 1 unit^2/h for every channel, the model always served, its band unscaled.
 fn as_before() -> ModelConfig {
     ModelConfig {
         offset_walk_grid_per_h: Vec::new(),
