@@ -11,7 +11,6 @@ use serde::Serialize;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::linear_axes::LinearGeometry;
 use driftwatch_core::recording::Recording;
-use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_core::thermal_model::ThermalModel;
 use driftwatch_core::thermal_model::{Event, ModelConfig, ModelInput, events_from};
 use driftwatch_diagnosis::cycles::{DiagnoseOptions, Diagnosis, Inputs, diagnose_inputs};
@@ -19,6 +18,7 @@ use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
 use driftwatch_diagnosis::effects::{EFFECTS, Effect};
+use driftwatch_recording::mcap_io::{ReadOptions, read_file};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {

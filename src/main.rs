@@ -11,9 +11,9 @@ use driftwatch_core::cycle::{CycleChecks, group_by_cycle, infer_expected, proces
 use driftwatch_core::identify::{Identifier, Observation, SolveOptions};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
-use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_core::recording::{self as rec, Timed};
 use driftwatch_lab::bench;
+use driftwatch_recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_sim::experiment;
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::simulate;

@@ -8,18 +8,18 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use crate::prediction_plot::Panel;
-use driftwatch_core::csv_import::{
-    CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_columns,
-    split_runs,
-};
 use driftwatch_core::families::{ChannelChoice, Family};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::recording::Recording;
-use driftwatch_core::recording::mcap_io::{ReadOptions, read_file, write_recording_file};
 use driftwatch_core::thermal_model::{
     DEFAULT_MODEL_CONFIG, Event, ModelConfig, TemperatureInput, ThermalModel, events_from, fit,
     replay,
 };
+use driftwatch_recording::csv_import::{
+    CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_columns,
+    split_runs,
+};
+use driftwatch_recording::mcap_io::{ReadOptions, read_file, write_recording_file};
 
 #[derive(clap::Args)]
 pub struct ImportCsvArgs {

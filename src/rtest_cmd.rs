@@ -11,8 +11,8 @@ use rand_chacha::ChaCha8Rng;
 
 use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::Kinematics;
-use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_core::recording::{MachineInfo, TOPIC_INFO};
+use driftwatch_recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_rtest::identify::{Identification, Options, identify};
 use driftwatch_rtest::instrument::{Calibration, Imperfections, Instrument, Setting, calibrate};
 use driftwatch_rtest::kinematic_test::{Run, Setup, TestKind, TestSpec, simulate};

@@ -4,8 +4,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use driftwatch_core::recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use driftwatch_core::recording::{self as rec, CycleResultMsg, ResultStatus};
+use driftwatch_recording::mcap_io::{ReadOptions, RecordingWriter, read_file};
 use serde_json::Value;
 
 fn bin() -> Command {

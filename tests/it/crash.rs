@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use driftwatch_core::recording::mcap_io::{ReadOptions, read_file};
+use driftwatch_recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_service::store::{CycleStatus, FileStatus, Store};
 
 use common::child::Serve;

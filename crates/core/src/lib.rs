@@ -1,13 +1,12 @@
 //! driftwatch's functional core: units and time, geometry, kinematics, the tool-setter
-//! measurement model, cycle plans, identification, cycle checks, the contract's recording types
-//! and MCAP I/O, thermal lags, the thermal model and its competing families, statistics.
+//! measurement model, cycle plans, identification, cycle checks, the contract's recording types,
+//! thermal lags, the thermal model and its competing families, statistics.
 //!
 //! Pure code: no async runtime, no database, no network, no clock, no globals; deterministic for
-//! a given seed. The only I/O is `recording::mcap_io` (reading and writing MCAP files) and the
-//! loading of TOML descriptions by name or path (`source`). The theory is in docs/physics.md.
+//! a given seed. The only I/O is the loading of TOML descriptions by name or path (`source`);
+//! recordings on disk are the `driftwatch-recording` crate's. The theory is in docs/physics.md.
 
 pub mod across_runs;
-pub mod csv_import;
 pub mod cycle;
 pub mod error_name;
 pub mod families;

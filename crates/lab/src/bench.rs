@@ -649,7 +649,7 @@ fn real_sets() -> Vec<RealSet> {
 
 /// A shipped real data set's events (from t = 0).
 fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::thermal_model::Event>> {
-    use driftwatch_core::csv_import::{CsvOptions, RowTime, import_csv};
+    use driftwatch_recording::csv_import::{CsvOptions, RowTime, import_csv};
     let path = data.join(set.csv);
     let text = std::fs::read_to_string(&path)
         .with_context(|| format!("reading {} (give --data DIR)", path.display()))?;

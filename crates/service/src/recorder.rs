@@ -10,10 +10,8 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 use thiserror::Error;
 
-use driftwatch_core::recording::mcap_io::{
-    ReadOptions, RecordingError, RecordingWriter, read_file,
-};
 use driftwatch_core::recording::{self as rec, Recording};
+use driftwatch_recording::mcap_io::{ReadOptions, RecordingError, RecordingWriter, read_file};
 
 #[derive(Debug, Error)]
 pub enum RecorderError {

@@ -1,6 +1,6 @@
 //! Recording format v1 (the contract `recording-format.md`): the message types of every topic,
-//! their JSON Schemas, lenient parsing of detections, and (in `mcap_io`) reading and writing
-//! MCAP files. The types here are plain data; only `mcap_io` does I/O.
+//! their JSON Schemas and lenient parsing of detections, as plain data. Reading and writing
+//! MCAP files is the `driftwatch-recording` crate's (`mcap_io`).
 
 use std::collections::BTreeMap;
 
@@ -9,8 +9,6 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::measurement::Axis;
-
-pub mod mcap_io;
 
 pub const TOPIC_INFO: &str = "/machine/info";
 pub const TOPIC_STATE: &str = "/machine/state";

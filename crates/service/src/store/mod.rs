@@ -2,8 +2,8 @@
 //! (`database_url = "postgres://..."`) through sqlx's `Any` driver, one implementation of the
 //! queries in portable SQL; what differs between the engines (connecting, migrations, SQLite's
 //! pragmas) is in [`backend`]. Schemas in `migrations/sqlite/` and `migrations/postgres/`
-//! (embedded, applied at open). Shell code, with `recorder` and `recording::mcap_io` the only
-//! modules that touch files.
+//! (embedded, applied at open). Shell code; with `recorder` (through the recording crate's
+//! `mcap_io`) the only module that touches files.
 
 mod alerts;
 mod backend;

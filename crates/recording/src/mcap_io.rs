@@ -22,7 +22,7 @@ use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use mcap::{Compression, MAGIC, McapError, WriteOptions, Writer};
 use serde::Serialize;
 
-use super::{
+use driftwatch_core::recording::{
     CycleResultMsg, DisplacementMsg, MachineInfo, Recording, SpindleMsg, StateMsg, TOPIC_DETECTION,
     TOPIC_DISPLACEMENT, TOPIC_INFO, TOPIC_RESULT, TOPIC_SPINDLE, TOPIC_STATE, TOPIC_TEMPERATURE,
     TemperatureMsg, Timed,
@@ -211,7 +211,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
 
     fn channel(&mut self, topic: &str) -> Result<&mut ChannelState, RecordingError> {
         if !self.channels.contains_key(topic) {
-            let (name, schema) = super::schema(topic);
+            let (name, schema) = driftwatch_core::recording::schema(topic);
             let schema_id = self
                 .inner
                 .add_schema(&name, "jsonschema", schema.to_string().as_bytes())
@@ -752,7 +752,7 @@ impl Scan<'_> {
             )));
         };
         if self.keep_raw {
-            self.rec.raw.push(super::RawMessage {
+            self.rec.raw.push(driftwatch_core::recording::RawMessage {
                 topic: topic.to_string(),
                 t_ns,
                 data: m.data.to_vec(),
@@ -795,7 +795,7 @@ impl Scan<'_> {
             }
             TOPIC_DETECTION => rec.detections.push(Timed {
                 t_ns,
-                msg: super::parse_detection(m.data),
+                msg: driftwatch_core::recording::parse_detection(m.data),
             }),
             _ => unreachable!("KNOWN_TOPICS and this match list the same topics"),
         }
@@ -840,12 +840,12 @@ mod tests {
     use proptest::prelude::*;
     use serde_json::json;
 
-    use super::super::{
+    use super::*;
+    use driftwatch_core::measurement::Axis;
+    use driftwatch_core::recording::{
         DetectionMsg, DetectionStatus, MachineStateKind, ResultStatus, TOPIC_COMPENSATION,
         TOPIC_TRUTH,
     };
-    use super::*;
-    use crate::measurement::Axis;
 
     fn detection(cycle: i64, step: &str, status: Option<DetectionStatus>) -> DetectionMsg {
         DetectionMsg {
@@ -1051,7 +1051,7 @@ mod tests {
         let schema = channel.schema.as_ref().unwrap();
         assert_eq!(schema.encoding, "jsonschema");
         let doc: serde_json::Value = serde_json::from_slice(&schema.data).unwrap();
-        assert_eq!(doc, super::super::schema(TOPIC_SPINDLE).1);
+        assert_eq!(doc, driftwatch_core::recording::schema(TOPIC_SPINDLE).1);
         let messages: Vec<_> = mcap::MessageStream::new(&bytes)
             .unwrap()
             .collect::<Result<_, _>>()
@@ -1301,7 +1301,7 @@ mod tests {
             let spindle = w
                 .add_channel(0, TOPIC_SPINDLE, "json", &BTreeMap::new())
                 .unwrap();
-            let (schema_name, schema) = super::super::schema(TOPIC_STATE);
+            let (schema_name, schema) = driftwatch_core::recording::schema(TOPIC_STATE);
             let schema_id = w
                 .add_schema(&schema_name, "jsonschema", schema.to_string().as_bytes())
                 .unwrap();

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use thiserror::Error;
 
-use crate::recording::{
+use driftwatch_core::recording::{
     DisplacementMsg, MachineInfo, Recording, SpindleMsg, TemperatureMsg, Timed,
 };
 
@@ -187,7 +187,7 @@ fn check_options(o: &CsvOptions, fmt: CsvFormat) -> Result<(), ImportError> {
         ));
     }
     if let RowTime::Interval(s) = o.time
-        && !crate::units::positive(s)
+        && !driftwatch_core::units::positive(s)
     {
         return Err(ImportError::Options(format!(
             "--interval-s must be > 0, not {s}"
@@ -352,7 +352,7 @@ pub fn split_columns(args: &[String]) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::units;
+    use driftwatch_core::units;
 
     fn opts() -> CsvOptions {
         CsvOptions {
