@@ -30,7 +30,6 @@ mod nc_cli;
 mod nc_offsets;
 mod nc_push;
 mod opcua;
-mod plan_design;
 mod service;
 mod solver;
 mod thermal;
