@@ -11,14 +11,14 @@ use serde::Serialize;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::linear_axes::LinearGeometry;
 use driftwatch_core::recording::Recording;
-use driftwatch_core::thermal_model::ThermalModel;
-use driftwatch_core::thermal_model::{Event, ModelConfig, ModelInput, events_from};
 use driftwatch_diagnosis::cycles::{DiagnoseOptions, Diagnosis, Inputs, diagnose_inputs};
 use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
 use driftwatch_diagnosis::effects::{EFFECTS, Effect};
 use driftwatch_recording::mcap_io::{ReadOptions, read_file};
+use driftwatch_thermal::model::ThermalModel;
+use driftwatch_thermal::model::{Event, ModelConfig, ModelInput, events_from};
 
 #[derive(clap::Args)]
 pub struct DiagnoseArgs {
@@ -418,19 +418,17 @@ fn print_located(d: &DisplacementDiagnosis) {
 /// Fit `config` on `events` and write it to `path` as the new model version; a fit that
 /// fails is a note, not an error (the diagnosis is already written).
 fn write_model(config: &ModelConfig, events: &[Event], path: &std::path::Path) -> Result<String> {
-    Ok(
-        match driftwatch_core::thermal_model::fit(config, events, None) {
-            Ok(model) => {
-                std::fs::write(path, serde_json::to_string_pretty(&model)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
-                format!(
-                    "wrote {}: the thermal model with the accepted terms it can carry",
-                    path.display()
-                )
-            }
-            Err(e) => format!("no model.json: {e}"),
-        },
-    )
+    Ok(match driftwatch_thermal::model::fit(config, events, None) {
+        Ok(model) => {
+            std::fs::write(path, serde_json::to_string_pretty(&model)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+            format!(
+                "wrote {}: the thermal model with the accepted terms it can carry",
+                path.display()
+            )
+        }
+        Err(e) => format!("no model.json: {e}"),
+    })
 }
 
 /// Write `diagnosis.json` and `report.html` into `out`; their paths.

@@ -8,18 +8,18 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use crate::prediction_plot::Panel;
-use driftwatch_core::families::{ChannelChoice, Family};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::recording::Recording;
-use driftwatch_core::thermal_model::{
-    DEFAULT_MODEL_CONFIG, Event, ModelConfig, TemperatureInput, ThermalModel, events_from, fit,
-    replay,
-};
 use driftwatch_recording::csv_import::{
     CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_columns,
     split_runs,
 };
 use driftwatch_recording::mcap_io::{ReadOptions, read_file, write_recording_file};
+use driftwatch_thermal::families::{ChannelChoice, Family};
+use driftwatch_thermal::model::{
+    DEFAULT_MODEL_CONFIG, Event, ModelConfig, TemperatureInput, ThermalModel, events_from, fit,
+    replay,
+};
 
 #[derive(clap::Args)]
 pub struct ImportCsvArgs {
@@ -260,7 +260,7 @@ pub struct FitArgs {
 /// What `fit --runs` writes: per displacement channel the family chosen across runs.
 #[derive(serde::Serialize, serde::Deserialize)]
 struct RunsModelFile {
-    across_runs: Vec<driftwatch_core::across_runs::RunsChoice>,
+    across_runs: Vec<driftwatch_thermal::across_runs::RunsChoice>,
 }
 
 /// What `fit` writes: the grey-box model (read by the service as it is) and, for
@@ -355,7 +355,7 @@ pub fn model_config(
     {
         cfg.temperatures.push(TemperatureInput {
             sensor: s,
-            taus_min: driftwatch_core::thermal_model::default_temperature_taus(),
+            taus_min: driftwatch_thermal::model::default_temperature_taus(),
         });
     }
     cfg.validate()?;
@@ -399,7 +399,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         _ => None,
     };
     let step_ns = a.step_min.map_or_else(
-        || driftwatch_core::families::default_step_ns(&[&events]),
+        || driftwatch_thermal::families::default_step_ns(&[&events]),
         units::min_to_ns,
     );
     let families = choose_families(&events, &cfg, step_ns, until, force, horizon_ns);
@@ -410,7 +410,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     print_fit(model, &a.out);
     print_family_scores(&file.families, force.is_some());
     // What each channel will serve, from the held-out tail of the fit data.
-    let p = driftwatch_core::thermal_model::Predictor::new(model, model.to_ns);
+    let p = driftwatch_thermal::model::Predictor::new(model, model.to_ns);
     println!(
         "what each channel serves, from the held-out tail ({:.0} % of its observations):",
         100.0 * model.config.holdout_share
@@ -448,7 +448,7 @@ fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
     let step_ns = a.step_min.map_or_else(
         || {
             let r: Vec<&[Event]> = runs.iter().map(|r| r.2.as_slice()).collect();
-            driftwatch_core::families::default_step_ns(&r)
+            driftwatch_thermal::families::default_step_ns(&r)
         },
         units::min_to_ns,
     );
@@ -460,16 +460,16 @@ fn fit_runs(a: &FitArgs) -> Result<ExitCode> {
     channels.dedup();
     let mut out = Vec::new();
     for ch in &channels {
-        let grids: Vec<driftwatch_core::families::Grid> = runs
+        let grids: Vec<driftwatch_thermal::families::Grid> = runs
             .iter()
-            .filter_map(|r| driftwatch_core::families::grid(&r.2, ch, step_ns))
+            .filter_map(|r| driftwatch_thermal::families::grid(&r.2, ch, step_ns))
             .collect();
         anyhow::ensure!(
             grids.iter().all(|g| g.names == grids[0].names),
             "{ch}: the runs do not all have the same inputs"
         );
-        let refs: Vec<&driftwatch_core::families::Grid> = grids.iter().collect();
-        match driftwatch_core::across_runs::choose(&refs) {
+        let refs: Vec<&driftwatch_thermal::families::Grid> = grids.iter().collect();
+        match driftwatch_thermal::across_runs::choose(&refs) {
             Some(c) => {
                 println!(
                     "{ch}: {} runs; chained CV RMSE (each run from the second on predicted whole from the runs before): {}",
@@ -514,7 +514,7 @@ fn predict_new_run(a: &PredictArgs, text: &str) -> Result<ExitCode> {
     let t0 = events.first().map_or(0, Event::t_ns);
     let mut out = std::io::stdout().lock();
     for c in &file.across_runs {
-        let g = driftwatch_core::families::grid(&events, &c.channel, c.step_ns)
+        let g = driftwatch_thermal::families::grid(&events, &c.channel, c.step_ns)
             .with_context(|| format!("{}: no readings with every input", c.channel))?;
         anyhow::ensure!(
             g.names == c.names,
@@ -523,7 +523,7 @@ fn predict_new_run(a: &PredictArgs, text: &str) -> Result<ExitCode> {
             c.names.join(", "),
             g.names.join(", ")
         );
-        let p = driftwatch_core::across_runs::predict(&c.fitted, &g);
+        let p = driftwatch_thermal::across_runs::predict(&c.fitted, &g);
         let (mut e, mut held) = (Vec::new(), Vec::new());
         for (k, v) in p.iter().enumerate() {
             if a.json {
@@ -549,7 +549,7 @@ fn predict_new_run(a: &PredictArgs, text: &str) -> Result<ExitCode> {
                 held.push(g.y[0] - g.y[k]);
             }
         }
-        let rms = driftwatch_core::families::rms;
+        let rms = driftwatch_thermal::families::rms;
         eprintln!(
             "{}: {} from the run's first reading, {} updated readings: RMSE {:.3} (first reading held {:.3}); {}",
             c.channel,
@@ -559,7 +559,7 @@ fn predict_new_run(a: &PredictArgs, text: &str) -> Result<ExitCode> {
             rms(&held),
             c.why
         );
-        if let Some((k, j, d)) = driftwatch_core::across_runs::leaves_changes(c, &g) {
+        if let Some((k, j, d)) = driftwatch_thermal::across_runs::leaves_changes(c, &g) {
             eprintln!(
                 "{}: warning: from {:.2} h {} has changed by {d:.2} since the run's start, beyond what the fit runs taught ({:.2} to {:.2}): the prediction is an extrapolation there",
                 c.channel,
@@ -600,7 +600,7 @@ fn fit_inputs(a: &FitArgs) -> Result<(Vec<Event>, ModelConfig)> {
         &a.temperature_inputs,
         &a.taus_min,
     )?;
-    let all_sensors = driftwatch_core::thermal_model::sensors_of(&events);
+    let all_sensors = driftwatch_thermal::model::sensors_of(&events);
     for s in &sensors {
         anyhow::ensure!(
             all_sensors.contains(s),
@@ -638,7 +638,7 @@ fn inputs_the_data_allow(
             .iter()
             .map(|s| TemperatureInput {
                 sensor: s.clone(),
-                taus_min: driftwatch_core::thermal_model::default_temperature_taus(),
+                taus_min: driftwatch_thermal::model::default_temperature_taus(),
             })
             .collect()
     };
@@ -685,10 +685,10 @@ fn choose_families(
     let train_end = until.unwrap_or(i64::MAX);
     let mut families = Vec::new();
     for ch in displacement_channels(events) {
-        let Some(g) = driftwatch_core::families::grid(events, &ch, step_ns) else {
+        let Some(g) = driftwatch_thermal::families::grid(events, &ch, step_ns) else {
             continue;
         };
-        match driftwatch_core::families::choose(
+        match driftwatch_thermal::families::choose(
             events,
             &g,
             train_end,
@@ -819,7 +819,7 @@ pub struct PredictArgs {
 
 /// The grey box's rows from `from` on: a table, or one JSON object per step.
 fn print_steps(
-    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    steps: &[driftwatch_thermal::model::ReplayStep],
     from: i64,
     t0: i64,
     json: bool,
@@ -911,7 +911,7 @@ fn write_plot(
     let list: Vec<Panel> = panels
         .into_iter()
         .map(|(ch, mut p)| {
-            p.unit = driftwatch_core::thermal_model::channel_unit(&ch).to_string();
+            p.unit = driftwatch_core::error_name::channel_unit(&ch).to_string();
             p.boundary_h = p.boundary_h.or(boundary_h);
             p.channel = ch;
             p
@@ -926,13 +926,13 @@ fn write_plot(
 
 /// A family channel ready to run: its choice, its grid on the recording, the first grid point
 /// it predicts.
-type Run = (ChannelChoice, driftwatch_core::families::Grid, usize);
+type Run = (ChannelChoice, driftwatch_thermal::families::Grid, usize);
 
 /// Grid each chosen family on the recording, from the last reading at or before `origin_t`.
 fn family_runs(chosen: Vec<ChannelChoice>, events: &[Event], origin_t: i64) -> Result<Vec<Run>> {
     let mut runs = Vec::new();
     for c in chosen {
-        let g = driftwatch_core::families::grid(events, &c.channel, c.step_ns)
+        let g = driftwatch_thermal::families::grid(events, &c.channel, c.step_ns)
             .with_context(|| format!("{}: no readings with every input", c.channel))?;
         anyhow::ensure!(
             g.names == c.inputs,
@@ -960,7 +960,7 @@ struct FamiliesOnly {
 /// origin, next to persistence.
 struct FamilyRun<'a> {
     c: &'a ChannelChoice,
-    g: &'a driftwatch_core::families::Grid,
+    g: &'a driftwatch_thermal::families::Grid,
     origin: usize,
     /// The grey box's served values of the channel, by time.
     grey: &'a [(i64, f64)],
@@ -988,7 +988,7 @@ fn predict_family(
     eprintln!(
         "{}: served {}",
         c.channel,
-        driftwatch_core::families::describe_served(&served, g, origin)
+        driftwatch_thermal::families::describe_served(&served, g, origin)
     );
     warn_untested_excursion(c, g, origin, t0);
     let p: Vec<(f64, String)> = served.iter().map(|(v, s)| (*v, s.to_string())).collect();
@@ -1036,7 +1036,8 @@ fn predict_family(
     }
     drop(out);
     let values: Vec<f64> = p.iter().map(|(v, _)| *v).collect();
-    let score = driftwatch_core::families::score_free_run(g, origin, &values, &c.bands_or_pooled());
+    let score =
+        driftwatch_thermal::families::score_free_run(g, origin, &values, &c.bands_or_pooled());
     eprintln!(
         "{}: {} ({}), free run from {:.2} h, {} updated readings on the {:.0}-min grid: RMSE {:.3} (persistence {:.3}), max {:.3}; band by horizon: within the CV's 68 % band {:.0} %, 95 % band {:.0} %",
         c.channel,
@@ -1059,19 +1060,19 @@ fn predict_family(
 /// extrapolation no fold tested.
 fn warn_untested_excursion(
     c: &ChannelChoice,
-    g: &driftwatch_core::families::Grid,
+    g: &driftwatch_thermal::families::Grid,
     origin: usize,
     t0: i64,
 ) {
     let Some(tested) = c.choice.as_ref().map(|ch| ch.tested_excursion) else {
         return;
     };
-    let bar = tested.max(driftwatch_core::families::RANGE_SLACK);
+    let bar = tested.max(driftwatch_thermal::families::RANGE_SLACK);
     let first = (origin..g.len())
         .map(|k| {
             (
                 k,
-                driftwatch_core::families::excursion_by_input(g, &c.ranges, k),
+                driftwatch_thermal::families::excursion_by_input(g, &c.ranges, k),
             )
         })
         .find(|(_, (x, _))| x.is_finite() && *x > bar);
@@ -1242,10 +1243,7 @@ fn read_model_file(
 }
 
 /// The grey box's served values of channel `ch`, by time.
-fn served_values(
-    steps: &[driftwatch_core::thermal_model::ReplayStep],
-    ch: &str,
-) -> Vec<(i64, f64)> {
+fn served_values(steps: &[driftwatch_thermal::model::ReplayStep], ch: &str) -> Vec<(i64, f64)> {
     steps
         .iter()
         .filter_map(|s| {
@@ -1258,7 +1256,7 @@ fn served_values(
 }
 
 /// The grey box's scores on the readings it predicted before using them.
-fn print_scores(scores: &[driftwatch_core::thermal_model::HoldoutScore], from_given: bool) {
+fn print_scores(scores: &[driftwatch_thermal::model::HoldoutScore], from_given: bool) {
     let what = if from_given {
         "readings from --from on, each scored before it is used"
     } else {
@@ -1276,7 +1274,7 @@ fn print_scores(scores: &[driftwatch_core::thermal_model::HoldoutScore], from_gi
             s.z_rms,
             100.0 * s.within_1_sigma,
             100.0 * s.within_2_sigma,
-            u = driftwatch_core::thermal_model::channel_unit(&s.channel)
+            u = driftwatch_core::error_name::channel_unit(&s.channel)
         );
     }
 }
@@ -1286,7 +1284,7 @@ fn print_scores(scores: &[driftwatch_core::thermal_model::HoldoutScore], from_gi
 fn print_grey_bands(
     grey_chosen: &[ChannelChoice],
     events: &[Event],
-    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    steps: &[driftwatch_thermal::model::ReplayStep],
     update_until: i64,
 ) {
     for c in grey_chosen {
@@ -1327,7 +1325,7 @@ fn print_grey_bands(
 
 /// One panel per channel the grey box serves, with its served values from `from` on.
 fn grey_panels(
-    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    steps: &[driftwatch_thermal::model::ReplayStep],
     from: i64,
     t0: i64,
 ) -> std::collections::BTreeMap<String, Panel> {
@@ -1346,7 +1344,7 @@ fn grey_panels(
 /// The replay against the recording's truth (`/sim/truth`), when it has one.
 fn print_truth(
     recording: &std::path::Path,
-    steps: &[driftwatch_core::thermal_model::ReplayStep],
+    steps: &[driftwatch_thermal::model::ReplayStep],
     events: &[Event],
     from: i64,
 ) -> Result<()> {
@@ -1354,12 +1352,12 @@ fn print_truth(
     let Some((_, reference)) = truth.first() else {
         return Ok(());
     };
-    let t = driftwatch_core::thermal_model::truth_scores(steps, events, &truth, reference, from);
+    let t = driftwatch_thermal::model::truth_scores(steps, events, &truth, reference, from);
     eprintln!(
         "against the recording's truth (/sim/truth) from --from on, RMS: no compensation (the first sample's truth) / last measured / served (share of the thermal error removed) / model"
     );
     for s in &t {
-        let unit = driftwatch_core::thermal_model::channel_unit(&s.channel);
+        let unit = driftwatch_core::error_name::channel_unit(&s.channel);
         eprintln!(
             "{:<6} {:>5} min  none {:>7.3}  last measured {:>7.3}  served {:>7.3} ({:>5.1} %)  model {:>7.3} {unit}{}",
             s.channel,

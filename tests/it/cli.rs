@@ -956,7 +956,7 @@ fn diagnose_a_displacement_recording_names_the_chiller_driver_and_writes_a_model
     assert_eq!(j["channels"].as_array().unwrap().len(), 1);
     assert_eq!(j["channels"][0]["periodic"]["driver"], "t4_C");
     // The new model version is a thermal model the service can load.
-    let m = driftwatch_core::thermal_model::ThermalModel::from_json(
+    let m = driftwatch_thermal::model::ThermalModel::from_json(
         &std::fs::read_to_string(dir.join("model.json")).unwrap(),
     )
     .unwrap();

@@ -9,13 +9,13 @@ use std::sync::{Arc, Mutex};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::recording::{DetectionStatus, MachineInfo, MachineStateKind, ResultStatus};
-use driftwatch_core::thermal_model::Prediction;
 use driftwatch_recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_service::daemon::{MachineRuntime, Settings};
 use driftwatch_service::link::{LinkError, LinkEvent, MachineLink, Simulated};
 use driftwatch_service::recorder::Recorder;
 use driftwatch_service::store::CycleStatus;
 use driftwatch_sim::scenario::Scenario;
+use driftwatch_thermal::model::Prediction;
 
 const MIN: i64 = 60_000_000_000;
 

@@ -8,11 +8,11 @@ use driftwatch_core::identify::SolveOptions;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::thermal::Channel;
-use driftwatch_core::thermal_model::ModelInput;
 use driftwatch_diagnosis::cycles::{
     DiagnoseOptions, Diagnosis, Inputs, detection_rows, diagnose, screen_outliers,
 };
 use driftwatch_sim::scenario::{FeedChange, Scenario};
+use driftwatch_thermal::model::ModelInput;
 
 /// Three production days (the two-shift program of `ambient_swing` each day), a cycle every
 /// 30 min, 0.5-um noise, the hall at a constant 20 C (logged), no thermal truth (each case

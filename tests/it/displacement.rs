@@ -3,12 +3,12 @@
 //! temperatures. Trained on 0-40 h, held out 40-46.3 h. Figures:
 //! `cargo test --release --test it -- displacement:: --nocapture`.
 
-use driftwatch_core::thermal_model::{Event, ModelInput};
 use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementOptions, diagnose_displacements,
 };
 use driftwatch_lab::calibration::{null_trial, power_trial, worsening_terms};
 use driftwatch_lab::null_recordings::Null;
+use driftwatch_thermal::model::{Event, ModelInput};
 
 const H: i64 = 3_600_000_000_000;
 

@@ -6,12 +6,12 @@
 //! as steadily as time is reported as confounded with a ramp. The power table over sizes,
 //! onsets, sensors and channels: `cargo test --test it -- located:: --ignored --nocapture`.
 
-use driftwatch_core::thermal_model::Event;
 use driftwatch_diagnosis::displacement::{
     ChannelDiagnosis, DisplacementOptions, NotConfirmed, diagnose_displacements,
 };
 use driftwatch_lab::calibration::{LocatedOutcome, located_power, worsening_terms};
 use driftwatch_lab::null_recordings::with_temperature_effect;
+use driftwatch_thermal::model::Event;
 
 const H: i64 = 3_600_000_000_000;
 

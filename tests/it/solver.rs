@@ -813,7 +813,7 @@ fn drifting_rows(
     backlash_urad: f64,
 ) -> (
     driftwatch_diagnosis::cycles::Rows,
-    Vec<driftwatch_core::thermal_model::Event>,
+    Vec<driftwatch_thermal::model::Event>,
 ) {
     let mut scn = Scenario::load("warmup").unwrap();
     scn.noise.sigma_um = 0.5;
@@ -825,7 +825,7 @@ fn drifting_rows(
     let spindle = sim
         .spindle
         .iter()
-        .map(|m| driftwatch_core::thermal_model::Event::Spindle {
+        .map(|m| driftwatch_thermal::model::Event::Spindle {
             t_ns: m.t_ns,
             rpm: m.msg.rpm,
         })

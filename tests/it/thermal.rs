@@ -3,9 +3,7 @@
 //! No accuracy goal yet: the figures are printed (`cargo test --test it -- thermal:: --nocapture`)
 //! and the assertions check what must hold whatever the numbers.
 
-use driftwatch_core::thermal_model::{
-    Event, HoldoutScore, ModelConfig, TemperatureInput, fit, replay,
-};
+use driftwatch_thermal::model::{Event, HoldoutScore, ModelConfig, TemperatureInput, fit, replay};
 
 const H: i64 = 3_600_000_000_000;
 
@@ -139,14 +137,14 @@ fn the_replay_is_causal() {
         }
     }
     let (b, _, _) = replay(&m, &changed, 600_000_000_000, i64::MAX, i64::MAX);
-    let before = |s: &[driftwatch_core::thermal_model::ReplayStep]| -> Vec<f64> {
+    let before = |s: &[driftwatch_thermal::model::ReplayStep]| -> Vec<f64> {
         s.iter()
             .filter(|x| x.t_ns <= 30 * H)
             .flat_map(|x| x.predictions.iter().map(|p| p.value))
             .collect()
     };
     assert_eq!(before(&a), before(&b));
-    let after = |s: &[driftwatch_core::thermal_model::ReplayStep]| -> f64 {
+    let after = |s: &[driftwatch_thermal::model::ReplayStep]| -> f64 {
         s.iter()
             .filter(|x| x.t_ns > 31 * H)
             .flat_map(|x| x.predictions.iter().map(|p| p.value))
@@ -160,12 +158,12 @@ fn the_replay_is_causal() {
 /// never the fit's last reading (which is later), and persistence is scored the same way.
 #[test]
 fn within_the_fit_the_last_measured_value_is_the_last_reading_so_far() {
-    use driftwatch_core::thermal_model::Served;
+    use driftwatch_thermal::model::Served;
     let ev = events();
     // The filter's own value: anchored at each 15-s reading, the model predicts the next one
     // as well as that reading does, and no last measured value would be served to check.
     let cfg = ModelConfig {
-        anchoring: driftwatch_core::thermal_model::Anchoring::Never,
+        anchoring: driftwatch_thermal::model::Anchoring::Never,
         ..spindle_only()
     };
     let m = fit(&cfg, &ev, Some(40 * H)).unwrap();
@@ -248,8 +246,9 @@ use fl::CHANNELS;
 /// is fitted from the temperatures. Figures: `cargo run --release -- bench thermal`.
 #[test]
 fn on_fl_thermal_least_squares_serves_where_no_challenger_wins_beyond_chance() {
-    use driftwatch_core::families::{
-        Family, choose, folds, grey_box_config, grid, independent_folds, sign_test_wins,
+    use driftwatch_core::stats::sign_test_wins;
+    use driftwatch_thermal::families::{
+        Family, choose, folds, grey_box_config, grid, independent_folds,
     };
     let ev = fl_thermal(true, &CHANNELS);
     for ch in CHANNELS {
@@ -280,7 +279,7 @@ fn on_fl_thermal_least_squares_serves_where_no_challenger_wins_beyond_chance() {
         assert_eq!(choice.family, Family::Regression, "{ch}: {}", choice.why);
         assert!(choice.why.contains("not beyond chance") || choice.why.contains("lowest CV error"));
         // Served inside the fit range: regression's own free run.
-        use driftwatch_core::families::{Served, simulate};
+        use driftwatch_thermal::families::{Served, simulate};
         let served = c.serve(&g, n_train, g.len(), &vec![f64::NAN; horizon], f64::NAN);
         let own = simulate(&c.fitted, &g, n_train, g.len());
         assert!(
@@ -329,7 +328,7 @@ fn on_fl_thermal_least_squares_serves_where_no_challenger_wins_beyond_chance() {
 /// there, come down to the sensor noise, and beat persistence and every baseline.
 #[test]
 fn on_a_simulated_two_shift_run_the_grey_box_wins_beyond_chance_and_reaches_the_noise() {
-    use driftwatch_core::families::{Family, compete, grey_box_config, grid};
+    use driftwatch_thermal::families::{Family, compete, grey_box_config, grid};
     let sigma = 0.5;
     let ev = driftwatch_lab::strategies::sensor_view("two_shift", 3, sigma).unwrap();
     let t0 = ev[0].t_ns();

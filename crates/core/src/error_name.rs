@@ -128,6 +128,13 @@ impl ErrorName {
     }
 }
 
+/// The unit of a channel's values: a channel is a location error (`EZ0B`, `EA0C`: um or urad,
+/// as its name says) or a displacement sensor (`ch1` of a displacement recording: um). Only a
+/// channel that parses as an orientation error is in urad.
+pub fn channel_unit(channel: &str) -> &'static str {
+    ErrorName::parse(channel).map_or("um", |e| e.unit())
+}
+
 impl fmt::Display for ErrorName {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.pad(self.as_str())
@@ -233,6 +240,15 @@ mod tests {
     const ALL: [&str; 10] = [
         "EX0B", "EZ0B", "EA0B", "EC0B", "EB0B", "EX0C", "EY0C", "EA0C", "EB0C", "EC0C",
     ];
+
+    #[test]
+    fn a_channel_is_in_urad_only_when_it_names_an_orientation_error() {
+        assert_eq!(channel_unit("EA0C"), "urad");
+        assert_eq!(channel_unit("EB0C"), "urad");
+        assert_eq!(channel_unit("EZ0B"), "um");
+        assert_eq!(channel_unit("ch1"), "um");
+        assert_eq!(channel_unit("EA"), "um");
+    }
 
     #[test]
     fn good_names_parse_with_their_kind_and_unit() {

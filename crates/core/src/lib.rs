@@ -1,15 +1,14 @@
 //! driftwatch's functional core: units and time, geometry, kinematics, the tool-setter
 //! measurement model, cycle plans, identification, cycle checks, the contract's recording types,
-//! thermal lags, the thermal model and its competing families, statistics.
+//! thermal lags, least squares, statistics. The thermal model and its competing families are the
+//! `driftwatch-thermal` crate's.
 //!
 //! Pure code: no async runtime, no database, no network, no clock, no globals; deterministic for
 //! a given seed. The only I/O is the loading of TOML descriptions by name or path (`source`);
 //! recordings on disk are the `driftwatch-recording` crate's. The theory is in docs/physics.md.
 
-pub mod across_runs;
 pub mod cycle;
 pub mod error_name;
-pub mod families;
 pub mod geometry;
 pub mod identify;
 pub mod kinematics;
@@ -23,5 +22,4 @@ pub mod recording;
 pub mod source;
 pub mod stats;
 pub mod thermal;
-pub mod thermal_model;
 pub mod units;

@@ -316,6 +316,28 @@ pub fn detection_threshold(sigma: f64, n: usize, r2: f64) -> f64 {
     sigma * ((10.0 + n.ln()) / (n * (1.0 - r2))).sqrt()
 }
 
+/// The one-sided sign test at 5 %: the fewest wins of `n` paired comparisons (folds, or
+/// later runs) that chance alone gives with probability at most 0.05; `None` when not even
+/// `n` of `n` would (`n` < 5). A challenger replaces the textbook baseline only with that
+/// many wins (7 of the 8 CV folds: P = 9/256 = 0.035; the folds overlap, so the true level
+/// is somewhat higher, which errs towards the baseline).
+pub fn sign_test_wins(n: usize) -> Option<usize> {
+    // P(W >= w) for W ~ Binomial(n, 1/2), from the top down.
+    let mut tail = 0.0;
+    let mut c = 1.0; // C(n, k), k from n down
+    let total = 2f64.powi(n as i32);
+    let mut best = None;
+    for k in (0..=n).rev() {
+        tail += c / total;
+        if tail > 0.05 {
+            break;
+        }
+        best = Some(k);
+        c = c * k as f64 / (n - k + 1) as f64;
+    }
+    best
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -326,6 +348,15 @@ mod tests {
     fn normal(n: usize, seed: u64) -> Vec<f64> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..n).map(|_| StandardNormal.sample(&mut rng)).collect()
+    }
+
+    #[test]
+    fn the_sign_test_asks_for_wins_chance_gives_under_five_percent() {
+        assert_eq!(sign_test_wins(8), Some(7));
+        assert_eq!(sign_test_wins(5), Some(5));
+        assert_eq!(sign_test_wins(4), None);
+        assert_eq!(sign_test_wins(10), Some(9));
+        assert_eq!(sign_test_wins(20), Some(15));
     }
 
     #[test]

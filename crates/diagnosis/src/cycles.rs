@@ -36,8 +36,8 @@ pub struct Baseline {
 /// cycles' own spins included) and one-reading uncertainty `sigma_um`.
 pub fn fit_baseline(
     rows: &Rows,
-    spindle: &[driftwatch_core::thermal_model::Event],
-    cfg: &driftwatch_core::thermal_model::ModelConfig,
+    spindle: &[driftwatch_thermal::model::Event],
+    cfg: &driftwatch_thermal::model::ModelConfig,
     sigma_um: f64,
 ) -> Result<Baseline, DiagnosisError> {
     if rows.rows.is_empty() {
@@ -134,7 +134,7 @@ pub fn locate(rows: &Rows, residual_um: &[f64], sigma_um: f64, t_min: f64) -> Ve
 // what stays unexplained.
 
 use crate::effects::{Candidate, Drivers};
-use driftwatch_core::thermal_model::{Event, ModelConfig, ModelInput};
+use driftwatch_thermal::model::{Event, ModelConfig, ModelInput};
 use nalgebra::{DMatrix, DVector};
 
 mod search;
@@ -983,7 +983,7 @@ pub fn diagnose(
     if rows.rows.is_empty() {
         return Err(DiagnosisError::NoDetections);
     }
-    let sensors = driftwatch_core::thermal_model::sensors_of(temperatures);
+    let sensors = driftwatch_thermal::model::sensors_of(temperatures);
     let redundancy = redundancy(rows, opts.sigma_um);
     // Outliers against a robust baseline, removed once.
     let (rows, outliers) = search::without_outliers(rows, spindle, opts);

@@ -24,7 +24,7 @@ use crate::cycles::DIAGNOSIS_TAUS_MIN;
 use crate::effects::TEMPERATURE_TAUS_MIN;
 use crate::stepwise::{Rules, Scoring, Verdict, stepwise};
 use driftwatch_core::least_squares::lsq;
-use driftwatch_core::thermal_model::{Event, Features, ModelConfig, ModelInput};
+use driftwatch_thermal::model::{Event, Features, ModelConfig, ModelInput};
 
 mod located;
 mod scoring;
@@ -814,7 +814,7 @@ pub fn diagnose_displacements(
     channels: &[String],
     opts: &DisplacementOptions,
 ) -> Result<DisplacementDiagnosis, DisplacementError> {
-    let sensors = driftwatch_core::thermal_model::sensors_of(events);
+    let sensors = driftwatch_thermal::model::sensors_of(events);
     let cfg = ModelConfig {
         taus_min: DIAGNOSIS_TAUS_MIN.to_vec(),
         n_ref_rpm: opts.n_ref_rpm,

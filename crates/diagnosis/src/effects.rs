@@ -11,9 +11,8 @@ use std::collections::BTreeMap;
 use serde::Serialize;
 
 use crate::rows::Rows;
-use driftwatch_core::thermal_model::{
-    Event, Features, ModelConfig, TemperatureInput, channel_unit,
-};
+use driftwatch_core::error_name::channel_unit;
+use driftwatch_thermal::model::{Event, Features, ModelConfig, TemperatureInput};
 
 /// One effect of the library, as `diagnose --list-effects` prints it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -595,7 +594,7 @@ impl Drivers {
         let times: Vec<i64> = rows.rows.iter().map(|r| r.t_ns).collect();
         let t0 = times.iter().copied().min().unwrap_or(0);
         let t1 = times.iter().copied().max().unwrap_or(0);
-        let sensors = driftwatch_core::thermal_model::sensors_of(temperatures);
+        let sensors = driftwatch_thermal::model::sensors_of(temperatures);
         let full = ModelConfig {
             taus_min: cfg.taus_min.iter().copied().chain(SLOW_TAUS_MIN).collect(),
             temperatures: temperature_inputs(&sensors),

@@ -4,10 +4,10 @@
 //! reported; a hall ramped while the machine warms up is reported as confounded with the
 //! warm-up, with the recording that would separate them.
 
-use driftwatch_core::thermal_model::Event;
 use driftwatch_diagnosis::displacement::{
     ChannelDiagnosis, DisplacementOptions, NotConfirmed, diagnose_displacements,
 };
+use driftwatch_thermal::model::Event;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};

@@ -648,7 +648,7 @@ fn real_sets() -> Vec<RealSet> {
 }
 
 /// A shipped real data set's events (from t = 0).
-fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::thermal_model::Event>> {
+fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_thermal::model::Event>> {
     use driftwatch_recording::csv_import::{CsvOptions, RowTime, import_csv};
     let path = data.join(set.csv);
     let text = std::fs::read_to_string(&path)
@@ -665,7 +665,7 @@ fn real_events(data: &Path, set: &RealSet) -> Result<Vec<driftwatch_core::therma
         },
     )
     .with_context(|| format!("importing {}", path.display()))?;
-    Ok(driftwatch_core::thermal_model::events_from(&[im.recording]))
+    Ok(driftwatch_thermal::model::events_from(&[im.recording]))
 }
 
 /// The displacement diagnosis on every shipped real data set and on null recordings made
@@ -789,11 +789,11 @@ pub fn nulls(data: &Path, n_nulls: usize, json: bool) -> Result<ExitCode> {
 }
 
 /// The top logged spindle speed (1 without a spindle log): the diagnosis' reference speed.
-pub(crate) fn top_speed(events: &[driftwatch_core::thermal_model::Event]) -> f64 {
+pub(crate) fn top_speed(events: &[driftwatch_thermal::model::Event]) -> f64 {
     events
         .iter()
         .filter_map(|e| match e {
-            driftwatch_core::thermal_model::Event::Spindle { rpm, .. } => Some(rpm.abs()),
+            driftwatch_thermal::model::Event::Spindle { rpm, .. } => Some(rpm.abs()),
             _ => None,
         })
         .fold(0.0, f64::max)

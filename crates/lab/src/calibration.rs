@@ -8,11 +8,11 @@
 //! Pure: plain data in and out, deterministic given the seeds.
 
 use crate::null_recordings::{Null, null_recording, with_temperature_effect};
-use driftwatch_core::thermal_model::{Event, ModelInput};
 use driftwatch_diagnosis::displacement::{
     DisplacementDiagnosis, DisplacementError, DisplacementOptions, NotConfirmed,
     diagnose_displacements,
 };
+use driftwatch_thermal::model::{Event, ModelInput};
 
 /// Grid of the temperature surrogates, ns (the diagnosis thins to 5 min).
 pub const SURROGATE_STEP_NS: i64 = 300_000_000_000;

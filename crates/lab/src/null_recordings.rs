@@ -13,8 +13,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use driftwatch_core::thermal_model::Event;
 use driftwatch_diagnosis::surrogates::phase_randomised;
+use driftwatch_thermal::model::Event;
 
 /// The kinds of null recording.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,7 +96,7 @@ pub fn ar2(n: usize, pole: f64, sigma: f64, rng: &mut impl Rng) -> Vec<f64> {
 /// Each temperature sensor resampled every `step_ns` (the last value at or before each
 /// time, from its first reading), as `(sensor, times, values)`.
 fn temperature_grid(events: &[Event], step_ns: i64) -> Vec<(String, Vec<i64>, Vec<f64>)> {
-    let sensors = driftwatch_core::thermal_model::sensors_of(events);
+    let sensors = driftwatch_thermal::model::sensors_of(events);
     let end = events.last().map_or(0, Event::t_ns);
     sensors
         .into_iter()

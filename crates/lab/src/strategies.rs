@@ -18,13 +18,13 @@ use driftwatch_core::cycle::{CycleChecks, CycleOutcome, process_all};
 use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
-use driftwatch_core::thermal_model::{Event, ModelConfig, TemperatureInput};
 use driftwatch_machine::compensation::PredictionPolicy;
 use driftwatch_machine::live_model::LiveModel;
 use driftwatch_machine::phase::{PhaseConfig, PhaseTracker};
 use driftwatch_machine::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::{SimError, Simulation, simulate};
+use driftwatch_thermal::model::{Event, ModelConfig, TemperatureInput};
 
 const MIN: i64 = units::NS_PER_MIN;
 
@@ -256,7 +256,7 @@ pub struct Comparison {
     pub band: BTreeMap<String, Band>,
     /// Per error, what the model served at the end of the day and why, with the held-out
     /// scores (each cycle scored before it corrected the model) and the band on them.
-    pub served: Vec<driftwatch_core::thermal_model::GuardSummary>,
+    pub served: Vec<driftwatch_thermal::model::GuardSummary>,
 }
 
 impl Comparison {
@@ -473,7 +473,7 @@ pub fn bench_model_config() -> ModelConfig {
     ModelConfig {
         temperatures: vec![TemperatureInput {
             sensor: "ambient".into(),
-            taus_min: driftwatch_core::thermal_model::default_temperature_taus(),
+            taus_min: driftwatch_thermal::model::default_temperature_taus(),
         }],
         ..ModelConfig::default()
     }

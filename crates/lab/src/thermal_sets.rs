@@ -7,10 +7,10 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use driftwatch_core::thermal_model::{Event, events_from};
 use driftwatch_recording::csv_import::{
     CsvFormat, CsvOptions, RowTime, import_csv_with, keep_changed_displacements, split_runs,
 };
+use driftwatch_thermal::model::{Event, events_from};
 
 #[derive(Debug, serde::Deserialize)]
 #[serde(untagged)]

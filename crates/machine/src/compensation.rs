@@ -714,7 +714,7 @@ pub struct PredictionPolicy {
     /// cycle within as many of its own.
     pub consistency_sigmas: f64,
     /// The model (pole basis, inputs, offset walk).
-    pub model: driftwatch_core::thermal_model::ModelConfig,
+    pub model: driftwatch_thermal::model::ModelConfig,
 }
 
 impl Default for PredictionPolicy {
@@ -732,7 +732,7 @@ impl Default for PredictionPolicy {
             cycle_above_sigma_um: 3.0,
             cycle_above_sigma_urad: 20.0,
             consistency_sigmas: 5.0,
-            model: driftwatch_core::thermal_model::ModelConfig::default(),
+            model: driftwatch_thermal::model::ModelConfig::default(),
         }
     }
 }

@@ -12,7 +12,7 @@ use serde::Serialize;
 use crate::compensation::PredictionPolicy;
 use crate::scheduler::Uncertain;
 use driftwatch_core::error_name::ErrorName;
-use driftwatch_core::thermal_model::{
+use driftwatch_thermal::model::{
     Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
 };
 
@@ -472,7 +472,7 @@ mod tests {
         policy
             .model
             .temperatures
-            .push(driftwatch_core::thermal_model::TemperatureInput {
+            .push(driftwatch_thermal::model::TemperatureInput {
                 sensor: "ambient".into(),
                 taus_min: vec![0.0],
             });
@@ -545,8 +545,7 @@ mod tests {
                 sigma: Some(0.3),
             });
         }
-        let model =
-            driftwatch_core::thermal_model::fit(&Default::default(), &earlier, None).unwrap();
+        let model = driftwatch_thermal::model::fit(&Default::default(), &earlier, None).unwrap();
         let policy = PredictionPolicy {
             min_cycles: 3,
             ..Default::default()

@@ -25,8 +25,8 @@ use driftwatch_core::recording::{
     CycleResultMsg, DetectionIssue, DetectionMsg, ResultStatus, SpindleMsg, StateMsg,
     TemperatureMsg, Timed,
 };
-use driftwatch_core::thermal_model::{Event, Prediction, Predictor};
 use driftwatch_core::units;
+use driftwatch_thermal::model::{Event, Prediction, Predictor};
 use thiserror::Error;
 
 use crate::alerts::{Alert, AlertEngine, AlertEvent, AlertState, ClockInput, LoggedAlerts, Rule};
@@ -350,7 +350,7 @@ pub struct Settings {
     pub alert_rules: Vec<Rule>,
     pub prediction: PredictionPolicy,
     /// A thermal model fitted elsewhere to start from (the machine's `thermal_model`).
-    pub initial_model: Option<Arc<driftwatch_core::thermal_model::ThermalModel>>,
+    pub initial_model: Option<Arc<driftwatch_thermal::model::ThermalModel>>,
 }
 
 impl Default for Settings {

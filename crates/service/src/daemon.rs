@@ -29,13 +29,13 @@ use driftwatch_core::cycle::CycleChecks;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 use driftwatch_core::recording as rec;
-use driftwatch_core::thermal_model::Event;
 use driftwatch_core::units::{NS_PER_MIN, NS_PER_S};
 use driftwatch_machine::compensation::{self, CompensationSet};
 use driftwatch_machine::machine_core::{
     CoreError, Effect, Input, Level, MachineCore, Record, Restored,
 };
 use driftwatch_machine::phase::{PastEvent, PhaseInfo};
+use driftwatch_thermal::model::Event;
 
 pub use driftwatch_machine::machine_core::{CycleView, Settings, ThermalView};
 

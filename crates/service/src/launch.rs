@@ -18,8 +18,8 @@ use tracing::{error, info, warn};
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_core::recording::MachineInfo;
-use driftwatch_core::thermal_model::ThermalModel;
 use driftwatch_core::units::{NS_PER_MIN, NS_PER_S, min_to_ns};
+use driftwatch_thermal::model::ThermalModel;
 
 use crate::api::{ApiState, Auth, router};
 use crate::clock::{ManualClock, ServiceClock};

@@ -176,7 +176,7 @@ impl Experiment {
         let mut out = String::new();
         let _ = write!(out, "{:>5} {:>8}", "cycle", "t/min");
         for n in &names {
-            let unit = driftwatch_core::thermal_model::channel_unit(n);
+            let unit = driftwatch_core::error_name::channel_unit(n);
             let _ = write!(out, " {:>24}", format!("{n} id/truth [{unit}]"));
         }
         out.push('\n');

@@ -1,8 +1,8 @@
 //! fl-thermal (MIT; tests/data/fl-thermal) as events, for the tests that judge models and
 //! diagnoses on it (`thermal`, `displacement`, `located`).
 
-use driftwatch_core::thermal_model::{Event, events_from};
 use driftwatch_recording::csv_import::{CsvOptions, RowTime, import_csv};
+use driftwatch_thermal::model::{Event, events_from};
 
 /// fl-thermal imported with or without its spindle column, all 16 temperatures and
 /// `channels`; every row and cell read.

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, DVector};
 
-use driftwatch_core::thermal_model::Event;
+use driftwatch_thermal::model::Event;
 
 use super::{
     Accepted, Alternative, ChannelFigures, DiagnoseOptions, FitFigures, GroupMember, Mismatch,

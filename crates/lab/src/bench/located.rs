@@ -35,10 +35,10 @@ use std::time::Instant;
 
 use crate::calibration::{LocatedOutcome, located_power};
 use anyhow::Result;
-use driftwatch_core::thermal_model::Event;
 use driftwatch_core::units;
 use driftwatch_diagnosis::cycles::DIAGNOSIS_TAUS_MIN;
 use driftwatch_diagnosis::displacement::{DisplacementOptions, RAMP_R};
+use driftwatch_thermal::model::Event;
 
 use crate::thermal_sets::{ThermalData, load_all};
 

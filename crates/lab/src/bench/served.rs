@@ -18,17 +18,17 @@ use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use driftwatch_core::across_runs;
 use driftwatch_core::error_name::ErrorName;
-use driftwatch_core::families::{Family, Grid, grid, rms};
-use driftwatch_core::thermal_model::{
-    Event, Served, TemperatureInput, beyond_chance, default_temperature_taus,
-};
 use driftwatch_core::units;
 use driftwatch_machine::compensation::{
     CompensationSet, PredictionPolicy, Source, ValidationLimits,
 };
 use driftwatch_machine::live_model::LiveModel;
+use driftwatch_thermal::across_runs;
+use driftwatch_thermal::families::{Family, Grid, grid, rms};
+use driftwatch_thermal::model::{
+    Event, Served, TemperatureInput, beyond_chance, default_temperature_taus,
+};
 use serde::Serialize;
 
 use crate::thermal_sets::{ThermalData, load_all};
@@ -120,7 +120,7 @@ fn policy_for(set: &ThermalData, mut policy: PredictionPolicy) -> PredictionPoli
     let sensors = set
         .runs
         .first()
-        .map(|r| driftwatch_core::thermal_model::sensors_of(&r.events))
+        .map(|r| driftwatch_thermal::model::sensors_of(&r.events))
         .unwrap_or_default();
     policy.model.temperatures = sensors
         .into_iter()

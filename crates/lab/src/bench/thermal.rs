@@ -13,12 +13,12 @@ use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use driftwatch_core::across_runs;
-use driftwatch_core::families::{
+use driftwatch_core::units;
+use driftwatch_thermal::across_runs;
+use driftwatch_thermal::families::{
     self, ChannelChoice, Family, Grid, describe_served, grey_box, grey_box_config, grid, rms,
 };
-use driftwatch_core::thermal_model::Event;
-use driftwatch_core::units;
+use driftwatch_thermal::model::Event;
 
 use crate::thermal_sets::{Run, ThermalData, load_all};
 

@@ -225,14 +225,14 @@ async fn stored_inputs(
         match s {
             crate::store::Sample::Spindle { t_ns, rpm } => inputs
                 .spindle
-                .push(driftwatch_core::thermal_model::Event::Spindle { t_ns, rpm }),
+                .push(driftwatch_thermal::model::Event::Spindle { t_ns, rpm }),
             crate::store::Sample::Temperature {
                 t_ns,
                 sensor,
                 celsius,
             } => inputs
                 .temperatures
-                .push(driftwatch_core::thermal_model::Event::Temperature {
+                .push(driftwatch_thermal::model::Event::Temperature {
                     t_ns,
                     sensor,
                     celsius,

@@ -10,10 +10,10 @@ use axum::routing::get;
 use serde::Deserialize;
 
 use crate::series::{ErrorBucket, ErrorSample};
-use driftwatch_core::thermal_model::{GuardSummary, Prediction, TemperatureInput};
 use driftwatch_core::units::NS_PER_H;
 use driftwatch_machine::compensation::CompensationSet;
 use driftwatch_machine::phase::PhaseInfo;
+use driftwatch_thermal::model::{GuardSummary, Prediction, TemperatureInput};
 use serde::Serialize;
 
 use super::{ApiError, ErrorCode, Guard, Shared, handle, view};

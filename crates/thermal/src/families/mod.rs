@@ -1,5 +1,5 @@
 //! Model families that compete for one displacement channel, judged the same way on the
-//! same points: the pole-basis grey box of [`crate::thermal_model`] and the textbook
+//! same points: the pole-basis grey box of [`crate::model`] and the textbook
 //! baselines a thermal engineer would try first, persistence (the last training value held),
 //! multiple linear regression on every temperature, regression on a few key temperatures
 //! chosen by forward selection, and an ARX model run in simulation (free-run, multi-step)
@@ -14,26 +14,27 @@
 //! Pure: plain data in and out, no I/O.
 
 mod bands;
+mod channel;
 mod choice;
 mod compete;
 mod cv;
 mod fit;
+mod fitted;
 mod grid;
 
 pub use bands::{BAND_EDGES_H, Bands, FreeRunScore, coverage, score_free_run};
+pub use channel::{ChannelChoice, Served, choose, describe_served, fit_scored};
 pub use choice::{
-    ChannelChoice, Choice, MIN_BEYOND, RANGE_SLACK, RegimeChoice, Served, choose, describe_served,
-    excursion, excursion_by_input, fit_scored, independent_folds, input_ranges,
+    Choice, MIN_BEYOND, RANGE_SLACK, RegimeChoice, excursion, excursion_by_input,
+    independent_folds, input_ranges,
 };
-pub use compete::{FamilyScore, compete, sign_test_wins};
+pub use compete::{FamilyScore, compete};
 pub use cv::{
     CvError, N_FOLDS, RELAX_H, folds, origin_residual, relax_weight, rms, tested_horizon,
 };
 pub(crate) use fit::forward_select;
-pub use fit::{
-    Family, Fitted, MAX_KEY, fit_family, grey_box, grey_box_config, key_inputs, simulate,
-    simulate_with,
-};
+pub use fit::{MAX_KEY, fit_family, grey_box, grey_box_config, key_inputs};
+pub use fitted::{Family, Fitted, simulate, simulate_with};
 pub use grid::{Grid, default_step_ns, grid};
 
 #[cfg(test)]

@@ -1,8 +1,10 @@
 //! The tests that cross the parts: a fit on simulated days, then its predictor or a causal
 //! replay of them.
 
+use std::collections::BTreeMap;
+
 use super::*;
-use crate::units;
+use driftwatch_core::units;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

@@ -5,81 +5,14 @@
 use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, DVector};
-use serde::{Deserialize, Serialize};
 
 use super::config::{ModelConfig, ModelError};
 use super::events::Event;
 use super::features::Features;
+use super::fitted::{ChangeRegression, ChannelFit, MODEL_FORMAT, ThermalModel};
 use super::guard::Guard;
-use super::predictor::ChannelState;
-use super::{MODEL_FORMAT, ThermalModel};
-use crate::least_squares;
-
-/// One channel's fit.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ChannelFit {
-    pub name: String,
-    /// Posterior mean of the parameters, in the model's column order.
-    pub coef: Vec<f64>,
-    /// Posterior covariance, row-major.
-    pub cov: Vec<f64>,
-    /// Prior precision of each parameter (weak prior plus ridge); the prior mean is zero.
-    pub prior_precision: Vec<f64>,
-    /// Ridge factor chosen by blocked cross-validation.
-    pub ridge: f64,
-    /// Model scatter beyond the observations' own uncertainty, um (added in quadrature).
-    pub discrepancy_um: f64,
-    pub n_obs: usize,
-    pub rms_um: f64,
-    /// Weighted chi-square per degree of freedom with the discrepancy included (1 when the
-    /// discrepancy is positive).
-    pub chi2_dof: f64,
-    /// Held-out RMS of the chosen ridge factor (blocked cross-validation), um.
-    pub cv_rmse_um: f64,
-    /// The random walk of the offset learned from this channel's observations, its unit
-    /// squared per hour (`None`: too few to learn, the configuration's `offset_walk_per_h`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub offset_walk_per_h: Option<f64>,
-    /// The held-out check of the fit: the model against the last measured value and no
-    /// change on the latest observations, and what the served value starts from.
-    #[serde(default)]
-    pub guard: Guard,
-    /// Columns (index, lowest, highest) the prediction holds to the range of the fit data:
-    /// the temperature inputs when their gains are not jointly significant.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub held_to_range: Vec<(usize, f64, f64)>,
-    /// The textbook least squares the model must beat on the same observations (`None`
-    /// with fewer observations than its inputs).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub regression: Option<ChangeRegression>,
-}
-
-/// Least squares on every input (each one's fastest column: the spindle's shortest lag, each
-/// temperature's own), fitted on the changes within each run of observations (an offset per
-/// run, [`ModelConfig::run_gap_h`]): the regression a thermal engineer tries first, learned
-/// across days as a thermal test zeroed at each start is. It predicts the last observation
-/// moved by the inputs' changes since it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ChangeRegression {
-    /// Columns of the design row and their gains.
-    pub columns: Vec<usize>,
-    pub gains: Vec<f64>,
-}
-
-impl ChangeRegression {
-    /// The value at design row `to` of a channel last observed as `last` at row `from`.
-    pub fn value(&self, last: f64, from: &[f64], to: &DVector<f64>) -> f64 {
-        if from.len() != to.len() {
-            return last;
-        }
-        last + self
-            .columns
-            .iter()
-            .zip(&self.gains)
-            .map(|(&j, g)| g * (to[j] - from[j]))
-            .sum::<f64>()
-    }
-}
+use super::state::ChannelState;
+use driftwatch_core::least_squares;
 
 /// Each input's fastest column of `cfg`'s design row: the shortest spindle lag, the shortest
 /// lag of each temperature (the temperature itself where a lag of 0 is configured).
@@ -108,7 +41,7 @@ fn fastest_columns(cfg: &ModelConfig) -> Vec<usize> {
 /// [`ChangeRegression`] on `obs` (time-ordered): within each run the means of the reading
 /// and of the inputs are removed, inputs that do not vary within any run are left out.
 fn fit_change_regression(cfg: &ModelConfig, obs: &[Obs]) -> Option<ChangeRegression> {
-    let gap = crate::units::h_to_ns(cfg.run_gap_h);
+    let gap = driftwatch_core::units::h_to_ns(cfg.run_gap_h);
     let mut runs: Vec<&[Obs]> = Vec::new();
     let mut start = 0;
     for i in 1..=obs.len() {
@@ -138,23 +71,6 @@ fn fit_change_regression(cfg: &ModelConfig, obs: &[Obs]) -> Option<ChangeRegress
         columns: keep.iter().map(|&c| cols[c]).collect(),
         gains: gains.iter().copied().collect(),
     })
-}
-
-impl ChannelFit {
-    fn n(&self) -> usize {
-        self.coef.len()
-    }
-    pub fn cov_matrix(&self) -> DMatrix<f64> {
-        DMatrix::from_row_slice(self.n(), self.n(), &self.cov)
-    }
-    /// The time constant and gain of each spindle lag (um per unit heat input).
-    pub fn spindle_gains(&self, cfg: &ModelConfig) -> Vec<(f64, f64)> {
-        cfg.taus_min
-            .iter()
-            .zip(self.coef.iter().skip(1))
-            .map(|(t, k)| (*t, *k))
-            .collect()
-    }
 }
 
 /// Weak prior of the offset, um (the gains' is configured): wide against any machine.
@@ -220,7 +136,7 @@ pub fn fit(
                 t_ns: *t_ns,
                 row: f.row(),
                 y: *value,
-                sigma: sigma.filter(|s| crate::units::positive(*s)),
+                sigma: sigma.filter(|s| driftwatch_core::units::positive(*s)),
             });
         }
     }
@@ -348,7 +264,7 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
                 cfg.min_scored,
                 o.t_ns,
                 &o.row,
-                crate::units::h_to_ns(cfg.run_gap_h),
+                driftwatch_core::units::h_to_ns(cfg.run_gap_h),
             );
         }
         return g;
@@ -357,7 +273,7 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
     st.reg = fit_change_regression(cfg, &obs[..n_head]);
     st.anchoring = cfg.anchoring;
-    let gap = crate::units::h_to_ns(cfg.run_gap_h);
+    let gap = driftwatch_core::units::h_to_ns(cfg.run_gap_h);
     // The head's last observation is only taken (the head's posterior holds it).
     for (i, o) in obs[n_head - 1..].iter().enumerate() {
         st.walk_to(o.t_ns);
@@ -616,8 +532,8 @@ fn held_temperature_columns(
     }
     let b = beta.rows(first, n_temp).into_owned();
     let c = cov.view((first, first), (n_temp, n_temp)).into_owned();
-    let significant = crate::least_squares::inverse_form(c, &b)
-        .is_some_and(|w| w > crate::stats::chi2_quantile(0.95, n_temp));
+    let significant = driftwatch_core::least_squares::inverse_form(c, &b)
+        .is_some_and(|w| w > driftwatch_core::stats::chi2_quantile(0.95, n_temp));
     if significant {
         return Vec::new();
     }
@@ -636,8 +552,8 @@ fn held_temperature_columns(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::thermal_model::{Served, TemperatureInput};
-    use crate::units;
+    use crate::model::{Served, TemperatureInput};
+    use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
 

@@ -5,9 +5,9 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
-use super::ThermalModel;
 use super::events::Event;
 use super::features::Features;
+use super::fitted::ThermalModel;
 use super::guard::{GuardSummary, Served};
 use super::predictor::{Prediction, Predictor};
 
@@ -120,7 +120,7 @@ pub fn replay(
                 if let (Some(pr), Some(prev)) = (pred, prev) {
                     let s = sums.entry(channel.clone()).or_default();
                     let obs_var = sigma
-                        .filter(|x| crate::units::positive(*x))
+                        .filter(|x| driftwatch_core::units::positive(*x))
                         .map_or(0.0, |x| x * x);
                     let z2 = (pr.value - value).powi(2) / (pr.sigma.powi(2) + obs_var).max(1e-24);
                     s.n += 1;

@@ -4,8 +4,6 @@
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use super::guard::Guard;
-
 #[derive(Debug, Error, PartialEq)]
 pub enum ModelError {
     #[error("model configuration: {0}")]
@@ -107,23 +105,12 @@ pub enum Anchoring {
     /// The filter's own value.
     Never,
     /// Anchored where the anchored value beat the filter's own on the channel's scored
-    /// observations beyond chance ([`Guard::anchors`]): on real thermal tests with precise
+    /// observations beyond chance (the guard's `anchors`): on real thermal tests with precise
     /// readings it does, on small orientation errors that barely move it does not.
     #[default]
     HeldOut,
     /// Always anchored.
     Always,
-}
-
-impl Anchoring {
-    /// Whether the model is served anchored, given the channel's guard.
-    pub(super) fn applies(self, guard: &Guard, min_scored: usize) -> bool {
-        match self {
-            Anchoring::Never => false,
-            Anchoring::HeldOut => guard.anchors(min_scored),
-            Anchoring::Always => true,
-        }
-    }
 }
 
 /// An [`Anchoring`] by name, or the boolean of earlier files (true: always, false: never).
@@ -174,14 +161,24 @@ impl ModelConfig {
 
     pub fn validate(&self) -> Result<(), ModelError> {
         let bad = |m: String| Err(ModelError::Config(m));
-        if self.taus_min.iter().any(|t| !crate::units::positive(*t)) {
+        if self
+            .taus_min
+            .iter()
+            .any(|t| !driftwatch_core::units::positive(*t))
+        {
             return bad(format!("spindle taus_min must be > 0: {:?}", self.taus_min));
         }
-        if !crate::units::positive(self.n_ref_rpm) || !crate::units::positive(self.gamma) {
+        if !driftwatch_core::units::positive(self.n_ref_rpm)
+            || !driftwatch_core::units::positive(self.gamma)
+        {
             return bad("n_ref_rpm and gamma must be > 0".into());
         }
         for t in &self.temperatures {
-            if t.taus_min.is_empty() || t.taus_min.iter().any(|x| !crate::units::non_negative(*x)) {
+            if t.taus_min.is_empty()
+                || t.taus_min
+                    .iter()
+                    .any(|x| !driftwatch_core::units::non_negative(*x))
+            {
                 return bad(format!("sensor {}: taus_min must be >= 0", t.sensor));
             }
         }
@@ -189,18 +186,18 @@ impl ModelConfig {
             || self
                 .ridge_grid
                 .iter()
-                .any(|x| !crate::units::non_negative(*x))
+                .any(|x| !driftwatch_core::units::non_negative(*x))
         {
             return bad("ridge_grid needs values >= 0".into());
         }
-        if !crate::units::positive(self.prior_gain_sd) {
+        if !driftwatch_core::units::positive(self.prior_gain_sd) {
             return bad("prior_gain_sd must be > 0".into());
         }
-        if !crate::units::non_negative(self.offset_walk_per_h)
+        if !driftwatch_core::units::non_negative(self.offset_walk_per_h)
             || self
                 .offset_walk_grid_per_h
                 .iter()
-                .any(|x| !crate::units::non_negative(*x))
+                .any(|x| !driftwatch_core::units::non_negative(*x))
         {
             return bad("offset_walk_per_h and offset_walk_grid_per_h must be >= 0".into());
         }
@@ -213,7 +210,7 @@ impl ModelConfig {
         if self.min_scored == 0 {
             return bad("min_scored must be at least 1".into());
         }
-        if !crate::units::positive(self.run_gap_h) {
+        if !driftwatch_core::units::positive(self.run_gap_h) {
             return bad(format!("run_gap_h must be > 0, not {}", self.run_gap_h));
         }
         Ok(())

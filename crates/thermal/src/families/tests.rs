@@ -2,8 +2,8 @@
 //! the choice.
 
 use super::*;
-use crate::thermal_model::Event;
-use crate::units;
+use crate::model::Event;
+use driftwatch_core::units;
 
 const MIN: i64 = units::NS_PER_MIN;
 

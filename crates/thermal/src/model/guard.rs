@@ -5,8 +5,7 @@ use nalgebra::DVector;
 use serde::{Deserialize, Serialize};
 
 use super::config::Anchoring;
-#[cfg(doc)]
-use super::fit::ChangeRegression;
+use driftwatch_core::error_name::channel_unit;
 
 /// Where a served value comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -24,7 +23,7 @@ pub enum Served {
     NoChange,
     /// The last measured value moved by least squares on the inputs' changes since it: the
     /// textbook regression on the temperatures, which the model must beat
-    /// ([`ChangeRegression`]).
+    /// ([`ChangeRegression`](super::ChangeRegression)).
     Regression,
 }
 
@@ -41,13 +40,6 @@ impl Served {
 
 /// Smallest and largest factor on the model's band.
 const SCALE_RANGE: (f64, f64) = (0.1, 10.0);
-
-/// The unit of a channel's values: a channel is a location error (`EZ0B`, `EA0C`: um or urad,
-/// as its name says) or a displacement sensor (`ch1` of a displacement recording: um). Only a
-/// channel that parses as an orientation error is in urad.
-pub fn channel_unit(channel: &str) -> &'static str {
-    crate::error_name::ErrorName::parse(channel).map_or("um", |e| e.unit())
-}
 
 /// A channel's record of its predictions and what it serves. Every observation is scored
 /// before it corrects the filter: the model's prediction, the last measured value and no
@@ -80,7 +72,7 @@ pub struct Guard {
     pub d2_last: f64,
     pub d_cold: f64,
     pub d2_cold: f64,
-    /// The same for least squares on the inputs' changes ([`ChangeRegression`]; the last
+    /// The same for least squares on the inputs' changes ([`ChangeRegression`](super::ChangeRegression); the last
     /// measured value where the channel has none).
     pub sse_reg: f64,
     pub d_reg: f64,
@@ -209,7 +201,7 @@ impl Guard {
     /// `c = 1` added so that a few scores move it little, within [`SCALE_RANGE`]; 1 until
     /// `min_scored` are scored.
     pub fn sigma_scale(&self, min_scored: usize) -> f64 {
-        if self.n < min_scored || !crate::units::positive(self.sum_model_var) {
+        if self.n < min_scored || !driftwatch_core::units::positive(self.sum_model_var) {
             return 1.0;
         }
         let prior = min_scored as f64 * self.sum_model_var / self.n as f64;
@@ -233,6 +225,15 @@ impl Guard {
     pub fn anchors(&self, min_scored: usize) -> bool {
         self.n_anchor >= min_scored
             && beyond_chance(self.n_anchor, self.d_anchor, self.d2_anchor).is_some()
+    }
+
+    /// Whether the model is served anchored under `anchoring`, given this guard.
+    pub(super) fn anchored_under(&self, anchoring: Anchoring, min_scored: usize) -> bool {
+        match anchoring {
+            Anchoring::Never => false,
+            Anchoring::HeldOut => self.anchors(min_scored),
+            Anchoring::Always => true,
+        }
     }
 
     /// Score the model as fitted (`fitted`) and anchored at the last observation
@@ -296,7 +297,7 @@ impl Guard {
     /// the scored cycles, not for any time since the last one.) A fallback's sigma is its
     /// scored error less the observations' own noise, at least its own uncertainty
     /// ([`Guard::reason`] says why).
-    /// `reg` is the regression's value ([`ChangeRegression::value`]).
+    /// `reg` is the regression's value ([`ChangeRegression::value`](super::ChangeRegression::value)).
     pub fn serve(
         &self,
         model: (f64, f64),
@@ -448,7 +449,7 @@ impl Guard {
             unit: channel_unit(channel).to_string(),
             source: self.source(min_scored),
             reason: self.reason(channel, min_scored, self.source(min_scored)),
-            anchored: anchoring.applies(self, min_scored),
+            anchored: self.anchored_under(anchoring, min_scored),
             offset_walk_per_h: walk.0,
             offset_walk_learned: walk.1,
             scored: self.n,
@@ -467,18 +468,9 @@ impl Guard {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::units;
+    use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
-
-    #[test]
-    fn a_channel_is_in_urad_only_when_it_names_an_orientation_error() {
-        assert_eq!(channel_unit("EA0C"), "urad");
-        assert_eq!(channel_unit("EB0C"), "urad");
-        assert_eq!(channel_unit("EZ0B"), "um");
-        assert_eq!(channel_unit("ch1"), "um");
-        assert_eq!(channel_unit("EA"), "um");
-    }
 
     /// The model anchored at the last observation is served where it beat the fitted
     /// model on the scored observations beyond chance: a fitted model 3 off all along loses

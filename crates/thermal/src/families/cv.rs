@@ -1,9 +1,9 @@
 //! Rolling-origin (forward-chaining) cross-validation: the folds, each fold's errors and its
 //! residual at the origin, the residual's relaxation, and root mean squares.
 
-use super::fit::{Fitted, simulate, simulate_with};
+use super::fitted::{Family, Fitted, simulate, simulate_with};
 use super::grid::Grid;
-use crate::units;
+use driftwatch_core::units;
 
 /// Rolling origins of the CV: this many, spread evenly (fewer on a short span).
 pub const N_FOLDS: usize = 8;
@@ -136,6 +136,52 @@ pub(super) fn cv_rms(e: &[CvError]) -> f64 {
 /// Root mean square (0 for no values).
 pub fn rms(e: &[f64]) -> f64 {
     (e.iter().map(|v| v * v).sum::<f64>() / e.len().max(1) as f64).sqrt()
+}
+
+/// A figure that may be NaN: serde_json writes NaN as null, so null reads back as NaN (a
+/// model file written by `fit` without a hold-out must load again).
+pub(super) fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// A family's CV errors and hold-out predictions, before scoring.
+pub(super) struct Run {
+    pub(super) family: Family,
+    pub(super) detail: String,
+    pub(super) cv: Vec<CvError>,
+    pub(super) hold: Vec<f64>,
+    pub(super) weights: Vec<(String, f64)>,
+    /// Each fold's residual at its origin, and the hold-out's.
+    pub(super) r0: Vec<f64>,
+    pub(super) hold_r0: f64,
+}
+
+impl Run {
+    /// The relaxation the CV prefers (none, or one of [`RELAX_H`]), applied to the CV errors
+    /// and the hold-out predictions.
+    pub(super) fn relaxed(mut self, step_ns: i64) -> (Run, Option<f64>) {
+        let with = |tau: Option<f64>| -> Vec<CvError> {
+            self.cv
+                .iter()
+                .map(|c| CvError {
+                    e: c.e
+                        + self.r0.get(c.fold).copied().unwrap_or(0.0)
+                            * relax_weight(tau, c.horizon, step_ns),
+                    ..*c
+                })
+                .collect()
+        };
+        let best = std::iter::once(None)
+            .chain(RELAX_H.iter().map(|h| Some(*h)))
+            .map(|tau| (cv_rms(&with(tau)), tau))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .and_then(|b| b.1);
+        self.cv = with(best);
+        for (h, p) in self.hold.iter_mut().enumerate() {
+            *p += self.hold_r0 * relax_weight(best, h, step_ns);
+        }
+        (self, best)
+    }
 }
 
 #[cfg(test)]

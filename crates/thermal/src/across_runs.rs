@@ -14,13 +14,14 @@
 //!
 //! The choice is made by forward chaining over whole runs (predict run j from the runs
 //! before it), and a family replaces the textbook baseline (regression on every input) only
-//! when it wins beyond chance (the sign test of [`crate::families::sign_test_wins`]). Pure:
+//! when it wins beyond chance (the sign test of [`sign_test_wins`]). Pure:
 //! grids in, figures out.
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::families::{Family, Grid, forward_select, rms, sign_test_wins};
-use crate::least_squares::least_squares;
+use crate::families::{Family, Grid, forward_select, rms};
+use driftwatch_core::least_squares::least_squares;
+use driftwatch_core::stats::sign_test_wins;
 
 /// The families that compete across runs (the grey box's filter needs one timeline).
 pub const FAMILIES: [Family; 4] = [

@@ -3,7 +3,7 @@
 
 use super::cv::{CvError, rms};
 use super::grid::Grid;
-use crate::units;
+use driftwatch_core::units;
 
 /// Upper edges of the horizon bins of a band, hours after the last reading used: a free
 /// run's error grows with the horizon, so one band for all horizons is too wide early and

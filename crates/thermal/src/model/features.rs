@@ -7,7 +7,7 @@ use nalgebra::DVector;
 
 use super::config::ModelConfig;
 use super::events::Event;
-use crate::units::{plausible_celsius, plausible_rpm};
+use driftwatch_core::units::{plausible_celsius, plausible_rpm};
 
 /// The lag states of every input, advanced along the timeline.
 #[derive(Debug, Clone)]
@@ -170,7 +170,7 @@ impl Features {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::units;
+    use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
 

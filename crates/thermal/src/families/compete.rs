@@ -5,12 +5,13 @@
 use super::bands::{Bands, cv_coverage, quantile_abs};
 use super::choice::{Choice, fold_excursions, independent_folds};
 use super::cv::{
-    CvError, RELAX_H, cv_rms, cv_run, fold_errors, folds, origin_residual, relax_weight, rms,
+    CvError, Run, cv_rms, cv_run, fold_errors, folds, null_as_nan, origin_residual, rms,
     tested_horizon,
 };
-use super::fit::{Family, Fitted, fit_family, fresh_rows, grey_box, simulate, varying_on};
+use super::fit::{fit_family, fresh_rows, grey_box, varying_on};
+use super::fitted::{Family, Fitted, simulate};
 use super::grid::Grid;
-use crate::thermal_model::{Event, ModelConfig};
+use crate::model::{Event, ModelConfig};
 
 /// One family's figures on one channel.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -51,52 +52,6 @@ pub struct FamilyScore {
     /// alone.
     #[serde(default)]
     pub relax_h: Option<f64>,
-}
-
-/// A figure that may be NaN: serde_json writes NaN as null, so null reads back as NaN (a
-/// model file written by `fit` without a hold-out must load again).
-pub(super) fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(f64::NAN))
-}
-
-/// A family's CV errors and hold-out predictions, before scoring.
-pub(super) struct Run {
-    pub(super) family: Family,
-    detail: String,
-    pub(super) cv: Vec<CvError>,
-    hold: Vec<f64>,
-    weights: Vec<(String, f64)>,
-    /// Each fold's residual at its origin, and the hold-out's.
-    r0: Vec<f64>,
-    hold_r0: f64,
-}
-
-impl Run {
-    /// The relaxation the CV prefers (none, or one of [`RELAX_H`]), applied to the CV errors
-    /// and the hold-out predictions.
-    fn relaxed(mut self, step_ns: i64) -> (Run, Option<f64>) {
-        let with = |tau: Option<f64>| -> Vec<CvError> {
-            self.cv
-                .iter()
-                .map(|c| CvError {
-                    e: c.e
-                        + self.r0.get(c.fold).copied().unwrap_or(0.0)
-                            * relax_weight(tau, c.horizon, step_ns),
-                    ..*c
-                })
-                .collect()
-        };
-        let best = std::iter::once(None)
-            .chain(RELAX_H.iter().map(|h| Some(*h)))
-            .map(|tau| (cv_rms(&with(tau)), tau))
-            .min_by(|a, b| a.0.total_cmp(&b.0))
-            .and_then(|b| b.1);
-        self.cv = with(best);
-        for (h, p) in self.hold.iter_mut().enumerate() {
-            *p += self.hold_r0 * relax_weight(best, h, step_ns);
-        }
-        (self, best)
-    }
 }
 
 /// The grey box's CV errors and hold-out predictions; `None` when a fold cannot be fitted.
@@ -331,32 +286,10 @@ pub fn compete(
     (out, choice)
 }
 
-/// The one-sided sign test at 5 %: the fewest wins of `n` paired comparisons (folds, or
-/// later runs) that chance alone gives with probability at most 0.05; `None` when not even
-/// `n` of `n` would (`n` < 5). A challenger replaces the textbook baseline only with that
-/// many wins (7 of the 8 CV folds: P = 9/256 = 0.035; the folds overlap, so the true level
-/// is somewhat higher, which errs towards the baseline).
-pub fn sign_test_wins(n: usize) -> Option<usize> {
-    // P(W >= w) for W ~ Binomial(n, 1/2), from the top down.
-    let mut tail = 0.0;
-    let mut c = 1.0; // C(n, k), k from n down
-    let total = 2f64.powi(n as i32);
-    let mut best = None;
-    for k in (0..=n).rev() {
-        tail += c / total;
-        if tail > 0.05 {
-            break;
-        }
-        best = Some(k);
-        c = c * k as f64 / (n - k + 1) as f64;
-    }
-    best
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::units;
+    use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
 
@@ -384,15 +317,6 @@ mod tests {
         let back: FamilyScore = serde_json::from_str(&text).unwrap();
         assert!(back.holdout_rmse.is_nan() && back.cover95.is_nan());
         assert_eq!(back.cv_rmse, 1.0);
-    }
-
-    #[test]
-    fn the_sign_test_asks_for_wins_chance_gives_under_five_percent() {
-        assert_eq!(sign_test_wins(8), Some(7));
-        assert_eq!(sign_test_wins(5), Some(5));
-        assert_eq!(sign_test_wins(4), None);
-        assert_eq!(sign_test_wins(10), Some(9));
-        assert_eq!(sign_test_wins(20), Some(15));
     }
 
     /// Two runs with opposite errors: the inverse-MSE combination has the smaller CV error,

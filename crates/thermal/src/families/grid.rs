@@ -1,8 +1,8 @@
 //! The sampling grid: a channel and its inputs on a regular grid of times, and the step used
 //! when none is given.
 
-use crate::thermal_model::{self, Event};
-use crate::units;
+use crate::model::{self, Event};
+use driftwatch_core::units;
 
 /// One channel on a regular grid: the latest reading and the latest value of every input
 /// at each grid time (held between readings).
@@ -38,7 +38,7 @@ impl Grid {
 /// every input have a value. A spindle that never turned is no input (a column of zeros
 /// says nothing and makes every design singular).
 pub fn grid(events: &[Event], channel: &str, step_ns: i64) -> Option<Grid> {
-    let sensors = thermal_model::sensors_of(events);
+    let sensors = model::sensors_of(events);
     let spins = events
         .iter()
         .any(|e| matches!(e, Event::Spindle { rpm, .. } if *rpm != 0.0));

@@ -1,7 +1,7 @@
 //! The machine's timeline: spindle, temperature and observation events, and the events of
 //! recordings.
 
-use crate::recording::{Recording, ResultStatus};
+use driftwatch_core::recording::{Recording, ResultStatus};
 
 /// What happens on the machine's timeline, in time order.
 #[derive(Debug, Clone, PartialEq)]
