@@ -150,7 +150,7 @@ check "OpenAPI document (openapi-spec-validator)" \
 # A client generated from that document drives the NC handshake to a validated set.
 check "NC handshake through a generated client (openapi-python-client)" \
     python3 tests/python/generated_client.py "$bin" "$out/client"
-# Schemathesis on every operation (150 examples each with a token, about 1 min): no 5xx, no
+# Schemathesis on every operation (150 examples each with a token, about 40 s): no 5xx, no
 # answer that breaks the document.
 check "schemathesis" \
     python3 tests/python/schemathesis_run.py "$bin" "$out/schemathesis" --max-examples 150
