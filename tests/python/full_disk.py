@@ -126,7 +126,8 @@ def fill(path):
 #   window (a loop that went on past its failed write would solve and serve them; while the
 #   NC cuts they wait, so the sets the window held are counted from the store afterwards
 #   and printed).
-# At 600x that is about 6 s of the 20 s the phase used to last; --seconds stays the bound.
+# At 600x that is about 6 s. --seconds bounds it, and a phase that reaches the bound short
+# of this span fails.
 FULL_ATTEMPTS = 20
 FULL_PLANT_MIN = 60.0
 NS_PER_MIN = 60 * 10**9
