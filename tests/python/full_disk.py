@@ -117,18 +117,17 @@ def fill(path):
 # The disk-full phase must span enough of the service's own activity for "the served set did
 # not move" to mean something, counted in what the service does, not in wall seconds:
 # - FULL_ATTEMPTS failed steps of the machine loop (its `faults`), each a fresh attempt at the
-#   same pending write that must neither be skipped nor let a set be served: 20 take the
-#   retry wait through its whole doubling from 1 s to its cap of 10 min of machine time
-#   (10 attempts) and 10 attempts beyond it (the loop also steps, and so tries again,
-#   whenever it wakes for its inbox, every 0.2 s of wall time: about 5 attempts a second);
+#   same pending write that must neither be skipped nor let a set be served: 12 take the
+#   retry wait through its whole doubling from 1 s to its cap of 10 min of machine time and
+#   one wait at the cap (27 min of machine time);
 # - FULL_PLANT_MIN minutes of the plant day on the service clock since the fill: two of the
 #   default schedule's 30-min warm-up intervals, so that the plant has cycles due in the
 #   window (a loop that went on past its failed write would solve and serve them; while the
 #   NC cuts they wait, so the sets the window held are counted from the store afterwards
 #   and printed).
-# At 600x that is about 6 s. --seconds bounds it, and a phase that reaches the bound short
-# of this span fails.
-FULL_ATTEMPTS = 20
+# At 600x that is about 6 s. --seconds bounds it, and a phase that reaches the bound short of
+# this span fails.
+FULL_ATTEMPTS = 12
 FULL_PLANT_MIN = 60.0
 NS_PER_MIN = 60 * 10**9
 

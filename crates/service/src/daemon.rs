@@ -98,7 +98,8 @@ pub struct MachineView {
 pub struct LoopHealth {
     /// The service clock at the loop's last completed step, ns.
     pub clock_ns: Option<i64>,
-    /// The service clock at the loop's last step, completed or failed, ns.
+    /// The service clock the loop has caught up with, ns: its last step, completed or failed,
+    /// or, while it waits to try a failed step again, the time it waited at.
     pub attempt_ns: Option<i64>,
     /// Steps that failed (a store or recorder error) and were tried again.
     pub faults: u64,
@@ -826,6 +827,21 @@ const INBOX_WALL: Duration = Duration::from_millis(200);
 const FIRST_RETRY_NS: i64 = NS_PER_S;
 const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
 
+/// When the loop steps next, given the clock's time (`target`, at most the run's end), the
+/// time the last step asked to be called again (`wake`) and the last step's time: at each time
+/// it asked for, up to the clock, so that a clock that jumped ahead (a manual clock, a machine
+/// that slept) is caught up with as if it had run, not in one stride that would start every
+/// due cycle late; and at the clock's time whenever the loop looks at its inbox. A failing
+/// loop (`wake` is then its retry time) steps not before its retry time, unless the run ends
+/// first: stepping each time it looks at its inbox would retry the failed write, and log it,
+/// five times a second whatever the doubling wait says. `None`: wait.
+fn step_at(target: i64, wake: i64, last: i64, failing: bool, end: Option<i64>) -> Option<i64> {
+    if failing && target < wake && end.is_none_or(|e| target < e) {
+        return None;
+    }
+    Some(target.min(wake.max(last.saturating_add(1))))
+}
+
 /// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
 /// recorder that cannot write) is logged, counted in its view (and so in `/metrics`) and
 /// tried again with a doubling wait, and never stops the other machines or the API.
@@ -838,19 +854,31 @@ pub(crate) async fn run_machine(
 ) {
     let mut retry_ns = FIRST_RETRY_NS;
     let mut last = i64::MIN;
+    let mut failing = false;
     // The first step is at the clock's start, however far the clock has gone since.
     let mut wake = start_ns;
     loop {
         let target = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
-        // Step at each time the loop asked to be called, up to the clock: a clock that jumped
-        // ahead (a manual clock, a machine that slept) is caught up with as if it had run,
-        // not in one stride that would start every due cycle late.
-        let now = target.min(wake.max(last.saturating_add(1)));
+        let Some(now) = step_at(target, wake, last, failing, end) else {
+            // Waiting to try a failed step again: the loop has looked at the clock's time.
+            if let Ok(mut v) = rt.view.lock() {
+                v.health.attempt_ns = Some(target);
+            }
+            tokio::select! {
+                _ = clock.sleep_until(wake, INBOX_WALL) => {}
+                _ = shutdown.cancelled() => {}
+            }
+            if shutdown.is_cancelled() {
+                break;
+            }
+            continue;
+        };
         last = now;
         let stepped = rt.step(now).await;
         if let Ok(mut v) = rt.view.lock() {
             v.health.attempt_ns = Some(now);
         }
+        failing = stepped.is_err();
         wake = match stepped {
             Ok(wake) => {
                 retry_ns = FIRST_RETRY_NS;
@@ -888,5 +916,45 @@ pub(crate) async fn run_machine(
         .max(last);
     if let Err(e) = rt.shutdown(now).await {
         error!(machine = %rt.id, error = %e, "the machine loop could not close its recordings cleanly");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::step_at;
+
+    const S: i64 = 1_000_000_000;
+
+    /// A healthy loop steps at each time it asked for, up to the clock, and at the clock's
+    /// time when it looks at its inbox; a failing one waits for its retry time, and steps at
+    /// the run's end if that comes first.
+    #[test]
+    fn a_failing_loop_steps_again_at_its_retry_time_not_at_each_look_at_its_inbox() {
+        // Caught up, healthy: the inbox look steps at the clock.
+        assert_eq!(
+            step_at(100 * S, 200 * S, 100 * S, false, None),
+            Some(100 * S)
+        );
+        // Behind the clock: the time it asked for first.
+        assert_eq!(
+            step_at(300 * S, 200 * S, 100 * S, false, None),
+            Some(200 * S)
+        );
+        // Failing, retry at 200 s, the clock at 101 s: wait (stepping at 101 s would retry).
+        assert_eq!(step_at(101 * S, 200 * S, 100 * S, true, None), None);
+        // The retry time reached, or passed: step at it.
+        assert_eq!(
+            step_at(200 * S, 200 * S, 100 * S, true, None),
+            Some(200 * S)
+        );
+        assert_eq!(
+            step_at(900 * S, 200 * S, 100 * S, true, None),
+            Some(200 * S)
+        );
+        // The run ends before the retry: the last step at its end.
+        assert_eq!(
+            step_at(150 * S, 200 * S, 100 * S, true, Some(150 * S)),
+            Some(150 * S)
+        );
     }
 }
