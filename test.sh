@@ -47,6 +47,8 @@ apt_missing=()
 if ! command -v initdb >/dev/null && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then
     apt_missing+=(postgresql)
 fi
+# The ISO programs are run through LinuxCNC's own interpreter (rs274).
+[ -x /usr/bin/rs274 ] || apt_missing+=(linuxcnc-uspace)
 if ! command -v python3 >/dev/null; then
     apt_missing+=(python3 python3-pip)
 elif ! python3 -m pip --version >/dev/null 2>&1; then

@@ -55,12 +55,14 @@ pub struct ProgramArgs {
     /// Program number (FANUC O number; DW<number> elsewhere).
     #[arg(long, default_value_t = 9100)]
     number: u32,
-    /// M code that unclamps the rotary axes before an index; "" when the PLC does it.
-    #[arg(long, default_value = "M11")]
-    unclamp: String,
-    /// M code that clamps them after.
-    #[arg(long, default_value = "M10")]
-    clamp: String,
+    /// M code that unclamps the rotary axes before an index; "" when the PLC does it
+    /// (default M11; none in the ISO dialect: LinuxCNC defines no clamp M code, a machine that
+    /// clamps maps a user M code M100-M199 to its script).
+    #[arg(long)]
+    unclamp: Option<String>,
+    /// M code that clamps them after (default M10; none in the ISO dialect).
+    #[arg(long)]
+    clamp: Option<String>,
     /// Decimals of positions and angles: the control's least input increment.
     #[arg(long, default_value_t = 3)]
     decimals: usize,
@@ -87,8 +89,12 @@ pub fn cmd_nc_program(a: ProgramArgs) -> Result<ExitCode> {
     let d: Dialect = a.dialect.into();
     let mut opts = ProgramOptions::defaults(d);
     opts.number = a.number;
-    opts.unclamp = a.unclamp.clone();
-    opts.clamp = a.clamp.clone();
+    if let Some(m) = &a.unclamp {
+        opts.unclamp = m.clone();
+    }
+    if let Some(m) = &a.clamp {
+        opts.clamp = m.clone();
+    }
     opts.decimals = a.decimals;
     if let Some(f) = a.first_result {
         if f < 3 {

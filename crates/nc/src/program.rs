@@ -67,10 +67,16 @@ pub struct ProgramOptions {
 
 impl ProgramOptions {
     pub fn defaults(d: Dialect) -> Self {
+        // LinuxCNC, the control the ISO dialect is written for, defines no clamp M code (it
+        // stops at an unknown one): a machine that clamps maps a user M code to its script.
+        let (unclamp, clamp) = match d {
+            Dialect::Iso => ("", ""),
+            _ => ("M11", "M10"),
+        };
         ProgramOptions {
             number: 9100,
-            unclamp: "M11".into(),
-            clamp: "M10".into(),
+            unclamp: unclamp.into(),
+            clamp: clamp.into(),
             decimals: 3,
             first_result: match d {
                 // FANUC common variables #500-#999 are kept over power-off.

@@ -381,6 +381,11 @@ fn line_gcode(d: Dialect, t: &str) -> Result<Item, String> {
         ('S', rpm) => Ok(Item::Block(Block::Spindle(rpm))),
         ('M', 5.0) => Ok(Item::Block(Block::Spindle(0.0))),
         ('M', 10.0 | 11.0) => Ok(Item::Nothing),
+        // LinuxCNC's user M codes (a script each): where a machine's clamping is mapped, as
+        // `--unclamp`/`--clamp` name it. Like M10/M11 they are taken to move no axis.
+        ('M', m) if d == Dialect::Iso && ws.len() == 1 && (100.0..=199.0).contains(&m) => {
+            Ok(Item::Nothing)
+        }
         _ => Err("a block the reader does not know".into()),
     }
 }

@@ -275,3 +275,111 @@ fn an_independent_gcode_parser_reads_the_same_moves() {
         }
     }
 }
+
+/// LinuxCNC's standalone interpreter (`rs274` of the `linuxcnc-uspace` package; `./test.sh`
+/// installs it where it is missing).
+const RS274: &str = "/usr/bin/rs274";
+
+/// The probe moves LinuxCNC's interpreter makes of a program: each `STRAIGHT_PROBE(x, y, z,
+/// a, b, c)` of its canonical output, and whether it reached `PROGRAM_END()`.
+fn probes_of_rs274(text: &str, name: &str) -> (Vec<[f64; 6]>, bool) {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("rs274");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(format!("{name}.ngc"));
+    std::fs::write(&path, text).unwrap();
+    let out = std::process::Command::new(RS274)
+        .arg("-g")
+        .arg(&path)
+        .current_dir(&dir)
+        .output()
+        .unwrap_or_else(|e| panic!("{RS274} (package linuxcnc-uspace): {e}"));
+    let canon =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{name}: rs274 failed:\n{canon}");
+    let probes = canon
+        .lines()
+        .filter_map(|l| l.split_once("STRAIGHT_PROBE("))
+        .map(|(_, args)| {
+            let v: Vec<f64> = args
+                .trim_end_matches(')')
+                .split(',')
+                .map(|x| x.trim().parse().unwrap())
+                .collect();
+            [v[0], v[1], v[2], v[3], v[4], v[5]]
+        })
+        .collect();
+    (probes, canon.contains("PROGRAM_END()"))
+}
+
+/// LinuxCNC's own interpreter runs every family's ISO program to its end (no clamp M code it
+/// does not know), with one probe move per approach of the plan, each to the point the
+/// project's reader reads: the travel's end on the probing axis, the other axes and the rotary
+/// axes where the program left them.
+#[test]
+fn linuxcncs_interpreter_runs_every_familys_iso_program_to_the_end() {
+    for machine in FAMILIES {
+        let (k, plan) = plan_of(machine);
+        let text = program(&k, &plan, Dialect::Iso);
+        let (probes, ended) = probes_of_rs274(&text, machine);
+        assert!(ended, "{machine}: LinuxCNC did not reach the program's end");
+        assert_eq!(probes.len(), plan.steps.len(), "{machine}");
+        // The reader's view: linear position and rotary angles (A, B, C) before each skip.
+        let mut pos = [0.0; 3];
+        let mut rot = [0.0; 3];
+        let mut want = Vec::new();
+        for b in read(&text, Dialect::Iso).unwrap().blocks {
+            match b {
+                Block::Rapid(to) => {
+                    for (p, v) in pos.iter_mut().zip(to) {
+                        *p = v.unwrap_or(*p);
+                    }
+                }
+                Block::Index(words) => {
+                    for (c, v) in words {
+                        rot[(c as u8 - b'A') as usize] = v;
+                    }
+                }
+                Block::Skip { axis, end, .. } => {
+                    let mut p = pos;
+                    p[axis.index()] = end;
+                    want.push([p[0], p[1], p[2], rot[0], rot[1], rot[2]]);
+                }
+                _ => {}
+            }
+        }
+        assert_eq!(want.len(), probes.len(), "{machine}");
+        for (i, (w, got)) in want.iter().zip(&probes).enumerate() {
+            for (a, b) in w.iter().zip(got) {
+                assert!(
+                    (a - b).abs() < 1e-4,
+                    "{machine} probe {i}: {w:?} vs {got:?}"
+                );
+            }
+        }
+    }
+}
+
+/// A LinuxCNC machine that clamps maps a user M code (M100-M199) to its script: the ISO
+/// program names it and reads back to the same moves as without clamp codes; the same code in
+/// a FANUC program is a block the reader does not know.
+#[test]
+fn linuxcnc_user_m_codes_clamp_in_the_iso_program_only() {
+    let (k, plan) = plan_of("table_bc");
+    let mut opts = ProgramOptions::defaults(Dialect::Iso);
+    let plain = write(&k, &plan, Dialect::Iso, &opts).unwrap().text;
+    opts.unclamp = "M101".into();
+    opts.clamp = "M100".into();
+    let mapped = write(&k, &plan, Dialect::Iso, &opts).unwrap().text;
+    assert!(mapped.lines().any(|l| l == "M101") && !plain.contains("M101"));
+    assert_eq!(
+        read(&mapped, Dialect::Iso).unwrap().blocks,
+        read(&plain, Dialect::Iso).unwrap().blocks
+    );
+    let mut fanuc = ProgramOptions::defaults(Dialect::Fanuc);
+    fanuc.unclamp = "M101".into();
+    let text = write(&k, &plan, Dialect::Fanuc, &fanuc).unwrap().text;
+    assert!(matches!(
+        read(&text, Dialect::Fanuc),
+        Err(ReadError::Line { text, .. }) if text == "M101"
+    ));
+}
