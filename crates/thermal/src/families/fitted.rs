@@ -13,7 +13,7 @@ pub enum Family {
     Persistence,
     /// Least squares on every input at the same time.
     Regression,
-    /// Least squares on the inputs forward selection keeps (at most [`MAX_KEY`]).
+    /// Least squares on the inputs forward selection keeps (at most [`MAX_KEY`](super::MAX_KEY)).
     KeyRegression,
     /// `y_k = sum a_i y_(k-i) + sum b_jl u_j,(k-l) + c`, fitted one step ahead, run freely.
     Arx,

@@ -72,8 +72,9 @@ pub struct Guard {
     pub d2_last: f64,
     pub d_cold: f64,
     pub d2_cold: f64,
-    /// The same for least squares on the inputs' changes ([`ChangeRegression`](super::ChangeRegression); the last
-    /// measured value where the channel has none).
+    /// The same for least squares on the inputs' changes
+    /// ([`ChangeRegression`](super::ChangeRegression); the last measured value where the
+    /// channel has none).
     pub sse_reg: f64,
     pub d_reg: f64,
     pub d2_reg: f64,
@@ -93,8 +94,8 @@ pub struct Guard {
 }
 
 /// The one-sided Diebold-Mariano test on `n` paired differences of squared errors (sum and
-/// sum of squares): the statistic when their mean is positive by more than [`FALLBACK_T`]
-/// of its standard error.
+/// sum of squares): the statistic when their mean is positive by more than 1.645 of its
+/// standard error (5 %, one-sided).
 pub fn beyond_chance(n: usize, sum_d: f64, sum_d2: f64) -> Option<f64> {
     if n < 2 {
         return None;
@@ -198,7 +199,7 @@ impl Guard {
 
     /// The factor on the model's sigma that makes the scored observations' z^2 average 1:
     /// `c^2 = (sse_model - sum_obs_var) / sum_model_var`, with `min_scored` observations at
-    /// `c = 1` added so that a few scores move it little, within [`SCALE_RANGE`]; 1 until
+    /// `c = 1` added so that a few scores move it little, within 0.1 to 10; 1 until
     /// `min_scored` are scored.
     pub fn sigma_scale(&self, min_scored: usize) -> f64 {
         if self.n < min_scored || !driftwatch_core::units::positive(self.sum_model_var) {
@@ -297,7 +298,8 @@ impl Guard {
     /// the scored cycles, not for any time since the last one.) A fallback's sigma is its
     /// scored error less the observations' own noise, at least its own uncertainty
     /// ([`Guard::reason`] says why).
-    /// `reg` is the regression's value ([`ChangeRegression::value`](super::ChangeRegression::value)).
+    /// `reg` is the regression's value
+    /// ([`ChangeRegression::value`](super::ChangeRegression::value)).
     pub fn serve(
         &self,
         model: (f64, f64),
