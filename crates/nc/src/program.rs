@@ -262,6 +262,19 @@ impl Writer {
             results.first().map_or("", |r| r.variable.as_str()),
             results.last().map_or("", |r| r.variable.as_str()),
         ));
+        // The clamp codes, named so that a reader takes these M codes and no other.
+        let code = |c: &str| {
+            if c.is_empty() {
+                "NONE".to_string()
+            } else {
+                c.to_string()
+            }
+        };
+        self.b.comment(&format!(
+            "UNCLAMP {} CLAMP {}",
+            code(&opts.unclamp),
+            code(&opts.clamp)
+        ));
         let travel = plan.steps.first().map_or(0.0, |s| s.max_travel_mm);
         match self.b.d {
             Dialect::Fanuc => {

@@ -99,8 +99,40 @@ fn err(line: usize, text: &str, message: impl Into<String>) -> ReadError {
     }
 }
 
+/// The clamp M codes a program names in its header (`UNCLAMP M11 CLAMP M10`, `NONE` for
+/// none): the only M codes besides the spindle's and the end's the reader takes. A program
+/// without that line (written before it) clamps with M10 and M11.
+fn clamp_codes(text: &str) -> Vec<String> {
+    for raw in text.lines() {
+        let t = raw.trim();
+        // HEIDENHAIN blocks start with their number.
+        let t = t
+            .split_once(' ')
+            .filter(|(n, _)| n.parse::<u32>().is_ok())
+            .map_or(t, |(_, rest)| rest.trim());
+        let inner = t
+            .strip_prefix('(')
+            .and_then(|c| c.strip_suffix(')'))
+            .or_else(|| t.strip_prefix(';'))
+            .map(str::trim);
+        let Some(rest) = inner.and_then(|c| c.strip_prefix("UNCLAMP ")) else {
+            continue;
+        };
+        let words: Vec<&str> = rest.split_whitespace().collect();
+        if let [unclamp, "CLAMP", clamp] = words[..] {
+            return [unclamp, clamp]
+                .into_iter()
+                .filter(|c| *c != "NONE")
+                .map(String::from)
+                .collect();
+        }
+    }
+    vec!["M10".into(), "M11".into()]
+}
+
 /// Read a program of dialect `d`.
 pub fn read(text: &str, d: Dialect) -> Result<ReadProgram, ReadError> {
+    let clamp = clamp_codes(text);
     let mut parsed = Parsed { items: Vec::new() };
     let mut probe_table: Option<(f64, f64)> = None;
     let mut ended = false;
@@ -111,9 +143,9 @@ pub fn read(text: &str, d: Dialect) -> Result<ReadProgram, ReadError> {
             continue;
         }
         let item = match d {
-            Dialect::Fanuc | Dialect::Iso => line_gcode(d, t),
-            Dialect::Siemens => line_siemens(t),
-            Dialect::Heidenhain => line_heidenhain(t, &mut probe_table),
+            Dialect::Fanuc | Dialect::Iso => line_gcode(d, t, &clamp),
+            Dialect::Siemens => line_siemens(t, &clamp),
+            Dialect::Heidenhain => line_heidenhain(t, &clamp, &mut probe_table),
         }
         .map_err(|m| err(line, t, m))?;
         if matches!(item, Item::End) {
@@ -318,7 +350,7 @@ fn gcode_assignment(t: &str) -> Result<Item, String> {
     }
 }
 
-fn line_gcode(d: Dialect, t: &str) -> Result<Item, String> {
+fn line_gcode(d: Dialect, t: &str, clamp: &[String]) -> Result<Item, String> {
     // Comments: the step labels; LOG lines (ISO) are checked for their number only.
     if let Some(c) = t.strip_prefix('(').and_then(|c| c.strip_suffix(')')) {
         return Ok(step_comment(c).unwrap_or(Item::Nothing));
@@ -342,6 +374,9 @@ fn line_gcode(d: Dialect, t: &str) -> Result<Item, String> {
     }
     if d == Dialect::Iso && t == "M2" {
         return Ok(Item::End);
+    }
+    if clamp.iter().any(|c| c == t) {
+        return Ok(Item::Nothing);
     }
     let code = t.split('(').next().unwrap_or(t).trim();
     let ws = words(code)?;
@@ -380,17 +415,11 @@ fn line_gcode(d: Dialect, t: &str) -> Result<Item, String> {
         }
         ('S', rpm) => Ok(Item::Block(Block::Spindle(rpm))),
         ('M', 5.0) => Ok(Item::Block(Block::Spindle(0.0))),
-        ('M', 10.0 | 11.0) => Ok(Item::Nothing),
-        // LinuxCNC's user M codes (a script each): where a machine's clamping is mapped, as
-        // `--unclamp`/`--clamp` name it. Like M10/M11 they are taken to move no axis.
-        ('M', m) if d == Dialect::Iso && ws.len() == 1 && (100.0..=199.0).contains(&m) => {
-            Ok(Item::Nothing)
-        }
         _ => Err("a block the reader does not know".into()),
     }
 }
 
-fn line_siemens(t: &str) -> Result<Item, String> {
+fn line_siemens(t: &str, clamp: &[String]) -> Result<Item, String> {
     if let Some(c) = t.strip_prefix(';') {
         return Ok(step_comment(c).unwrap_or(Item::Nothing));
     }
@@ -399,10 +428,8 @@ fn line_siemens(t: &str) -> Result<Item, String> {
         "G71 G90 G17 G40 G94 G500",
         "STOPRE",
         "IF $AC_MEA[1]==0 GOTO NOTRIP",
-        "M11",
-        "M10",
     ];
-    if fixed.contains(&t) || t.starts_with("WRITE(DW_ERR,") {
+    if fixed.contains(&t) || t.starts_with("WRITE(DW_ERR,") || clamp.iter().any(|c| c == t) {
         return Ok(Item::Nothing);
     }
     if t == "M30" {
@@ -439,7 +466,11 @@ fn line_siemens(t: &str) -> Result<Item, String> {
     }
 }
 
-fn line_heidenhain(t: &str, probe_table: &mut Option<(f64, f64)>) -> Result<Item, String> {
+fn line_heidenhain(
+    t: &str,
+    clamp: &[String],
+    probe_table: &mut Option<(f64, f64)>,
+) -> Result<Item, String> {
     // Every block starts with its number.
     let (n, body) = t.split_once(' ').ok_or("a block without its number")?;
     n.parse::<u32>().map_err(|_| "a block without its number")?;
@@ -485,10 +516,14 @@ fn line_heidenhain(t: &str, probe_table: &mut Option<(f64, f64)>) -> Result<Item
                 .map_err(|_| "a spindle speed that is not a number")?,
         )));
     }
-    match b {
-        "L M3" | "L M10" | "L M11" => return Ok(Item::Nothing),
-        "L M5" => return Ok(Item::Block(Block::Spindle(0.0))),
-        _ => {}
+    if b == "L M3"
+        || b.strip_prefix("L ")
+            .is_some_and(|m| clamp.iter().any(|c| c == m))
+    {
+        return Ok(Item::Nothing);
+    }
+    if b == "L M5" {
+        return Ok(Item::Block(Block::Spindle(0.0)));
     }
     if let Some(rest) = b.strip_prefix("TCH PROBE 0.0 REF. PLANE ") {
         let (var, dir) = rest

@@ -359,27 +359,38 @@ fn linuxcncs_interpreter_runs_every_familys_iso_program_to_the_end() {
     }
 }
 
-/// A LinuxCNC machine that clamps maps a user M code (M100-M199) to its script: the ISO
-/// program names it and reads back to the same moves as without clamp codes; the same code in
-/// a FANUC program is a block the reader does not know.
+/// The clamp codes a plant names (`--unclamp`, `--clamp`) are written into the program's
+/// header, and the reader takes those M codes and no other: a LinuxCNC machine's user M codes
+/// (M100-M199, a script each) in the ISO program and a builder's M68/M69 in the FANUC one read
+/// back to the same moves as the defaults; an M code the header does not name is refused.
 #[test]
-fn linuxcnc_user_m_codes_clamp_in_the_iso_program_only() {
+fn the_clamp_codes_a_program_names_are_the_only_ones_read() {
     let (k, plan) = plan_of("table_bc");
-    let mut opts = ProgramOptions::defaults(Dialect::Iso);
-    let plain = write(&k, &plan, Dialect::Iso, &opts).unwrap().text;
-    opts.unclamp = "M101".into();
-    opts.clamp = "M100".into();
-    let mapped = write(&k, &plan, Dialect::Iso, &opts).unwrap().text;
-    assert!(mapped.lines().any(|l| l == "M101") && !plain.contains("M101"));
-    assert_eq!(
-        read(&mapped, Dialect::Iso).unwrap().blocks,
-        read(&plain, Dialect::Iso).unwrap().blocks
-    );
-    let mut fanuc = ProgramOptions::defaults(Dialect::Fanuc);
-    fanuc.unclamp = "M101".into();
-    let text = write(&k, &plan, Dialect::Fanuc, &fanuc).unwrap().text;
-    assert!(matches!(
-        read(&text, Dialect::Fanuc),
-        Err(ReadError::Line { text, .. }) if text == "M101"
-    ));
+    for (d, unclamp, clamp) in [
+        (Dialect::Iso, "M101", "M100"),
+        (Dialect::Fanuc, "M69", "M68"),
+        (Dialect::Siemens, "M69", "M68"),
+        (Dialect::Heidenhain, "M69", "M68"),
+    ] {
+        let mut opts = ProgramOptions::defaults(d);
+        let plain = write(&k, &plan, d, &opts).unwrap().text;
+        opts.unclamp = unclamp.into();
+        opts.clamp = clamp.into();
+        let mapped = write(&k, &plan, d, &opts).unwrap().text;
+        assert!(mapped.contains(unclamp) && !plain.contains(unclamp), "{d}");
+        assert_eq!(
+            read(&mapped, d).unwrap().blocks,
+            read(&plain, d).unwrap().blocks,
+            "{d}"
+        );
+        // The same program with the header naming other codes: its clamp lines are refused.
+        let renamed = mapped.replace(
+            &format!("UNCLAMP {unclamp} CLAMP {clamp}"),
+            "UNCLAMP M11 CLAMP M10",
+        );
+        assert!(
+            matches!(read(&renamed, d), Err(ReadError::Line { text, .. }) if text.ends_with(unclamp)),
+            "{d}"
+        );
+    }
 }
