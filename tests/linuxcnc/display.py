@@ -8,6 +8,8 @@ Environment:
   DW_REPEAT   number of repeated G38.2 trips on the beam for the latency estimate (default 20)
   DW_OUT      file for the JSON results (default results.json)
   DW_T0       wall-clock time (time.time()) the run script started LinuxCNC, for timings
+  DW_HOLD     a file: after homing, skip the checks and the program and keep LinuxCNC up
+              while the file exists, for another process (a gateway) to drive it
 """
 import json
 import os
@@ -87,6 +89,16 @@ def main():
     res["t_home_s"] = time.time() - t
     res["t_ready_s"] = time.time() - T0
     log("homed in %.3f s" % res["t_home_s"])
+    hold = os.environ.get("DW_HOLD")
+    if hold:
+        log("holding while", hold, "exists")
+        while os.path.exists(hold):
+            drain_errors()
+            time.sleep(0.2)
+        c.state(linuxcnc.STATE_ESTOP)
+        res["t_display_exit_s"] = time.time() - T0
+        json.dump(res, open(OUT, "w"), indent=1)
+        return
 
     # 2. kinematics pins, switchkins
     res["pins_kins"] = halcmd("show", "pin", KINS)
