@@ -92,8 +92,9 @@ def main():
     hold = os.environ.get("DW_HOLD")
     if hold:
         log("holding while", hold, "exists")
+        # no drain_errors() here: the error channel is an NML queue, a message goes to
+        # whichever reader takes it first; it belongs to the driving process now
         while os.path.exists(hold):
-            drain_errors()
             time.sleep(0.2)
         c.state(linuxcnc.STATE_ESTOP)
         res["t_display_exit_s"] = time.time() - T0
