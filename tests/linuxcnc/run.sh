@@ -18,7 +18,7 @@ esac
 
 mkdir -p "$WORK"
 cp -r "$HERE/$INI" "$HERE"/sim.hal "$HERE"/bc.hal "$HERE"/ac.hal "$HERE"/sim.tbl "$HERE"/beam.py \
-      "$HERE"/display.py "$HERE"/remap_subs "$WORK"/
+      "$HERE"/display.py "$WORK"/
 "$DW" nc program --machine "$MACHINE" --dialect iso --out "$WORK/$MACHINE.ngc"
 
 as_user() { "$@"; }
