@@ -21,7 +21,7 @@
 //!   the program names the row values it needs (`PROBE TABLE F.. DIST..`); the control stops
 //!   with an error when no contact is made within the range.
 //! - **ISO** (RS274/NGC as LinuxCNC runs it): `G38.2` probes and errors out without contact;
-//!   `#5061`-`#5063` hold the latched position; `(LOG,...)` writes a line per approach; the
+//!   `#5061`-`#5063` hold the latched position; `(LOG,n value)` writes a line per approach; the
 //!   program claims `G59.3` with a zero origin.
 
 use thiserror::Error;
@@ -451,8 +451,10 @@ impl Writer {
                 self.b.emit(&format!("G38.2 {target} F{f}"));
                 let sys = 5061 + axis.index();
                 self.b.emit(&format!("{var}=#{sys}"));
-                self.b
-                    .emit(&format!("(LOG,{number} {} #{sys})", slot.label));
+                // The step number and the value only: LinuxCNC substitutes every `#n` in a LOG
+                // line's text, so a label's pass (`z#1`) would be logged as `z0.000000`. The
+                // STEP comment above names the label.
+                self.b.emit(&format!("(LOG,{number} #{sys})"));
             }
         }
     }

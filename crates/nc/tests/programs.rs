@@ -296,7 +296,16 @@ fn probes_of_rs274(text: &str, name: &str) -> (Vec<[f64; 6]>, bool) {
     let canon =
         String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{name}: rs274 failed:\n{canon}");
-    let probes = canon
+    // Each approach's LOG line, as LinuxCNC writes it: its step number and the latched
+    // value (standalone, a probe move latches its end point), nothing substituted away.
+    let logs: Vec<&str> = canon
+        .lines()
+        .filter_map(|l| {
+            l.split_once("LOG(\"")
+                .map(|(_, s)| s.trim_end_matches("\")"))
+        })
+        .collect();
+    let probes: Vec<[f64; 6]> = canon
         .lines()
         .filter_map(|l| l.split_once("STRAIGHT_PROBE("))
         .map(|(_, args)| {
@@ -308,6 +317,15 @@ fn probes_of_rs274(text: &str, name: &str) -> (Vec<[f64; 6]>, bool) {
             [v[0], v[1], v[2], v[3], v[4], v[5]]
         })
         .collect();
+    assert_eq!(logs.len(), probes.len(), "{name}: {logs:?}");
+    for (i, (log, _)) in logs.iter().zip(&probes).enumerate() {
+        let (n, v) = log
+            .split_once(' ')
+            .unwrap_or_else(|| panic!("{name}: {log}"));
+        assert_eq!(n, (i + 1).to_string(), "{name}: {log}");
+        v.parse::<f64>()
+            .unwrap_or_else(|e| panic!("{name}: {log}: {e}"));
+    }
     (probes, canon.contains("PROGRAM_END()"))
 }
 
