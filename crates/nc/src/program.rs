@@ -45,6 +45,11 @@ pub enum ProgramError {
     SharedAddress(String, String, char),
     #[error("decimals must be 1..=5, not {0}")]
     Decimals(usize),
+    #[error(
+        "clamp code '{0}': one M code (M10, M101, ...) or \"\" for none, and not one of M0-M9 or \
+         M30, which stop, end, turn the spindle, change the tool or switch coolant"
+    )]
+    ClampCode(String),
     #[error("plan '{plan}' has a probing move without a step; it cannot be written")]
     ProbeWithoutStep { plan: String },
 }
@@ -153,6 +158,18 @@ pub fn write(
 ) -> Result<Program, ProgramError> {
     if !(1..=5).contains(&opts.decimals) {
         return Err(ProgramError::Decimals(opts.decimals));
+    }
+    // The reader takes the codes the header names for clamping and nothing else: a code with
+    // another meaning would be read as a clamp and hide what it does.
+    for code in [&opts.unclamp, &opts.clamp] {
+        let number = code
+            .strip_prefix('M')
+            .filter(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+            .and_then(|n| n.parse::<u32>().ok());
+        let ok = code.is_empty() || number.is_some_and(|n| n >= 10 && n != 30);
+        if !ok {
+            return Err(ProgramError::ClampCode(code.clone()));
+        }
     }
     let addresses = rotary_addresses(k)?;
     let mut w = Writer {

@@ -8,7 +8,7 @@ use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::measurement::latched;
 use driftwatch_core::plan::{Plan, PlanConfig};
 use driftwatch_nc::dialect::Dialect;
-use driftwatch_nc::program::{ProgramOptions, write};
+use driftwatch_nc::program::{ProgramError, ProgramOptions, write};
 use driftwatch_nc::reader::{Block, ReadError, ReplayError, read, replay};
 
 const FAMILIES: [&str; 5] = [
@@ -409,6 +409,18 @@ fn the_clamp_codes_a_program_names_are_the_only_ones_read() {
         assert!(
             matches!(read(&renamed, d), Err(ReadError::Line { text, .. }) if text.ends_with(unclamp)),
             "{d}"
+        );
+    }
+    // A code with another meaning, or not one M word, is refused when the program is written.
+    for bad in ["M5", "M30", "M10 P1", "X10", "M"] {
+        let mut opts = ProgramOptions::defaults(Dialect::Fanuc);
+        opts.clamp = bad.into();
+        assert!(
+            matches!(
+                write(&k, &plan, Dialect::Fanuc, &opts),
+                Err(ProgramError::ClampCode(c)) if c == bad
+            ),
+            "{bad}"
         );
     }
 }
