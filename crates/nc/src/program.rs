@@ -21,8 +21,10 @@
 //!   the program names the row values it needs (`PROBE TABLE F.. DIST..`); the control stops
 //!   with an error when no contact is made within the range.
 //! - **ISO** (RS274/NGC as LinuxCNC runs it): `G38.2` probes and errors out without contact;
-//!   `#5061`-`#5063` hold the latched position; `(LOG,n value)` writes a line per approach; the
-//!   program claims `G59.3` with a zero origin.
+//!   `#5061`-`#5063` hold the latched position; `(LOG,n value)` writes a line per approach to a
+//!   file and `(DEBUG,DW n x y z)` sends the step number and the latched position to the
+//!   control's message channel, where a gateway reads each trip as it happens; the program
+//!   claims `G59.3` with a zero origin.
 
 use thiserror::Error;
 
@@ -472,6 +474,11 @@ impl Writer {
                 // line's text, so a label's pass (`z#1`) would be logged as `z0.000000`. The
                 // STEP comment above names the label.
                 self.b.emit(&format!("(LOG,{number} #{sys})"));
+                // The same trip to whoever reads the control's messages as it happens (a
+                // gateway that posts detections): the step number and the whole latched
+                // position, after the probe, so the interpreter has its result.
+                self.b
+                    .emit(&format!("(DEBUG,DW {number} #5061 #5062 #5063)"));
             }
         }
     }

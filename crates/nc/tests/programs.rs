@@ -19,8 +19,19 @@ const FAMILIES: [&str; 5] = [
     "trunnion_ac",
 ];
 
+/// The trt families as LinuxCNC's kinematics take them (table axes in the direct sense).
+const LINUXCNC_MACHINES: [&str; 2] = ["xyzbc-trt", "xyzac-trt"];
+
 fn plan_of(machine: &str) -> (Kinematics, Plan) {
-    let k = Kinematics::builtin(machine).unwrap();
+    let k = if LINUXCNC_MACHINES.contains(&machine) {
+        let path = format!(
+            "{}/../../deploy/linuxcnc/machines/{machine}.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        Kinematics::load(&path).unwrap()
+    } else {
+        Kinematics::builtin(machine).unwrap()
+    };
     let cfg = PlanConfig::load(&k.config.plan).unwrap();
     let plan = Plan::build(&k, &cfg).unwrap();
     (k, plan)
@@ -326,16 +337,37 @@ fn probes_of_rs274(text: &str, name: &str) -> (Vec<[f64; 6]>, bool) {
         v.parse::<f64>()
             .unwrap_or_else(|e| panic!("{name}: {log}: {e}"));
     }
+    // Each approach's message to the control's message channel (what a gateway posts as the
+    // detection): its step number and the whole latched position, as substituted.
+    let messages: Vec<Vec<f64>> = canon
+        .lines()
+        .filter_map(|l| l.split_once("MESSAGE(\"DW "))
+        .map(|(_, s)| {
+            s.trim_end_matches("\")")
+                .split(' ')
+                .map(|x| x.parse().unwrap_or_else(|e| panic!("{name}: {s}: {e}")))
+                .collect()
+        })
+        .collect();
+    assert_eq!(messages.len(), probes.len(), "{name}: {messages:?}");
+    for (i, (m, p)) in messages.iter().zip(&probes).enumerate() {
+        assert_eq!(m.len(), 4, "{name}: {m:?}");
+        assert_eq!(m[0], (i + 1) as f64, "{name}: {m:?}");
+        for c in 0..3 {
+            assert!((m[1 + c] - p[c]).abs() < 1e-6, "{name}: step {}: {m:?} vs {p:?}", i + 1);
+        }
+    }
     (probes, canon.contains("PROGRAM_END()"))
 }
 
 /// LinuxCNC's own interpreter runs every family's ISO program to its end (no clamp M code it
-/// does not know), with one probe move per approach of the plan, each to the point the
+/// does not know), and those of the two machines LinuxCNC's trt kinematics drive
+/// (deploy/linuxcnc/machines), with one probe move per approach of the plan, each to the point the
 /// project's reader reads: the travel's end on the probing axis, the other axes and the rotary
 /// axes where the program left them.
 #[test]
 fn linuxcncs_interpreter_runs_every_familys_iso_program_to_the_end() {
-    for machine in FAMILIES {
+    for machine in FAMILIES.into_iter().chain(LINUXCNC_MACHINES) {
         let (k, plan) = plan_of(machine);
         let text = program(&k, &plan, Dialect::Iso);
         let (probes, ended) = probes_of_rs274(&text, machine);
