@@ -47,8 +47,10 @@ apt_missing=()
 if ! command -v initdb >/dev/null && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then
     apt_missing+=(postgresql)
 fi
-# The ISO programs are run through LinuxCNC's own interpreter (rs274).
+# The ISO programs are run through LinuxCNC's own interpreter (rs274); the loop with a real
+# control runs LinuxCNC's simulation with a truth component built by halcompile (-dev).
 [ -x /usr/bin/rs274 ] || apt_missing+=(linuxcnc-uspace)
+[ -x /usr/bin/halcompile ] || apt_missing+=(linuxcnc-uspace-dev)
 if ! command -v python3 >/dev/null; then
     apt_missing+=(python3 python3-pip)
 elif ! python3 -m pip --version >/dev/null 2>&1; then
@@ -144,6 +146,22 @@ finish_background() {
 # still leaves the driftwatch binary the Python checks run fresh.
 step "build the tests"
 cargo test --locked --no-run
+
+out="$(mktemp -d)"
+# The binary `cargo test` built for the command-line tests.
+bin=target/debug/driftwatch
+if [ -n "${CARGO_TARGET_DIR:-}" ]; then bin="$CARGO_TARGET_DIR/debug/driftwatch"; fi
+not_run=()
+# LinuxCNC runs the measurement program, the gateway writes the served sets into its
+# kinematics and the tool tip is measured, on both trt families, with the faults (about 6 min
+# of machine motion on the wall clock, little CPU): beside everything after it. It runs
+# LinuxCNC as a non-root user and installs the truth component, so it needs root.
+if [ "$(id -u)" -eq 0 ]; then
+    in_background "LinuxCNC in the loop (tests/linuxcnc/loop.py)" \
+        python3 tests/linuxcnc/loop.py "$bin" "$out/linuxcnc"
+else
+    not_run+=("LinuxCNC in the loop (needs root: a user for LinuxCNC, the truth component)")
+fi
 check "cargo test (every test binary)" cargo test --locked --no-fail-fast
 # The modules of the integration tests (tests/it, one binary) that take their store from
 # tests/it/common run again on PostgreSQL, chosen by their module paths (the fault injection of
@@ -153,10 +171,6 @@ check "integration tests on PostgreSQL" env DRIFTWATCH_TEST_BACKEND=postgres \
     cargo test --locked --no-fail-fast --test it -- api:: daemon:: nc_offsets:: nc_push:: \
     opcua:: verification::
 
-out="$(mktemp -d)"
-# The binary `cargo test` built for the command-line tests.
-bin=target/debug/driftwatch
-if [ -n "${CARGO_TARGET_DIR:-}" ]; then bin="$CARGO_TARGET_DIR/debug/driftwatch"; fi
 # An independent reader (the `mcap` package) checks a simulated recording against the contract.
 check "simulate and check a recording" bash -c \
     "'$bin' simulate --scenario patent --out '$out/patent.mcap' \
@@ -189,7 +203,6 @@ check "NC soak" python3 tests/python/soak_nc.py "$bin" "$out/soak"
 # A real full disk under the running service (a small tmpfs, so it needs root to mount): the
 # NC is served only what the store holds, the fault is reported, and the service recovers by
 # itself when the disk has room again, and after a restart.
-not_run=()
 if [ "$(id -u)" -eq 0 ]; then
     check "full disk while serving (a small tmpfs)" \
         python3 tests/python/full_disk.py "$bin" "$out/full-disk" --seconds 20

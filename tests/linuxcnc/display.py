@@ -103,7 +103,7 @@ def main():
 
     # 2. kinematics pins, switchkins
     res["pins_kins"] = halcmd("show", "pin", KINS)
-    res["pins_beam"] = halcmd("show", "pin", "beam")
+    res["pins_beam"] = halcmd("show", "pin", "dwtruth")
     res["pins_switch"] = halcmd("show", "pin", "motion.switchkins-type")
     res["params_kins"] = halcmd("show", "param", KINS)
     mdi("M428")
@@ -171,7 +171,7 @@ def main():
     mdi("M429")
     res["tcp_demo"] = tcp
     log("TCP demo (M428, G0 X10 Z100 C90):", tcp)
-    res["beam_period_us"] = halcmd("getp", "beam.period-us").strip()
+    res["beam_trips"] = halcmd("getp", "dwtruth.0.trips").strip()
 
     # 4. the measurement program in AUTO
     prog = os.environ.get("DW_PROGRAM")

@@ -1,7 +1,8 @@
 #!/bin/sh
 # Run driftwatch's ISO measurement program on a headless LinuxCNC 2.9 (uspace) simulator of
-# table_bc with xyzbc-trt-kins and a simulated laser beam on the probe input.
-# Usage: [MACHINE=table_bc|trunnion_ac] tests/linuxcnc/run.sh [driftwatch binary] [work dir]
+# xyzbc-trt (xyzbc-trt-kins) or xyzac-trt, with the truth component dwtruth on the probe input
+# (installed first: halcompile --install tests/linuxcnc/dwtruth.comp, as root).
+# Usage: [MACHINE=xyzbc-trt|xyzac-trt] tests/linuxcnc/run.sh [driftwatch binary] [work dir]
 # As root it runs LinuxCNC as the user $LCNC_USER (default lcnc; created if missing),
 # since rtapi_app refuses to run as root.
 set -eu
@@ -9,17 +10,17 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 DW=${1:-$HERE/../../target/release/driftwatch}
 WORK=${2:-$(mktemp -d /tmp/dw-lcnc.XXXXXX)}
 RUN_USER=${LCNC_USER:-lcnc}
-MACHINE=${MACHINE:-table_bc}
+MACHINE=${MACHINE:-xyzbc-trt}
 case $MACHINE in
-    table_bc) INI=xyzbc-trt.ini ;;
-    trunnion_ac) INI=xyzac-trt.ini ;;
-    *) echo "MACHINE: table_bc or trunnion_ac" >&2; exit 2 ;;
+    xyzbc-trt|xyzac-trt) INI=$MACHINE.ini ;;
+    *) echo "MACHINE: xyzbc-trt or xyzac-trt" >&2; exit 2 ;;
 esac
 
 mkdir -p "$WORK"
-cp -r "$HERE/$INI" "$HERE"/sim.hal "$HERE"/bc.hal "$HERE"/ac.hal "$HERE"/sim.tbl "$HERE"/beam.py \
+cp -r "$HERE/$INI" "$HERE"/sim.hal "$HERE"/bc.hal "$HERE"/ac.hal "$HERE"/sim.tbl \
       "$HERE"/display.py "$WORK"/
-"$DW" nc program --machine "$MACHINE" --dialect iso --out "$WORK/$MACHINE.ngc"
+"$DW" nc program --machine "$HERE/../../deploy/linuxcnc/machines/$MACHINE.toml" --dialect iso \
+    --out "$WORK/$MACHINE.ngc"
 
 as_user() { "$@"; }
 if [ "$(id -u)" = 0 ]; then
@@ -46,7 +47,7 @@ r = json.load(open(work + "/results.json"))
 print("wall s: task up %.2f, homed %.2f (homing %.3f), display exit %.2f, linuxcnc exit %.2f (shutdown %.2f)" % (
     r.get("t_task_up_s", -1), r.get("t_ready_s", -1), r.get("t_home_s", -1),
     r.get("t_display_exit_s", -1), t1 - t0, t1 - t0 - r.get("t_display_exit_s", 0)))
-for k in ("overshoot_um_z", "overshoot_um_y", "g38_wall_s", "beam_period_us", "tcp_demo", "switchkins_after_M428",
+for k in ("overshoot_um_z", "overshoot_um_y", "g38_wall_s", "beam_trips", "tcp_demo", "switchkins_after_M428",
           "switchkins_after_M429", "x_rot_point_set_while_running", "program_s", "program_errors"):
     print(k, r.get(k))
 print("probe positions seen during the program:", len(r.get("program_probed_positions", [])))
