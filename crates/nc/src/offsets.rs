@@ -1065,9 +1065,9 @@ fn linuxcnc_form(
     }
     let mut notes = vec![
         format!(
-            "the {kins} pins are read every servo period: load the script with the machine at \
-             rest; in coordinated mode the joints follow at once, by the datum shift at the \
-             current pose"
+            "{kins} reads these pins whenever it runs: the joints move by the datum shift at \
+             the current pose with the next move at the latest; load the script with the \
+             machine at rest, not in a cut"
         ),
         "setp sets an unlinked pin only: the pins written here must be set with setp in the \
          HAL file, not driven by a signal"
