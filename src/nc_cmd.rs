@@ -11,7 +11,7 @@ use anyhow::{Context, Result, bail};
 
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_machine::compensation::CompensationSet;
-use driftwatch_nc::offsets::{NcOptions, OffsetFormat, json_body, nc_offsets};
+use driftwatch_nc::offsets::{LINUXCNC_PINS, NcOptions, OffsetFormat, json_body, nc_offsets};
 
 #[derive(clap::Subcommand)]
 pub enum NcCmd {
@@ -25,7 +25,8 @@ pub enum NcCmd {
 
 #[derive(clap::Args)]
 pub struct OffsetsArgs {
-    /// fanuc, siemens, heidenhain or json.
+    /// fanuc, siemens, heidenhain, linuxcnc (a halcmd script for LinuxCNC's xyzbc-trt-kins or
+    /// xyzac-trt-kins) or json.
     #[arg(long)]
     format: String,
     /// The machine the set belongs to: required, since two families can share error names.
@@ -58,6 +59,11 @@ pub struct OffsetsArgs {
     /// HEIDENHAIN: the first Q parameter written.
     #[arg(long, default_value_t = 1600)]
     q_base: u32,
+    /// LinuxCNC: the commissioned value of a trt kinematics pin written, PIN=MM, the pin's name
+    /// without the module's prefix (x-rot-point, y-rot-point, z-rot-point, x-offset, y-offset,
+    /// z-offset; repeat per pin).
+    #[arg(long = "pin-nominal", value_name = "PIN=MM")]
+    pin_nominal: Vec<String>,
     /// The work origin of the datum-shift report, x,y,z mm in the table frame.
     #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true)]
     origin: Option<Vec<f64>>,
@@ -104,6 +110,20 @@ fn options(a: &OffsetsArgs) -> Result<NcOptions> {
             bail!("--nominal {n}: NUMBER=MM, e.g. 19700=-123.456");
         };
         o.fanuc_nominal_mm.insert(p, v);
+    }
+    for n in &a.pin_nominal {
+        let parsed = n.split_once('=').and_then(|(p, v)| {
+            let p = p.trim();
+            let v: f64 = v.trim().parse().ok()?;
+            (LINUXCNC_PINS.contains(&p) && v.is_finite()).then_some((p, v))
+        });
+        let Some((p, v)) = parsed else {
+            bail!(
+                "--pin-nominal {n}: PIN=MM, e.g. x-rot-point=0, PIN one of {}",
+                LINUXCNC_PINS.join(", ")
+            );
+        };
+        o.linuxcnc_nominal_mm.insert(p.to_string(), v);
     }
     if let Some(v) = &a.origin {
         o.work_origin_mm = [v[0], v[1], v[2]];

@@ -1,6 +1,6 @@
-//! `driftwatch nc offsets` end to end: a set as the service serves it becomes a FANUC, Siemens
-//! or json answer with the step from the previous set; a step beyond the limit and an unknown
-//! format are refused with the reason and no program.
+//! `driftwatch nc offsets` end to end: a set as the service serves it becomes a FANUC, Siemens,
+//! LinuxCNC or json answer with the step from the previous set; a step beyond the limit and an
+//! unknown format are refused with the reason and no program.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -108,6 +108,79 @@ fn nc_offsets_writes_each_form_with_its_steps() {
         .find(|v| v["name"] == "B_pivot_z_um")
         .unwrap();
     assert_eq!(cx["step"], 12.5);
+}
+
+/// LinuxCNC's `xyzbc-trt-kins` pins for the machine of `deploy/linuxcnc/machines` (table_bc's
+/// errors in the direct sense): commissioned value + move as `setp` lines, each after its step;
+/// a pin the kinematics lack and table_bc (ISO 841 table sense) refused.
+#[test]
+fn nc_offsets_writes_the_linuxcnc_pins() {
+    let prev = set_file("lcnc-prev.json", 4, 0, 30.0);
+    let next = set_file("lcnc-next.json", 5, 10, 42.5);
+    let machine = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/deploy/linuxcnc/machines/xyzbc-trt.toml"
+    );
+    let args = |machine: &'static str, extra: &'static [&'static str]| -> Vec<String> {
+        [
+            "nc",
+            "offsets",
+            "--format",
+            "linuxcnc",
+            "--machine",
+            machine,
+            "--from",
+            arg(&next),
+            "--previous",
+            arg(&prev),
+            "--pin-nominal",
+            "x-rot-point=0",
+            "--pin-nominal",
+            "y-rot-point=0",
+            "--pin-nominal",
+            "x-offset=0",
+            "--pin-nominal",
+            "z-offset=-50",
+        ]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let call = |a: Vec<String>| run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let (ok, out, err) = call(args(machine, &[]));
+    assert!(ok, "{err}");
+    // EX0B 21.4 + EX0C 6.5 um; EY0C -3.25 um; -EX0C; EZ0B 42.5 um (from 30: +12.5 um).
+    assert!(
+        out.contains("\n# x-rot-point, step +0 mm\nsetp xyzbc-trt-kins.x-rot-point 0.027900\n"),
+        "{out}"
+    );
+    assert!(
+        out.contains("\nsetp xyzbc-trt-kins.y-rot-point -0.003250\n"),
+        "{out}"
+    );
+    assert!(
+        out.contains("\nsetp xyzbc-trt-kins.x-offset -0.006500\n"),
+        "{out}"
+    );
+    assert!(
+        out.contains("\n# z-offset, step +0.0125 mm\nsetp xyzbc-trt-kins.z-offset -49.957500\n"),
+        "{out}"
+    );
+    assert!(
+        out.contains("\n# not written: EA0C = 12.000 urad\n"),
+        "{out}"
+    );
+    assert!(
+        out.lines()
+            .all(|l| l.starts_with('#') || l.starts_with("setp xyzbc-trt-kins.")),
+        "{out}"
+    );
+    let (ok, _, err) = call(args(machine, &["--pin-nominal", "tool-offset=0"]));
+    assert!(!ok && err.contains("tool-offset"), "{err}");
+    let (ok, out, err) = call(args("table_bc", &[]));
+    assert!(!ok && out.is_empty(), "{out}");
+    assert!(err.contains("sense = \"direct\""), "{err}");
 }
 
 #[test]

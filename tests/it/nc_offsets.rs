@@ -1,6 +1,7 @@
-//! The compensation endpoint in each NC's form (`?format=`): a FANUC, Siemens and HEIDENHAIN
-//! program and the JSON list made from the set the NC is served, the default body unchanged,
-//! an unknown format and a missing FANUC nominal refused, a step beyond the limit refused.
+//! The compensation endpoint in each NC's form (`?format=`): a FANUC, Siemens, HEIDENHAIN and
+//! LinuxCNC program and the JSON list made from the set the NC is served, the default body
+//! unchanged, an unknown format and a missing FANUC or LinuxCNC nominal refused, LinuxCNC's
+//! trt kinematics refused for a machine in the ISO table sense, a step beyond the limit refused.
 
 use crate::common;
 
@@ -80,6 +81,35 @@ async fn each_control_gets_the_served_set_in_its_own_form() {
         .await;
     assert!(p.starts_with("0 BEGIN PGM DWOFFSET MM"), "{p}");
 
+    // LinuxCNC's trt kinematics turn the table in the direct sense: table_bc (ISO 841) is
+    // refused, saying how to describe the machine; a pin the kinematics lack is a bad query.
+    let (s, _, b) = get(
+        &app,
+        "/api/v1/machines/m1/compensation?format=linuxcnc\
+         &linuxcnc_nominal=x-rot-point:0,y-rot-point:0,x-offset:0,z-offset:0",
+    )
+    .await;
+    assert_eq!(s, StatusCode::CONFLICT, "{b}");
+    assert_eq!(b["code"], "offsets_refused");
+    assert!(
+        b["message"]
+            .as_str()
+            .unwrap()
+            .contains("sense = \"direct\""),
+        "{b}"
+    );
+    let (s, _, b) = get(
+        &app,
+        "/api/v1/machines/m1/compensation?format=linuxcnc&linuxcnc_nominal=tool-offset:0",
+    )
+    .await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{b}");
+    assert_eq!(b["code"], "bad_query");
+    assert!(
+        b["message"].as_str().unwrap().contains("tool-offset"),
+        "{b}"
+    );
+
     // json: the set, plus each variable with its step from the previous served set.
     let (s, h, j) = get(&app, "/api/v1/machines/m1/compensation?format=json").await;
     assert_eq!(s, StatusCode::OK);
@@ -106,6 +136,64 @@ async fn each_control_gets_the_served_set_in_its_own_form() {
     assert_eq!(s, StatusCode::BAD_REQUEST);
     assert_eq!(b["code"], "bad_format");
     assert!(b["message"].as_str().unwrap().contains("mazak"), "{b}");
+    app.stop().await;
+}
+
+/// A machine of `deploy/linuxcnc/machines` (table axes in the direct sense) gets its served set
+/// as a halcmd script of `xyzbc-trt-kins` pins: each commissioned value plus its lines' moves;
+/// without the commissioned values the pins are named and nothing is written.
+#[tokio::test]
+async fn linuxcnc_gets_the_pins_of_its_trt_kinematics() {
+    let mut cfg = patent_m1(&scratch("nc-offsets-linuxcnc"));
+    cfg.http.anonymous_read = true;
+    cfg.machines[0].machine = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/deploy/linuxcnc/machines/xyzbc-trt.toml"
+    )
+    .into();
+    let app = launch_test(cfg, None).await;
+    app.run_to(app.t0() + 100 * MIN).await;
+    let (s, _, set) = get(&app, "/api/v1/machines/m1/compensation").await;
+    assert_eq!(s, StatusCode::OK, "{set}");
+    let e = |n: &str| set["errors"][n].as_f64().unwrap();
+
+    let uri = "/api/v1/machines/m1/compensation?format=linuxcnc";
+    let (s, _, b) = get(&app, uri).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{b}");
+    assert_eq!(b["code"], "missing_nominal");
+    assert!(
+        b["message"]
+            .as_str()
+            .unwrap()
+            .contains("x-rot-point, y-rot-point, x-offset, z-offset"),
+        "{b}"
+    );
+    let nominal = "linuxcnc_nominal=x-rot-point:10,y-rot-point:-20,x-offset:0.5,z-offset:-50";
+    let (s, p) = app.text(&format!("{uri}&{nominal}")).await;
+    assert_eq!(s, StatusCode::OK, "{p}");
+    // Commissioned + move, to 6 decimals (half a nm).
+    let pins = [
+        ("x-rot-point", 10.0 + (e("EX0B") + e("EX0C")) * 1e-3),
+        ("y-rot-point", -20.0 + e("EY0C") * 1e-3),
+        ("x-offset", 0.5 - e("EX0C") * 1e-3),
+        ("z-offset", -50.0 + e("EZ0B") * 1e-3),
+    ];
+    for (pin, want) in pins {
+        let got = written(&p, &format!("setp xyzbc-trt-kins.{pin} "));
+        assert!((got - want).abs() <= 5e-7 + 1e-12, "{pin}: {got} vs {want}");
+    }
+    assert!(
+        p.contains("# kinematics: KINEMATICS = xyzbc-trt-kins\n"),
+        "{p}"
+    );
+    assert!(p.contains("# not written: EA0C = "), "{p}");
+    for l in p.lines() {
+        assert!(
+            l.starts_with('#') || (l.starts_with("setp ") && l.split(' ').count() == 3),
+            "{l}"
+        );
+    }
+    assert_eq!(p.lines().filter(|l| l.starts_with("setp ")).count(), 4);
     app.stop().await;
 }
 

@@ -55,9 +55,11 @@ values = [1, 2, 3]
 # in order) and a prediction `at` before the model's last input (400 before_last_input: it
 # depends on the service's state; times are moved to 2033-2065, which also asks the model
 # decades ahead).
-# Two more on the compensation endpoint in an NC's form: FANUC needs the commissioned value of
-# each parameter it writes (`fanuc_nominal`, required with `format=fanuc` only: another
-# constraint between parameters), and a set whose step from the previous one exceeds the
+# Two more on the compensation endpoint in an NC's form: FANUC and LinuxCNC need the
+# commissioned value of each parameter or pin they write (`fanuc_nominal`, `linuxcnc_nominal`,
+# required with `format=fanuc` or `format=linuxcnc` only: another constraint between
+# parameters; LinuxCNC's form is also refused for a machine in the ISO table sense, 409
+# offsets_refused), and a set whose step from the previous one exceeds the
 # validation limit is refused (409 offsets_refused: it depends on the served history).
 # Two on a verification's reference: its error names must be the machine's identified ones
 # and each needs its sigma > 0 in a second map, its time not ahead of the service clock (400

@@ -15,6 +15,9 @@
 //!   the basic vectors by the control), and the rotary axis vectors v1/v2 (`$TC_CARR7`..`12`).
 //! - HEIDENHAIN: Q parameters holding the offsets in mm and deg for the OEM's cycle that loads
 //!   the kinematics (the kinematics description itself is OEM-only).
+//! - LinuxCNC (`xyzbc-trt-kins`, `xyzac-trt-kins`): the kinematics' HAL pins, the C line's
+//!   rotation point and the tilting line's offset from it; absolute positions, so the
+//!   commissioned value of each pin is an argument, as on FANUC; a halcmd script sets them.
 //! - json: driftwatch's own offsets (`NcLayout`).
 //!
 //! A set is only turned into NC values when it still looks validated (exactly the machine's
@@ -42,14 +45,16 @@ pub enum OffsetFormat {
     Fanuc,
     Siemens,
     Heidenhain,
+    Linuxcnc,
 }
 
 impl OffsetFormat {
-    pub const ALL: [OffsetFormat; 4] = [
+    pub const ALL: [OffsetFormat; 5] = [
         OffsetFormat::Json,
         OffsetFormat::Fanuc,
         OffsetFormat::Siemens,
         OffsetFormat::Heidenhain,
+        OffsetFormat::Linuxcnc,
     ];
 
     pub fn name(self) -> &'static str {
@@ -58,6 +63,7 @@ impl OffsetFormat {
             OffsetFormat::Fanuc => "fanuc",
             OffsetFormat::Siemens => "siemens",
             OffsetFormat::Heidenhain => "heidenhain",
+            OffsetFormat::Linuxcnc => "linuxcnc",
         }
     }
 
@@ -68,6 +74,18 @@ impl OffsetFormat {
             .ok_or_else(|| OffsetsError::UnknownFormat(s.to_string()))
     }
 }
+
+/// The geometry pins of LinuxCNC's trt kinematics (`xyzbc-trt-kins.x-rot-point`, ...), without
+/// the module's prefix: the names a commissioned value is given by. `tool-offset` is not one:
+/// motion sets it from the tool table.
+pub const LINUXCNC_PINS: [&str; 6] = [
+    "x-rot-point",
+    "y-rot-point",
+    "z-rot-point",
+    "x-offset",
+    "y-offset",
+    "z-offset",
+];
 
 /// What a control's form needs that driftwatch cannot know: given by the caller (command-line
 /// flags, query parameters), never a hidden constant.
@@ -89,6 +107,10 @@ pub struct NcOptions {
     pub siemens_axis_sign: f64,
     /// HEIDENHAIN: the first Q parameter of the block the offsets are written to.
     pub heidenhain_q_base: u32,
+    /// LinuxCNC: the commissioned value of each kinematics pin written, by its name without
+    /// the module's prefix (`x-rot-point` -> mm; one of [`LINUXCNC_PINS`]). Required: the pins
+    /// are absolute.
+    pub linuxcnc_nominal_mm: BTreeMap<String, f64>,
     /// The work origin whose move is reported, mm in the table frame.
     pub work_origin_mm: [f64; 3],
     /// The poses of the datum-shift report, deg per rotary axis; empty: the zero pose and each
@@ -105,6 +127,7 @@ impl Default for NcOptions {
             siemens_carrier: 1,
             siemens_axis_sign: 1.0,
             heidenhain_q_base: 1600,
+            linuxcnc_nominal_mm: BTreeMap::new(),
             work_origin_mm: [0.0; 3],
             poses_deg: Vec::new(),
         }
@@ -113,7 +136,7 @@ impl Default for NcOptions {
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum OffsetsError {
-    #[error("unknown offsets format '{0}': one of json, fanuc, siemens, heidenhain")]
+    #[error("unknown offsets format '{0}': one of json, fanuc, siemens, heidenhain, linuxcnc")]
     UnknownFormat(String),
     #[error("set {version} is not a validated {machine} set: {}", .reasons.join("; "))]
     NotValidated {
@@ -137,6 +160,11 @@ pub enum OffsetsError {
         .params.iter().map(u32::to_string).collect::<Vec<_>>().join(", ")
     )]
     MissingNominal { params: Vec<u32> },
+    #[error(
+        "{kins} pins {} hold absolute positions: give their commissioned values (nominal, mm)",
+        .pins.join(", ")
+    )]
+    MissingPinNominal { kins: String, pins: Vec<String> },
     #[error("{machine}: {message}")]
     Unsupported { machine: String, message: String },
     #[error("bad option: {0}")]
@@ -471,6 +499,7 @@ fn form(
         OffsetFormat::Fanuc => fanuc_form(k, errors, opts),
         OffsetFormat::Siemens => siemens_form(k, errors, opts),
         OffsetFormat::Heidenhain => heidenhain_form(k, errors, opts),
+        OffsetFormat::Linuxcnc => linuxcnc_form(k, errors, opts),
     }
 }
 
@@ -894,6 +923,194 @@ fn heidenhain_form(
     })
 }
 
+/// The LinuxCNC trt kinematics a chain is: its module and the tilting and the rotary table
+/// axis. `xyzbc-trt-kins` and `xyzac-trt-kins` turn a table point `p` to the joints
+/// `rp + D + R_T(t) (Rz(c) (p - rp) - D)` (LinuxCNC's `trtfuncs.c`): C about the vertical line
+/// through the rotation point `rp`, the tilting axis T (B along +Y, A along +X) about the line
+/// through `rp + D`, both turning the table positively for a positive command.
+fn linuxcnc_chain(k: &Kinematics) -> Result<(&'static str, usize, usize), OffsetsError> {
+    let refuse = |message: String| OffsetsError::Unsupported {
+        machine: k.name.clone(),
+        message,
+    };
+    let (table, head) = sides(k);
+    let ([t, c], []) = (table.as_slice(), head.as_slice()) else {
+        return Err(refuse(format!(
+            "LinuxCNC's trt kinematics (xyzbc-trt-kins, xyzac-trt-kins) take two table axes and \
+             no head axis; this chain has {} table and {} head axes",
+            table.len(),
+            head.len()
+        )));
+    };
+    let (t, c) = (*t, *c);
+    let along = |i: usize, v: Vec3| (k.rotary[i].u0 - v).norm() < 1e-9;
+    if !along(c, Vec3::z()) {
+        return Err(refuse(format!(
+            "LinuxCNC's trt kinematics turn the inner table axis about +Z; {} lies along {}",
+            k.rotary[c].name, k.rotary[c].u0
+        )));
+    }
+    let kins = if along(t, Vec3::y()) {
+        "xyzbc-trt-kins"
+    } else if along(t, Vec3::x()) {
+        "xyzac-trt-kins"
+    } else {
+        return Err(refuse(format!(
+            "LinuxCNC's trt kinematics tilt the table about +Y (xyzbc-trt-kins) or +X \
+             (xyzac-trt-kins); {} lies along {}",
+            k.rotary[t].name, k.rotary[t].u0
+        )));
+    };
+    let iso: Vec<&str> = [t, c]
+        .into_iter()
+        .filter(|i| k.rotary[*i].sign < 0.0)
+        .map(|i| k.rotary[i].name.as_str())
+        .collect();
+    if !iso.is_empty() {
+        return Err(refuse(format!(
+            "{} in the ISO 841 table sense (sense = \"table\": the table turns negatively for a \
+             positive command), but LinuxCNC's trt kinematics turn the table positively for a \
+             positive command: describe the machine with sense = \"direct\" on both table \
+             axes, as in deploy/linuxcnc/machines",
+            iso.join(" and ")
+        )));
+    }
+    Ok((kins, t, c))
+}
+
+/// LinuxCNC's trt kinematics: the C line is vertical through `(x-rot-point, y-rot-point)`, so
+/// those grow by the C line's move square to C; the tilting line passes through the rotation
+/// point plus `(x-offset, ., z-offset + tool-offset)` (B) or `(., y-offset, z-offset +
+/// tool-offset)` (A), so the offset grows by the tilting line's move less the C line's, square
+/// to the tilting axis. `z-rot-point` is never written (no position along C), nor
+/// `tool-offset` (the loaded tool's, from motion).
+fn linuxcnc_form(
+    k: &Kinematics,
+    errors: &BTreeMap<ErrorName, f64>,
+    opts: &NcOptions,
+) -> Result<Form, OffsetsError> {
+    let (kins, t, c) = linuxcnc_chain(k)?;
+    let unknown: Vec<&str> = opts
+        .linuxcnc_nominal_mm
+        .keys()
+        .map(String::as_str)
+        .filter(|p| !LINUXCNC_PINS.contains(p))
+        .collect();
+    if !unknown.is_empty() {
+        return Err(OffsetsError::BadOption(format!(
+            "linuxcnc_nominal_mm: no pin {} in the trt kinematics; the pins are {}",
+            unknown.join(", "),
+            LINUXCNC_PINS.join(", ")
+        )));
+    }
+    let (ut, uc) = (k.rotary[t].u0, k.rotary[c].u0);
+    let (tn, cn) = (k.rotary[t].name.clone(), k.rotary[c].name.clone());
+    let rot = move |m: &[Vec3]| square_to(m[c], uc);
+    let pins = |v: &str| ["x", "y", "z"].map(|a| format!("{a}-{v}"));
+    let vectors = [
+        NcVector {
+            names: pins("rot-point"),
+            label: "rotation point".into(),
+            meaning: format!(
+                "rotation point: the {cn} line (vertical through it) moved by its line's move"
+            ),
+            of: Box::new(move |m, _| rot(m)),
+        },
+        NcVector {
+            names: pins("offset"),
+            label: "offset".into(),
+            meaning: format!(
+                "offset: the {tn} line from the rotation point, grown by the {tn} line's move \
+                 less the {cn} line's, square to {tn}"
+            ),
+            of: Box::new(move |m, _| square_to(m[t] - rot(m), ut)),
+        },
+    ];
+    let written = moved(k, &|e| {
+        let (m, tt) = line_moves(k, e);
+        vectors.iter().map(|v| (v.of)(&m, &tt)).collect()
+    });
+    let (m, tt) = line_moves(k, errors);
+    let mut raw = Vec::new();
+    let mut missing = Vec::new();
+    let mut written_pins = Vec::new();
+    for (v, w) in vectors.iter().zip(&written) {
+        let d = (v.of)(&m, &tt);
+        for i in (0..3).filter(|i| w[*i]) {
+            let pin = &v.names[i];
+            written_pins.push(pin.as_str());
+            let Some(nominal) = opts.linuxcnc_nominal_mm.get(pin) else {
+                missing.push(pin.clone());
+                continue;
+            };
+            raw.push(Raw {
+                name: format!("{kins}.{pin}"),
+                label: pin.clone(),
+                meaning: format!(
+                    "{}, {}: nominal {nominal} mm + offset",
+                    v.meaning,
+                    &"xyz"[i..=i]
+                ),
+                unit: "mm".into(),
+                exact: nominal + d[i],
+                decimals: 6,
+            });
+        }
+    }
+    if !missing.is_empty() {
+        return Err(OffsetsError::MissingPinNominal {
+            kins: kins.into(),
+            pins: missing,
+        });
+    }
+    let mut notes = vec![
+        format!(
+            "{kins} reads these pins whenever it runs: the joints move by the datum shift at \
+             the current pose with the next move at the latest; load the script with the \
+             machine at rest, not in a cut"
+        ),
+        "setp sets an unlinked pin only: the pins written here must be set with setp in the \
+         HAL file, not driven by a signal"
+            .into(),
+        format!(
+            "orientation and zero-angle errors are not written: {kins} holds the {cn} line \
+             along Z and the {tn} line along {} exactly, and has no pin for a tilt",
+            ["X", "Y", "Z"][ut.iamax()]
+        ),
+    ];
+    let held: Vec<String> = k
+        .held
+        .iter()
+        .filter(|(id, v)| !id.is_position() && *v != 0.0)
+        .map(|(id, v)| format!("{} = {v} urad", k.error_name(*id)))
+        .collect();
+    if !held.is_empty() {
+        notes.push(format!(
+            "held in the machine file, and not held by {kins} either: {}",
+            held.join(", ")
+        ));
+    }
+    let ignored: Vec<&str> = opts
+        .linuxcnc_nominal_mm
+        .keys()
+        .map(String::as_str)
+        .filter(|p| !written_pins.contains(p))
+        .collect();
+    if !ignored.is_empty() {
+        notes.push(format!(
+            "commissioned values given for pins no identified error moves ({}): not written, \
+             the pins keep their values",
+            ignored.join(", ")
+        ));
+    }
+    Ok(Form {
+        raw,
+        writes: |n| !n.is_angular(),
+        kinematic_type: format!("KINEMATICS = {kins}"),
+        notes,
+    })
+}
+
 // ---------------------------------------------------------------------------------------------
 // Datum shift
 // ---------------------------------------------------------------------------------------------
@@ -1083,6 +1300,17 @@ fn program(
                 );
             }
             block(&mut p, "END PGM DWOFFSET MM");
+        }
+        OffsetFormat::Linuxcnc => {
+            // A halcmd script (`halcmd -f`): comments are whole lines starting with '#', one
+            // `setp PIN VALUE` per pin.
+            for line in &head {
+                let _ = writeln!(p, "# {line}");
+            }
+            for (v, l) in o.variables.iter().zip(labels) {
+                let _ = writeln!(p, "# {l}, {}", step_text(v));
+                let _ = writeln!(p, "setp {} {}", v.name, v.text);
+            }
         }
     }
     Some(p)
@@ -1503,6 +1731,391 @@ mod tests {
         let want = -(dq - r * dq) * 1e3;
         let got = Vec3::from(o.datum_shift[0].shift_um);
         assert!((got - want).norm() < 1e-9, "{got} vs {want}");
+    }
+
+    /// A machine of `deploy/linuxcnc/machines` (the families LinuxCNC's trt kinematics take).
+    fn deployed(name: &str) -> Kinematics {
+        let path = format!(
+            "{}/../../deploy/linuxcnc/machines/{name}.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        Kinematics::load(&path).unwrap()
+    }
+
+    /// A fixed-seed sequence in [-1, 1).
+    struct Draws(u64);
+
+    impl Draws {
+        fn next(&mut self) -> f64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        }
+    }
+
+    /// LinuxCNC's trt inverse kinematics written from its equations (`trtfuncs.c`): the table
+    /// point `pos` at the tilt (B on xyzbc, A on xyzac) and C angles (deg) goes to the joints
+    /// `rp + D + R_T(tilt) (Rz(c) (pos - rp) - D)`, `rp` the rotation point, `D` (x-offset, 0,
+    /// z-offset + tool-offset) on xyzbc, (0, y-offset, z-offset + tool-offset) on xyzac.
+    fn trt_inverse(
+        bc: bool,
+        pin: &dyn Fn(&str) -> f64,
+        tool_offset: f64,
+        pos: Vec3,
+        tilt_deg: f64,
+        c_deg: f64,
+    ) -> Vec3 {
+        use driftwatch_core::geometry::Mat3;
+        let rp = Vec3::new(pin("x-rot-point"), pin("y-rot-point"), pin("z-rot-point"));
+        let (st, ct) = tilt_deg.to_radians().sin_cos();
+        let (sc, cc) = c_deg.to_radians().sin_cos();
+        let rz = Mat3::new(cc, -sc, 0.0, sc, cc, 0.0, 0.0, 0.0, 1.0);
+        let (d, rt) = if bc {
+            (
+                Vec3::new(pin("x-offset"), 0.0, pin("z-offset") + tool_offset),
+                Mat3::new(ct, 0.0, st, 0.0, 1.0, 0.0, -st, 0.0, ct),
+            )
+        } else {
+            (
+                Vec3::new(0.0, pin("y-offset"), pin("z-offset") + tool_offset),
+                Mat3::new(1.0, 0.0, 0.0, 0.0, ct, -st, 0.0, st, ct),
+            )
+        };
+        rp + d + rt * (rz * (pos - rp) - d)
+    }
+
+    /// The pins LinuxCNC's trt kinematics are given make its inverse kinematics driftwatch's
+    /// table-to-machine transform with the set's errors, on both families, for random holdable
+    /// errors (no tilt), commissioned values that are not zero (the tilting line off the C line
+    /// by a commissioned offset, a tool offset) and random poses and table points: to 1e-9 mm.
+    /// LinuxCNC's frame is driftwatch's moved by the nominal B/C (A/C) point: the rotation
+    /// point (x, y), and z-rot-point + z-offset + tool-offset.
+    #[test]
+    fn linuxcnc_pins_make_its_trt_kinematics_the_kinematics_with_the_errors() {
+        let mut draw = Draws(20261129);
+        for (name, bc) in [("xyzbc-trt", true), ("xyzac-trt", false)] {
+            let kins = if bc {
+                "xyzbc-trt-kins"
+            } else {
+                "xyzac-trt-kins"
+            };
+            let (tilt_offset, pos_errors) = if bc {
+                ("x-offset", ["EX0B", "EZ0B", "EY0C", "EX0C"])
+            } else {
+                ("y-offset", ["EY0A", "EZ0A", "EX0C", "EY0C"])
+            };
+            let written = ["x-rot-point", "y-rot-point", tilt_offset, "z-offset"];
+            // Commissioned: rotation point (12.5, -7.25, 30), the tilting line 0.8 mm off the
+            // C line across it and 45 mm under the rotation point, a 120 mm tool.
+            let commissioned = BTreeMap::from([
+                ("x-rot-point", 12.5),
+                ("y-rot-point", -7.25),
+                ("z-rot-point", 30.0),
+                (tilt_offset, 0.8),
+                ("z-offset", -45.0),
+            ]);
+            let tool = 120.0;
+            let mut k = deployed(name);
+            // driftwatch's nominal lines as commissioned: the tilting line 0.8 mm off C.
+            k.rotary[0].q0 = if bc {
+                Vec3::new(0.8, 0.0, 0.0)
+            } else {
+                Vec3::new(0.0, 0.8, 0.0)
+            };
+            let origin = Vec3::new(12.5, -7.25, 30.0 - 45.0 + tool);
+            let opts = NcOptions {
+                linuxcnc_nominal_mm: written
+                    .iter()
+                    .map(|p| (p.to_string(), commissioned[p]))
+                    .collect(),
+                ..NcOptions::default()
+            };
+            for version in 1..=4 {
+                let mut values: Vec<(&str, f64)> = pos_errors
+                    .iter()
+                    .map(|n| (*n, 150.0 * draw.next()))
+                    .collect();
+                values.extend([("EA0C", 0.0), ("EB0C", 0.0)]);
+                let s = set(&k, version, 0.0, &values);
+                let o = run(OffsetFormat::Linuxcnc, &k, &s, None, &opts).unwrap();
+                assert_eq!(o.kinematic_type, format!("KINEMATICS = {kins}"));
+                let full: Vec<String> = written.iter().map(|p| format!("{kins}.{p}")).collect();
+                assert_eq!(names(&o), full);
+                for v in &o.variables {
+                    assert_eq!(v.unit, "mm");
+                    assert!(v.rounding.abs() <= 5e-7, "{v:?}");
+                    assert_eq!(v.text, format!("{:.6}", v.value));
+                }
+                // The exact pins (written value less its rounding); the others as commissioned.
+                let exact = |p: &str| {
+                    o.variables
+                        .iter()
+                        .find(|v| v.name == format!("{kins}.{p}"))
+                        .map_or(commissioned.get(p).copied().unwrap_or(0.0), |v| {
+                            v.value - v.rounding
+                        })
+                };
+                // The mapping in closed form (um -> mm).
+                let e = |n: &str| s.errors[&ErrorName::parse(n).unwrap()] * 1e-3;
+                let closed = if bc {
+                    [
+                        12.5 + e("EX0B") + e("EX0C"),
+                        -7.25 + e("EY0C"),
+                        0.8 - e("EX0C"),
+                        -45.0 + e("EZ0B"),
+                    ]
+                } else {
+                    [
+                        12.5 + e("EX0C"),
+                        -7.25 + e("EY0A") + e("EY0C"),
+                        0.8 - e("EY0C"),
+                        -45.0 + e("EZ0A"),
+                    ]
+                };
+                for (p, want) in written.iter().zip(closed) {
+                    assert!(
+                        (exact(p) - want).abs() < 1e-12,
+                        "{p}: {} vs {want}",
+                        exact(p)
+                    );
+                }
+                let state = state_of(&k, &s.errors, |_| true, true);
+                let commissioned_pin = |p: &str| commissioned.get(p).copied().unwrap_or(0.0);
+                let mut worst_uncompensated: f64 = 0.0;
+                for _ in 0..12 {
+                    let tilt = 90.0 * draw.next();
+                    let c = 180.0 * draw.next();
+                    let p = Vec3::new(draw.next(), draw.next(), draw.next()) * 300.0;
+                    let got = k.pose_transform(&state, &[tilt, c]).point(&p);
+                    let want = trt_inverse(bc, &exact, tool, p + origin, tilt, c) - origin;
+                    assert!(
+                        (got - want).norm() < 1e-9,
+                        "{name} at {tilt}, {c}: {got} vs {want}"
+                    );
+                    let before =
+                        trt_inverse(bc, &commissioned_pin, tool, p + origin, tilt, c) - origin;
+                    worst_uncompensated = worst_uncompensated.max((got - before).norm());
+                }
+                // Not trivially equal: the commissioned pins alone miss the errors.
+                assert!(worst_uncompensated > 1e-3, "{worst_uncompensated}");
+                assert!(o.not_written.iter().any(|n| n.starts_with("EA0C")));
+                // With tilts: the same pins, the tilts listed as not written and said why.
+                let mut tilted = values.clone();
+                tilted[4].1 = 35.0;
+                tilted[5].1 = -20.0;
+                let st = set(&k, version, 0.0, &tilted);
+                let ot = run(OffsetFormat::Linuxcnc, &k, &st, None, &opts).unwrap();
+                assert_eq!(ot.variables, o.variables);
+                assert_eq!(
+                    ot.not_written,
+                    ["EA0C = 35.000 urad", "EB0C = -20.000 urad"]
+                );
+                assert!(ot.notes.iter().any(|n| n.contains("no pin for a tilt")));
+            }
+        }
+    }
+
+    /// The halcmd script: whole-line `#` comments (the header, then each pin's step on the
+    /// line before it) and one `setp PIN VALUE` per variable, nothing else.
+    #[test]
+    fn the_linuxcnc_program_is_a_halcmd_script_of_setp_lines() {
+        let k = deployed("xyzbc-trt");
+        let prev = set(&k, 3, 0.0, &BC);
+        let mut moved = BC;
+        moved[1].1 += 10.0; // EZ0B
+        moved[3].1 -= 5.0; // EX0C
+        let next = set(&k, 4, 1.0, &moved);
+        let opts = NcOptions {
+            linuxcnc_nominal_mm: [
+                ("x-rot-point", 0.0),
+                ("y-rot-point", 0.0),
+                ("x-offset", 0.0),
+                ("z-offset", -50.0),
+                ("z-rot-point", 0.0),
+            ]
+            .iter()
+            .map(|(p, v)| (p.to_string(), *v))
+            .collect(),
+            ..NcOptions::default()
+        };
+        let o = run(OffsetFormat::Linuxcnc, &k, &next, Some(&prev), &opts).unwrap();
+        let step = |n: &str| {
+            o.variables
+                .iter()
+                .find(|v| v.name == format!("xyzbc-trt-kins.{n}"))
+                .unwrap()
+                .step
+        };
+        assert_eq!(step("z-offset"), Some(0.01));
+        assert_eq!(step("x-offset"), Some(0.005));
+        assert_eq!(step("x-rot-point"), Some(-0.005));
+        assert_eq!(step("y-rot-point"), Some(0.0));
+        assert!((value(&o, "xyzbc-trt-kins.z-offset") - -50.02126).abs() < 1e-9);
+        assert!(
+            o.notes.iter().any(|n| n.contains("(z-rot-point)")),
+            "a commissioned value of a pin not written is said to be ignored: {:?}",
+            o.notes
+        );
+        let p = o.program.unwrap();
+        let lines: Vec<&str> = p.lines().collect();
+        assert!(
+            lines[0].starts_with("# driftwatch offsets: xyzbc-trt set 4"),
+            "{p}"
+        );
+        assert!(
+            p.contains("\n# kinematics: KINEMATICS = xyzbc-trt-kins\n"),
+            "{p}"
+        );
+        let mut setp = 0;
+        for (i, l) in lines.iter().enumerate() {
+            if l.starts_with('#') {
+                continue;
+            }
+            let words: Vec<&str> = l.split(' ').collect();
+            assert_eq!(words.len(), 3, "{l}");
+            assert_eq!(words[0], "setp", "{l}");
+            let v = &o.variables[setp];
+            assert_eq!((words[1], words[2]), (v.name.as_str(), v.text.as_str()));
+            assert_eq!(words[2].parse::<f64>().unwrap(), v.value);
+            let short = v.name.split_once('.').unwrap().1;
+            assert!(
+                lines[i - 1].starts_with(&format!("# {short}, step ")),
+                "{p}"
+            );
+            setp += 1;
+        }
+        assert_eq!(setp, 4);
+        assert!(
+            p.contains("\nsetp xyzbc-trt-kins.z-offset -50.021260\n"),
+            "{p}"
+        );
+    }
+
+    /// The chains LinuxCNC's trt kinematics cannot take are refused, each saying why: the ISO
+    /// 841 table sense of the shipped families, a head axis.
+    #[test]
+    fn linuxcnc_refuses_the_table_sense_and_other_chains() {
+        let opts = NcOptions::default();
+        let ac = [
+            ("EY0A", 1.0),
+            ("EZ0A", 1.0),
+            ("EX0C", 1.0),
+            ("EY0C", 1.0),
+            ("EA0C", 1.0),
+            ("EB0C", 1.0),
+        ];
+        for (name, errors) in [("table_bc", &BC), ("trunnion_ac", &ac)] {
+            let k = machine(name);
+            let s = set(&k, 1, 0.0, errors);
+            let e = run(OffsetFormat::Linuxcnc, &k, &s, None, &opts).unwrap_err();
+            let OffsetsError::Unsupported { machine, message } = &e else {
+                panic!("{e}");
+            };
+            assert_eq!(machine, name);
+            assert!(
+                message.contains("ISO 841 table sense")
+                    && message.contains("turn the table positively for a positive command")
+                    && message.contains("sense = \"direct\"")
+                    && message.contains("deploy/linuxcnc/machines"),
+                "{message}"
+            );
+        }
+        let k = machine("head_b_table_c");
+        let s = set(&k, 1, 0.0, &BC);
+        let e = run(OffsetFormat::Linuxcnc, &k, &s, None, &opts).unwrap_err();
+        assert!(
+            e.to_string().contains("two table axes and no head axis"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn linuxcnc_without_the_commissioned_values_or_with_an_unknown_pin_is_refused() {
+        let k = deployed("xyzac-trt");
+        let s = set(
+            &k,
+            1,
+            0.0,
+            &[
+                ("EY0A", 3.0),
+                ("EZ0A", -4.0),
+                ("EX0C", 1.0),
+                ("EY0C", 2.0),
+                ("EA0C", 5.0),
+                ("EB0C", 6.0),
+            ],
+        );
+        let opts = |pins: &[&str]| NcOptions {
+            linuxcnc_nominal_mm: pins.iter().map(|p| (p.to_string(), 0.0)).collect(),
+            ..NcOptions::default()
+        };
+        let e = run(
+            OffsetFormat::Linuxcnc,
+            &k,
+            &s,
+            None,
+            &opts(&["y-rot-point"]),
+        )
+        .unwrap_err();
+        assert_eq!(
+            e,
+            OffsetsError::MissingPinNominal {
+                kins: "xyzac-trt-kins".into(),
+                pins: vec!["x-rot-point".into(), "y-offset".into(), "z-offset".into()]
+            }
+        );
+        assert!(
+            e.to_string().contains("x-rot-point, y-offset, z-offset"),
+            "{e}"
+        );
+        let all = ["x-rot-point", "y-rot-point", "y-offset", "z-offset"];
+        let o = run(OffsetFormat::Linuxcnc, &k, &s, None, &opts(&all)).unwrap();
+        assert_eq!(value(&o, "xyzac-trt-kins.y-rot-point"), 0.005); // EY0A + EY0C
+        assert_eq!(value(&o, "xyzac-trt-kins.y-offset"), -0.002); // -EY0C
+        assert_eq!(value(&o, "xyzac-trt-kins.z-offset"), -0.004); // EZ0A
+        let e = run(
+            OffsetFormat::Linuxcnc,
+            &k,
+            &s,
+            None,
+            &opts(&[
+                "x-rot-point",
+                "y-rot-point",
+                "y-offset",
+                "z-offset",
+                "tool-offset",
+            ]),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(&e, OffsetsError::BadOption(m) if m.contains("tool-offset")),
+            "{e}"
+        );
+    }
+
+    /// A step beyond the validation's limit is refused in the LinuxCNC form as in the others.
+    #[test]
+    fn linuxcnc_refuses_a_step_beyond_the_limit() {
+        let k = deployed("xyzbc-trt");
+        let prev = set(&k, 3, 0.0, &BC);
+        let mut moved = BC;
+        moved[1].1 += 60.0; // EZ0B: 60 um in 1 min, over 54
+        let far = set(&k, 4, 1.0, &moved);
+        let opts = NcOptions {
+            linuxcnc_nominal_mm: ["x-rot-point", "y-rot-point", "x-offset", "z-offset"]
+                .iter()
+                .map(|p| (p.to_string(), 0.0))
+                .collect(),
+            ..NcOptions::default()
+        };
+        let e = run(OffsetFormat::Linuxcnc, &k, &far, Some(&prev), &opts).unwrap_err();
+        let OffsetsError::StepBeyondLimit { steps, .. } = e else {
+            panic!("{e}");
+        };
+        assert_eq!(steps.len(), 1);
+        assert!(steps[0].starts_with("EZ0B"), "{steps:?}");
     }
 
     #[test]

@@ -36,13 +36,14 @@ pub enum ErrorCode {
     UnknownDiagnosis,
     UnknownAlert,
     NoCompensation,
-    /// A compensation format that is not one of json, fanuc, siemens, heidenhain.
+    /// A compensation format that is not one of json, fanuc, siemens, heidenhain, linuxcnc.
     BadFormat,
     /// The served set may not be put in the NC's form (a step beyond the limit, a set that
     /// does not look validated, a machine chain without that form).
     OffsetsRefused,
-    /// FANUC's parameters are absolute: the commissioned value of each one written must be
-    /// given (a constraint between `format` and `fanuc_nominal` that OpenAPI cannot state).
+    /// FANUC's parameters and LinuxCNC's kinematics pins are absolute: the commissioned value
+    /// of each one written must be given (a constraint between `format` and `fanuc_nominal` or
+    /// `linuxcnc_nominal` that OpenAPI cannot state).
     MissingNominal,
     NoModel,
     BeforeLastInput,

@@ -1,4 +1,4 @@
-//! The compensation endpoint in an NC's own form (`?format=fanuc|siemens|heidenhain|json`):
+//! The compensation endpoint in an NC's own form (`?format=fanuc|siemens|heidenhain|linuxcnc|json`):
 //! the served set through `driftwatch_nc::offsets`, its previous version from the store for
 //! the step, the options a control needs from the query. Without `format` the endpoint keeps
 //! its prepared JSON body (`machines::compensation`).
@@ -7,7 +7,9 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 
-use driftwatch_nc::offsets::{NcOptions, OffsetFormat, OffsetsError, json_body, nc_offsets};
+use driftwatch_nc::offsets::{
+    LINUXCNC_PINS, NcOptions, OffsetFormat, OffsetsError, json_body, nc_offsets,
+};
 
 use super::{ApiError, ErrorCode, Shared, handle};
 
@@ -21,6 +23,7 @@ pub(super) enum FormatName {
     Fanuc,
     Siemens,
     Heidenhain,
+    Linuxcnc,
 }
 
 /// The query of the compensation endpoint.
@@ -35,6 +38,9 @@ pub(super) struct FormatQuery {
     pub siemens_carrier: Option<u32>,
     pub siemens_axis_sign: Option<f64>,
     pub heidenhain_q_base: Option<u32>,
+    /// LinuxCNC: the commissioned values of the trt kinematics' pins,
+    /// `x-rot-point:0,y-rot-point:0,x-offset:0,z-offset:-50` (mm).
+    pub linuxcnc_nominal: Option<String>,
     /// `x,y,z` mm in the table frame.
     pub work_origin_mm: Option<String>,
 }
@@ -68,6 +74,27 @@ pub(super) fn options(q: &FormatQuery) -> Result<NcOptions, ApiError> {
                 _ => {
                     return Err(bad(format!(
                         "fanuc_nominal entry '{pair}' is not PARAMETER:MM (e.g. 19700:-123.456)"
+                    )));
+                }
+            }
+        }
+    }
+    if let Some(list) = &q.linuxcnc_nominal {
+        for pair in list.split(',') {
+            let parsed = pair.split_once(':').and_then(|(n, v)| {
+                let n = n.trim();
+                let v = v.trim().parse::<f64>().ok()?;
+                LINUXCNC_PINS.contains(&n).then_some((n, v))
+            });
+            match parsed {
+                Some((n, v)) if v.is_finite() => {
+                    o.linuxcnc_nominal_mm.insert(n.to_string(), v);
+                }
+                _ => {
+                    return Err(bad(format!(
+                        "linuxcnc_nominal entry '{pair}' is not PIN:MM (e.g. x-rot-point:0), PIN \
+                         one of {}",
+                        LINUXCNC_PINS.join(", ")
                     )));
                 }
             }
@@ -152,7 +179,7 @@ pub(super) async fn in_format(
     let previous = st.store.compensation_before(id, set.version).await?;
     let o = nc_offsets(format, &k, &set, previous.as_ref(), &st.validation, &opts).map_err(
         |e| match e {
-            OffsetsError::MissingNominal { .. } => {
+            OffsetsError::MissingNominal { .. } | OffsetsError::MissingPinNominal { .. } => {
                 ApiError::new(ErrorCode::MissingNominal, e.to_string())
             }
             OffsetsError::BadOption(_) => bad(e.to_string()),

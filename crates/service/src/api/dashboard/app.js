@@ -432,7 +432,7 @@ function offsetsTable(id, set, nc) {
     nc && nc.refused ? el('p', { class: 'muted' }, `The NC form was refused: ${nc.refused}`) : null,
     el('p', { class: 'muted' }, 'A control\u2019s own variables: ',
       el('a', { href: `${API}/machines/${enc(id)}/compensation?format=json` }, 'format=json'),
-      ' (fanuc, siemens and heidenhain programs: docs/nc.md).'));
+      ' (fanuc, siemens, heidenhain and linuxcnc programs: docs/nc.md).'));
 }
 
 function verificationLine(v) {
