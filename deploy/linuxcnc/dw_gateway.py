@@ -183,6 +183,7 @@ class Gateway:
         self.written = None  # the version of the last set written
         self.pending = None  # a set waiting for the machine to be idle
         self.refused_order = None
+        self.ran = {}  # cycle number -> how its run ended: an order runs once
         self.deferred = None  # the ETag of a set last said to wait
         self.refusal = None  # the service's last refusal of a set, said once
         self.cycle = None
@@ -236,14 +237,20 @@ class Gateway:
 
     def start_cycle(self, order):
         why = self.program.mismatch(order)
+        if order["cycle"] in self.ran:
+            # A cycle runs once: one that ended without all its trips is the service's to close
+            # (it does when the state leaves measuring, or at its timeout) or to retry under a
+            # new number, never the gateway's to repeat on its own.
+            why = f"cycle {order['cycle']} already ran here ({self.ran[order['cycle']]})"
         if why:
             if self.refused_order != order["cycle"]:
                 self.refused_order = order["cycle"]
                 journal("order_refused", cycle=order["cycle"], reason=why)
             return
         self.messages()  # what was said before the cycle is not the cycle's
+        self.ran[order["cycle"]] = "running"
         self.cycle = {"order": order, "posted": set(), "last": 0, "errors": [], "t0": time.time(),
-                      "seen_running": False}
+                      "seen_running": False, "rpm": 0.0, "left_on": False}
         self.report(time.time())
         journal("cycle_started", cycle=order["cycle"], plan=order["plan"], steps=len(order["steps"]))
         try:
@@ -252,8 +259,10 @@ class Gateway:
             self.c.wait_complete()
             self.c.program_open(self.program.path)
             self.c.wait_complete()
+            # Not waited on: the task holds a program run "executing" until the program ends
+            # (wait_complete would block for its whole timeout), and the trips must be read
+            # as they come.
             self.c.auto(linuxcnc.AUTO_RUN, 0)
-            self.c.wait_complete()
         except linuxcnc.error as e:
             self.cycle["errors"].append(f"starting the program: {e}")
 
@@ -263,7 +272,9 @@ class Gateway:
         msg = {"cycle": cyc["order"]["cycle"], "step": o["step"], "b_deg": o["b_deg"],
                "c_deg": o["c_deg"], "axis": o["axis"], "direction": o["direction"],
                "feed_mm_min": o["feed_mm_min"],
-               "spindle_rpm": abs(float(self.s.spindle[0]["speed"])),
+               # the speed while the approach ran (an aborted program has stopped the spindle
+               # by the time its no_trip is posted)
+               "spindle_rpm": cyc["rpm"],
                "tool_id": self.program.tool or "", "x_mm": xyz[0], "y_mm": xyz[1], "z_mm": xyz[2]}
         if status:
             msg["status"] = status
@@ -276,6 +287,9 @@ class Gateway:
     def follow_cycle(self):
         cyc = self.cycle
         n_steps = len(cyc["order"]["steps"])
+        if self.s.spindle[0]["enabled"] and self.s.spindle[0]["speed"]:
+            cyc["rpm"] = abs(float(self.s.spindle[0]["speed"]))
+        cyc["left_on"] |= self.s.task_state != linuxcnc.STATE_ON
         for kind, text in self.messages():
             m = TRIP_RE.match(text.strip())
             if m and 1 <= int(m.group(1)) <= n_steps:
@@ -290,8 +304,13 @@ class Gateway:
             cyc["errors"].append(f"the program ran over {self.timeout_s} s: aborted")
             return
         if running or (not cyc["seen_running"] and time.time() - cyc["t0"] < 5.0 and not cyc["errors"]):
+            cyc["idle_polls"] = 0
             return
-        self.end_cycle()
+        # Idle on three polls in a row: an E-stop stops the interpreter a task cycle or so
+        # before the state says E-stop, and the reason should say which it was.
+        cyc["idle_polls"] = cyc.get("idle_polls", 0) + 1
+        if cyc["idle_polls"] >= 3:
+            self.end_cycle()
 
     def end_cycle(self):
         cyc = self.cycle
@@ -304,8 +323,8 @@ class Gateway:
             # G38.2 errors out at the end of a move without contact: the step after the last
             # one that tripped, ended where the move ended.
             self.detection(cyc["last"] + 1, list(self.s.position[:3]), status="no_trip")
-        if self.s.task_state == linuxcnc.STATE_ESTOP:
-            reason = f"E-stop after step {cyc['last']} of {n_steps}"
+        if self.s.task_state == linuxcnc.STATE_ESTOP or cyc["left_on"]:
+            reason = f"E-stop (or machine off) after step {cyc['last']} of {n_steps}"
         elif no_contact:
             reason = f"no contact at step {cyc['last']} of {n_steps}: {no_contact[0]}"
         elif errors:
@@ -314,7 +333,9 @@ class Gateway:
             reason = f"the program ended with {len(cyc['posted'])} of {n_steps} trips"
         else:
             reason = "completed"
-        journal("cycle_ended", cycle=cyc["order"]["cycle"], reason=reason, trips=len(cyc["posted"]))
+        journal("cycle_ended", cycle=cyc["order"]["cycle"], reason=reason, trips=len(cyc["posted"]),
+                spindle_rpm=cyc["rpm"])
+        self.ran[cyc["order"]["cycle"]] = reason
         self.cycle = None
         if self.s.task_state == linuxcnc.STATE_ON and not errors:
             try:

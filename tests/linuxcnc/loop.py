@@ -408,12 +408,13 @@ def wait_cycle_end(rig, after, timeout=300):
 def cycle_record(rig, n, timeout=60):
     """The service's record of cycle n (its row: status, reason) once it is closed."""
     end = time.monotonic() + timeout
+    status, body = None, None
     while time.monotonic() < end:
         status, body = rig.api.get(f"/cycles/{n}")
         if status == 200 and body["cycle"]["status"] != "open":
             return body["cycle"]
         time.sleep(0.5)
-    return None
+    return {"cycle": n, "status": f"not closed within {timeout} s", "reason": f"last answer {status}: {str(body)[:200]}"}
 
 
 def one_cycle(rig, k, state, report):

@@ -9,16 +9,20 @@ component (dwtruth.0.tip-x/y/z). Prints one JSON object: {"poses": [{"commanded"
 meanwhile (the moves do not avoid the setter) and on again after.
 """
 import json
+import subprocess
 import sys
 import time
 
-import hal
 import linuxcnc
 
 s = linuxcnc.stat()
 c = linuxcnc.command()
 req = json.load(open(sys.argv[1]))
 out = {"poses": [], "errors": []}
+
+
+def halcmd(*args):
+    return subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, check=True).stdout.strip()
 
 
 def wait_idle(timeout=60):
@@ -41,7 +45,7 @@ def mdi(cmd):
 s.poll()
 if s.task_state != linuxcnc.STATE_ON or s.interp_state != linuxcnc.INTERP_IDLE:
     sys.exit("the machine is not on and idle")
-hal.set_p("dwtruth.0.enable", "0")
+halcmd("setp", "dwtruth.0.enable", "0")
 try:
     c.mode(linuxcnc.MODE_MDI)
     c.wait_complete()
@@ -56,12 +60,12 @@ try:
         mdi(f"G0 X{x:.4f} Y{y:.4f} Z{z:.4f} {req['tilt']}{t:.4f} C{cc:.4f}")
         time.sleep(0.05)  # a few servo periods: the component has seen the final position
         s.poll()
-        tip = [hal.get_value(f"dwtruth.0.tip-{a}") for a in "xyz"]
+        tip = [float(halcmd("getp", f"dwtruth.0.tip-{a}")) for a in "xyz"]
         out["poses"].append({"commanded": [x, y, z, t, cc], "tip": tip,
                              "joints": list(s.joint_actual_position[:5])})
     mdi("M429")
     mdi("G0 Z250")
     mdi(f"G0 {req['tilt']}0 C0")
 finally:
-    hal.set_p("dwtruth.0.enable", "1")
+    halcmd("setp", "dwtruth.0.enable", "1")
 print(json.dumps(out))
