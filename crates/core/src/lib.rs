@@ -7,6 +7,7 @@
 //! a given seed. The only I/O is the loading of TOML descriptions by name or path (`source`);
 //! recordings on disk are the `driftwatch-recording` crate's. The theory is in docs/physics.md.
 
+pub mod clearance;
 pub mod cycle;
 pub mod error_name;
 pub mod geometry;

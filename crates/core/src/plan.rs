@@ -10,6 +10,7 @@
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::clearance::{BeamSegment, ToolCylinder, crossing_height, pose_cylinder_and_beam};
 use crate::geometry::{Vec3, wrap_deg};
 use crate::identify::Observation;
 use crate::kinematics::{Kinematics, MAX_ROTARY, MachineState};
@@ -330,8 +331,14 @@ impl Layout {
     }
 
     /// Step `i` in the current pose: over its start clear of the beam, down, dwell, probe and
-    /// back off; sets the step's start time.
-    fn probe(&mut self, cfg: &PlanConfig, i: usize, step: &mut Step, same_pose: bool) {
+    /// back off; sets the step's start time. `guard` is the tool and the beam at the pose.
+    fn probe(
+        &mut self,
+        cfg: &PlanConfig,
+        (i, step): (usize, &mut Step),
+        same_pose: bool,
+        guard: &(ToolCylinder, BeamSegment),
+    ) {
         let rapid = self.rapid;
         // Over the start at a height clear of the beam, then down to the start.
         // Over the start clear of the beam: above the trip when the approach moves along z.
@@ -345,6 +352,12 @@ impl Layout {
         } else {
             self.pos.z.max(clear_z)
         };
+        // `top + 5` clears a level beam; a sloping one rises within the tool's radius of its
+        // axis, and the move across passes over more of it than the approach does: at least
+        // high enough that the tool grown by the crossing margin passes clear of it.
+        let (tool, beam) = guard;
+        let clear_z = crossing_height(tool, beam, &self.pos, &step.start, clear_z.max(self.pos.z))
+            .max(clear_z);
         if self.pos.z < clear_z {
             let to = Vec3::new(self.pos.x, self.pos.y, clear_z);
             let d = (clear_z - self.pos.z) / rapid;
@@ -562,7 +575,8 @@ impl Plan {
             if !same_pose {
                 l.index_to(k, step.angles);
             }
-            l.probe(&self.config, i, step, same_pose);
+            let guard = pose_cylinder_and_beam(k, &step.angles);
+            l.probe(&self.config, (i, step), same_pose, &guard);
         }
         l.finish(k);
         self.moves = l.moves;
@@ -685,5 +699,30 @@ mod tests {
                 "B90C-90/x"
             ]
         );
+    }
+
+    /// No built-in plan, on any built-in machine it builds on, moves the tool into the beam
+    /// outside a probing move: the tool a cylinder of its radius from its end up the tool axis,
+    /// the beam 40 mm either side of the probed point.
+    #[test]
+    fn no_builtin_plan_moves_the_tool_through_the_beam() {
+        use crate::kinematics::BUILTIN_MACHINES;
+        let mut built = 0;
+        let mut contacts = Vec::new();
+        for (machine, _) in BUILTIN_MACHINES {
+            let k = Kinematics::builtin(machine).unwrap();
+            for (name, _) in BUILTIN_PLANS {
+                let Ok(plan) = Plan::build(&k, &PlanConfig::load(name).unwrap()) else {
+                    continue;
+                };
+                built += 1;
+                for c in crate::clearance::beam_contacts(&k, &plan) {
+                    contacts.push(format!("{name} on {machine}: {c}"));
+                }
+            }
+        }
+        // Each machine's own plan at least.
+        assert!(built >= BUILTIN_MACHINES.len(), "{built}");
+        assert!(contacts.is_empty(), "{}", contacts.join("\n"));
     }
 }

@@ -28,6 +28,7 @@
 
 use thiserror::Error;
 
+use driftwatch_core::clearance::beam_contacts;
 use driftwatch_core::geometry::wrap_deg;
 use driftwatch_core::kinematics::{Kinematics, MAX_ROTARY};
 use driftwatch_core::measurement::Axis;
@@ -54,6 +55,16 @@ pub enum ProgramError {
     ClampCode(String),
     #[error("plan '{plan}' has a probing move without a step; it cannot be written")]
     ProbeWithoutStep { plan: String },
+    #[error(
+        "plan '{plan}' on machine '{machine}' moves the tool through the setter's beam outside a \
+         probing move ({contacts} such moves), first {first}"
+    )]
+    StrikesBeam {
+        plan: String,
+        machine: String,
+        contacts: usize,
+        first: String,
+    },
 }
 
 /// Choices a plant makes when it loads the program; the defaults are documented in
@@ -174,6 +185,17 @@ pub fn write(
         }
     }
     let addresses = rotary_addresses(k)?;
+    // A rapid that puts the beam inside the tool strikes the setter on the machine (LinuxCNC
+    // stops with "Probe tripped during non-probe move").
+    let contacts = beam_contacts(k, plan);
+    if let Some(first) = contacts.first() {
+        return Err(ProgramError::StrikesBeam {
+            plan: plan.name.clone(),
+            machine: k.name.clone(),
+            contacts: contacts.len(),
+            first: first.to_string(),
+        });
+    }
     let mut w = Writer {
         b: Blocks::new(d, opts.decimals),
         addresses,

@@ -456,3 +456,38 @@ fn the_clamp_codes_a_program_names_are_the_only_ones_read() {
         );
     }
 }
+
+/// A plan whose crossing passes through the beam (trunnion_ac at A-90 C-135 crossed at its
+/// lateral start + 5, as plans were laid out before the crossing followed the beam's slope) is
+/// refused in every dialect, with the move named.
+#[test]
+fn a_path_through_the_beam_is_refused() {
+    let (k, mut plan) = plan_of("trunnion_ac");
+    let j = plan
+        .moves
+        .iter()
+        .enumerate()
+        .position(|(j, m)| {
+            j > 0
+                && m.note == "to the approach"
+                && plan.moves[j - 1].note == "up clear of the setter"
+                && plan.moves[j..]
+                    .iter()
+                    .find_map(|n| n.step)
+                    .is_some_and(|s| plan.steps[s].label.starts_with("A-90C-135/y"))
+        })
+        .expect("a crossing to a lateral start at A-90 C-135");
+    let next = plan.moves[j..].iter().find_map(|n| n.step).unwrap();
+    let old = plan.steps[next].start.z + 5.0;
+    for m in &mut plan.moves[j - 1..=j] {
+        m.to[2] = old;
+    }
+    for d in Dialect::ALL {
+        match write(&k, &plan, d, &ProgramOptions::defaults(d)) {
+            Err(ProgramError::StrikesBeam { first, .. }) => {
+                assert!(first.contains("A-90C-135/y"), "{first}")
+            }
+            other => panic!("{d}: {:?}", other.map(|p| p.text.len())),
+        }
+    }
+}
