@@ -3,15 +3,13 @@
 //! as a segment of its line on either side of the probed point (a real beam runs between an
 //! emitter and a receiver), the move a straight line of the tip at fixed angles.
 //!
-//! A probing move ends where the tool meets the beam (that is the measurement) and its back-off
-//! starts there: a contact counts only where the beam would be inside the tool, more than
-//! [`TOUCH_MM`] past its surface. Every other move must never come so close.
-
-use serde::Serialize;
+//! A probing move ends where the tool meets the beam (that is the measurement), past the trip
+//! by the skip latency's travel, and its back-off retraces it from there: neither is checked.
+//! Every other move counts as a contact where the beam would be inside the tool, more than
+//! [`TOUCH_MM`] past its surface (`plan::beam_contacts` walks a plan's moves).
 
 use crate::geometry::Vec3;
-use crate::kinematics::{Kinematics, MAX_ROTARY};
-use crate::plan::{MoveKind, Plan};
+use crate::kinematics::Kinematics;
 
 /// Half-length of the beam segment checked, mm: the beam on either side of the probed point.
 pub const BEAM_HALF_LENGTH_MM: f64 = 40.0;
@@ -250,40 +248,6 @@ fn clip(poly: &[(f64, f64)], g: impl Fn(f64, f64) -> f64) -> Vec<(f64, f64)> {
     out
 }
 
-/// A move of a plan that puts the beam inside the tool.
-#[derive(Debug, Clone, Serialize)]
-pub struct BeamContact {
-    /// Index in `Plan::moves`.
-    pub move_index: usize,
-    pub note: String,
-    /// The step the move belongs to or leads to (the next approach), if any.
-    pub step_label: Option<String>,
-    pub from: [f64; 3],
-    pub to: [f64; 3],
-    pub angles_deg: [f64; MAX_ROTARY],
-    /// How far the beam comes inside the tool's surface, mm.
-    pub depth_mm: f64,
-}
-
-impl std::fmt::Display for BeamContact {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let p = |v: &[f64; 3]| format!("({:.3}, {:.3}, {:.3})", v[0], v[1], v[2]);
-        write!(
-            f,
-            "move {} '{}' from {} to {}{}: the beam comes {:.3} mm inside the tool",
-            self.move_index + 1,
-            self.note,
-            p(&self.from),
-            p(&self.to),
-            self.step_label
-                .as_ref()
-                .map(|l| format!(" (before step {l})"))
-                .unwrap_or_default(),
-            self.depth_mm
-        )
-    }
-}
-
 /// The tool and the beam segment at a pose in the machine's nominal state (the state plans are
 /// laid out in).
 pub fn pose_cylinder_and_beam(k: &Kinematics, angles_deg: &[f64]) -> (ToolCylinder, BeamSegment) {
@@ -302,46 +266,6 @@ pub fn pose_cylinder_and_beam(k: &Kinematics, angles_deg: &[f64]) -> (ToolCylind
             half_length: BEAM_HALF_LENGTH_MM,
         },
     )
-}
-
-/// Every move of `plan` other than a probing move that puts the beam inside the tool, in the
-/// machine's nominal state. A rotary index is taken as made with the tool where it stands (at
-/// the safe Z) and is not checked.
-pub fn beam_contacts(k: &Kinematics, plan: &Plan) -> Vec<BeamContact> {
-    let mut out = Vec::new();
-    let mut pos = Vec3::new(0.0, 0.0, k.motion.safe_z_mm);
-    let mut cache: Vec<([f64; MAX_ROTARY], (ToolCylinder, BeamSegment))> = Vec::new();
-    for (i, m) in plan.moves.iter().enumerate() {
-        let to = Vec3::new(m.to[0], m.to[1], m.to[2]);
-        if m.kind == MoveKind::Rapid {
-            let (tool, beam) = match cache.iter().find(|(a, _)| *a == m.angles_deg) {
-                Some((_, g)) => *g,
-                None => {
-                    let g = pose_cylinder_and_beam(k, &m.angles_deg);
-                    cache.push((m.angles_deg, g));
-                    g
-                }
-            };
-            let gap = closest_approach(&tool, &beam, &(pos + tool.offset), &(to + tool.offset));
-            if let Some(gap) = gap.filter(|g| *g < tool.radius - TOUCH_MM) {
-                let step = m
-                    .step
-                    .or_else(|| plan.moves[i..].iter().find_map(|n| n.step))
-                    .map(|s| plan.steps[s].label.clone());
-                out.push(BeamContact {
-                    move_index: i,
-                    note: m.note.clone(),
-                    step_label: step,
-                    from: [pos.x, pos.y, pos.z],
-                    to: m.to,
-                    angles_deg: m.angles_deg,
-                    depth_mm: tool.radius - gap,
-                });
-            }
-        }
-        pos = to;
-    }
-    out
 }
 
 #[cfg(test)]

@@ -10,7 +10,9 @@
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::clearance::{BeamSegment, ToolCylinder, crossing_height, pose_cylinder_and_beam};
+use crate::clearance::{
+    BeamSegment, TOUCH_MM, ToolCylinder, closest_approach, crossing_height, pose_cylinder_and_beam,
+};
 use crate::geometry::{Vec3, wrap_deg};
 use crate::identify::Observation;
 use crate::kinematics::{Kinematics, MAX_ROTARY, MachineState};
@@ -617,6 +619,83 @@ impl Plan {
     }
 }
 
+/// A move of a plan that puts the beam inside the tool.
+#[derive(Debug, Clone, Serialize)]
+pub struct BeamContact {
+    /// Index in `Plan::moves`.
+    pub move_index: usize,
+    pub note: String,
+    /// The step the move belongs to or leads to (the next approach), if any.
+    pub step_label: Option<String>,
+    pub from: [f64; 3],
+    pub to: [f64; 3],
+    pub angles_deg: [f64; MAX_ROTARY],
+    /// How far the beam comes inside the tool's surface, mm.
+    pub depth_mm: f64,
+}
+
+impl std::fmt::Display for BeamContact {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let p = |v: &[f64; 3]| format!("({:.3}, {:.3}, {:.3})", v[0], v[1], v[2]);
+        write!(
+            f,
+            "move {} '{}' from {} to {}{}: the beam comes {:.3} mm inside the tool",
+            self.move_index + 1,
+            self.note,
+            p(&self.from),
+            p(&self.to),
+            self.step_label
+                .as_ref()
+                .map(|l| format!(" (before step {l})"))
+                .unwrap_or_default(),
+            self.depth_mm
+        )
+    }
+}
+
+/// Every move of `plan` other than a probing move that puts the beam inside the tool, in the
+/// machine's nominal state. A rotary index is taken as made with the tool where it stands (at
+/// the safe Z) and is not checked.
+pub fn beam_contacts(k: &Kinematics, plan: &Plan) -> Vec<BeamContact> {
+    let mut out = Vec::new();
+    let mut pos = Vec3::new(0.0, 0.0, k.motion.safe_z_mm);
+    let mut cache: Vec<([f64; MAX_ROTARY], (ToolCylinder, BeamSegment))> = Vec::new();
+    for (i, m) in plan.moves.iter().enumerate() {
+        let to = Vec3::new(m.to[0], m.to[1], m.to[2]);
+        // The back-off: the probing move's own path reversed, from where it latched (in the
+        // beam by the latency's travel, `feed * latency_ms`, on a machine whose setter has one).
+        let back_off = i > 0 && plan.moves[i - 1].kind == MoveKind::Probe;
+        if m.kind == MoveKind::Rapid && !back_off {
+            let (tool, beam) = match cache.iter().find(|(a, _)| *a == m.angles_deg) {
+                Some((_, g)) => *g,
+                None => {
+                    let g = pose_cylinder_and_beam(k, &m.angles_deg);
+                    cache.push((m.angles_deg, g));
+                    g
+                }
+            };
+            let gap = closest_approach(&tool, &beam, &(pos + tool.offset), &(to + tool.offset));
+            if let Some(gap) = gap.filter(|g| *g < tool.radius - TOUCH_MM) {
+                let step = m
+                    .step
+                    .or_else(|| plan.moves[i..].iter().find_map(|n| n.step))
+                    .map(|s| plan.steps[s].label.clone());
+                out.push(BeamContact {
+                    move_index: i,
+                    note: m.note.clone(),
+                    step_label: step,
+                    from: [pos.x, pos.y, pos.z],
+                    to: m.to,
+                    angles_deg: m.angles_deg,
+                    depth_mm: tool.radius - gap,
+                });
+            }
+        }
+        pos = to;
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -703,21 +782,27 @@ mod tests {
 
     /// No built-in plan, on any built-in machine it builds on, moves the tool into the beam
     /// outside a probing move: the tool a cylinder of its radius from its end up the tool axis,
-    /// the beam 40 mm either side of the probed point.
+    /// the beam 40 mm either side of the probed point. Also with a skip latency (LinuxCNC's
+    /// half servo period), which puts every probing move's end, and its back-off's start,
+    /// inside the beam by the latency's travel.
     #[test]
     fn no_builtin_plan_moves_the_tool_through_the_beam() {
         use crate::kinematics::BUILTIN_MACHINES;
         let mut built = 0;
         let mut contacts = Vec::new();
-        for (machine, _) in BUILTIN_MACHINES {
-            let k = Kinematics::builtin(machine).unwrap();
+        for ((machine, _), latency_s) in BUILTIN_MACHINES
+            .iter()
+            .flat_map(|m| [(m, 0.0), (m, 0.5e-3)])
+        {
+            let mut k = Kinematics::builtin(machine).unwrap();
+            k.setter.latency_s = latency_s;
             for (name, _) in BUILTIN_PLANS {
                 let Ok(plan) = Plan::build(&k, &PlanConfig::load(name).unwrap()) else {
                     continue;
                 };
                 built += 1;
-                for c in crate::clearance::beam_contacts(&k, &plan) {
-                    contacts.push(format!("{name} on {machine}: {c}"));
+                for c in beam_contacts(&k, &plan) {
+                    contacts.push(format!("{name} on {machine} (latency {latency_s} s): {c}"));
                 }
             }
         }

@@ -28,10 +28,10 @@
 
 use thiserror::Error;
 
-use driftwatch_core::clearance::beam_contacts;
 use driftwatch_core::geometry::wrap_deg;
 use driftwatch_core::kinematics::{Kinematics, MAX_ROTARY};
 use driftwatch_core::measurement::Axis;
+use driftwatch_core::plan::beam_contacts;
 use driftwatch_core::plan::{MoveKind, Plan};
 
 use crate::blocks::{Blocks, fmt_plain};

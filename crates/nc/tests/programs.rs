@@ -354,7 +354,11 @@ fn probes_of_rs274(text: &str, name: &str) -> (Vec<[f64; 6]>, bool) {
         assert_eq!(m.len(), 4, "{name}: {m:?}");
         assert_eq!(m[0], (i + 1) as f64, "{name}: {m:?}");
         for c in 0..3 {
-            assert!((m[1 + c] - p[c]).abs() < 1e-6, "{name}: step {}: {m:?} vs {p:?}", i + 1);
+            assert!(
+                (m[1 + c] - p[c]).abs() < 1e-6,
+                "{name}: step {}: {m:?} vs {p:?}",
+                i + 1
+            );
         }
     }
     (probes, canon.contains("PROGRAM_END()"))
