@@ -11,7 +11,8 @@ INI, HAL and the truth component `dwtruth`, whose lines the test sets from named
 errors by docs/kinematics-conventions.md), and deploy/linuxcnc/dw_gateway.py. The truth
 drifts between cycles. After each served set the test commands fixed poses in TCP mode and
 reads the true tip (dwtruth) three times: with the pins as commissioned, as the gateway wrote
-them, and as the truth's lines would set them (what the pins can hold at best). Faults (on the
+them, and as the truth's lines set them (the C line through its crossing of z = 0, the tilting
+line through its point; its tilts no pin holds). Faults (on the
 families given to --faults): a probe move without contact, E-stop mid-cycle, the gateway
 killed mid-cycle, the service down mid-cycle. Every check prints a line; the figures go to
 WORKDIR/report.json; exit status 1 when a check fails.
@@ -438,6 +439,9 @@ def one_cycle(rig, k, state, report):
           f"{fam} cycle {ended['cycle']}: identified against the truth, z = "
           + ", ".join(f"{n} {v:+.2f}" for n, v in z.items()))
     deferred = [e for e in rig.journal.entries if e["kind"] == "set_deferred" and t0 < e["t"] <= written["t"]]
+    check(written["t"] >= ended["t"],
+          f"{fam} set {written['version']}: written after the program ended"
+          + (f" (it arrived while the program ran and waited: {deferred[0]['reason']})" if deferred else ""))
     pins = rig.pins()
     form = served_form(rig)
     check(form is not None and written["version"] == comp["version"]
@@ -455,9 +459,9 @@ def one_cycle(rig, k, state, report):
     share = (commissioned["rms_um"] - served["rms_um"]) / removable if removable > 0 else float("nan")
     check(served["rms_um"] < commissioned["rms_um"] and share > 0.8,
           f"{fam} set {comp['version']}: tip error RMS {commissioned['rms_um']:.2f} um as commissioned, "
-          f"{served['rms_um']:.2f} um served, {ideal['rms_um']:.2f} um at best with these pins "
+          f"{served['rms_um']:.2f} um served, {ideal['rms_um']:.2f} um with the truth's lines in the pins "
           f"(max {commissioned['max_um']:.2f} / {served['max_um']:.2f} / {ideal['max_um']:.2f}): "
-          f"{100 * share:.1f} % removed of what the pins can hold")
+          f"the served set removes {100 * share:.1f} % of what the truth's lines remove")
     report["cycles"].append({
         "cycle": ended["cycle"], "version": comp["version"], "truth": state, "identified": errs,
         "sigma": sig, "z": z, "pins": pins, "ideal_pins": ideal_values,
