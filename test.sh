@@ -157,6 +157,7 @@ not_run=()
 # of machine motion on the wall clock, little CPU): beside everything after it. It runs
 # LinuxCNC as a non-root user and installs the truth component, so it needs root.
 if [ "$(id -u)" -eq 0 ]; then
+    chmod o+x "$out"  # LinuxCNC's user works in $out/linuxcnc
     in_background "LinuxCNC in the loop (tests/linuxcnc/loop.py)" \
         python3 tests/linuxcnc/loop.py "$bin" "$out/linuxcnc"
 else

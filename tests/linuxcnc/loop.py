@@ -297,6 +297,9 @@ max_offset_mm = 0.2
             if run(["id", USER]).returncode != 0:
                 run(["useradd", "-m", USER])
             run(["chown", "-R", USER, w])
+            if run(as_user(["test", "-r", os.path.join(w, self.f["ini"])])).returncode != 0:
+                raise RuntimeError(f"the user {USER} cannot reach {w}: every directory above it "
+                                   "must be searchable by others (chmod o+x; mktemp -d makes 700)")
 
     def start_service(self):
         log_path = os.path.join(self.work, "service.log")
