@@ -181,6 +181,8 @@ class Gateway:
         self.next_poll = 0.0
         self.etag = None
         self.written = None  # the version of the last set written
+        self.written_text = self.written_pins = None  # that set as served, and its pin values
+        self.next_verify = 0.0
         self.pending = None  # a set waiting for the machine to be idle
         self.refused_order = None
         self.ran = {}  # cycle number -> how its run ended: an order runs once
@@ -434,8 +436,24 @@ class Gateway:
             journal("set_refused", version=version, reason=f"writing failed, previous values restored: {e}")
             return
         self.written = version
+        self.written_text, self.written_pins = text, pins
         journal("set_written", version=version, pins=pins,
                 steps={p: round(pins[p] - now[p], 6) for p in pins})
+
+    def verify_pins(self):
+        """The pins still hold the set last written. LinuxCNC restarted (its HAL file sets the
+        commissioned values again) or a hand at halcmd changes them behind the gateway, which
+        would otherwise go on believing the machine compensated: the set is written again,
+        through the same checks, or refused with the reason."""
+        try:
+            now = {p: self.hal.get(p) for p in self.written_pins}
+        except (RuntimeError, ValueError, subprocess.SubprocessError) as e:
+            journal("pins_unread", error=str(e))
+            return
+        moved = {p: now[p] for p in now if abs(now[p] - self.written_pins[p]) > 1e-9}
+        if moved:
+            journal("pins_changed", version=self.written, expected=self.written_pins, found=moved)
+            self.pending, self.written = self.written_text, None
 
     # --- the loop --------------------------------------------------------------------------
 
@@ -472,6 +490,10 @@ class Gateway:
                     r = self.service.call("GET", "/nc/request")
                     if r is not None and r[0] == 200:
                         self.start_cycle(json.loads(r[2]))
+            if (self.written_pins and self.pending is None and now >= self.next_verify
+                    and self.machine_state() == "idle"):
+                self.next_verify = now + 5.0
+                self.verify_pins()
             if self.pending is not None:
                 if self.machine_state() == "idle":
                     self.write_set()

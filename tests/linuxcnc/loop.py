@@ -14,7 +14,7 @@ reads the true tip (dwtruth) three times: with the pins as commissioned, as the 
 them, and as the truth's lines set them (the C line through its crossing of z = 0, the tilting
 line through its point; its tilts no pin holds). Faults (on the
 families given to --faults): a probe move without contact, E-stop mid-cycle, the gateway
-killed mid-cycle, the service down mid-cycle. Every check prints a line; the figures go to
+killed mid-cycle, the service down mid-cycle, the pins reset behind the gateway. Every check prints a line; the figures go to
 WORKDIR/report.json; exit status 1 when a check fails.
 
 LinuxCNC refuses to run as root (rtapi_app), so as root LinuxCNC, the gateway and the pose
@@ -352,6 +352,12 @@ max_offset_mm = 0.2
         run(["pkill", "-9", "-f", os.path.join(self.work, "dw_gateway.py")])
         self.gateway.wait(timeout=10)
 
+    def pause_gateway(self, paused):
+        """Stop (SIGSTOP) or continue the gateway: while the test sets the pins itself to read
+        the tip, the gateway must not put its set back."""
+        sig = "-STOP" if paused else "-CONT"
+        run(["pkill", sig, "-f", os.path.join(self.work, "dw_gateway.py")])
+
     def set_truth(self, errors):
         for pin, v in truth_lines(self.family, errors).items():
             setp(f"dwtruth.0.{pin}", v)
@@ -451,13 +457,17 @@ def one_cycle(rig, k, state, report):
           and all(abs(pins[p] - form[p]) < 1e-9 for p in form)
           and all(abs(pins[p]) < 1e-12 for p in pins if p not in form),
           f"{fam} set {comp['version']}: the pins hold exactly the served set's values ({pins})")
-    served = rig.sweep()
-    rig.set_pins({p: 0.0 for p in rig.f["held"]})
-    commissioned = rig.sweep()
-    ideal_values = ideal_pins(fam, truth_lines(fam, state))
-    rig.set_pins(ideal_values)
-    ideal = rig.sweep()
-    rig.set_pins(pins)
+    rig.pause_gateway(True)
+    try:
+        served = rig.sweep()
+        rig.set_pins({p: 0.0 for p in rig.f["held"]})
+        commissioned = rig.sweep()
+        ideal_values = ideal_pins(fam, truth_lines(fam, state))
+        rig.set_pins(ideal_values)
+        ideal = rig.sweep()
+        rig.set_pins(pins)
+    finally:
+        rig.pause_gateway(False)
     removable = commissioned["rms_um"] - ideal["rms_um"]
     share = (commissioned["rms_um"] - served["rms_um"]) / removable if removable > 0 else float("nan")
     check(served["rms_um"] < commissioned["rms_um"] and share > 0.8,
@@ -545,6 +555,20 @@ def faults(rig, report):
         rig.start_service()
 
     case("service down mid-cycle", service_down, "")
+
+    # LinuxCNC's pins set back to their commissioned values behind the gateway (a restart of
+    # LinuxCNC, a hand at halcmd): the gateway notices and writes the served set again.
+    t0 = time.time()
+    held = rig.pins()
+    rig.set_pins({p: 0.0 for p in rig.f["held"]})
+    changed = rig.journal.wait(lambda e: e["kind"] == "pins_changed" and e["t"] > t0, 30, "pins_changed")
+    again = rig.journal.wait(lambda e: e["kind"] == "set_written" and e["t"] > t0, 30, "the set written again")
+    after = rig.pins()
+    out.append({"fault": "pins reset behind the gateway", "found": changed["found"],
+                "rewritten_version": again["version"], "pins_after": after})
+    check(all(abs(after[p] - held[p]) < 1e-9 for p in held),
+          f"{fam} fault 'pins reset behind the gateway': noticed ({changed['found']}) and set {again['version']} "
+          f"written again ({after})")
 
 
 def family(binary, fam, work, with_faults):
