@@ -1,91 +1,155 @@
 //! The service clock: the one notion of time of every machine loop. In production it is the
-//! wall clock, sped up `scale` times for a simulated plant; in tests it is a manual clock that
-//! the test moves, so that hours of a plant day run in seconds without sleeping on the wall
-//! clock.
+//! wall clock, sped up `scale` times for a simulated plant; in tests and benchmarks it is a
+//! manual clock that its hand moves (hours of a plant day in seconds, without sleeping on the
+//! wall clock) and may set running at any pace from where it stands.
+//!
+//! The loops sleep on it until the time they asked for, not on a wall-clock timer: a quiet
+//! machine costs nothing between its wakes. A held manual clock also wakes every sleeper when
+//! its hand moves, so that a test that moves it sees every loop step to the new time.
 
 use std::time::{Duration, Instant};
 
 use tokio::sync::watch;
 
-/// Machine time for the loops, ns since the Unix epoch.
-#[derive(Clone, Debug)]
-pub enum ServiceClock {
+/// How the clock moves now.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Pace {
+    /// Standing at this time, ns since the Unix epoch, until the hand moves it.
+    Held(i64),
     /// `t0_ns` at `wall0`, advancing `scale` ns per wall ns.
-    Scaled {
+    Running {
         t0_ns: i64,
         wall0: Instant,
         scale: f64,
     },
-    /// Wherever the [`ManualClock`] put it.
-    Manual(watch::Receiver<i64>),
+}
+
+impl Pace {
+    fn now_ns(&self) -> i64 {
+        match *self {
+            Pace::Held(t) => t,
+            Pace::Running {
+                t0_ns,
+                wall0,
+                scale,
+            } => t0_ns.saturating_add((wall0.elapsed().as_secs_f64() * scale * 1e9) as i64),
+        }
+    }
+}
+
+/// Machine time for the loops, ns since the Unix epoch.
+#[derive(Clone, Debug)]
+pub struct ServiceClock {
+    pace: watch::Receiver<Pace>,
+    /// Whether a hand moves it (a manual clock), as the API says.
+    manual: bool,
 }
 
 /// The hand that moves a manual [`ServiceClock`].
 #[derive(Debug)]
-pub struct ManualClock(watch::Sender<i64>);
+pub struct ManualClock(watch::Sender<Pace>);
 
 impl ManualClock {
-    /// Move the clock to `t_ns` (never back: an earlier time is ignored).
+    /// Hold the clock at `t_ns` (never back: an earlier time holds it where it stands).
     pub fn set(&self, t_ns: i64) {
-        self.0.send_if_modified(|now| {
-            let later = t_ns > *now;
-            if later {
-                *now = t_ns;
+        self.0.send_if_modified(|pace| {
+            let now = pace.now_ns();
+            let moved = t_ns > now || matches!(pace, Pace::Running { .. });
+            if moved {
+                *pace = Pace::Held(t_ns.max(now));
             }
-            later
+            moved
+        });
+    }
+
+    /// Set the clock running from where it stands, `scale` machine ns per wall ns (1: the
+    /// wall clock's pace): the loops then wake only when their own time comes, as in
+    /// production.
+    pub fn run(&self, scale: f64) {
+        self.0.send_modify(|pace| {
+            *pace = Pace::Running {
+                t0_ns: pace.now_ns(),
+                wall0: Instant::now(),
+                scale,
+            }
         });
     }
 
     pub fn now_ns(&self) -> i64 {
-        *self.0.borrow()
+        self.0.borrow().now_ns()
     }
 }
 
 impl ServiceClock {
     /// The wall clock from now, machine time `t0_ns`, `scale` times faster.
     pub fn scaled(t0_ns: i64, scale: f64) -> Self {
-        ServiceClock::Scaled {
+        let (_, pace) = watch::channel(Pace::Running {
             t0_ns,
             wall0: Instant::now(),
             scale,
+        });
+        ServiceClock {
+            pace,
+            manual: false,
         }
     }
 
     /// A clock that stands at `t0_ns` until the returned hand moves it.
     pub fn manual(t0_ns: i64) -> (Self, ManualClock) {
-        let (tx, rx) = watch::channel(t0_ns);
-        (ServiceClock::Manual(rx), ManualClock(tx))
+        let (tx, pace) = watch::channel(Pace::Held(t0_ns));
+        (ServiceClock { pace, manual: true }, ManualClock(tx))
     }
 
     pub fn now_ns(&self) -> i64 {
-        match self {
-            ServiceClock::Scaled {
-                t0_ns,
-                wall0,
-                scale,
-            } => t0_ns.saturating_add((wall0.elapsed().as_secs_f64() * scale * 1e9) as i64),
-            ServiceClock::Manual(rx) => *rx.borrow(),
+        self.pace.borrow().now_ns()
+    }
+
+    /// Whether a hand moves it.
+    pub fn is_manual(&self) -> bool {
+        self.manual
+    }
+
+    /// Machine ns per wall ns while it runs (`None`: held by its hand).
+    pub fn scale(&self) -> Option<f64> {
+        match *self.pace.borrow() {
+            Pace::Held(_) => None,
+            Pace::Running { scale, .. } => Some(scale),
         }
     }
 
-    /// Wait until machine time `t_ns`, or at most `max_wall` of wall time (the loops look at
-    /// their inboxes at least that often).
-    pub async fn sleep_until(&self, t_ns: i64, max_wall: Duration) {
-        match self {
-            ServiceClock::Scaled { scale, .. } => {
-                let dt = (t_ns.saturating_sub(self.now_ns())) as f64 / 1e9 / scale;
-                let nap = Duration::from_secs_f64(dt.clamp(0.0, 3600.0)).min(max_wall);
-                tokio::time::sleep(nap).await;
+    /// Wait until machine time `t_ns`; while a hand holds the clock, also until the hand next
+    /// moves it (the loops then step to the time it was moved to). A running clock is slept
+    /// on in naps of at most an hour of wall time, and the nap ends early when the hand
+    /// changes the pace.
+    pub async fn sleep_until(&self, t_ns: i64) {
+        let mut rx = self.pace.clone();
+        loop {
+            let pace = *rx.borrow_and_update();
+            let now = pace.now_ns();
+            if now >= t_ns {
+                return;
             }
-            ServiceClock::Manual(rx) => {
-                let mut rx = rx.clone();
-                // A dropped hand leaves the clock where it stands: wait out `max_wall`.
-                let reached = async {
-                    if rx.wait_for(|now| *now >= t_ns).await.is_err() {
+            match pace {
+                Pace::Held(_) => {
+                    // A dropped hand leaves the clock where it stands for good.
+                    if rx.changed().await.is_err() {
                         std::future::pending::<()>().await;
                     }
-                };
-                let _ = tokio::time::timeout(max_wall, reached).await;
+                    return;
+                }
+                Pace::Running { scale, .. } => {
+                    let dt = (t_ns.saturating_sub(now)) as f64 / 1e9 / scale;
+                    let nap = Duration::from_secs_f64(dt.clamp(0.0, 3600.0));
+                    tokio::select! {
+                        _ = tokio::time::sleep(nap) => {}
+                        changed = rx.changed() => {
+                            if changed.is_err() {
+                                // No hand (a scaled clock): the pace is fixed; sleep it out.
+                                tokio::time::sleep(nap).await;
+                            }
+                        }
+                    }
+                }
             }
         }
     }
@@ -104,7 +168,7 @@ mod tests {
         let sleeper = {
             let clock = clock.clone();
             tokio::spawn(async move {
-                clock.sleep_until(5_000, Duration::from_secs(3600)).await;
+                clock.sleep_until(5_000).await;
                 clock.now_ns()
             })
         };
@@ -117,11 +181,51 @@ mod tests {
         assert_eq!(woke_at, 5_000);
     }
 
+    #[tokio::test]
+    async fn a_held_clock_wakes_its_sleepers_at_every_move_of_its_hand() {
+        let (clock, hand) = ServiceClock::manual(1_000);
+        let sleeper = {
+            let clock = clock.clone();
+            tokio::spawn(async move {
+                clock.sleep_until(1_000_000).await;
+                clock.now_ns()
+            })
+        };
+        tokio::task::yield_now().await;
+        hand.set(2_000);
+        let woke_at = tokio::time::timeout(Duration::from_secs(60), sleeper)
+            .await
+            .expect("a move of the hand wakes the sleeper before its time")
+            .expect("the sleeper does not panic");
+        assert_eq!(woke_at, 2_000);
+    }
+
+    #[tokio::test]
+    async fn a_running_clock_wakes_its_sleepers_only_once_their_time_has_come() {
+        let (clock, hand) = ServiceClock::manual(1_000);
+        assert_eq!(clock.scale(), None);
+        // A machine second per wall nanosecond: the sleeper's 10 s of machine time pass at once.
+        hand.run(1e9);
+        assert_eq!(clock.scale(), Some(1e9));
+        let t = 1_000 + 10_000_000_000;
+        tokio::time::timeout(Duration::from_secs(60), clock.sleep_until(t))
+            .await
+            .expect("the running clock reaches the sleeper's time");
+        assert!(clock.now_ns() >= t, "the sleeper woke before its time");
+        // Held again where it ran to, and never back.
+        let ran_to = clock.now_ns();
+        hand.set(0);
+        assert!(clock.now_ns() >= ran_to);
+        assert_eq!(clock.scale(), None);
+    }
+
     #[test]
     fn a_scaled_clock_starts_at_its_origin() {
         let clock = ServiceClock::scaled(7_000_000_000, 60.0);
         let t = clock.now_ns();
         // Within a minute of wall time (3600 s of machine time), however loaded the machine.
         assert!((7_000_000_000..7_000_000_000 + 3_600 * 1_000_000_000).contains(&t));
+        assert!(!clock.is_manual());
+        assert_eq!(clock.scale(), Some(60.0));
     }
 }

@@ -13,8 +13,8 @@
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use thiserror::Error;
@@ -101,6 +101,9 @@ pub struct LoopHealth {
     /// The service clock the loop has caught up with, ns: its last step, completed or failed,
     /// or, while it waits to try a failed step again, the time it waited at.
     pub attempt_ns: Option<i64>,
+    /// The service clock the loop sleeps until (its core's next time, or its retry time),
+    /// ns: a loop still short of it when the clock has passed it is behind.
+    pub wake_ns: Option<i64>,
     /// Steps that failed (a store or recorder error) and were tried again.
     pub faults: u64,
     /// Whether the last step failed.
@@ -126,16 +129,49 @@ impl NcBody {
     }
 }
 
-/// Operator requests, alert acknowledgements and stored verifications waiting for the loop.
+/// Operator requests, alert acknowledgements and stored verifications waiting for the loop;
+/// each one put in wakes the loop.
 #[derive(Debug, Default)]
 pub struct Inbox {
-    pub requests: Vec<(String, i64)>,
+    pub(crate) requests: Vec<(String, i64)>,
     /// (alert id, who)
-    pub acks: Vec<(u64, String)>,
+    pub(crate) acks: Vec<(u64, String)>,
     /// Verifications stored by the API, for the alert rules.
-    pub verifications: Vec<driftwatch_machine::verification::Verification>,
+    pub(crate) verifications: Vec<driftwatch_machine::verification::Verification>,
     /// Geometry versions stored by the API: (label, geometry).
-    pub geometries: Vec<(String, driftwatch_core::linear_axes::LinearGeometry)>,
+    pub(crate) geometries: Vec<(String, driftwatch_core::linear_axes::LinearGeometry)>,
+    wake: Arc<Notify>,
+}
+
+impl Inbox {
+    /// An operator's request for a cycle, by `by` at service time `t_ns`.
+    pub fn request(&mut self, by: String, t_ns: i64) {
+        self.requests.push((by, t_ns));
+        self.wake.notify_one();
+    }
+
+    /// An acknowledgement of `alert` by `by`.
+    pub fn ack(&mut self, alert: u64, by: String) {
+        self.acks.push((alert, by));
+        self.wake.notify_one();
+    }
+
+    /// A verification the API stored.
+    pub fn verification(&mut self, v: driftwatch_machine::verification::Verification) {
+        self.verifications.push(v);
+        self.wake.notify_one();
+    }
+
+    /// A geometry version the API stored.
+    pub fn geometry(&mut self, label: String, g: driftwatch_core::linear_axes::LinearGeometry) {
+        self.geometries.push((label, g));
+        self.wake.notify_one();
+    }
+
+    /// What the loop waits on besides its clock.
+    pub fn waker(&self) -> Arc<Notify> {
+        self.wake.clone()
+    }
 }
 
 /// The settings of a machine's decisions from the service's configuration.
@@ -408,6 +444,12 @@ impl MachineRuntime {
         }
         self.view = view.clone();
         self.inbox = inbox.clone();
+    }
+
+    /// What wakes the loop when the API puts something in its inbox (the inbox it takes
+    /// requests from now: a fleet may have handed it another).
+    fn waker(&self) -> Option<Arc<Notify>> {
+        self.inbox.lock().map(|i| i.waker()).ok()
     }
 
     /// Send alert events to these webhooks from now on.
@@ -820,26 +862,78 @@ impl MachineRuntime {
     }
 }
 
-/// The loops look at their inboxes (operator requests, acknowledgements) at least this often.
-const INBOX_WALL: Duration = Duration::from_millis(200);
 /// A failing loop waits this much machine time before it tries again, doubling up to
 /// [`MAX_RETRY_NS`].
 const FIRST_RETRY_NS: i64 = NS_PER_S;
 const MAX_RETRY_NS: i64 = 10 * NS_PER_MIN;
 
+/// A loop steps at least once a minute; each machine at its own second of the minute (from its
+/// id), so that loops started together do not all step, and write, in the same instant for
+/// ever after: the API's answers would wait behind each burst.
+const HEARTBEAT_NS: i64 = NS_PER_MIN;
+
+/// The machine's place in the minute, ns in `[0, HEARTBEAT_NS)`: FNV-1a of its id, stable
+/// from one start to the next.
+fn heartbeat_phase(id: &str) -> i64 {
+    let h = id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    });
+    (h % HEARTBEAT_NS as u64) as i64
+}
+
+/// The first time after `now` at the machine's place in the minute: a wake the core asked for
+/// later than that is brought forward to it (an extra step changes nothing; the core's own
+/// fallback wake is a minute after each step, which would keep the loops in step).
+fn heartbeat_after(now: i64, phase: i64) -> i64 {
+    let next = now - (now - phase).rem_euclid(HEARTBEAT_NS) + HEARTBEAT_NS;
+    debug_assert!(next > now && next <= now + HEARTBEAT_NS);
+    next
+}
+
 /// When the loop steps next, given the clock's time (`target`, at most the run's end), the
 /// time the last step asked to be called again (`wake`) and the last step's time: at each time
 /// it asked for, up to the clock, so that a clock that jumped ahead (a manual clock, a machine
 /// that slept) is caught up with as if it had run, not in one stride that would start every
-/// due cycle late; and at the clock's time whenever the loop looks at its inbox. A failing
-/// loop (`wake` is then its retry time) steps not before its retry time, unless the run ends
-/// first: stepping each time it looks at its inbox would retry the failed write, and log it,
-/// five times a second whatever the doubling wait says. `None`: wait.
+/// due cycle late; and at the clock's time when something woke it (its inbox, its link, a
+/// held clock's hand). A failing loop (`wake` is then its retry time) steps not before its
+/// retry time, unless the run ends first: stepping at each post of its NC would retry the
+/// failed write, and log it, as often as the NC posts, whatever the doubling wait says.
+/// `None`: wait.
 fn step_at(target: i64, wake: i64, last: i64, failing: bool, end: Option<i64>) -> Option<i64> {
     if failing && target < wake && end.is_none_or(|e| target < e) {
         return None;
     }
     Some(target.min(wake.max(last.saturating_add(1))))
+}
+
+/// Sleep until the clock reaches `wake`, something is put in the inbox, the link has news
+/// or the service stops; nothing else wakes a loop, so a quiet machine costs nothing between
+/// the times its core asked for.
+async fn wait(
+    inbox: Option<Arc<Notify>>,
+    link: Option<&Notify>,
+    clock: &ServiceClock,
+    wake: i64,
+    shutdown: &CancellationToken,
+) {
+    let news = async {
+        match link {
+            Some(l) => l.notified().await,
+            None => std::future::pending().await,
+        }
+    };
+    let asked = async {
+        match &inbox {
+            Some(i) => i.notified().await,
+            None => std::future::pending().await,
+        }
+    };
+    tokio::select! {
+        _ = clock.sleep_until(wake) => {}
+        _ = news => {}
+        _ = asked => {}
+        _ = shutdown.cancelled() => {}
+    }
 }
 
 /// One machine's loop: step it on the clock; a failing step (a store that refuses writes, a
@@ -852,6 +946,8 @@ pub(crate) async fn run_machine(
     end: Option<i64>,
     shutdown: CancellationToken,
 ) {
+    let link = rt.link.waker();
+    let phase = heartbeat_phase(&rt.id);
     let mut retry_ns = FIRST_RETRY_NS;
     let mut last = i64::MIN;
     let mut failing = false;
@@ -864,10 +960,7 @@ pub(crate) async fn run_machine(
             if let Ok(mut v) = rt.view.lock() {
                 v.health.attempt_ns = Some(target);
             }
-            tokio::select! {
-                _ = clock.sleep_until(wake, INBOX_WALL) => {}
-                _ = shutdown.cancelled() => {}
-            }
+            wait(rt.waker(), link.as_deref(), &clock, wake, &shutdown).await;
             if shutdown.is_cancelled() {
                 break;
             }
@@ -886,7 +979,7 @@ pub(crate) async fn run_machine(
                     v.health.clock_ns = Some(now);
                     v.health.failing = false;
                 }
-                wake
+                wake.min(heartbeat_after(now, phase))
             }
             Err(e) => {
                 error!(machine = %rt.id, error = %e, retry_in_s = retry_ns / NS_PER_S, "the machine loop failed a step; trying again");
@@ -900,16 +993,16 @@ pub(crate) async fn run_machine(
                 at
             }
         };
+        if let Ok(mut v) = rt.view.lock() {
+            v.health.wake_ns = Some(wake);
+        }
         if end.is_some_and(|e| now >= e) || shutdown.is_cancelled() {
             break;
         }
         if now < target {
             continue;
         }
-        tokio::select! {
-            _ = clock.sleep_until(wake, INBOX_WALL) => {}
-            _ = shutdown.cancelled() => {}
-        }
+        wait(rt.waker(), link.as_deref(), &clock, wake, &shutdown).await;
     }
     let now = end
         .map_or(clock.now_ns(), |e| clock.now_ns().min(e))
@@ -921,7 +1014,26 @@ pub(crate) async fn run_machine(
 
 #[cfg(test)]
 mod tests {
-    use super::step_at;
+    use super::{HEARTBEAT_NS, heartbeat_after, heartbeat_phase, step_at};
+
+    /// Every loop steps within a minute of its last step, at its own place in the minute, and
+    /// the machines of a fleet spread over the minute.
+    #[test]
+    fn loops_beat_once_a_minute_each_at_its_own_second() {
+        let phase = heartbeat_phase("m0001");
+        assert_eq!(phase, heartbeat_phase("m0001"), "stable");
+        for now in [0, 1, phase - 1, phase, phase + 1, 7 * HEARTBEAT_NS + 12_345] {
+            let next = heartbeat_after(now, phase);
+            assert!(next > now && next <= now + HEARTBEAT_NS, "{now} -> {next}");
+            assert_eq!((next - phase).rem_euclid(HEARTBEAT_NS), 0);
+        }
+        // 1000 machines: every tenth of the minute holds 100 +- 40 of them.
+        let mut tenths = [0usize; 10];
+        for i in 0..1000 {
+            tenths[(heartbeat_phase(&format!("m{i:04}")) * 10 / HEARTBEAT_NS) as usize] += 1;
+        }
+        assert!(tenths.iter().all(|n| (60..=140).contains(n)), "{tenths:?}");
+    }
 
     const S: i64 = 1_000_000_000;
 

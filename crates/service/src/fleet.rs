@@ -63,6 +63,9 @@ impl MachineLink for SharedLink {
     fn next_event_ns(&self) -> Option<i64> {
         self.with(|l| l.next_event_ns())
     }
+    fn waker(&self) -> Option<Arc<tokio::sync::Notify>> {
+        self.with(|l| l.waker())
+    }
     fn serve(&mut self, set: &driftwatch_machine::compensation::CompensationSet) {
         self.with(|l| l.serve(set))
     }

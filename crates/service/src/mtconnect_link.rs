@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use thiserror::Error;
-use tokio::sync::mpsc;
+use tokio::sync::{Notify, mpsc};
 use tokio_util::sync::{CancellationToken, DropGuard};
 use tracing::{error, info, warn};
 
@@ -65,6 +65,8 @@ pub struct MtconnectStatus {
 /// The service side: a `MachineLink` fed by the background task.
 pub struct MtconnectLink {
     rx: mpsc::Receiver<Vec<LinkEvent>>,
+    /// Notified by the task after each batch it sends: the loop's wake.
+    wake: Arc<Notify>,
     tolerance: ClockTolerance,
     status: Arc<Mutex<MtconnectStatus>>,
     /// Stops the task when the link goes.
@@ -115,6 +117,7 @@ impl MtconnectLink {
             .build()
             .map_err(|e| MtconnectLinkError::Client(e.to_string()))?;
         let (tx, rx) = mpsc::channel(CHANNEL);
+        let wake = Arc::new(Notify::new());
         let status = Arc::new(Mutex::new(MtconnectStatus::default()));
         let stop = CancellationToken::new();
         let follower = Follower::new(settings.items.clone(), limits, settings.count);
@@ -125,12 +128,14 @@ impl MtconnectLink {
                 settings: settings.clone(),
                 status: status.clone(),
                 tx,
+                wake: wake.clone(),
                 stop: stop.clone(),
             },
             follower,
         ));
         Ok(MtconnectLink {
             rx,
+            wake,
             tolerance: settings.tolerance,
             status,
             _stop: stop.drop_guard(),
@@ -148,6 +153,7 @@ struct Task {
     settings: MtconnectSettings,
     status: Arc<Mutex<MtconnectStatus>>,
     tx: mpsc::Sender<Vec<LinkEvent>>,
+    wake: Arc<Notify>,
     stop: CancellationToken,
 }
 
@@ -235,7 +241,10 @@ async fn follow(task: Task, mut follower: Follower) {
                 }
                 if !events.is_empty() {
                     tokio::select! {
-                        sent = task.tx.send(events) => if sent.is_err() { return },
+                        sent = task.tx.send(events) => match sent {
+                            Ok(()) => task.wake.notify_one(),
+                            Err(_) => return,
+                        },
                         _ = task.stop.cancelled() => return,
                     }
                 }
@@ -324,8 +333,12 @@ impl MachineLink for MtconnectLink {
     fn abort_cycle(&mut self, _number: i64, _now_ns: i64) {}
 
     fn next_event_ns(&self) -> Option<i64> {
-        // The agent's news come when they come; the loop looks at least every 200 ms.
+        // The agent's news come when they come: the task wakes the loop.
         None
+    }
+
+    fn waker(&self) -> Option<Arc<Notify>> {
+        Some(self.wake.clone())
     }
 }
 

@@ -428,6 +428,10 @@ impl MachineLink for OpcuaLink {
         None
     }
 
+    fn waker(&self) -> Option<Arc<tokio::sync::Notify>> {
+        self.inner.waker()
+    }
+
     fn serve(&mut self, set: &CompensationSet) {
         let _ = self.commands.send(Command::Serve(Box::new(set.clone())));
     }

@@ -107,7 +107,7 @@ pub(super) async fn ack_alert(
             .into_response());
     }
     if let Ok(mut inbox) = h.inbox.lock() {
-        inbox.acks.push((alert, caller.name.clone()));
+        inbox.ack(alert, caller.name.clone());
     }
     Ok((
         StatusCode::ACCEPTED,

@@ -89,7 +89,7 @@ pub(super) async fn request_cycle(
     super::run_here(&id, h)?;
     let now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     if let Ok(mut inbox) = h.inbox.lock() {
-        inbox.requests.push((caller.name.clone(), now));
+        inbox.request(caller.name.clone(), now);
     }
     tracing::info!(machine = %id, by = %caller.name, "operator requested a cycle");
     Ok((

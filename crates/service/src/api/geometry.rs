@@ -62,9 +62,7 @@ pub(super) async fn post_geometry(
     };
     tracing::info!(machine = %id, by = %caller.name, version, "linear geometry stored");
     if let Ok(mut inbox) = h.inbox.lock() {
-        inbox
-            .geometries
-            .push((stored.label(), stored.geometry.clone()));
+        inbox.geometry(stored.label(), stored.geometry.clone());
     }
     Ok((StatusCode::CREATED, Json(stored)).into_response())
 }

@@ -39,10 +39,10 @@ pub struct ServiceInfo {
 
 /// The clock's mode and scale.
 fn mode(clock: &ServiceClock) -> (ClockMode, Option<f64>) {
-    match clock {
-        ServiceClock::Scaled { scale, .. } if *scale == 1.0 => (ClockMode::Wall, Some(1.0)),
-        ServiceClock::Scaled { scale, .. } => (ClockMode::Scaled, Some(*scale)),
-        ServiceClock::Manual(_) => (ClockMode::Manual, None),
+    match (clock.is_manual(), clock.scale()) {
+        (true, _) | (false, None) => (ClockMode::Manual, None),
+        (false, Some(s)) if s == 1.0 => (ClockMode::Wall, Some(1.0)),
+        (false, Some(s)) => (ClockMode::Scaled, Some(s)),
     }
 }
 

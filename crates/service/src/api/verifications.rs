@@ -75,7 +75,7 @@ pub(super) async fn verify(
         .await?;
     tracing::info!(machine = %id, by = %caller.name, verification = n, "{}", v.summary());
     if let Ok(mut inbox) = h.inbox.lock() {
-        inbox.verifications.push(v.clone());
+        inbox.verification(v.clone());
     }
     Ok((
         StatusCode::CREATED,

@@ -19,6 +19,13 @@ pub trait MachineLink: Send {
     fn abort_cycle(&mut self, number: i64, now_ns: i64);
     /// The earliest time the machine will report something by itself.
     fn next_event_ns(&self) -> Option<i64>;
+    /// What the link notifies when something arrives that `poll` would return (an NC's post,
+    /// an agent's sample): the machine's loop sleeps on it and on its clock, and looks at
+    /// nothing in between. `None`: the link reports only at [`Self::next_event_ns`] or when
+    /// asked.
+    fn waker(&self) -> Option<std::sync::Arc<tokio::sync::Notify>> {
+        None
+    }
     /// The compensation set served from now on (validated: the loop publishes only those). A
     /// link that writes it to the NC does so; the others ignore it.
     fn serve(&mut self, _set: &driftwatch_machine::compensation::CompensationSet) {}
