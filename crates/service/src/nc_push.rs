@@ -12,12 +12,15 @@
 //!    nothing and doubles nothing.
 //! 2. `GET /api/v1/machines/{id}/nc/request`: 204 when nothing is asked, else 200 with the
 //!    order: cycle number, plan, spindle speed and every step (pose, approach, start position,
-//!    travel).
+//!    travel). With `?wait_s=S` (up to 60) the answer waits up to S seconds for an order
+//!    when none is pending, and comes as soon as one is given.
 //! 3. The NC runs the steps and posts each detection as `/probe/detection` with that cycle
 //!    number (the order's step labels are a suggestion; an approach that did not trip may be
 //!    retried at once, as the next approach, and the retry replaces it).
 
 use std::sync::{Arc, Mutex, MutexGuard};
+
+use tokio::sync::{Notify, watch};
 
 use driftwatch_core::kinematics::Limits;
 use driftwatch_core::plan::Plan;
@@ -32,12 +35,21 @@ use crate::link::{LinkError, LinkEvent, MachineLink};
 #[derive(Clone)]
 pub struct NcPushHandle {
     door: Arc<Mutex<NcDoor>>,
+    /// Wakes the machine's loop when a batch is taken.
+    wake: Arc<Notify>,
+    /// Counts the orders given: an NC waiting for one is woken by its change.
+    ordered: watch::Sender<u64>,
 }
 
 /// The service side: a `MachineLink`.
 pub struct NcPushLink {
     door: Arc<Mutex<NcDoor>>,
+    wake: Arc<Notify>,
+    ordered: watch::Sender<u64>,
 }
+
+/// The longest an NC may wait for an order in one request (`GET .../nc/request?wait_s=`).
+pub const MAX_ORDER_WAIT_S: f64 = 60.0;
 
 /// The door's lock. Every decision is the door's and leaves it whole, so a holder that
 /// panicked left nothing half-done: the door is used as it is.
@@ -51,13 +63,28 @@ pub fn nc_push(
     tolerance: ClockTolerance,
 ) -> (NcPushLink, NcPushHandle) {
     let door = Arc::new(Mutex::new(NcDoor::new(plan, limits, tolerance)));
-    (NcPushLink { door: door.clone() }, NcPushHandle { door })
+    let wake = Arc::new(Notify::new());
+    let ordered = watch::Sender::new(0);
+    (
+        NcPushLink {
+            door: door.clone(),
+            wake: wake.clone(),
+            ordered: ordered.clone(),
+        },
+        NcPushHandle {
+            door,
+            wake,
+            ordered,
+        },
+    )
 }
 
 impl NcPushHandle {
     /// Take a batch of events whole, or refuse it whole with the first bad event named.
     pub fn post(&self, batch: &EventBatch) -> Result<Accepted, NcDoorError> {
-        lock(&self.door).post(batch)
+        let accepted = lock(&self.door).post(batch)?;
+        self.wake.notify_one();
+        Ok(accepted)
     }
 
     /// Detections of no ordered cycle, counted and dropped.
@@ -68,6 +95,19 @@ impl NcPushHandle {
     /// The pending cycle order, if any, until the NC posts a detection of it.
     pub fn order(&self) -> Option<CycleOrder> {
         lock(&self.door).order().cloned()
+    }
+
+    /// The pending cycle order, waiting up to `wait` of wall time for one when none is
+    /// pending (a long poll: a gateway asks once a minute instead of every second and still
+    /// hears of an order at once).
+    pub async fn order_within(&self, wait: std::time::Duration) -> Option<CycleOrder> {
+        // Subscribed before the look: an order given between the two is not missed.
+        let mut given = self.ordered.subscribe();
+        if let Some(o) = self.order() {
+            return Some(o);
+        }
+        let _ = tokio::time::timeout(wait, given.changed()).await;
+        self.order()
     }
 
     /// Events refused because their time lay too far from the service clock.
@@ -82,7 +122,9 @@ impl MachineLink for NcPushLink {
     }
 
     fn request_cycle(&mut self, number: i64, now_ns: i64) -> Result<(), LinkError> {
-        lock(&self.door).request_cycle(number, now_ns)
+        lock(&self.door).request_cycle(number, now_ns)?;
+        self.ordered.send_modify(|n| *n += 1);
+        Ok(())
     }
 
     fn abort_cycle(&mut self, number: i64, _now_ns: i64) {
@@ -91,5 +133,93 @@ impl MachineLink for NcPushLink {
 
     fn next_event_ns(&self) -> Option<i64> {
         None
+    }
+
+    fn waker(&self) -> Option<Arc<Notify>> {
+        Some(self.wake.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use driftwatch_core::kinematics::Kinematics;
+    use driftwatch_core::plan::PlanConfig;
+    use std::time::Duration;
+
+    const T0: i64 = 1_700_000_000_000_000_000;
+
+    fn door() -> (NcPushLink, NcPushHandle) {
+        let k = Kinematics::load("table_bc").expect("a built-in machine");
+        let plan = Plan::build(&k, &PlanConfig::load("patent").expect("a built-in plan"))
+            .expect("the patent plan builds");
+        let tolerance = ClockTolerance {
+            ahead_ns: 60 * 1_000_000_000,
+            behind_ns: 3_600 * 1_000_000_000,
+        };
+        nc_push(plan, k.config.limits, tolerance)
+    }
+
+    fn idle(handle: &NcPushHandle) {
+        let batch: EventBatch = serde_json::from_value(serde_json::json!({"events": [
+            {"topic": "/machine/state", "t_ns": T0, "msg": {"state": "idle", "program": null}}
+        ]}))
+        .expect("a valid batch");
+        handle.post(&batch).expect("the batch is taken");
+    }
+
+    /// Whether `n` holds a wake (a permit stored by `notify_one`), taking it.
+    async fn woken(n: &Notify) -> bool {
+        tokio::select! {
+            biased;
+            _ = n.notified() => true,
+            _ = std::future::ready(()) => false,
+        }
+    }
+
+    #[tokio::test]
+    async fn a_batch_taken_wakes_the_loop_and_a_refused_one_does_not() {
+        let (link, handle) = door();
+        let wake = link.waker().expect("the nc_push link has a waker");
+        assert!(!woken(&wake).await);
+        let bad: EventBatch = serde_json::from_value(serde_json::json!({"events": [
+            {"topic": "/machine/state", "t_ns": T0, "msg": {"state": "dancing", "program": null}}
+        ]}))
+        .expect("a batch in shape");
+        assert!(handle.post(&bad).is_err());
+        assert!(!woken(&wake).await, "a refused batch has nothing to poll");
+        idle(&handle);
+        assert!(woken(&wake).await, "a batch taken wakes the loop");
+    }
+
+    #[tokio::test]
+    async fn an_nc_waiting_for_an_order_gets_it_as_soon_as_it_is_given() {
+        let (mut link, handle) = door();
+        idle(&handle);
+        // The loop takes the NC's state at its poll.
+        assert_eq!(link.poll(T0).len(), 1);
+        let waiting = {
+            let handle = handle.clone();
+            tokio::spawn(async move { handle.order_within(Duration::from_secs(3600)).await })
+        };
+        // On the test's one thread the waiter runs up to its wait before the order is given.
+        tokio::task::yield_now().await;
+        assert!(!waiting.is_finished());
+        link.request_cycle(7, T0)
+            .expect("an idle NC takes an order");
+        let order = tokio::time::timeout(Duration::from_secs(60), waiting)
+            .await
+            .expect("the waiter hears of the order at once")
+            .expect("the waiter does not panic");
+        assert_eq!(order.map(|o| o.cycle), Some(7));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_nc_waiting_for_an_order_hears_none_at_the_end_of_its_wait() {
+        let (_link, handle) = door();
+        idle(&handle);
+        let t = tokio::time::Instant::now();
+        assert!(handle.order_within(Duration::from_secs(30)).await.is_none());
+        assert!(t.elapsed() >= Duration::from_secs(30));
     }
 }
