@@ -11,7 +11,9 @@ use serde::Serialize;
 use thiserror::Error;
 
 use driftwatch_core::recording::{self as rec, Recording};
-use driftwatch_recording::mcap_io::{ReadOptions, RecordingError, RecordingWriter, read_file};
+use driftwatch_recording::mcap_io::{
+    ChunkCompression, ReadOptions, RecordingError, RecordingWriter, read_file,
+};
 
 #[derive(Debug, Error)]
 pub enum RecorderError {
@@ -237,8 +239,10 @@ impl Recorder {
     fn open_file(&mut self, day: &str, t_ns: i64) -> Result<(), RecorderError> {
         let base = self.free_name(&self.dir.join(format!("{day}.mcap")));
         let partial = base.with_extension("mcap.partial");
-        let mut writer =
-            RecordingWriter::create_file(&partial).map_err(|source| RecorderError::Recording {
+        // lz4, not zstd: a writer stays open all day for every machine, and zstd's context
+        // (some 3.6 MB each) would be most of a plant's memory.
+        let mut writer = RecordingWriter::create_file_with(&partial, ChunkCompression::Lz4)
+            .map_err(|source| RecorderError::Recording {
                 path: partial.display().to_string(),
                 source,
             })?;
