@@ -283,9 +283,17 @@ struct BenchArgs {
     /// Scratch directory (bench year, http and fleet; emptied first).
     #[arg(long, default_value = "out/bench")]
     dir: PathBuf,
-    /// Simulated machines (bench fleet).
+    /// Machines (bench fleet).
     #[arg(long, default_value_t = 10)]
     machines: usize,
+    /// What the fleet's machines are (bench fleet): the simulator in the service, or nc_push
+    /// doors driven over HTTP by a recorded day of NC traffic (a plant's NCs).
+    #[arg(long, value_enum, default_value = "simulated")]
+    link: bench::FleetLink,
+    /// With --link nc-push: after the rest, this many seconds at 1x with every NC silent and
+    /// no client (the loops' own CPU).
+    #[arg(long, default_value_t = 60.0)]
+    idle_s: f64,
     /// The fleet's database (bench fleet): SQLite in --dir, or PostgreSQL (a throwaway server
     /// under --dir unless --database-url is given).
     #[arg(long, value_enum, default_value = "sqlite")]
@@ -343,7 +351,8 @@ enum BenchWhich {
     Solve,
     /// One simulated year of one machine through the service pipeline.
     Year,
-    /// GET /compensation under load next to a trivial endpoint, on loopback.
+    /// GET /compensation under load next to the API's cheapest read (GET /service, through the
+    /// same layers), on loopback.
     Http,
     /// N simulated machines through a simulated day in one process, as fast as they keep up,
     /// with the compensation endpoint polled meanwhile.
@@ -554,6 +563,8 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
         BenchWhich::Http => multi()?.block_on(bench::http(b.connections, b.seconds, b.dir)),
         BenchWhich::Fleet => multi()?.block_on(bench::fleet(bench::FleetOptions {
             machines: b.machines,
+            link: b.link,
+            idle_s: b.idle_s,
             backend: b.backend,
             database_url: b.database_url,
             days: b.days.unwrap_or(1.0),

@@ -6,6 +6,12 @@
 //! Each machine is `table_bc` with the patent plan on the two-shift day, with its own noise
 //! seed; `--stagger-min` spreads the machines' days over that many minutes (0: every machine
 //! starts, warms up and cycles in the same instant, the worst case for peaks).
+//!
+//! With `--link nc-push` the machines are what a plant runs: `nc_push` doors with no
+//! simulator behind them, driven over HTTP by a load generator that replays a recorded day of
+//! NC traffic (`nc_traffic`). The run then measures the service alone: its memory per machine
+//! loop, its CPU per machine-day without the generator's, the endpoint under the write bursts,
+//! the traffic at 1x, and the CPU of a fleet whose NCs are silent.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -24,6 +30,7 @@ use driftwatch_service::launch::{ClockKind, LaunchOptions, Service, launch_with}
 use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
+use super::nc_traffic::{Drive, Generator, ORDER_POLL_S, Recorded, Sent};
 use super::size_of;
 
 /// The database the fleet writes to.
@@ -33,8 +40,18 @@ pub enum FleetBackend {
     Postgres,
 }
 
+/// What the machines are.
+#[derive(Clone, Copy, Debug, PartialEq, clap::ValueEnum)]
+pub enum FleetLink {
+    /// The truth simulator in the service (each loop carries its virtual machine).
+    Simulated,
+    /// `nc_push` doors driven over HTTP by the recorded NC traffic.
+    NcPush,
+}
+
 pub struct FleetOptions {
     pub machines: usize,
+    pub link: FleetLink,
     pub backend: FleetBackend,
     /// A PostgreSQL database to use instead of a throwaway server (an empty one: machines the
     /// store already knows resume where they were).
@@ -44,6 +61,8 @@ pub struct FleetOptions {
     pub stagger_min: f64,
     /// After the simulated days, this many minutes with the clock at 1x.
     pub realtime_min: f64,
+    /// `nc-push`: then this many seconds at 1x with every NC silent.
+    pub idle_s: f64,
 }
 
 /// The clock moves this much machine time at a time.
@@ -55,6 +74,8 @@ const CONNECTIONS: usize = 4;
 /// A loop that has not reached the clock after this much wall time is reported stuck.
 const STALL: Duration = Duration::from_secs(600);
 const SCENARIO: &str = "two_shift";
+/// The NCs' bearer token on the bench's own loopback service.
+const NC_TOKEN: &str = "bench-nc-write-token";
 
 /// The database: where it is, and how big it is now.
 enum Db {
@@ -241,9 +262,32 @@ fn fleet_config(
     let scenarios = opts.dir.join("scenarios");
     std::fs::create_dir_all(&scenarios)
         .with_context(|| format!("creating {}", scenarios.display()))?;
+    if opts.link == FleetLink::NcPush {
+        // Real NCs run on the wall clock (the bench holds and runs its own).
+        cfg.time_scale = 1.0;
+        // The NCs post with a token of the write role; reads stay anonymous.
+        cfg.http.tokens = vec![driftwatch_service::config::Token {
+            name: "ncs".into(),
+            token: NC_TOKEN.into(),
+            role: driftwatch_service::config::Role::Write,
+        }];
+        // Room for the generator's and the pollers' connections beside the dashboards'.
+        cfg.http.max_connections = cfg.http.max_connections.max(256);
+        cfg.machines = (0..opts.machines)
+            .map(|i| {
+                let mut m = template.clone();
+                m.id = super::nc_traffic::fleet_id(i);
+                m.machine = base.machine.clone();
+                m.plan = Some(base.plan.clone());
+                m.link = toml::from_str(r#"kind = "nc_push""#)?;
+                Ok(m)
+            })
+            .collect::<Result<_>>()?;
+        return Ok(cfg);
+    }
     cfg.machines = (0..opts.machines)
         .map(|i| {
-            let id = format!("m{:03}", i + 1);
+            let id = super::nc_traffic::fleet_id(i);
             let shift_min = opts.stagger_min * i as f64 / opts.machines as f64;
             let scenario = if shift_min == 0.0 {
                 SCENARIO.to_string()
@@ -349,8 +393,14 @@ fn reached(views: &[Arc<Mutex<MachineView>>], t_ns: i64, from: &mut usize) -> Re
 }
 
 /// Move the clock a step at a time to `end_ns`, each as soon as every loop has reached the
-/// last; the wall time of each simulated hour (the last one may be shorter: its length too).
-async fn drive(svc: &Service, end_ns: i64) -> Result<Vec<(f64, f64)>> {
+/// last (and the NCs, if any, have posted what happened up to it and asked for their orders);
+/// the wall time of each simulated hour (the last one may be shorter: its length too).
+async fn drive(
+    svc: &Service,
+    end_ns: i64,
+    ncs: Option<&Generator>,
+    sent: &Mutex<Sent>,
+) -> Result<Vec<(f64, f64)>> {
     let clock = svc
         .manual_clock
         .as_ref()
@@ -359,6 +409,12 @@ async fn drive(svc: &Service, end_ns: i64) -> Result<Vec<(f64, f64)>> {
     let mut hours = Vec::new();
     let (mut t, mut hour_t, mut hour_wall) = (svc.t0_ns, svc.t0_ns, Instant::now());
     while t < end_ns {
+        if let Some(g) = ncs {
+            let s = g.drive(Drive::To(t)).await?;
+            if let Ok(mut all) = sent.lock() {
+                all.add(s);
+            }
+        }
         t = (t + STEP_NS).min(end_ns);
         clock.set(t);
         let since = Instant::now();
@@ -478,17 +534,18 @@ async fn under_polls<T>(
     Ok((out?, usage, polls))
 }
 
-/// The clock at 1x for `span`: it follows the wall clock from where it stands, as in
-/// production, where every loop also wakes for its inbox every 200 ms of wall time, however
-/// quiet its machine. Every 100 ms, before the clock moves on, the largest lag of a loop's
-/// last step behind it, s (up to about 0.3 s when every loop keeps up).
+/// The clock at 1x for `span`: it runs on with the wall clock from where it stands, as in
+/// production, and each loop wakes when its own time comes or its NC posts. Every 100 ms, the
+/// largest lag of a loop behind the time it asked to be woken at, s (0 when every loop keeps
+/// up).
 async fn pace(svc: &Service, span: Duration) -> Result<Vec<f64>> {
     let clock = svc
         .manual_clock
         .as_ref()
         .context("the service has no manual clock")?;
+    clock.run(1.0);
     let views: Vec<_> = svc.views.values().cloned().collect();
-    let (t_start, wall0) = (clock.now_ns(), Instant::now());
+    let wall0 = Instant::now();
     let mut lags = Vec::new();
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     while wall0.elapsed() < span {
@@ -496,16 +553,15 @@ async fn pace(svc: &Service, span: Duration) -> Result<Vec<f64>> {
         let now = clock.now_ns();
         let mut worst = 0;
         for v in &views {
-            let at = v
+            let wake = v
                 .lock()
                 .map_err(|_| anyhow::anyhow!("a machine's view lock is poisoned"))?
                 .health
-                .clock_ns
+                .wake_ns
                 .unwrap_or(svc.t0_ns);
-            worst = worst.max(now - at);
+            worst = worst.max(now - wake);
         }
         lags.push(worst as f64 / 1e9);
-        clock.set(t_start + wall0.elapsed().as_nanos() as i64);
     }
     Ok(lags)
 }
@@ -532,6 +588,26 @@ struct Figures {
     cycles: usize,
     ok: usize,
     faults: u64,
+    /// `nc-push` only.
+    nc: Option<NcFigures>,
+}
+
+/// What the `nc-push` run measured beyond the rest.
+#[derive(Default)]
+struct NcFigures {
+    /// Resident memory before the service started, after it started, at the end, bytes.
+    rss_before: u64,
+    rss_launched: u64,
+    rss_end: u64,
+    /// The generator's CPU in the simulated days and at 1x, s.
+    gen_fast_s: f64,
+    gen_paced_s: f64,
+    fast: Sent,
+    paced: Sent,
+    /// Recorded events a machine-day (its NC's posts without cycles).
+    events_per_day: usize,
+    /// The silent phase: its CPU.
+    idle: Option<Usage>,
 }
 
 pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
@@ -548,15 +624,34 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         opts.realtime_min.is_finite() && opts.realtime_min >= 0.0,
         "--realtime-min must be >= 0"
     );
+    anyhow::ensure!(
+        opts.idle_s.is_finite() && opts.idle_s >= 0.0,
+        "--idle-s must be >= 0"
+    );
     let _ = std::fs::remove_dir_all(&opts.dir);
     std::fs::create_dir_all(&opts.dir)
         .with_context(|| format!("creating {}", opts.dir.display()))?;
     let data_dir = opts.dir.join("data");
     let db = Db::open(&opts, &data_dir).await?;
     let cfg = fleet_config(&opts, &data_dir, db.url())?;
+    // The NCs' day is recorded before the service starts: its memory is not the service's.
+    let recorded = match opts.link {
+        FleetLink::NcPush => {
+            let scn = Scenario::load(SCENARIO)?;
+            let k = driftwatch_core::kinematics::Kinematics::load(&scn.machine)?;
+            let plan = driftwatch_core::plan::Plan::build(
+                &k,
+                &driftwatch_core::plan::PlanConfig::load(&scn.plan)?,
+            )?;
+            Some((Recorded::record(&scn, &k, &plan)?, scn.start_ns()))
+        }
+        FleetLink::Simulated => None,
+    };
+    let rss_before = rss().unwrap_or(0);
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let launch = LaunchOptions {
         clock: ClockKind::Manual,
+        start_ns: recorded.as_ref().map(|(_, t0)| *t0),
         ..Default::default()
     };
     let launched = Instant::now();
@@ -564,11 +659,40 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         .await
         .context("launching the service")?;
     let launch_s = launched.elapsed().as_secs_f64();
-    let f = run(&svc, &opts, &db).await;
+    let rss_launched = rss().unwrap_or(0);
+    let ncs = match recorded {
+        Some((rec, _)) => {
+            let events_per_day = rec.events_per_day();
+            let stagger = (opts.stagger_min * 60e9).round() as i64;
+            let ids = svc.views.keys().cloned().collect();
+            let g = Generator::start(
+                svc.addr,
+                NC_TOKEN,
+                ids,
+                rec,
+                svc.t0_ns,
+                stagger,
+                clock_tick(),
+            )?;
+            Some((g, events_per_day))
+        }
+        None => None,
+    };
+    let f = run(&svc, &opts, &db, ncs.as_ref().map(|(g, _)| g)).await;
+    let rss_end = rss().unwrap_or(0);
+    let per_day = ncs.as_ref().map_or(0, |(_, n)| *n);
+    // The NCs stop first: the service they talk to is about to.
+    drop(ncs);
     svc.stop();
     svc.wait().await;
     let mut f = f?;
     f.launch_s = launch_s;
+    if let Some(nc) = f.nc.as_mut() {
+        nc.rss_before = rss_before;
+        nc.rss_launched = rss_launched;
+        nc.rss_end = rss_end;
+        nc.events_per_day = per_day;
+    }
     // After the store has closed: SQLite has folded its log into the file.
     f.db_growth += db.size().await? as i64;
     f.mcap = size_of(&data_dir.join("mcap"));
@@ -576,17 +700,59 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// The resident set of this process now, bytes (VmRSS).
+fn rss() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
 /// The run itself, on the launched service: the simulated days as fast as the loops keep up,
-/// then the 1x phase if asked for, each under the client's polls; everything but the sizes
-/// after the store closes.
-async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
+/// then the 1x phase if asked for, each under the client's polls, then (NCs only) the silent
+/// phase; everything but the sizes after the store closes.
+async fn run(
+    svc: &Service,
+    opts: &FleetOptions,
+    db: &Db,
+    ncs: Option<&Generator>,
+) -> Result<Figures> {
     let tick = clock_tick();
     let size0 = db.empty_size().await?;
     let end_ns = svc.t0_ns + (opts.days * 86_400e9).round() as i64;
-    let (hours, usage, polls) = under_polls(svc, db, tick, drive(svc, end_ns)).await?;
+    let mut nc = ncs.map(|_| NcFigures::default());
+    let gen_cpu = async || match ncs {
+        Some(g) => g.cpu_s().await,
+        None => Ok(0.0),
+    };
+    let sent = Mutex::new(Sent::default());
+    let g0 = gen_cpu().await?;
+    let (hours, usage, polls) = under_polls(svc, db, tick, drive(svc, end_ns, ncs, &sent)).await?;
+    let g1 = gen_cpu().await?;
     let paced = if opts.realtime_min > 0.0 {
         let span = Duration::from_secs_f64(opts.realtime_min * 60.0);
-        let (lags_s, usage, polls) = under_polls(svc, db, tick, pace(svc, span)).await?;
+        let traffic = async {
+            match ncs {
+                Some(g) => {
+                    let clock = svc.clock.clone();
+                    g.drive(Drive::Paced {
+                        clock,
+                        span,
+                        order_poll_s: ORDER_POLL_S,
+                    })
+                    .await
+                }
+                None => Ok(Sent::default()),
+            }
+        };
+        let both = async {
+            let (lags, traffic) = tokio::join!(pace(svc, span), traffic);
+            Ok((lags?, traffic?))
+        };
+        let ((lags_s, paced_sent), usage, polls) = under_polls(svc, db, tick, both).await?;
+        if let Some(nc) = nc.as_mut() {
+            nc.paced = paced_sent;
+        }
         Some(Paced {
             from_ns: end_ns,
             usage,
@@ -596,6 +762,21 @@ async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
     } else {
         None
     };
+    let g2 = gen_cpu().await?;
+    if let Some(nc) = nc.as_mut() {
+        nc.fast = sent.lock().map(|s| *s).unwrap_or_default();
+        nc.gen_fast_s = g1 - g0;
+        nc.gen_paced_s = g2 - g1;
+        if opts.idle_s > 0.0 {
+            // Silent NCs, nobody polling: what the loops cost by themselves at 1x.
+            if let Some(clock) = svc.manual_clock.as_ref() {
+                clock.run(1.0);
+            }
+            let before = Counters::read(db, tick);
+            tokio::time::sleep(Duration::from_secs_f64(opts.idle_s)).await;
+            nc.idle = Some(Counters::read(db, tick).since(&before));
+        }
+    }
     let (mut cycles, mut ok, mut faults) = (0, 0, 0);
     for (id, view) in &svc.views {
         let rows = svc.store().cycles(id, i64::MAX, None).await?;
@@ -614,6 +795,7 @@ async fn run(svc: &Service, opts: &FleetOptions, db: &Db) -> Result<Figures> {
         cycles,
         ok,
         faults,
+        nc,
     })
 }
 
@@ -623,10 +805,15 @@ fn summary(opts: &FleetOptions) -> String {
         (FleetBackend::Postgres, None) => "PostgreSQL (a throwaway server on this machine)",
         (FleetBackend::Postgres, Some(_)) => "PostgreSQL (--database-url)",
     };
+    let what = match opts.link {
+        FleetLink::Simulated => format!("simulated machines (seeds 1000-{})", 999 + opts.machines),
+        FleetLink::NcPush => {
+            "nc_push machines driven over HTTP by a recorded day of NC traffic".to_string()
+        }
+    };
     format!(
-        "{} simulated machines (table_bc, patent plan, {SCENARIO} day, seeds 1000-{}, days spread over {} min) on {backend}, {} simulated days as fast as they keep up{}",
+        "{} {what} (table_bc, patent plan, {SCENARIO} day, days spread over {} min) on {backend}, {} simulated days as fast as they keep up{}",
         opts.machines,
-        999 + opts.machines,
         opts.stagger_min,
         opts.days,
         if opts.realtime_min > 0.0 {
@@ -742,6 +929,70 @@ fn report(opts: &FleetOptions, f: &Figures) {
     );
     if let Some(p) = &f.paced {
         report_paced(opts, p);
+    }
+    if let Some(nc) = &f.nc {
+        report_nc(opts, f, nc);
+    }
+}
+
+/// The `nc-push` run's own lines: the service without its load generator.
+fn report_nc(opts: &FleetOptions, f: &Figures, nc: &NcFigures) {
+    let n = opts.machines as f64;
+    let kb = |b: u64| b as f64 / 1024.0;
+    println!(
+        "memory: {:.1} MB resident before the service started, {:.1} MB with {} machine loops started ({:.0} KB per machine loop), {:.1} MB at the end ({:.0} KB per machine loop over the start; the generator's NCs hold about 0.1 KB each)",
+        nc.rss_before as f64 / 1e6,
+        nc.rss_launched as f64 / 1e6,
+        opts.machines,
+        kb(nc.rss_launched.saturating_sub(nc.rss_before)) / n,
+        nc.rss_end as f64 / 1e6,
+        kb(nc.rss_end.saturating_sub(nc.rss_before)) / n,
+    );
+    let u = &f.usage;
+    let machine_days = n * opts.days;
+    let service_s = u.own_s() - nc.gen_fast_s;
+    println!(
+        "service cpu: {service_s:.1} s in the simulated days without the generator's {:.1} s (the endpoint client's included), {:.3} s/machine-day{}",
+        nc.gen_fast_s,
+        service_s / machine_days,
+        u.server_s.map_or(String::new(), |s| format!(
+            ", and the PostgreSQL server's {:.3} s/machine-day",
+            s / machine_days
+        ))
+    );
+    println!(
+        "nc traffic: {} posts ({} events; the recorded day has {} events a machine-day), {} order polls, {} orders answered, {} errors",
+        nc.fast.posts,
+        nc.fast.events,
+        nc.events_per_day,
+        nc.fast.order_polls,
+        nc.fast.orders,
+        nc.fast.errors
+    );
+    if let Some(p) = &f.paced {
+        let w = p.usage.wall_s;
+        println!(
+            "realtime nc traffic: {:.0} posts/s, {:.0} order polls/s (each NC every {ORDER_POLL_S} s), {} orders, {} errors; cores busy: the service {:.3}, the generator {:.3}",
+            nc.paced.posts as f64 / w,
+            nc.paced.order_polls as f64 / w,
+            nc.paced.orders,
+            nc.paced.errors,
+            (p.usage.own_s() - nc.gen_paced_s) / w,
+            nc.gen_paced_s / w
+        );
+    }
+    if let Some(idle) = &nc.idle {
+        println!(
+            "idle: {:.0} s at 1x with every NC silent and no client: {:.2} % of a core (user {:.2} s, sys {:.2} s){}",
+            idle.wall_s,
+            100.0 * idle.own_s() / idle.wall_s,
+            idle.user_s,
+            idle.sys_s,
+            idle.server_s.map_or(String::new(), |s| format!(
+                "; PostgreSQL server {:.2} % of a core",
+                100.0 * s / idle.wall_s
+            ))
+        );
     }
 }
 
