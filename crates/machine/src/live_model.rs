@@ -62,6 +62,10 @@ pub struct LiveModel {
     message: String,
     /// Why the model may not serve until it predicts a cycle within its band.
     suspect: Option<String>,
+    /// Counts the changes of what [`LiveModel::view`] shows, so that the loop rebuilds that
+    /// view (its guard summaries are formatted text) only when it changed, not at every
+    /// look at the prediction.
+    revision: u64,
 }
 
 impl LiveModel {
@@ -84,6 +88,7 @@ impl LiveModel {
             updates: 0,
             message,
             suspect: None,
+            revision: 0,
         }
     }
 
@@ -109,8 +114,15 @@ impl LiveModel {
         &self.policy
     }
 
+    /// Changes whenever [`LiveModel::view`] may show something else.
+    pub fn revision(&self) -> u64 {
+        self.revision
+    }
+
     fn start_at(&mut self, t_ns: i64) {
         if self.lagged.is_none() {
+            // A model fitted elsewhere starts predicting: the view's status changes.
+            self.revision += 1;
             self.lagged = Some(Features::new(&self.policy.model, &self.t_ref_c, t_ns));
             if let Some(model) = &self.initial {
                 self.predictor = Some(Predictor::resume(
@@ -170,6 +182,8 @@ impl LiveModel {
         if !self.policy.enabled {
             return None;
         }
+        // The counts, the message or the fit change.
+        self.revision += 1;
         // The state before, to come back to if the update leaves the model unable to predict.
         let before = self.clone();
         self.take(t_ns, errors, sigma);
@@ -179,7 +193,10 @@ impl LiveModel {
         };
         let note = due.then(|| self.fit(t_ns));
         if let Some(bad) = self.unhealthy(t_ns) {
+            // The state before, but a view that says so: a new revision.
+            let revision = self.revision + 1;
             *self = before;
+            self.revision = revision;
             self.message = format!(
                 "the update with the cycle at {t_ns} ns was rolled back: it left {bad}; the model \
                  goes on from its state before"
@@ -222,7 +239,10 @@ impl LiveModel {
             return Ok(());
         }
         let why = reasons.join("; ");
-        self.suspect = Some(why.clone());
+        if self.suspect.as_deref() != Some(why.as_str()) {
+            self.suspect = Some(why.clone());
+            self.revision += 1;
+        }
         Err(why)
     }
 
@@ -244,6 +264,7 @@ impl LiveModel {
             .map(|p| (p.channel.clone(), (p.value, p.sigma)))
             .collect();
         let was = self.suspect.take();
+        self.revision += 1;
         match self.check_consistency(&values, measured, measured_t_ns, now_ns, limits) {
             Ok(()) => was.map(|_| {
                 "it predicted the cycle within its band again: its predictions are served again"
@@ -291,6 +312,7 @@ impl LiveModel {
         if !self.policy.enabled {
             return None;
         }
+        self.revision += 1;
         let mut i = 0;
         while i < events.len() {
             match &events[i] {
@@ -640,6 +662,54 @@ mod tests {
         let note = m.judge(&set(40.2, t), t, t, &limits).unwrap();
         assert!(note.contains("served again"), "{note}");
         assert!(m.suspect().is_none());
+    }
+
+    /// The loop rebuilds the model's view only when [`LiveModel::revision`] moved: every
+    /// change of what the view shows must move it (a first input with a model fitted
+    /// elsewhere, cycles taken and fitted, a verdict, a rolled-back update).
+    #[test]
+    fn every_change_of_the_view_moves_the_revision() {
+        fn seen(m: &LiveModel) -> (u64, String) {
+            (m.revision(), serde_json::to_string(&m.view()).unwrap())
+        }
+        fn check(m: &LiveModel, before: &mut (u64, String), what: &str) {
+            let now = seen(m);
+            if now.1 != before.1 {
+                assert_ne!(
+                    now.0, before.0,
+                    "{what}: the view changed, the revision did not"
+                );
+            }
+            *before = now;
+        }
+        let mut m = plateau();
+        let mut before = seen(&m);
+        let limits = crate::compensation::ValidationLimits::default();
+        let t = 200 * MIN;
+        m.judge(&set(140.0, t), t, t, &limits);
+        assert!(m.suspect().is_some());
+        check(&m, &mut before, "suspect");
+        m.judge(&set(40.0, t), t, t, &limits);
+        check(&m, &mut before, "trusted again");
+        for i in 0..7 {
+            m.observe(t + i * 30 * MIN, &all(40.0), &all(0.3));
+            check(&m, &mut before, "observed");
+        }
+        m.observe(t + 300 * MIN, &all(f64::MAX), &all(1e-300));
+        check(&m, &mut before, "rolled back");
+        m.input(Event::Spindle {
+            t_ns: t + 301 * MIN,
+            rpm: 0.0,
+        });
+        let _ = m.predict(t + 400 * MIN);
+        check(&m, &mut before, "an input and a prediction");
+
+        let initial = plateau().predictor.unwrap().model.clone();
+        let mut m = LiveModel::with_initial(PredictionPolicy::default(), initial);
+        let mut before = seen(&m);
+        m.input(Event::Spindle { t_ns: 0, rpm: 1.0 });
+        assert_eq!(m.view().status, "initial");
+        check(&m, &mut before, "a model fitted elsewhere starts");
     }
 
     #[test]

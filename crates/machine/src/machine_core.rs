@@ -275,7 +275,9 @@ pub struct CycleView {
 /// for predictions at a later time.
 #[derive(Debug, Clone, Default)]
 pub struct ThermalView {
-    pub model: Option<ModelView>,
+    /// Shared, and rebuilt only when the model changed: the view is copied at every look at
+    /// the prediction (once a machine minute), the model's part seldom changes.
+    pub model: Option<Arc<ModelView>>,
     pub prediction: Vec<Prediction>,
     pub prediction_t_ns: Option<i64>,
     /// Why the last prediction was not served, if it was not.
@@ -471,6 +473,8 @@ pub struct MachineCore {
     phase_changes_ns: Option<i64>,
     /// The link's clock-skew refusals since the last step's end, and the last worst skew.
     skew: (u64, i64),
+    /// The [`LiveModel::revision`] that `view.thermal.model` shows.
+    model_shown: Option<u64>,
     view: View,
 }
 
@@ -581,6 +585,7 @@ impl MachineCore {
             next_due_ns: None,
             phase_changes_ns: None,
             skew: (0, 0),
+            model_shown: None,
             view,
         };
         Ok((core, out))
@@ -1100,7 +1105,7 @@ impl MachineCore {
         }
         self.last_prediction_ns = now_ns;
         let Some(preds) = self.thermal.predict(now_ns) else {
-            self.view.thermal.model = Some(self.thermal.view());
+            self.show_model();
             self.view.thermal.revision += 1;
             return;
         };
@@ -1126,13 +1131,22 @@ impl MachineCore {
         } else {
             None
         };
+        self.show_model();
         let t = &mut self.view.thermal;
         t.revision += 1;
         t.prediction = preds;
         t.prediction_t_ns = Some(now_ns);
         t.prediction_note = note;
-        t.model = Some(self.thermal.view());
         t.predictor = self.thermal.snapshot().map(Arc::new);
+    }
+
+    /// The model's part of the view, rebuilt only when the model changed since it was shown.
+    fn show_model(&mut self) {
+        let revision = self.thermal.revision();
+        if self.model_shown != Some(revision) || self.view.thermal.model.is_none() {
+            self.view.thermal.model = Some(Arc::new(self.thermal.view()));
+            self.model_shown = Some(revision);
+        }
     }
 
     /// Serve the prediction as a new set if the model is trusted, the prediction moved and
