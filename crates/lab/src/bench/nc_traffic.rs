@@ -505,7 +505,7 @@ impl Generator {
                                     let s = second;
                                     sent.add(
                                         ncs.tick(&client, &base, &rec, now, |i| {
-                                            (i + s) % period == 0
+                                            (i + s).is_multiple_of(period)
                                         })
                                         .await,
                                     );

@@ -41,7 +41,7 @@ pub struct ServiceInfo {
 fn mode(clock: &ServiceClock) -> (ClockMode, Option<f64>) {
     match (clock.is_manual(), clock.scale()) {
         (true, _) | (false, None) => (ClockMode::Manual, None),
-        (false, Some(s)) if s == 1.0 => (ClockMode::Wall, Some(1.0)),
+        (false, Some(1.0)) => (ClockMode::Wall, Some(1.0)),
         (false, Some(s)) => (ClockMode::Scaled, Some(s)),
     }
 }
