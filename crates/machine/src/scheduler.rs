@@ -857,7 +857,7 @@ mod tests {
         // Never while cutting, never within the spacing.
         let cutting = PhaseInfo {
             state: Cutting,
-            ..warm.clone()
+            ..warm
         };
         assert_eq!(
             decide(&policy, &cutting, &st, at(45.0)),

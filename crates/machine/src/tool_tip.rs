@@ -30,7 +30,7 @@ pub fn sensitivity(
     let angles = k.angles_from_fields(pose_deg[0], pose_deg[1]);
     let p = Vec3::new(point_mm[0], point_mm[1], point_mm[2]);
     let tip = |delta: f64, id: driftwatch_core::kinematics::ErrorId| {
-        let mut s = nominal.clone();
+        let mut s = nominal;
         s.loc[id.axis][id.slot] += delta * id.scale();
         k.pose_transform(&s, &angles).point(&p)
     };
@@ -113,16 +113,13 @@ mod tests {
         for (name, d) in &s {
             // Five units of the error alone, the tip's move in um, per unit.
             let id = k.error_id(name).unwrap();
-            let mut st = nominal.clone();
+            let mut st = nominal;
             st.loc[id.axis][id.slot] += 5.0 * id.scale();
             let moved = (k.pose_transform(&st, &angles).point(&p) - at_nominal) * (1000.0 / 5.0);
             let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             assert!(n > 1e-3, "{name}: the reference pose must feel it: {d:?}");
-            for i in 0..3 {
-                assert!(
-                    (moved[i] - d[i]).abs() < 1e-6 * n.max(1.0),
-                    "{name}: {d:?} {moved:?}"
-                );
+            for (m, x) in moved.iter().zip(d) {
+                assert!((m - x).abs() < 1e-6 * n.max(1.0), "{name}: {d:?} {moved:?}");
             }
         }
         // A position error of the table's B axis moves the tip by (I - R) e: at B -45 deg

@@ -503,8 +503,10 @@ fn rig_with_model(tip_sigma_um: f64) -> Rig {
         }
     }
     let model = driftwatch_thermal::model::fit(&Default::default(), &earlier, None).unwrap();
-    let mut settings = Settings::default();
-    settings.initial_model = Some(Arc::new(model));
+    let mut settings = Settings {
+        initial_model: Some(Arc::new(model)),
+        ..Default::default()
+    };
     settings.schedule.tip_sigma_um = tip_sigma_um;
     // Each error's own limit would ask for a cycle too (the model is a day's walk away from
     // its data): out of the way of the rule under test.
