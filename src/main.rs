@@ -336,7 +336,7 @@ struct BenchArgs {
     #[arg(long, value_delimiter = ',')]
     after_stop: Option<Vec<f64>>,
     /// The tool-tip limit of the schedule under test, um (bench compensation; default: the
-    /// shipped policy's `schedule.tip_sigma_um`; 0: the minute offsets alone).
+    /// tuned 0.5; 0: the minute offsets alone).
     #[arg(long)]
     tip_sigma: Option<f64>,
     /// Only these of the benchmark's scenarios (bench compensation; default: all four).

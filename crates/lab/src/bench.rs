@@ -305,8 +305,8 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 
 /// `bench compensation`: the three strategies on four scenarios, each prediction starting from
 /// the service's model rebuilt from an earlier simulated day of the same machine, and the
-/// schedules: the old default (minute offsets), the service's (the model's tool-tip band in
-/// the loop) and a fixed cadence with as many cycles as each.
+/// schedules: the default (minute offsets), the tool-tip rule (the model's band in the loop)
+/// and a fixed cadence with as many cycles as each.
 pub fn compensation(
     json: bool,
     after_stop: Option<Vec<f64>>,
@@ -314,7 +314,11 @@ pub fn compensation(
     only: Option<Vec<String>>,
 ) -> Result<ExitCode> {
     use crate::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
-    let mut policy = driftwatch_machine::scheduler::SchedulePolicy::default();
+    // The shipped policy with the tool-tip rule at the tuned limit unless told otherwise.
+    let mut policy = driftwatch_machine::scheduler::SchedulePolicy {
+        tip_sigma_um: crate::strategies::TUNED_TIP_SIGMA_UM,
+        ..Default::default()
+    };
     if let Some(t) = tip_sigma {
         anyhow::ensure!(t.is_finite() && t >= 0.0, "--tip-sigma takes um >= 0");
         policy.tip_sigma_um = t;
@@ -369,7 +373,7 @@ pub fn compensation(
     );
     println!(
         "  {:<14} {:>18} {:>18} {:>18} {:>18}",
-        "", "old default", "new (tool tip)", "fixed, as new", "fixed, as old"
+        "", "minute offsets", "tool tip", "fixed, as tip", "fixed, as offsets"
     );
     for (name, _, sc) in &all {
         let s = sc.summary();
@@ -469,7 +473,7 @@ fn print_scenario(name: &str, start: &str, sc: &crate::strategies::ScheduleCompa
     print_schedule(sc);
 }
 
-/// The schedules side by side: the old default, the policy's, and a fixed cadence with as
+/// The schedules side by side: the default (minute offsets), the policy's, and a fixed cadence with as
 /// many cycles as each.
 fn print_schedule(sc: &crate::strategies::ScheduleComparison) {
     let ez = |r: &crate::strategies::ScheduleRun| {
@@ -483,10 +487,10 @@ fn print_schedule(sc: &crate::strategies::ScheduleComparison) {
         "  schedules (idle minutes only): cycles, per day, within 30 min after a stop; largest tool-tip residual while cutting (predicted, last measured; * the whole day: no cutting), EZ0B predicted max"
     );
     for (label, r) in [
-        ("old default (minute offsets)", &sc.old),
-        ("new (model's tool-tip band)", &sc.new),
-        ("fixed cadence, as many as new", &sc.fixed),
-        ("fixed cadence, as many as old", &sc.fixed_old),
+        ("minute offsets (the default)", &sc.old),
+        ("the model's tool-tip band", &sc.new),
+        ("fixed cadence, as many as tip", &sc.fixed),
+        ("fixed cadence, as many as min.", &sc.fixed_old),
     ] {
         let l = crate::strategies::ScheduleLine::from(r);
         println!(
@@ -502,10 +506,10 @@ fn print_schedule(sc: &crate::strategies::ScheduleComparison) {
         );
     }
     for (label, r) in [
-        ("old", &sc.old),
-        ("new", &sc.new),
-        ("fixed as new", &sc.fixed),
-        ("fixed as old", &sc.fixed_old),
+        ("minute offsets", &sc.old),
+        ("tool tip", &sc.new),
+        ("fixed as tip", &sc.fixed),
+        ("fixed as offsets", &sc.fixed_old),
     ] {
         println!("    cycle times (min), {label}: {:?}", r.times_min);
     }
