@@ -343,6 +343,13 @@ struct BenchArgs {
     /// default: the shipped policy). The patent scenario then uses the scheduler too.
     #[arg(long, value_delimiter = ',')]
     after_stop: Option<Vec<f64>>,
+    /// The tool-tip limit of the schedule under test, um (bench compensation; default: the
+    /// tuned 0.5; 0: the minute offsets alone).
+    #[arg(long)]
+    tip_sigma: Option<f64>,
+    /// Only these of the benchmark's scenarios (bench compensation; default: all four).
+    #[arg(long, value_delimiter = ',')]
+    scenarios: Option<Vec<String>>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -542,7 +549,9 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
                 b.dir,
                 b.prediction == "on",
             )),
-        BenchWhich::Compensation => bench::compensation(b.json, b.after_stop),
+        BenchWhich::Compensation => {
+            bench::compensation(b.json, b.after_stop, b.tip_sigma, b.scenarios)
+        }
         BenchWhich::Diagnosis => bench::diagnosis(b.days.unwrap_or(365.0)),
         BenchWhich::Thermal => {
             bench::thermal::thermal(&b.data, b.step_min, b.json, !b.no_simulated)

@@ -206,7 +206,8 @@ fn prediction_meets_the_compensation_goals_on_the_four_scenarios() {
     use driftwatch_lab::strategies::{BENCH_SCENARIOS, bench_scenario};
     for (name, _) in BENCH_SCENARIOS {
         let sc = bench_scenario(name, &Default::default(), true).unwrap();
-        let c = &sc.adaptive;
+        // The scenario's own cycles (the patent's), else the shipped schedule's.
+        let c = sc.own.as_ref().unwrap_or(&sc.old.result);
         let ez = c.predicted.errors["EZ0B"];
         println!(
             "{name}: EZ0B predicted rms {:.2} max {:.2} um (last measured max {:.2}); tool tip {:.1} % removed",

@@ -310,10 +310,24 @@ pub async fn http(connections: usize, seconds: f64, dir: PathBuf) -> Result<Exit
 
 /// `bench compensation`: the three strategies on four scenarios, each prediction starting from
 /// the service's model rebuilt from an earlier simulated day of the same machine, and the
-/// service's schedule against a fixed cadence with as many cycles.
-pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode> {
+/// schedules: the default (minute offsets), the tool-tip rule (the model's band in the loop)
+/// and a fixed cadence with as many cycles as each.
+pub fn compensation(
+    json: bool,
+    after_stop: Option<Vec<f64>>,
+    tip_sigma: Option<f64>,
+    only: Option<Vec<String>>,
+) -> Result<ExitCode> {
     use crate::strategies::{BENCH_SCENARIOS, ScheduleComparison, bench_scenario};
-    let mut policy = driftwatch_machine::scheduler::SchedulePolicy::default();
+    // The shipped policy with the tool-tip rule at the tuned limit unless told otherwise.
+    let mut policy = driftwatch_machine::scheduler::SchedulePolicy {
+        tip_sigma_um: crate::strategies::TUNED_TIP_SIGMA_UM,
+        ..Default::default()
+    };
+    if let Some(t) = tip_sigma {
+        anyhow::ensure!(t.is_finite() && t >= 0.0, "--tip-sigma takes um >= 0");
+        policy.tip_sigma_um = t;
+    }
     let own_schedule = after_stop.is_none();
     if let Some(a) = after_stop {
         anyhow::ensure!(
@@ -323,7 +337,17 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
         policy.after_stop_min = a;
     }
     let mut all: Vec<(String, String, ScheduleComparison)> = Vec::new();
-    for (name, start) in BENCH_SCENARIOS {
+    if let Some(only) = &only
+        && let Some(bad) = only
+            .iter()
+            .find(|n| !BENCH_SCENARIOS.iter().any(|(b, _)| b == n))
+    {
+        anyhow::bail!("--scenarios: {bad} is not a benchmark scenario");
+    }
+    let chosen = BENCH_SCENARIOS
+        .into_iter()
+        .filter(|(n, _)| only.as_ref().is_none_or(|o| o.iter().any(|x| x == n)));
+    for (name, start) in chosen {
         let c = bench_scenario(name, &policy, own_schedule)
             .with_context(|| format!("scenario {name}"))?;
         all.push((name.to_string(), start.to_string(), c));
@@ -331,7 +355,9 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
     if json {
         let v: Vec<serde_json::Value> = all
             .iter()
-            .map(|(n, s, c)| serde_json::json!({"scenario": n, "model_from": s, "result": c}))
+            .map(|(n, s, c)| {
+                serde_json::json!({"scenario": n, "model_from": s, "schedules": c.summary(), "result": c})
+            })
             .collect();
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(ExitCode::SUCCESS);
@@ -347,13 +373,39 @@ pub fn compensation(json: bool, after_stop: Option<Vec<f64>>) -> Result<ExitCode
     for (name, start, sc) in &all {
         print_scenario(name, start, sc);
     }
+    println!(
+        "\nschedules: cycles per day, and the largest tool-tip residual of the prediction while cutting (* over the whole day: a program that never cuts), um"
+    );
+    println!(
+        "  {:<14} {:>18} {:>18} {:>18} {:>18}",
+        "", "minute offsets", "tool tip", "fixed, as tip", "fixed, as offsets"
+    );
+    for (name, _, sc) in &all {
+        let s = sc.summary();
+        let cell = |l: crate::strategies::ScheduleLine| {
+            format!(
+                "{:>5.1}/d {:>6.2}{}",
+                l.cycles_per_day,
+                l.max_tip_predicted_um,
+                if l.while_cutting { " " } else { "*" }
+            )
+        };
+        println!(
+            "  {:<14} {:>18} {:>18} {:>18} {:>18}",
+            name,
+            cell(s.old),
+            cell(s.new),
+            cell(s.fixed),
+            cell(s.fixed_old)
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 
 /// One scenario of `bench compensation`: each channel's residual by strategy, the tool tip,
 /// and the service's schedule against a fixed cadence.
 fn print_scenario(name: &str, start: &str, sc: &crate::strategies::ScheduleComparison) {
-    let c = &sc.adaptive;
+    let c = sc.day();
     println!(
         "\n{name}: {} min, {} cycles ({} ok); model from {start}",
         c.minutes, c.cycles, c.cycles_ok
@@ -426,53 +478,46 @@ fn print_scenario(name: &str, start: &str, sc: &crate::strategies::ScheduleCompa
     print_schedule(sc);
 }
 
-/// The service's schedule against a fixed cadence with as many cycles.
+/// The schedules side by side: the default (minute offsets), the policy's, and a fixed cadence with as
+/// many cycles as each.
 fn print_schedule(sc: &crate::strategies::ScheduleComparison) {
-    let c = &sc.adaptive;
-    let f = &sc.fixed;
-    let ez =
-        |r: &crate::strategies::StrategyResult| r.errors.get("EZ0B").map_or(f64::NAN, |s| s.max);
+    let ez = |r: &crate::strategies::ScheduleRun| {
+        r.result
+            .predicted
+            .errors
+            .get("EZ0B")
+            .map_or(f64::NAN, |s| s.max)
+    };
     println!(
-        "  schedule, {} cycles each: the service's (after stops, warm-up cadence) vs a fixed cadence (idle minutes only)",
-        sc.adaptive_min.len()
+        "  schedules (idle minutes only): cycles, per day, within 30 min after a stop; largest tool-tip residual while cutting (predicted, last measured; * the whole day: no cutting), EZ0B predicted max"
     );
-    println!(
-        "    cycles within 30 min after a stop: {} vs {}",
-        sc.adaptive_after_stops, sc.fixed_after_stops
-    );
-    for (label, ours, fixed) in [
-        ("predicted", &c.predicted, &f.predicted),
-        ("last measured", &c.last_measured, &f.last_measured),
+    for (label, r) in [
+        ("minute offsets (the default)", &sc.old),
+        ("the model's tool-tip band", &sc.new),
+        ("fixed cadence, as many as tip", &sc.fixed),
+        ("fixed cadence, as many as min.", &sc.fixed_old),
     ] {
+        let l = crate::strategies::ScheduleLine::from(r);
         println!(
-            "    max residual, {label}: tool tip {:.2} (at {} min) vs {:.2} (at {} min) um, EZ0B {:.2} vs {:.2} um",
-            ours.tool_tip.max,
-            ours.tool_tip.max_at_min,
-            fixed.tool_tip.max,
-            fixed.tool_tip.max_at_min,
-            ez(ours),
-            ez(fixed)
+            "    {:<30} {:>3} cycles {:>5.1}/d {:>2} after stops; tool tip {:>6.2} / {:>6.2} um{} ; EZ0B {:>5.2} um",
+            label,
+            l.cycles,
+            l.cycles_per_day,
+            r.after_stops,
+            l.max_tip_predicted_um,
+            l.max_tip_last_measured_um,
+            if l.while_cutting { "" } else { " *" },
+            ez(r)
         );
     }
-    if c.predicted.tool_tip_cutting.max_at_min.is_nan() {
-        println!("    no cutting in this program");
-    } else {
-        println!(
-            "    max tool-tip residual while cutting: predicted {:.2} (at {} min) vs {:.2} (at {} min) um, last measured {:.2} (at {} min) vs {:.2} (at {} min) um",
-            c.predicted.tool_tip_cutting.max,
-            c.predicted.tool_tip_cutting.max_at_min,
-            f.predicted.tool_tip_cutting.max,
-            f.predicted.tool_tip_cutting.max_at_min,
-            c.last_measured.tool_tip_cutting.max,
-            c.last_measured.tool_tip_cutting.max_at_min,
-            f.last_measured.tool_tip_cutting.max,
-            f.last_measured.tool_tip_cutting.max_at_min
-        );
+    for (label, r) in [
+        ("minute offsets", &sc.old),
+        ("tool tip", &sc.new),
+        ("fixed as tip", &sc.fixed),
+        ("fixed as offsets", &sc.fixed_old),
+    ] {
+        println!("    cycle times (min), {label}: {:?}", r.times_min);
     }
-    println!(
-        "    cycle times (min): service {:?}; fixed {:?}",
-        sc.adaptive_min, sc.fixed_min
-    );
 }
 
 /// The diagnosis on `days` production days of the ambient-swing hall (logged), a cycle every

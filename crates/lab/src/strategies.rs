@@ -22,6 +22,7 @@ use driftwatch_machine::compensation::PredictionPolicy;
 use driftwatch_machine::live_model::LiveModel;
 use driftwatch_machine::phase::{PhaseConfig, PhaseTracker};
 use driftwatch_machine::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
+use driftwatch_machine::tool_tip;
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::{SimError, Simulation, simulate};
 use driftwatch_thermal::model::{Event, ModelConfig, TemperatureInput};
@@ -67,6 +68,116 @@ pub fn scheduled_cycles(scn: &Scenario, plan: &Plan, policy: &SchedulePolicy) ->
         }
     }
     out
+}
+
+/// Cycle start times (min from the scenario start) that the service would choose with its
+/// thermal model in the loop: each minute the scheduler gets what the machine core gives it
+/// (each error's band against the model's limits, the tool tip's band through
+/// [`tool_tip::uncertainty`]); the model (`prediction`, rebuilt from `history` as in
+/// [`compare`]) gets the day's inputs and each validated cycle once its last detection is in.
+/// Each cycle is simulated when it is ordered: the truth simulator is causal (a cycle changes
+/// nothing before its start, and the noise is drawn in time order), so its result is the one
+/// the day with every later cycle gives too. Without a fitted model this is
+/// [`scheduled_cycles`].
+pub fn scheduled_with_model(
+    scn: &Scenario,
+    k: &Kinematics,
+    plan: &Plan,
+    policy: &SchedulePolicy,
+    history: &[Event],
+    prediction: &PredictionPolicy,
+) -> Result<Vec<f64>, SimError> {
+    let Ok(mut phase) = PhaseTracker::new(PhaseConfig::default()) else {
+        return Ok(Vec::new());
+    };
+    let mut live = LiveModel::new(prediction.clone());
+    live.restore(history);
+    let sens = tool_tip::sensitivity(k, policy.tip_point_mm, policy.tip_pose_deg);
+    let t0 = scn.start_ns();
+    let mut day = scn.clone();
+    day.cycles.at_min = Vec::new();
+    day.cycles.every_min = None;
+    let mut sim = simulate(&day, k, plan)?;
+    let mut inputs = simulation_inputs(&sim);
+    let mut seen: Vec<SeenCycle> = Vec::new();
+    let mut ok: Vec<bool> = Vec::new();
+    let (mut k_in, mut k_seen) = (0, 0);
+    let mut st = SchedulerState::default();
+    let cycle_min = (plan.machine_time_s / 60.0).ceil() as i64;
+    let mut open_until: Option<i64> = None;
+    for m in 0..scn.duration_min as i64 {
+        let t = t0 + m * MIN;
+        // The model takes what is known by now, in time order (inputs first at equal times).
+        loop {
+            let next_in = inputs.get(k_in).map(Event::t_ns).filter(|x| *x <= t);
+            let next_seen = seen.get(k_seen).map(|c| c.known_ns).filter(|x| *x <= t);
+            match (next_in, next_seen) {
+                (Some(a), b) if b.is_none_or(|b| a <= b) => {
+                    live.input(inputs[k_in].clone());
+                    k_in += 1;
+                }
+                (_, Some(_)) => {
+                    let c = &seen[k_seen];
+                    live.observe(c.t_ref_ns, &c.errors, &c.sigma);
+                    k_seen += 1;
+                }
+                _ => break,
+            }
+        }
+        if let Some(end) = open_until
+            && m >= end
+        {
+            let n = day.cycles.at_min.len();
+            st.finished(ok.get(n - 1).copied().unwrap_or(false), t);
+            let _ = phase.on_cycle(t, false);
+            open_until = None;
+        }
+        if open_until.is_some() {
+            continue;
+        }
+        if let Some(s) = scn.spindle.iter().rev().find(|s| s.at_min <= m as f64) {
+            let _ = phase.on_state(t, s.state);
+            let _ = phase.on_spindle(t, s.rpm);
+        }
+        // What the machine core's look at the prediction leaves in the scheduler's state.
+        match live.predict(t) {
+            Some(preds) => {
+                st.uncertain = match (live.uncertain(&preds, t), &st.uncertain) {
+                    (Some(mut u), Some(old)) => {
+                        u.since_ns = old.since_ns;
+                        Some(u)
+                    }
+                    (u, _) => u,
+                };
+                st.look(Some(tool_tip::uncertainty(
+                    &sens,
+                    &preds,
+                    live.suspect(),
+                    t,
+                )));
+            }
+            None => st.look(None),
+        }
+        let info = phase.phase(t);
+        if let Decision::Start { .. } = decide(policy, &info, &st, t) {
+            let n = day.cycles.at_min.len() as i64 + 1;
+            st.started(n, t);
+            let _ = phase.on_cycle(t, true);
+            open_until = Some(m + cycle_min);
+            day.cycles.at_min.push(m as f64);
+            sim = simulate(&day, k, plan)?;
+            let mut checks = CycleChecks::new(k);
+            checks.expected = Some(driftwatch_core::cycle::plan_measurements(plan));
+            let (outcomes, _) = process_all(k, &sim.detection_stream(), &checks);
+            ok = outcomes.iter().map(CycleOutcome::is_ok).collect();
+            seen = seen_cycles(&sim, &outcomes);
+            inputs = simulation_inputs(&sim);
+            // The new cycle's spins start now: what came before is the same, what comes at
+            // this minute is taken again with them (a repeated input is no change).
+            k_in = inputs.partition_point(|e| e.t_ns() < t);
+        }
+    }
+    Ok(day.cycles.at_min)
 }
 
 /// A validated cycle as the service sees it: its errors at the reference time (the mean
@@ -278,10 +389,9 @@ impl Comparison {
     }
 }
 
-/// Where the tool-tip error is evaluated: a point on the table (mm, table frame) at a pose
-/// (B, C in deg) that every error reaches.
-pub const REFERENCE_POINT_MM: [f64; 3] = [100.0, 100.0, 50.0];
-pub const REFERENCE_POSE_DEG: [f64; 2] = [-45.0, 30.0];
+/// Where the tool-tip error is evaluated: the scheduler's reference tool tip, a point on the
+/// table (mm, table frame) at a pose (B, C in deg) that every error reaches.
+pub use driftwatch_machine::tool_tip::{REFERENCE_POINT_MM, REFERENCE_POSE_DEG};
 
 fn tool_tip_um(k: &Kinematics, residual: &BTreeMap<String, f64>) -> f64 {
     let nominal = k.nominal_state();
@@ -453,6 +563,12 @@ pub enum BenchError {
     Noise(f64),
 }
 
+/// The tool-tip limit `bench compensation` tries by default, um: on the tuning days (patent,
+/// two-shift), of the limits 0.2-2.0 um that took fewer cycles than the minute offsets on both,
+/// the one whose largest residual came closest to theirs (worst ratio first, then the other);
+/// Monday and ambient check it.
+pub const TUNED_TIP_SIGMA_UM: f64 = 0.5;
+
 /// The benchmark's scenarios and what each one's model starts from.
 pub const BENCH_SCENARIOS: [(&str, &str); 4] = [
     ("patent", "the same test on an earlier day (other noise)"),
@@ -539,16 +655,103 @@ pub fn spindle_stops(scn: &Scenario) -> Vec<f64> {
         .collect()
 }
 
-/// The service's schedule against a fixed cadence with as many cycles.
+/// One schedule on the day under test: its cycle start times and what each strategy left.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScheduleRun {
+    pub times_min: Vec<f64>,
+    /// Cycles per 24 h of the scenario's duration.
+    pub cycles_per_day: f64,
+    /// Cycles that start within 30 min after a spindle stop.
+    pub after_stops: usize,
+    pub result: Comparison,
+}
+
+impl ScheduleRun {
+    /// The largest tool-tip residual of the prediction while the NC cut, or over the whole day
+    /// in a program that never cuts (the patent's), um, and whether it is the cutting one.
+    pub fn max_tip(&self) -> (f64, bool) {
+        let c = &self.result.predicted;
+        if c.tool_tip_cutting.max_at_min.is_nan() {
+            (c.tool_tip.max, false)
+        } else {
+            (c.tool_tip_cutting.max, true)
+        }
+    }
+}
+
+/// The schedules of one benchmark scenario: the default (minute offsets only), the
+/// policy under test (the model's tool-tip band in the loop), and a fixed cadence with as many
+/// cycles as each.
 #[derive(Debug, Clone, Serialize)]
 pub struct ScheduleComparison {
-    pub adaptive_min: Vec<f64>,
-    pub fixed_min: Vec<f64>,
-    /// Cycles that start within 30 min after a spindle stop, in each schedule.
-    pub adaptive_after_stops: usize,
-    pub fixed_after_stops: usize,
-    pub adaptive: Comparison,
-    pub fixed: Comparison,
+    /// The day with the scenario's own cycle times (the patent's), when it has them and they
+    /// were kept: the strategies are shown on it.
+    pub own: Option<Comparison>,
+    /// [`SchedulePolicy::cadence_only`]: the minute offsets, the default.
+    pub old: ScheduleRun,
+    /// The policy under test.
+    pub new: ScheduleRun,
+    /// A fixed cadence with as many cycles as `new`, over the same span.
+    pub fixed: ScheduleRun,
+    /// A fixed cadence with as many cycles as `old`, over its span.
+    pub fixed_old: ScheduleRun,
+}
+
+/// One schedule in a line: cycles, cycles per day, the largest tool-tip residual of the
+/// prediction while cutting (over the day in a program that never cuts) and of the last
+/// measured values.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ScheduleLine {
+    pub cycles: usize,
+    pub cycles_per_day: f64,
+    pub max_tip_predicted_um: f64,
+    pub max_tip_last_measured_um: f64,
+    /// Whether the maxima are over the minutes the NC cut (else over the whole day).
+    pub while_cutting: bool,
+}
+
+impl From<&ScheduleRun> for ScheduleLine {
+    fn from(r: &ScheduleRun) -> Self {
+        let (max, cutting) = r.max_tip();
+        let lm = &r.result.last_measured;
+        ScheduleLine {
+            cycles: r.times_min.len(),
+            cycles_per_day: r.cycles_per_day,
+            max_tip_predicted_um: max,
+            max_tip_last_measured_um: if cutting {
+                lm.tool_tip_cutting.max
+            } else {
+                lm.tool_tip.max
+            },
+            while_cutting: cutting,
+        }
+    }
+}
+
+/// The comparison of one scenario's schedules in lines.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ScheduleSummary {
+    pub old: ScheduleLine,
+    pub new: ScheduleLine,
+    pub fixed: ScheduleLine,
+    pub fixed_old: ScheduleLine,
+}
+
+impl ScheduleComparison {
+    pub fn summary(&self) -> ScheduleSummary {
+        ScheduleSummary {
+            old: (&self.old).into(),
+            new: (&self.new).into(),
+            fixed: (&self.fixed).into(),
+            fixed_old: (&self.fixed_old).into(),
+        }
+    }
+
+    /// The day the strategies are shown on: the scenario's own cycle times, else the policy's
+    /// schedule.
+    pub fn day(&self) -> &Comparison {
+        self.own.as_ref().unwrap_or(&self.new.result)
+    }
 }
 
 fn after_stops(times: &[f64], stops: &[f64]) -> usize {
@@ -558,10 +761,11 @@ fn after_stops(times: &[f64], stops: &[f64]) -> usize {
         .count()
 }
 
-/// One benchmark scenario: fit the model on the earlier day (scheduled by the default
-/// policy), then compare on the day itself, once with the schedule of `policy` and once with
-/// a fixed cadence of as many cycles. A scenario with its own cycle times (the patent's) keeps
-/// them unless `own_schedule` is false.
+/// One benchmark scenario: fit the model on the earlier day (scheduled by the minute offsets,
+/// the same history for every schedule), then compare on the day itself: the default
+/// schedule, the schedule of `policy` with the model in the loop, and a fixed cadence with as
+/// many cycles as each. A scenario with its own cycle times (the patent's) is also run with
+/// them, for the strategies, unless `own_schedule` is false.
 pub fn bench_scenario(
     name: &str,
     policy: &SchedulePolicy,
@@ -577,7 +781,7 @@ pub fn bench_scenario(
         earlier.ambient.amplitude_k = 1.0;
         earlier.ambient.peak_h = 13.0;
     }
-    let (train_sim, train_out) = run_day(&earlier, &k, &plan, &SchedulePolicy::default())?;
+    let (train_sim, train_out) = run_day(&earlier, &k, &plan, &SchedulePolicy::cadence_only())?;
     // The earlier day two days back: the machine stands cold in between, as the day under
     // test starts cold.
     let mut history = simulation_events(&train_sim, &train_out, -2 * 1440 * MIN);
@@ -592,32 +796,48 @@ pub fn bench_scenario(
         model: bench_model_config(),
         ..Default::default()
     };
-    let mut day = scn.clone();
-    if day.cycle_times_min().is_empty() || !own_schedule {
-        day.cycles.at_min = scheduled_cycles(&day, &plan, policy);
-        day.cycles.every_min = None;
-    }
-    let adaptive_min = day.cycle_times_min();
-    let (sim, outcomes) = run_day(&day, &k, &plan, policy)?;
-    let adaptive = compare(&k, &sim, &outcomes, &history, &prediction);
-    let (from, to) = (
-        adaptive_min.first().copied().unwrap_or(0.0),
-        adaptive_min.last().copied().unwrap_or(0.0),
-    );
-    let mut fixed_day = scn.clone();
-    fixed_day.cycles.at_min = fixed_cycles(&scn, &plan, adaptive_min.len(), from, to);
-    fixed_day.cycles.every_min = None;
-    let fixed_min = fixed_day.cycle_times_min();
-    let (sim, outcomes) = run_day(&fixed_day, &k, &plan, policy)?;
-    let fixed = compare(&k, &sim, &outcomes, &history, &prediction);
     let stops = spindle_stops(&scn);
+    let run = |times: Vec<f64>| -> Result<ScheduleRun, BenchError> {
+        let mut day = scn.clone();
+        day.cycles.at_min = times.clone();
+        day.cycles.every_min = None;
+        // Simulated as given, also when a schedule has no cycle (`run_day` would schedule it).
+        let sim = simulate(&day, &k, &plan)?;
+        let mut checks = CycleChecks::new(&k);
+        checks.expected = Some(driftwatch_core::cycle::plan_measurements(&plan));
+        let (outcomes, _) = process_all(&k, &sim.detection_stream(), &checks);
+        Ok(ScheduleRun {
+            cycles_per_day: times.len() as f64 * 1440.0 / scn.duration_min,
+            after_stops: after_stops(&times, &stops),
+            times_min: times,
+            result: compare(&k, &sim, &outcomes, &history, &prediction),
+        })
+    };
+    let fixed_like = |times: &[f64]| {
+        let (from, to) = (
+            times.first().copied().unwrap_or(0.0),
+            times.last().copied().unwrap_or(0.0),
+        );
+        fixed_cycles(&scn, &plan, times.len(), from, to)
+    };
+    let own = if own_schedule && !scn.cycle_times_min().is_empty() {
+        Some(run(scn.cycle_times_min())?.result)
+    } else {
+        None
+    };
+    let mut bare = scn.clone();
+    bare.cycles.at_min = Vec::new();
+    bare.cycles.every_min = None;
+    let old_min = scheduled_cycles(&bare, &plan, &SchedulePolicy::cadence_only());
+    let new_min = scheduled_with_model(&bare, &k, &plan, policy, &history, &prediction)?;
+    let fixed_min = fixed_like(&new_min);
+    let fixed_old_min = fixed_like(&old_min);
     Ok(ScheduleComparison {
-        adaptive_after_stops: after_stops(&adaptive_min, &stops),
-        fixed_after_stops: after_stops(&fixed_min, &stops),
-        adaptive_min,
-        fixed_min,
-        adaptive,
-        fixed,
+        own,
+        old: run(old_min)?,
+        new: run(new_min)?,
+        fixed: run(fixed_min)?,
+        fixed_old: run(fixed_old_min)?,
     })
 }
 
@@ -662,5 +882,57 @@ mod tests {
             assert_eq!(seg.state, MachineStateKind::Idle, "fixed cycle at {t} min");
         }
         assert_ne!(fixed, times);
+    }
+
+    /// The model in the loop: without the tool-tip rule and with each error's limit out of
+    /// reach it orders the minute offsets' cycles; with the tuned limit, every cycle still
+    /// falls in an idle window, at least `min_spacing_min` apart, and the day takes fewer.
+    #[test]
+    fn the_model_in_the_loop_orders_cycles_in_idle_windows_and_fewer_of_them() {
+        let scn = Scenario::load("two_shift").unwrap();
+        let k = Kinematics::load(&scn.machine).unwrap();
+        let plan = Plan::build(
+            &k,
+            &driftwatch_core::plan::PlanConfig::load(&scn.plan).unwrap(),
+        )
+        .unwrap();
+        let mut earlier = scn.clone();
+        earlier.seed += 1000;
+        let (sim, out) = run_day(&earlier, &k, &plan, &SchedulePolicy::cadence_only()).unwrap();
+        let history = simulation_events(&sim, &out, -2 * 1440 * MIN);
+        let mut prediction = PredictionPolicy {
+            model: bench_model_config(),
+            ..Default::default()
+        };
+        let old = scheduled_cycles(&scn, &plan, &SchedulePolicy::cadence_only());
+        prediction.cycle_above_sigma_um = 1e6;
+        prediction.cycle_above_sigma_urad = 1e6;
+        let off = SchedulePolicy::cadence_only();
+        assert_eq!(
+            scheduled_with_model(&scn, &k, &plan, &off, &history, &prediction).unwrap(),
+            old
+        );
+        let policy = SchedulePolicy {
+            tip_sigma_um: TUNED_TIP_SIGMA_UM,
+            ..Default::default()
+        };
+        let prediction = PredictionPolicy {
+            model: bench_model_config(),
+            ..Default::default()
+        };
+        let new = scheduled_with_model(&scn, &k, &plan, &policy, &history, &prediction).unwrap();
+        assert!(
+            !new.is_empty() && new.len() < old.len(),
+            "{new:?} vs {old:?}"
+        );
+        assert!(
+            new.windows(2)
+                .all(|w| w[1] - w[0] >= policy.min_spacing_min),
+            "{new:?}"
+        );
+        for t in &new {
+            let seg = scn.spindle.iter().rev().find(|s| s.at_min <= *t).unwrap();
+            assert_eq!(seg.state, MachineStateKind::Idle, "cycle at {t} min");
+        }
     }
 }

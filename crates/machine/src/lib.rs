@@ -12,4 +12,5 @@ pub mod nc_door;
 pub mod nc_offsets;
 pub mod phase;
 pub mod scheduler;
+pub mod tool_tip;
 pub mod verification;

@@ -442,6 +442,8 @@ pub struct MachineCore {
     phase: PhaseTracker,
     policy: SchedulePolicy,
     sched: SchedulerState,
+    /// The tool tip's displacement per unit of each error at the policy's reference pose.
+    tip_sensitivity: BTreeMap<String, [f64; 3]>,
     limits: ValidationLimits,
     alerts: AlertEngine,
     /// The alert state the store was last asked to keep: a change emits it again.
@@ -559,11 +561,17 @@ impl MachineCore {
             },
             ..Default::default()
         };
+        let tip_sensitivity = crate::tool_tip::sensitivity(
+            &k,
+            settings.schedule.tip_point_mm,
+            settings.schedule.tip_pose_deg,
+        );
         let core = MachineCore {
             k,
             layout,
             checks,
             phase,
+            tip_sensitivity,
             policy: settings.schedule.clone(),
             sched,
             limits: settings.validation.clone(),
@@ -634,6 +642,11 @@ impl MachineCore {
             Input::Geometry { label, geometry } => {
                 match (*self.k).clone().with_geometry(&geometry, &label) {
                     Ok(k) => {
+                        self.tip_sensitivity = crate::tool_tip::sensitivity(
+                            &k,
+                            self.policy.tip_point_mm,
+                            self.policy.tip_pose_deg,
+                        );
                         self.k = Arc::new(k);
                         out.push(Effect::Log(
                             Level::Info,
@@ -1105,6 +1118,7 @@ impl MachineCore {
         }
         self.last_prediction_ns = now_ns;
         let Some(preds) = self.thermal.predict(now_ns) else {
+            self.sched.look(None);
             self.show_model();
             self.view.thermal.revision += 1;
             return;
@@ -1119,6 +1133,12 @@ impl MachineCore {
             }
             (u, _) => u,
         };
+        self.sched.look(Some(crate::tool_tip::uncertainty(
+            &self.tip_sensitivity,
+            &preds,
+            self.thermal.suspect(),
+            now_ns,
+        )));
         // Not during a cycle, and not in the moment a measured set went out.
         let idle = self.open.is_none() && self.requested.is_none() && self.solving.is_none();
         let note = if idle

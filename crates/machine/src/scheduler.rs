@@ -8,6 +8,13 @@
 //! Every rule is stated against the start of the last cycle, so one cycle serves every rule
 //! that was due when it started: two rules falling due together, or several after-stop
 //! offsets missed while the machine was busy, give one cycle, not a burst.
+//!
+//! While the thermal model is fitted and trusted, the predicted uncertainty of the tool tip
+//! ([`crate::tool_tip`]) orders the cycles instead of the minute offsets: a cycle is due once
+//! it exceeds `tip_sigma_um`. The warm-up, after-stop and steady cadences are the rules of a
+//! machine whose model cannot say (not fitted yet, suspect, or beaten on its held-out cycles
+//! by a fallback); staleness, retries, operator requests, spacing, timeouts and idle windows
+//! hold either way.
 
 use std::fmt;
 
@@ -46,6 +53,21 @@ pub struct SchedulePolicy {
     pub timeout_min: f64,
     /// Retries of a failed or abandoned cycle before waiting for the next due one. Default 2.
     pub max_retries: u32,
+    /// A cycle is due once the thermal model's predicted standard uncertainty of the tool tip
+    /// at the reference pose exceeds this, um; 0 (the default) turns the rule off. 0.5 is the
+    /// limit `bench compensation` chose on its patent and two-shift days and checked on Monday
+    /// and ambient: a third to three quarters fewer cycles, the largest residual while cutting
+    /// as good on two days and up to 0.24 um worse on two; off until the service's own
+    /// integration tests have run with it.
+    pub tip_sigma_um: f64,
+    /// While the model's tool-tip uncertainty is trusted (and `tip_sigma_um` is on), it
+    /// replaces the warm-up, after-stop and steady cadences; `max_age_min` stays the safety
+    /// net. False keeps the cadences as well. Default true.
+    pub tip_replaces_cadence: bool,
+    /// The reference tool tip: a point on the table, mm (table frame), at a pose of the two
+    /// rotary axes, deg (B, C on a table_bc machine). Defaults [100, 100, 50] and [-45, 30].
+    pub tip_point_mm: [f64; 3],
+    pub tip_pose_deg: [f64; 2],
 }
 
 impl Default for SchedulePolicy {
@@ -58,11 +80,24 @@ impl Default for SchedulePolicy {
             max_age_min: 240.0,
             timeout_min: 5.0,
             max_retries: 2,
+            tip_sigma_um: 0.0,
+            tip_replaces_cadence: true,
+            tip_point_mm: crate::tool_tip::REFERENCE_POINT_MM,
+            tip_pose_deg: crate::tool_tip::REFERENCE_POSE_DEG,
         }
     }
 }
 
 impl SchedulePolicy {
+    /// The schedule by minute offsets alone (the default, the tool-tip rule off): what the
+    /// benches compare the tool-tip rule with.
+    pub fn cadence_only() -> Self {
+        SchedulePolicy {
+            tip_sigma_um: 0.0,
+            ..Default::default()
+        }
+    }
+
     /// [`decide`] takes any policy without panicking, but only a valid one gives sensible
     /// decisions; check it where it is loaded.
     pub fn validate(&self) -> Result<(), ScheduleError> {
@@ -94,6 +129,17 @@ impl SchedulePolicy {
         }
         if !driftwatch_core::units::positive(self.timeout_min) {
             return bad("timeout_min must be > 0");
+        }
+        if !driftwatch_core::units::non_negative(self.tip_sigma_um) {
+            return bad("tip_sigma_um must be >= 0");
+        }
+        if !self
+            .tip_point_mm
+            .iter()
+            .chain(&self.tip_pose_deg)
+            .all(|x| x.is_finite())
+        {
+            return bad("tip_point_mm and tip_pose_deg must be finite");
         }
         Ok(())
     }
@@ -138,6 +184,20 @@ pub struct SchedulerState {
     /// Set while the thermal model's prediction of some error is less certain than its limit:
     /// from when, and which error.
     pub uncertain: Option<Uncertain>,
+    /// The model's predicted uncertainty of the tool tip at its last look (none: no model
+    /// predicts), and at its first look after the last good result: the least a cycle gets
+    /// it down to.
+    pub tip: Option<TipUncertainty>,
+    pub tip_after_good: Option<TipUncertainty>,
+}
+
+/// The thermal model's predicted standard uncertainty of the tool tip at the reference pose
+/// ([`crate::tool_tip::uncertainty`]) at `t_ns`, and why it cannot be trusted, if it cannot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TipUncertainty {
+    pub t_ns: i64,
+    pub sigma_um: f64,
+    pub untrusted: Option<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -182,6 +242,21 @@ impl SchedulerState {
         }
     }
 
+    /// The machine core looked at the model's prediction: `tip` is the tool tip's band now
+    /// (none: the model does not predict).
+    pub fn look(&mut self, tip: Option<TipUncertainty>) {
+        if let Some(t) = &tip
+            && self.last_good_ns.is_some_and(|g| t.t_ns > g)
+            && self
+                .tip_after_good
+                .as_ref()
+                .is_none_or(|a| self.last_good_ns.is_some_and(|g| a.t_ns <= g))
+        {
+            self.tip_after_good = Some(t.clone());
+        }
+        self.tip = tip;
+    }
+
     /// An operator asks for a cycle. A request already pending is kept as it is (its time and
     /// requester): one cycle serves both.
     pub fn request(&mut self, by: impl Into<String>, now_ns: i64) {
@@ -214,6 +289,10 @@ pub enum Reason {
         error: String,
         sigma: f64,
     },
+    /// The predicted uncertainty of the tool tip exceeds `tip_sigma_um`.
+    TipUncertain {
+        sigma_um: f64,
+    },
     Operator {
         by: String,
     },
@@ -239,6 +318,12 @@ impl fmt::Display for Reason {
             Reason::Stale => write!(f, "the last good result is stale"),
             Reason::Uncertain { error, sigma } => {
                 write!(f, "the predicted {error} is uncertain (sigma {sigma:.1})")
+            }
+            Reason::TipUncertain { sigma_um } => {
+                write!(
+                    f,
+                    "the predicted tool tip is uncertain (sigma {sigma_um:.2} um)"
+                )
             }
             Reason::Operator { by } => write!(f, "requested by {by}"),
             Reason::Retry => write!(f, "retry of a failed cycle"),
@@ -287,7 +372,9 @@ pub enum Decision {
 /// open nothing else happens. A cycle starts only when the NC is idle and not cutting. An
 /// operator request starts one at the first such moment; every other reason also waits for
 /// `min_spacing_min` after the last start. When several reasons are due the reported one is,
-/// by priority: operator, retry, after-stop, warm-up, steady, stale.
+/// by priority: operator, retry, after-stop, warm-up, steady, uncertain error, uncertain tool
+/// tip, stale. While the tool-tip uncertainty is in charge ([`tip_in_charge`]) and
+/// `tip_replaces_cadence` holds, after-stop, warm-up and steady are not rules.
 pub fn decide(
     policy: &SchedulePolicy,
     phase: &PhaseInfo,
@@ -357,7 +444,10 @@ fn due_times(
     if st.failures > 0 && policy.retries(st.failures) {
         dues.push((st.last_failure_ns.unwrap_or(i64::MIN), Reason::Retry));
     }
+    let tip = tip_in_charge(policy, st);
+    let cadence = !(policy.tip_replaces_cadence && tip.is_some());
     match (phase.phase, phase.since_ns) {
+        _ if !cadence => {}
         (Phase::Cooling | Phase::Idle | Phase::Cold, Some(stop)) => {
             // An offset is served by any cycle started at or after it.
             let open: Vec<(i64, f64)> = policy
@@ -414,6 +504,20 @@ fn due_times(
             },
         ));
     }
+    // Only a look after the last cycle started and its result came in: the band it made
+    // drops at once, the look before it does not know.
+    if let Some(tip) = tip
+        && tip.sigma_um > policy.tip_sigma_um
+        && st.last_cycle_start_ns.is_none_or(|l| tip.t_ns > l)
+        && st.last_good_ns.is_none_or(|g| tip.t_ns > g)
+    {
+        dues.push((
+            tip.t_ns,
+            Reason::TipUncertain {
+                sigma_um: tip.sigma_um,
+            },
+        ));
+    }
     // A failed attempt counts like a result here: a machine whose cycles keep failing gets its
     // retries, not a cycle every min_spacing_min for as long as it stays stale.
     let basis = match (st.last_good_ns, last) {
@@ -427,6 +531,23 @@ fn due_times(
         Reason::Stale,
     ));
     dues
+}
+
+/// The model's tool-tip uncertainty when it orders the cycles: the rule is on, the last look
+/// found it trusted, and the last good result brought it under the limit. A band that stays
+/// over the limit right after a measurement (the model's discrepancy alone is wider) would
+/// order a cycle in every idle window for nothing: the cadences order them then.
+pub fn tip_in_charge<'a>(
+    policy: &SchedulePolicy,
+    st: &'a SchedulerState,
+) -> Option<&'a TipUncertainty> {
+    let floor_ok = st
+        .tip_after_good
+        .as_ref()
+        .is_none_or(|a| a.sigma_um <= policy.tip_sigma_um);
+    st.tip.as_ref().filter(|t| {
+        policy.tip_sigma_um > 0.0 && floor_ok && t.untrusted.is_none() && t.sigma_um.is_finite()
+    })
 }
 
 /// The earliest future time at which something may become due: a rule's time, no earlier
@@ -685,6 +806,150 @@ mod tests {
         assert!(matches!(
             decide(&policy, &t.phase(at(125.0)), &st, at(125.0)),
             Decision::Wait { .. }
+        ));
+    }
+
+    fn tip(t_min: f64, sigma_um: f64, untrusted: Option<&str>) -> Option<TipUncertainty> {
+        Some(TipUncertainty {
+            t_ns: at(t_min),
+            sigma_um,
+            untrusted: untrusted.map(str::to_string),
+        })
+    }
+
+    /// A trusted model's tool-tip band orders the cycles: below its limit the warm-up
+    /// cadence that is due does not run, above it a cycle starts (idle windows and spacing
+    /// still hold); an untrusted band, or the rule off, leaves the cadence in charge.
+    #[test]
+    fn a_trusted_tool_tip_band_replaces_the_cadences() {
+        assert_eq!(SchedulePolicy::default(), SchedulePolicy::cadence_only());
+        let policy = SchedulePolicy {
+            tip_sigma_um: 0.5,
+            ..Default::default()
+        };
+        let warm = PhaseInfo {
+            spindle_rpm: 20000.0,
+            ..idle_phase(Phase::WarmUp, Some(0.0))
+        };
+        // The warm-up cadence fell due at 40 (30 min after the cycle at 10).
+        let mut st = fresh_at(11.0);
+        assert_eq!(
+            decide(&policy, &warm, &st, at(45.0)),
+            Decision::Start {
+                reason: Reason::WarmUp
+            }
+        );
+        st.tip = tip(44.0, 0.4, None);
+        // The cadence is not a rule while the band is trusted: the next due is the staleness.
+        assert_eq!(
+            decide(&policy, &warm, &st, at(45.0)),
+            Decision::Wait {
+                next_due_ns: Some(at(251.0)),
+                reason: Reason::NothingDue
+            }
+        );
+        st.tip = tip(44.0, 1.3, None);
+        let over = Reason::TipUncertain { sigma_um: 1.3 };
+        assert_eq!(
+            decide(&policy, &warm, &st, at(45.0)),
+            Decision::Start {
+                reason: over.clone()
+            }
+        );
+        assert!(
+            over.to_string()
+                .contains("tool tip is uncertain (sigma 1.30 um)")
+        );
+        // Never while cutting, never within the spacing.
+        let cutting = PhaseInfo {
+            state: Cutting,
+            ..warm
+        };
+        assert_eq!(
+            decide(&policy, &cutting, &st, at(45.0)),
+            Decision::Wait {
+                next_due_ns: None,
+                reason: Reason::NotIdle(Cutting)
+            }
+        );
+        let recent = SchedulerState {
+            tip: tip(44.0, 1.3, None),
+            ..fresh_at(40.0)
+        };
+        assert_eq!(
+            decide(&policy, &warm, &recent, at(45.0)),
+            Decision::Wait {
+                next_due_ns: Some(at(49.0)),
+                reason: Reason::TooSoon
+            }
+        );
+        // A look from before the last result does not know the band that result made.
+        let before = SchedulerState {
+            tip: tip(44.0, 1.3, None),
+            ..fresh_at(44.5)
+        };
+        assert!(matches!(
+            decide(&policy, &warm, &before, at(60.0)),
+            Decision::Wait {
+                reason: Reason::NothingDue,
+                ..
+            }
+        ));
+        // The first look after the last good result finds the band over the limit: a cycle
+        // does not bring it under, so the cadence orders them.
+        let mut floor = fresh_at(11.0);
+        floor.look(tip(12.0, 1.2, None));
+        floor.look(tip(44.0, 1.3, None));
+        assert_eq!(floor.tip_after_good, tip(12.0, 1.2, None));
+        assert_eq!(
+            decide(&policy, &warm, &floor, at(45.0)),
+            Decision::Start {
+                reason: Reason::WarmUp
+            }
+        );
+        // A good result later, a look under the limit: in charge again.
+        floor.finished(true, at(46.0));
+        floor.look(tip(47.0, 0.4, None));
+        assert_eq!(floor.tip_after_good, tip(47.0, 0.4, None));
+        assert!(tip_in_charge(&policy, &floor).is_some());
+        // Untrusted: the cadence is back.
+        st.tip = tip(44.0, 0.4, Some("EZ0B is served from its last measured"));
+        assert_eq!(
+            decide(&policy, &warm, &st, at(45.0)),
+            Decision::Start {
+                reason: Reason::WarmUp
+            }
+        );
+        // The rule off, or kept beside the cadences.
+        st.tip = tip(44.0, 0.4, None);
+        for p in [
+            SchedulePolicy::cadence_only(),
+            SchedulePolicy {
+                tip_replaces_cadence: false,
+                ..policy.clone()
+            },
+        ] {
+            assert_eq!(
+                decide(&p, &warm, &st, at(45.0)),
+                Decision::Start {
+                    reason: Reason::WarmUp
+                }
+            );
+        }
+        // The after-stop offsets too.
+        let stopped = idle_phase(Phase::Cooling, Some(30.0));
+        assert_eq!(
+            decide(&SchedulePolicy::cadence_only(), &stopped, &st, at(46.0)),
+            Decision::Start {
+                reason: after_stop(15.0)
+            }
+        );
+        assert!(matches!(
+            decide(&policy, &stopped, &st, at(46.0)),
+            Decision::Wait {
+                reason: Reason::NothingDue,
+                ..
+            }
         ));
     }
 
@@ -1090,6 +1355,10 @@ mod tests {
         assert_eq!(p.after_stop_min, vec![15.0, 30.0]);
         assert_eq!(p.steady_every_min, Some(120.0));
         assert!(p.validate().is_ok());
+        assert!(SchedulePolicy::cadence_only().validate().is_ok());
+        let p: SchedulePolicy =
+            toml::from_str("tip_sigma_um = 0.5\ntip_replaces_cadence = false").unwrap();
+        assert_eq!((p.tip_sigma_um, p.tip_replaces_cadence), (0.5, false));
         assert!(toml::from_str::<SchedulePolicy>("every = 3").is_err());
         for bad in [
             "warmup_every_min = 0",
@@ -1099,6 +1368,8 @@ mod tests {
             "min_spacing_min = -1",
             "max_age_min = 0",
             "timeout_min = nan",
+            "tip_sigma_um = -1",
+            "tip_pose_deg = [nan, 0]",
         ] {
             let p: SchedulePolicy = toml::from_str(bad).unwrap();
             assert!(p.validate().is_err(), "{bad}");

@@ -477,3 +477,91 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
     );
     assert!(rig.core.view().open_alerts.is_empty());
 }
+
+/// A core started from a model fitted on an earlier day of every error (a 12-min lag seen
+/// every 30 min), the schedule's tool-tip limit `tip_sigma_um`.
+fn rig_with_model(tip_sigma_um: f64) -> Rig {
+    use driftwatch_thermal::model::Event;
+    let k = Kinematics::load("table_bc").unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+    let mut checks = CycleChecks::new(&k);
+    checks.expected = Some(plan_measurements(&plan));
+    let lag = |t: i64| 40.0 * (1.0 - (-(t as f64) / (12.0 * NS_PER_MIN as f64)).exp());
+    let mut earlier = vec![Event::Spindle {
+        t_ns: 0,
+        rpm: 20000.0,
+    }];
+    for i in 0..8 {
+        let t = (i * 30 + 5) * NS_PER_MIN;
+        for name in k.identify_names() {
+            earlier.push(Event::Observation {
+                t_ns: t,
+                channel: name,
+                value: lag(t),
+                sigma: Some(0.3),
+            });
+        }
+    }
+    let model = driftwatch_thermal::model::fit(&Default::default(), &earlier, None).unwrap();
+    let mut settings = Settings {
+        initial_model: Some(Arc::new(model)),
+        ..Default::default()
+    };
+    settings.schedule.tip_sigma_um = tip_sigma_um;
+    // Each error's own limit would ask for a cycle too (the model is a day's walk away from
+    // its data): out of the way of the rule under test.
+    settings.prediction.cycle_above_sigma_um = 1e6;
+    settings.prediction.cycle_above_sigma_urad = 1e6;
+    let tool = k.tool_id.clone();
+    let (core, _) = MachineCore::new(
+        Arc::new(k),
+        checks,
+        plan.steps.len(),
+        &settings,
+        Restored {
+            next_cycle: 7,
+            // The last cycle (20 min before) gave no good result: no look since one has
+            // shown the band a measurement leaves, and the rule is in charge from the first.
+            last_start_ns: Some(min(-20)),
+            last_good_ns: None,
+            ..Default::default()
+        },
+        T0,
+    )
+    .unwrap();
+    Rig { core, plan, tool }
+}
+
+/// The spindle starts on an idle NC: the warm-up cadence's first cycle is due at once. With
+/// the model's tool-tip band in charge it is not, unless that band is over its limit; the
+/// cadence-only schedule keeps it.
+#[test]
+fn the_model_tool_tip_band_orders_cycles_in_place_of_the_cadence() {
+    let start = |rig: &mut Rig| {
+        let now = min(0);
+        let spin = Input::Link(LinkEvent::Spindle(Timed {
+            t_ns: now,
+            msg: SpindleMsg { rpm: 20000.0 },
+        }));
+        let fx = feed(&mut rig.core, [idle(now), spin, Input::Tick], now);
+        let number = requested(&fx);
+        if let Some(number) = number {
+            rig.core.handle(
+                Input::CycleRequested {
+                    number,
+                    result: Ok(()),
+                },
+                now,
+            );
+        }
+        (number, rig.core.view().cycles.schedule.clone())
+    };
+    let (n, why) = start(&mut rig_with_model(0.0));
+    assert_eq!(n, Some(7), "{why}");
+    assert!(why.contains("warm-up cadence"), "{why}");
+    let (n, why) = start(&mut rig_with_model(1e6));
+    assert_eq!((n, why.as_str()), (None, "nothing due"));
+    let (n, why) = start(&mut rig_with_model(1e-6));
+    assert_eq!(n, Some(7), "{why}");
+    assert!(why.contains("tool tip is uncertain"), "{why}");
+}

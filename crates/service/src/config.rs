@@ -646,6 +646,7 @@ mod tests {
         // Every rule kind and setting is in the file, with its default.
         assert_eq!(c.alerts, default_rules());
         assert_eq!(c.verification, Default::default());
+        assert_eq!(c.schedule, SchedulePolicy::default());
     }
 
     #[test]
