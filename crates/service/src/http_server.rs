@@ -87,11 +87,13 @@ pub enum ServerError {
 
 /// File descriptors kept beside the connections: the runtime, standard streams and logs, the
 /// store's pool (a SQLite connection holds the database, its WAL and shared memory: 3 each;
-/// PostgreSQL one socket each), webhook deliveries, and per machine its recording, its link
-/// (MTConnect, OPC UA) and the recordings a diagnosis reads. Generous: a running service with
-/// one simulated machine holds about 30.
-pub fn reserved_fds(machines: usize) -> u64 {
-    64 + 16 * machines as u64
+/// PostgreSQL one socket each), webhook deliveries and the recordings diagnoses read (one file
+/// at a time each): 96 in all; and per machine its open recording, and for a link over a
+/// socket of its own (MTConnect, OPC UA) two more (the session and a reconnect). A running
+/// service with one simulated machine holds about 30; ten thousand nc_push machines hold one
+/// each (their NCs come in over the API's connections).
+pub fn reserved_fds(machines: usize, socket_links: usize) -> u64 {
+    96 + machines as u64 + 2 * socket_links as u64
 }
 
 /// The process's file limit as it stands after [`raise_file_limit`].
@@ -131,9 +133,10 @@ pub fn raise_file_limit() -> io::Result<FileLimit> {
 pub fn check_fits(
     max_connections: usize,
     machines: usize,
+    socket_links: usize,
     limit: FileLimit,
 ) -> Result<(), ServerError> {
-    let reserved = reserved_fds(machines);
+    let reserved = reserved_fds(machines, socket_links);
     // One more than the cap: a connection is accepted before the one it replaces is closed.
     let needed = (max_connections as u64)
         .saturating_add(1)
@@ -152,9 +155,13 @@ pub fn check_fits(
 }
 
 /// Raise the file limit and check the cap against it, before the server starts.
-pub fn prepare(limits: &ConnLimits, machines: usize) -> Result<(), ServerError> {
+pub fn prepare(
+    limits: &ConnLimits,
+    machines: usize,
+    socket_links: usize,
+) -> Result<(), ServerError> {
     match raise_file_limit() {
-        Ok(limit) => check_fits(limits.max_connections, machines, limit),
+        Ok(limit) => check_fits(limits.max_connections, machines, socket_links, limit),
         // No limit to read (not a Unix system): nothing to hold the cap to.
         Err(e) => {
             warn!(error = %e, "the open-file limit could not be read");
@@ -617,18 +624,25 @@ mod tests {
             soft: 1024,
             hard: 1024,
         };
-        let reserved = reserved_fds(1);
+        let reserved = reserved_fds(1, 0);
         let fits = 1024 - reserved - 1;
-        assert!(check_fits(fits as usize, 1, limit).is_ok());
-        let e = check_fits(fits as usize + 1, 1, limit).unwrap_err();
+        assert!(check_fits(fits as usize, 1, 0, limit).is_ok());
+        let e = check_fits(fits as usize + 1, 1, 0, limit).unwrap_err();
         let ServerError::FileLimit { fits: said, .. } = &e;
         assert_eq!(*said, fits);
         assert!(e.to_string().contains("LimitNOFILE"), "{e}");
-        // More machines keep more descriptors.
-        assert!(check_fits(fits as usize, 2, limit).is_err());
-        // The shipped cap fits the common soft limit of 1024 with a few machines.
+        // More machines keep more descriptors, a link over its own socket more again.
+        assert!(check_fits(fits as usize, 2, 0, limit).is_err());
+        assert!(check_fits(fits as usize - 1, 1, 1, limit).is_err());
+        // The shipped cap fits the common soft limit of 1024 with a few machines, and ten
+        // thousand nc_push machines fit a limit of 20000.
         let shipped = crate::config::ServiceConfig::load(None).unwrap();
-        assert!(check_fits(shipped.http.max_connections, 8, limit).is_ok());
+        assert!(check_fits(shipped.http.max_connections, 8, 8, limit).is_ok());
+        let plant = FileLimit {
+            soft: 20_000,
+            hard: 20_000,
+        };
+        assert!(check_fits(shipped.http.max_connections, 10_000, 0, plant).is_ok());
     }
 
     #[tokio::test(start_paused = true)]

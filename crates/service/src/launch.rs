@@ -349,7 +349,12 @@ async fn start(
     let server = {
         // Timeouts and a cap on connections (crate::http_server), checked against the file limit.
         let limits = crate::http_server::ConnLimits::from_config(&cfg.http);
-        crate::http_server::prepare(&limits, cfg.machines.len())?;
+        let socket_links = cfg
+            .machines
+            .iter()
+            .filter(|m| matches!(m.link, LinkConfig::Opcua(_) | LinkConfig::Mtconnect { .. }))
+            .count();
+        crate::http_server::prepare(&limits, cfg.machines.len(), socket_links)?;
         let app = router(api.clone());
         tokio::spawn(crate::http_server::serve(
             listener,
