@@ -50,6 +50,7 @@ pub(super) async fn nc_events(
 
 /// How long the NC's poll may wait for an order.
 #[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub(super) struct OrderWait {
     /// Wait up to this many seconds (0 to 60; default 0: answer at once) for an order when
     /// none is pending; the answer comes as soon as one is given. Keep it below the
