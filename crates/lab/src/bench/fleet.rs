@@ -185,7 +185,7 @@ fn sqlite_size(path: &Path) -> u64 {
 
 /// The fields of `/proc/PID/stat` after the command name (which may hold spaces): index 0 is
 /// the state, 1 the parent, 11-14 utime, stime, cutime, cstime in clock ticks.
-fn proc_stat(pid: &str) -> Option<Vec<u64>> {
+pub(super) fn proc_stat(pid: &str) -> Option<Vec<u64>> {
     let text = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
     let rest = &text[text.rfind(')')? + 1..];
     Some(

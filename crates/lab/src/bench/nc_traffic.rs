@@ -144,8 +144,7 @@ impl Recorded {
         }
     }
 
-    /// Requests a machine-day of this traffic makes without cycles: its event posts, one a
-    /// minute at most.
+    /// Events a machine-day of this traffic posts without cycles.
     pub fn events_per_day(&self) -> usize {
         self.events.len()
     }
@@ -373,16 +372,7 @@ impl Ncs {
 
 /// CPU seconds of the calling thread (/proc/thread-self/stat: utime + stime).
 fn thread_cpu_s(tick: f64) -> f64 {
-    let Ok(text) = std::fs::read_to_string("/proc/thread-self/stat") else {
-        return 0.0;
-    };
-    let Some(rest) = text.rfind(')').map(|i| &text[i + 1..]) else {
-        return 0.0;
-    };
-    let f: Vec<u64> = rest
-        .split_whitespace()
-        .map(|w| w.parse().unwrap_or(0))
-        .collect();
+    let f = super::fleet::proc_stat("thread-self").unwrap_or_default();
     f.get(11..13).map_or(0, |c| c.iter().sum::<u64>()) as f64 / tick
 }
 
