@@ -55,6 +55,7 @@ pub(super) struct OrderWait {
     /// Wait up to this many seconds (0 to 60; default 0: answer at once) for an order when
     /// none is pending; the answer comes as soon as one is given. Keep it below the
     /// service's request timeout.
+    #[param(minimum = 0.0, maximum = 60.0)]
     wait_s: Option<f64>,
 }
 
