@@ -105,10 +105,11 @@ async fn sqlite_connection_sound(conn: &mut sqlx::AnyConnection) -> Result<bool,
         return Ok(false);
     }
     // BEGIN fails inside a transaction; outside one it costs nothing and is ended at once.
-    if sqlx::query("BEGIN").execute(&mut *conn).await.is_err() {
-        return Ok(false);
-    }
-    Ok(sqlx::query("ROLLBACK").execute(&mut *conn).await.is_ok())
+    // Both in one request to the connection's thread: this runs at every release.
+    Ok(sqlx::raw_sql("BEGIN; ROLLBACK")
+        .execute(&mut *conn)
+        .await
+        .is_ok())
 }
 
 /// One connection to the SQLite file before the pool is built: a damaged file, or one that is
@@ -172,6 +173,10 @@ impl Backend {
                 probe_sqlite(&url).await?;
                 AnyPoolOptions::new()
                     .max_connections(4)
+                    // A ping at each acquire only asks the connection's thread whether it is
+                    // there (a file has no network to lose); the check at each release is the
+                    // one that finds a connection unfit.
+                    .test_before_acquire(false)
                     .after_release(|conn, _meta| Box::pin(sqlite_connection_sound(conn)))
                     .after_connect(|conn, _meta| {
                         Box::pin(async move {
