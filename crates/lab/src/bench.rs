@@ -26,6 +26,7 @@ use driftwatch_service::recorder::Recorder;
 use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 
+mod cpu_time;
 mod fleet;
 pub mod located;
 mod nc_traffic;

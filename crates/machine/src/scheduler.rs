@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::phase::{Phase, PhaseInfo};
+use crate::tool_tip::TipUncertainty;
 use driftwatch_core::recording::MachineStateKind;
 use driftwatch_core::units::min_to_ns;
 
@@ -189,15 +190,6 @@ pub struct SchedulerState {
     /// it down to.
     pub tip: Option<TipUncertainty>,
     pub tip_after_good: Option<TipUncertainty>,
-}
-
-/// The thermal model's predicted standard uncertainty of the tool tip at the reference pose
-/// ([`crate::tool_tip::uncertainty`]) at `t_ns`, and why it cannot be trusted, if it cannot.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TipUncertainty {
-    pub t_ns: i64,
-    pub sigma_um: f64,
-    pub untrusted: Option<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -10,13 +10,22 @@ use driftwatch_core::geometry::Vec3;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_thermal::model::{Prediction, Served};
 
-use crate::scheduler::TipUncertainty;
+use serde::{Deserialize, Serialize};
 
 /// The reference tool-tip pose: a point on the table (mm, table frame) at a rotary pose (B, C
 /// in deg, or the machine's own two rotary axes in that order) that every location error
 /// reaches. `bench compensation` measures its residuals here too.
 pub const REFERENCE_POINT_MM: [f64; 3] = [100.0, 100.0, 50.0];
 pub const REFERENCE_POSE_DEG: [f64; 2] = [-45.0, 30.0];
+
+/// The thermal model's predicted standard uncertainty of the tool tip at the reference pose
+/// ([`uncertainty`]) at `t_ns`, and why it cannot be trusted, if it cannot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TipUncertainty {
+    pub t_ns: i64,
+    pub sigma_um: f64,
+    pub untrusted: Option<String>,
+}
 
 /// The displacement of the tool tip (um) per unit (um or urad) of each identified error, at
 /// the point `point_mm` and the rotary pose `pose_deg`. Central differences of one unit: the

@@ -372,7 +372,7 @@ impl Ncs {
 
 /// CPU seconds of the calling thread (/proc/thread-self/stat: utime + stime).
 fn thread_cpu_s(tick: f64) -> f64 {
-    let f = super::fleet::proc_stat("thread-self").unwrap_or_default();
+    let f = super::cpu_time::proc_stat("thread-self").unwrap_or_default();
     f.get(11..13).map_or(0, |c| c.iter().sum::<u64>()) as f64 / tick
 }
 
