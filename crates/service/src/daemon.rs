@@ -875,10 +875,10 @@ const HEARTBEAT_NS: i64 = NS_PER_MIN;
 /// The machine's place in the minute, ns in `[0, HEARTBEAT_NS)`: FNV-1a of its id, stable
 /// from one start to the next.
 fn heartbeat_phase(id: &str) -> i64 {
-    let h = id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-    });
-    (h % HEARTBEAT_NS as u64) as i64
+    use std::hash::Hasher;
+    let mut h = fnv::FnvHasher::default();
+    h.write(id.as_bytes());
+    (h.finish() % HEARTBEAT_NS as u64) as i64
 }
 
 /// The first time after `now` at the machine's place in the minute: a wake the core asked for

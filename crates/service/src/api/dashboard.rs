@@ -33,12 +33,10 @@ const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; conn
 
 /// A strong validator of a body: FNV-1a, 64 bits (the files change only with the binary).
 fn etag(body: &str) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in body.bytes() {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    format!("\"{h:016x}\"")
+    use std::hash::Hasher;
+    let mut h = fnv::FnvHasher::default();
+    h.write(body.as_bytes());
+    format!("\"{:016x}\"", h.finish())
 }
 
 /// The body with its type; `no-cache` with an ETag, so a browser asks again each time and
