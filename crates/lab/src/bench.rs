@@ -145,6 +145,14 @@ pub async fn year(days: f64, dir: PathBuf, prediction: bool) -> Result<ExitCode>
     Ok(ExitCode::SUCCESS)
 }
 
+/// The `q` quantile of sorted values (the nearest rank); NaN when there are none.
+fn quantile(sorted: &[u64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() as f64 - 1.0) * q).round() as usize] as f64
+}
+
 /// Latencies of one endpoint, µs, and the time they were collected over.
 struct Load {
     latencies_us: Vec<u64>,
@@ -156,11 +164,7 @@ impl Load {
     fn quantile(&self, q: f64) -> f64 {
         let mut v = self.latencies_us.clone();
         v.sort_unstable();
-        if v.is_empty() {
-            return f64::NAN;
-        }
-        let i = ((v.len() as f64 - 1.0) * q).round() as usize;
-        v[i] as f64
+        quantile(&v, q)
     }
     fn rate(&self) -> f64 {
         self.latencies_us.len() as f64 / self.seconds

@@ -159,19 +159,22 @@ impl ServiceClock {
 mod tests {
     use super::*;
 
+    /// A task that sleeps on `clock` until `t_ns` and returns the time it woke at.
+    fn sleeper(clock: &ServiceClock, t_ns: i64) -> tokio::task::JoinHandle<i64> {
+        let clock = clock.clone();
+        tokio::spawn(async move {
+            clock.sleep_until(t_ns).await;
+            clock.now_ns()
+        })
+    }
+
     #[tokio::test]
     async fn a_manual_clock_moves_only_forward_and_wakes_its_sleepers() {
         let (clock, hand) = ServiceClock::manual(1_000);
         assert_eq!(clock.now_ns(), 1_000);
         hand.set(500);
         assert_eq!(clock.now_ns(), 1_000, "a manual clock never goes back");
-        let sleeper = {
-            let clock = clock.clone();
-            tokio::spawn(async move {
-                clock.sleep_until(5_000).await;
-                clock.now_ns()
-            })
-        };
+        let sleeper = sleeper(&clock, 5_000);
         tokio::task::yield_now().await;
         hand.set(5_000);
         let woke_at = tokio::time::timeout(Duration::from_secs(60), sleeper)
@@ -184,13 +187,7 @@ mod tests {
     #[tokio::test]
     async fn a_held_clock_wakes_its_sleepers_at_every_move_of_its_hand() {
         let (clock, hand) = ServiceClock::manual(1_000);
-        let sleeper = {
-            let clock = clock.clone();
-            tokio::spawn(async move {
-                clock.sleep_until(1_000_000).await;
-                clock.now_ns()
-            })
-        };
+        let sleeper = sleeper(&clock, 1_000_000);
         tokio::task::yield_now().await;
         hand.set(2_000);
         let woke_at = tokio::time::timeout(Duration::from_secs(60), sleeper)

@@ -71,3 +71,9 @@ pub(super) fn machine_busy_s(tick: f64) -> f64 {
     let idle = f.get(3).unwrap_or(&0.0) + f.get(4).unwrap_or(&0.0);
     (f.iter().sum::<f64>() - idle) / tick
 }
+
+/// CPU seconds of the calling thread (/proc/thread-self/stat: utime + stime).
+pub(super) fn thread_cpu_s(tick: f64) -> f64 {
+    let f = proc_stat("thread-self").unwrap_or_default();
+    f.get(11..13).map_or(0, |c| c.iter().sum::<u64>()) as f64 / tick
+}

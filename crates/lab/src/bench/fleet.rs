@@ -32,7 +32,7 @@ use driftwatch_sim::scenario::Scenario;
 
 use super::cpu_time::{clock_tick, machine_busy_s, own_cpu_s, peak_rss, tree_cpu_s};
 use super::nc_traffic::{Drive, Generator, ORDER_POLL_S, Recorded, Sent};
-use super::size_of;
+use super::{quantile, size_of};
 
 /// The database the fleet writes to.
 #[derive(Clone, Copy, Debug, PartialEq, clap::ValueEnum)]
@@ -752,13 +752,6 @@ fn summary(opts: &FleetOptions) -> String {
             String::new()
         }
     )
-}
-
-fn quantile(sorted: &[u64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() as f64 - 1.0) * q).round() as usize] as f64
 }
 
 /// The client's latencies and answers as one line's words.

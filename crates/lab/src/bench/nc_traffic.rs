@@ -22,6 +22,8 @@ use driftwatch_service::nc_push::{CycleOrder, PostedEvent};
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_sim::simulator::VirtualMachine;
 
+use super::cpu_time::thread_cpu_s;
+
 const DAY_NS: i64 = 1440 * NS_PER_MIN;
 /// A recorded cycle every this often in the day.
 const SLOT_NS: i64 = 10 * NS_PER_MIN;
@@ -368,12 +370,6 @@ impl Ncs {
         self.groups = back.into_iter().map(|(_, group)| group).collect();
         sent
     }
-}
-
-/// CPU seconds of the calling thread (/proc/thread-self/stat: utime + stime).
-fn thread_cpu_s(tick: f64) -> f64 {
-    let f = super::cpu_time::proc_stat("thread-self").unwrap_or_default();
-    f.get(11..13).map_or(0, |c| c.iter().sum::<u64>()) as f64 / tick
 }
 
 /// How the generator moves the NCs' time.
