@@ -265,8 +265,14 @@ impl<'a> Identifier<'a> {
                 p: me.params.len(),
             });
         }
-        let zero = vec![0.0; me.params.len()];
-        let j = me.jacobian_central(template, &zero, t_ref)?;
+        // A column at the nominal state depends on its own parameter only (every other one is
+        // zero, and a zero adds nothing): each is computed once as parameters are tried, and
+        // the matrices below are put together from them.
+        let mut cols = (0..me.params.len())
+            .map(|c| me.central_column(template, &vec![0.0; me.params.len()], c, t_ref))
+            .collect::<Result<Vec<_>, _>>()?;
+        let matrix = |cols: &[Vec<f64>]| DMatrix::from_fn(n, cols.len(), |r, c| cols[c][r]);
+        let j = matrix(&cols);
         let null = null_combinations(&j, &me.param_names());
         if !null.is_empty() {
             return Err(SolveError::NotIdentifiable {
@@ -287,14 +293,13 @@ impl<'a> Identifier<'a> {
         for nu in opts.nuisance.iter().chain(&rates) {
             let is_rate = matches!(nu, Nuisance::DriftRate(_));
             if is_rate && baseline.is_none() {
-                let zero = vec![0.0; me.params.len()];
-                let j = me.jacobian_central(template, &zero, t_ref)?;
-                baseline = Some(variances(&j, n_loc));
+                baseline = Some(variances(&matrix(&cols), n_loc));
             }
             me.params.push(Param::Nuisance(*nu));
             me.steps.push(1e-3);
-            let zero = vec![0.0; me.params.len()];
-            let j = me.jacobian_central(template, &zero, t_ref)?;
+            let last = me.params.len() - 1;
+            cols.push(me.central_column(template, &vec![0.0; me.params.len()], last, t_ref)?);
+            let j = matrix(&cols);
             let null = if me.params.len() > n {
                 vec!["more parameters than detections".to_string()]
             } else {
@@ -329,14 +334,14 @@ impl<'a> Identifier<'a> {
             if let Some(reason) = reason {
                 me.params.pop();
                 me.steps.pop();
+                cols.pop();
                 me.held.push(Held {
                     name: nu.name(),
                     reason,
                 });
             }
         }
-        let zero = vec![0.0; me.params.len()];
-        me.j0 = me.jacobian_central(template, &zero, t_ref)?;
+        me.j0 = matrix(&cols);
         Ok(me)
     }
 
@@ -440,19 +445,37 @@ impl<'a> Identifier<'a> {
         t_ref: i64,
     ) -> Result<DMatrix<f64>, SolveError> {
         let mut j = DMatrix::zeros(obs.len(), p.len());
-        let mut q = p.to_vec();
         for c in 0..p.len() {
-            let h = self.steps[c];
-            q[c] = p[c] + h;
-            let up = self.predict(obs, &q, t_ref)?;
-            q[c] = p[c] - h;
-            let dn = self.predict(obs, &q, t_ref)?;
-            q[c] = p[c];
-            for r in 0..obs.len() {
-                j[(r, c)] = (up[r] - dn[r]) * 1e3 / (2.0 * h);
+            for (r, v) in self
+                .central_column(obs, p, c, t_ref)?
+                .into_iter()
+                .enumerate()
+            {
+                j[(r, c)] = v;
             }
         }
         Ok(j)
+    }
+
+    /// Column `c` of [`Self::jacobian_central`]: the readings' sensitivity to parameter `c`.
+    fn central_column(
+        &self,
+        obs: &[Observation],
+        p: &[f64],
+        c: usize,
+        t_ref: i64,
+    ) -> Result<Vec<f64>, SolveError> {
+        let h = self.steps[c];
+        let mut q = p.to_vec();
+        q[c] = p[c] + h;
+        let up = self.predict(obs, &q, t_ref)?;
+        q[c] = p[c] - h;
+        let dn = self.predict(obs, &q, t_ref)?;
+        Ok(up
+            .iter()
+            .zip(&dn)
+            .map(|(u, d)| (u - d) * 1e3 / (2.0 * h))
+            .collect())
     }
 
     /// Forward differences around known model readings `f0`.
@@ -851,5 +874,24 @@ mod tests {
             );
         }
         assert!(sol.chi2 < 1e-6);
+    }
+
+    /// The sensitivities put together from columns computed one at a time, as parameters were
+    /// tried, are those of the whole parameter set at once, to the last bit: a zero parameter
+    /// adds nothing to another's column.
+    #[test]
+    fn the_columns_tried_one_at_a_time_are_the_whole_jacobian() {
+        let k = Kinematics::builtin("table_bc").unwrap();
+        let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+        let obs = observations(&k, &plan, &k.nominal_state());
+        let opts = SolveOptions::new(0.5).with_drift_rates();
+        let id = Identifier::new(&k, &obs, &opts).unwrap();
+        // More than the locations: the nuisances and at least one drift rate were tried.
+        assert!(id.params.len() > k.identify.len() + 2, "{:?}", id.params);
+        let t_ref = mean_time_ns(obs.iter().map(|o| o.t_ns));
+        let whole = id
+            .jacobian_central(&obs, &vec![0.0; id.params.len()], t_ref)
+            .unwrap();
+        assert_eq!(id.j0, whole);
     }
 }
