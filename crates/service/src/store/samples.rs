@@ -11,8 +11,12 @@ use super::{Store, StoreError};
 pub use driftwatch_machine::machine_core::Sample;
 
 impl Store {
-    /// Store a batch of spindle and temperature samples in one transaction (one commit
-    /// instead of one per sample: the per-minute series are most of the service's writes).
+    /// Store a batch of spindle and temperature samples: one multi-row statement per table
+    /// (one commit each instead of one per sample: the per-minute series are most of the
+    /// service's writes). No transaction around the two: each statement commits on its own,
+    /// and a batch that failed half way is written again whole, which the upserts make
+    /// harmless (a repeated key takes the same value). That saves the BEGIN and COMMIT round
+    /// trips to the connection.
     pub async fn add_samples(&self, machine: &str, rows: &[Sample]) -> Result<(), StoreError> {
         if rows.is_empty() {
             return Ok(());
@@ -35,7 +39,7 @@ impl Store {
                 }
             }
         }
-        let mut tx = self.pool.begin().await?;
+        let mut conn = self.pool.acquire().await?;
         // SQLite allows 32766 bound values per statement: chunks of 1000 rows stay far below.
         let spindle: Vec<_> = spindle.into_iter().collect();
         for chunk in spindle.chunks(1000) {
@@ -48,7 +52,7 @@ impl Store {
             for (t, rpm) in chunk {
                 q = q.bind(machine).bind(*t).bind(*rpm);
             }
-            q.execute(&mut *tx).await?;
+            q.execute(&mut *conn).await?;
         }
         let temps: Vec<_> = temps.into_iter().collect();
         for chunk in temps.chunks(1000) {
@@ -61,9 +65,8 @@ impl Store {
             for ((sensor, t), c) in chunk {
                 q = q.bind(machine).bind(*t).bind(*sensor).bind(*c);
             }
-            q.execute(&mut *tx).await?;
+            q.execute(&mut *conn).await?;
         }
-        tx.commit().await?;
         Ok(())
     }
 
