@@ -705,8 +705,8 @@ fn periodic_scan(
     let e = residual_of(m, y);
     let block = |period: f64| -> DMatrix<f64> {
         let w = std::f64::consts::TAU / period;
-        // One sine and cosine per row, not one per column: the scan's trigonometry was most
-        // of a diagnosis' time.
+        // One sine and cosine per row, not one per column: the trigonometry was a quarter of
+        // a diagnosis' time.
         let pair: Vec<(f64, f64)> = tmin.iter().map(|t| (w * t).sin_cos()).collect();
         DMatrix::from_fn(n, 2 * p, |i, c| {
             let (j, k) = (c % p, c / p);

@@ -595,6 +595,27 @@ mod tests {
             assert_eq!(store.integrity_check().await.unwrap(), sound(&store));
         }
 
+        // A batch whose first statement committed and whose second failed is written again
+        // whole by the loop: the store then holds what one write of the batch holds.
+        async fn a_half_written_sample_batch_written_again_is_stored_once(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            let spindle = |t_ns, rpm| Sample::Spindle { t_ns, rpm };
+            let temp = |t_ns, celsius| Sample::Temperature {
+                t_ns,
+                sensor: "ambient".into(),
+                celsius,
+            };
+            let batch = [spindle(60, 20000.0), temp(60, 20.5), spindle(120, 0.0), temp(120, 20.7)];
+            // The spindle statement alone (the temperatures' failed), then the retry.
+            store
+                .add_samples("m1", &[batch[0].clone(), batch[2].clone()])
+                .await
+                .unwrap();
+            store.add_samples("m1", &batch).await.unwrap();
+            assert_eq!(store.samples("m1", 0, 1_000).await.unwrap(), batch.to_vec());
+        }
+
         async fn verifications_round_trip_are_listed_by_reference_time_and_capped(db: &str) {
             use driftwatch_machine::verification::{ReferenceResult, compare};
             let store = Store::connect(db).await.unwrap();
