@@ -328,7 +328,13 @@ struct BenchArgs {
     /// Minutes between the validated cycles replayed (bench served).
     #[arg(long, default_value_t = 120.0)]
     cycle_every_min: f64,
-    /// Service configuration whose `[thermal]` policy the live model runs with (bench served;
+    /// Replay the service's schedule, with its tool-tip rule (at --tip-sigma, the
+    /// configuration's, or 0.5 um) and without it, each against a fixed cadence with as many
+    /// cycles, instead of one fixed cadence (bench served).
+    #[arg(long)]
+    schedules: bool,
+    /// Service configuration whose `[thermal]` policy the live model runs with, and with
+    /// --schedules whose `[schedule]` and `[phase]` the scheduler runs with (bench served;
     /// default: the built-in config/default.toml). Its temperature inputs are replaced by
     /// each set's sensors.
     #[arg(long)]
@@ -343,8 +349,8 @@ struct BenchArgs {
     /// default: the shipped policy). The patent scenario then uses the scheduler too.
     #[arg(long, value_delimiter = ',')]
     after_stop: Option<Vec<f64>>,
-    /// The tool-tip limit of the schedule under test, um (bench compensation; default: the
-    /// tuned 0.5; 0: the minute offsets alone).
+    /// The tool-tip limit of the schedule under test, um (bench compensation, bench served
+    /// --schedules; default: the tuned 0.5; 0: the minute offsets alone, not for bench served).
     #[arg(long)]
     tip_sigma: Option<f64>,
     /// Only these of the benchmark's scenarios (bench compensation; default: all four).
@@ -561,9 +567,27 @@ fn run_bench(b: BenchArgs) -> Result<ExitCode> {
         }
         BenchWhich::Located => bench::located::located(&b.data, b.json),
         BenchWhich::Served => {
-            let policy =
-                driftwatch_service::config::ServiceConfig::load(b.config.as_deref())?.thermal;
-            bench::served::served(&b.data, policy, b.step_min, b.cycle_every_min, b.json)
+            let cfg = driftwatch_service::config::ServiceConfig::load(b.config.as_deref())?;
+            let schedules = b.schedules.then(|| {
+                let mut policy = cfg.schedule.clone();
+                policy.tip_sigma_um = b.tip_sigma.unwrap_or(if policy.tip_sigma_um > 0.0 {
+                    policy.tip_sigma_um
+                } else {
+                    driftwatch_lab::strategies::TUNED_TIP_SIGMA_UM
+                });
+                bench::served::Schedules {
+                    policy,
+                    phase: cfg.phase.clone(),
+                }
+            });
+            bench::served::served(
+                &b.data,
+                cfg.thermal,
+                b.step_min,
+                b.cycle_every_min,
+                schedules,
+                b.json,
+            )
         }
         BenchWhich::Unexplained => {
             bench::unexplained::unexplained(if b.n >= 20000 { 200 } else { b.n.max(1) }, b.json)

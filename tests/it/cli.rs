@@ -1903,3 +1903,66 @@ fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
         median(&never)
     );
 }
+
+/// `bench served --schedules` replays the service's scheduler on the shipped fl-thermal run:
+/// its phases come from the run's spindle (warm-up and after-stop cycles), every cycle is
+/// ordered by a rule, and each schedule's fixed cadence is the longest whole minute that plans
+/// as many cycles. A tool-tip limit the band never reaches orders no cycle itself, but while
+/// the trusted model holds it, it replaces the minute cadences: fewer of those.
+#[test]
+fn bench_served_replays_the_services_schedules_against_a_fixed_cadence() {
+    let dir = tmp("served-schedules");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal");
+    std::fs::copy(data.join("manifest.toml"), dir.join("manifest.toml")).unwrap();
+    std::fs::copy(data.join("fl_thermal.csv"), dir.join("fl_thermal.csv")).unwrap();
+    let (ok, out, err) = run(&[
+        "bench",
+        "served",
+        "--data",
+        dir.to_str().unwrap(),
+        "--schedules",
+        "--tip-sigma",
+        "1000",
+        "--json",
+    ]);
+    assert!(ok, "{out}{err}");
+    let v: Value = serde_json::from_str(&out).unwrap();
+    let lines = v["summary"][0]["schedules"].as_array().unwrap();
+    assert_eq!(lines.len(), 4, "{v}");
+    let reasons = |l: &Value, k: &str| l["reasons"][k].as_u64().unwrap_or(0);
+    let cadence = |l: &Value| {
+        ["warm_up", "after_stop", "steady"]
+            .map(|k| reasons(l, k))
+            .iter()
+            .sum::<u64>()
+    };
+    // The run's one span, min (rows 15 s apart from 0 to 166 710 s).
+    let span_min = 166_710.0 / 60.0;
+    for pair in lines.chunks(2) {
+        let (scheduled, fixed) = (&pair[0], &pair[1]);
+        let n = scheduled["cycles"].as_u64().unwrap();
+        let by_rule: u64 = scheduled["reasons"]
+            .as_object()
+            .unwrap()
+            .values()
+            .map(|x| x.as_u64().unwrap())
+            .sum();
+        assert_eq!(by_rule, n, "every cycle has its rule: {scheduled}");
+        let every = fixed["every_min"].as_f64().unwrap();
+        let planned = |m: f64| (span_min / m).floor() as u64 + 1;
+        assert!(
+            planned(every) >= n && planned(every + 1.0) < n,
+            "{every} min for {n} cycles"
+        );
+        assert_eq!(fixed["cycles"].as_u64().unwrap(), planned(every), "{fixed}");
+    }
+    let (offsets, tip) = (&lines[0], &lines[2]);
+    assert!(
+        reasons(offsets, "warm_up") > 0 && reasons(offsets, "after_stop") > 0,
+        "{offsets}"
+    );
+    assert_eq!(reasons(tip, "tip"), 0, "{tip}");
+    assert!(cadence(tip) < cadence(offsets), "{tip} {offsets}");
+}

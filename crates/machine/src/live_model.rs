@@ -10,7 +10,7 @@ use std::sync::Arc;
 use serde::Serialize;
 
 use crate::compensation::PredictionPolicy;
-use crate::scheduler::Uncertain;
+use crate::scheduler::{SchedulerState, Uncertain};
 use driftwatch_core::error_name::ErrorName;
 use driftwatch_thermal::model::{
     Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
@@ -424,6 +424,36 @@ impl LiveModel {
                 error: p.channel.clone(),
                 sigma: p.sigma,
             })
+    }
+
+    /// One look of the scheduler at the model's predictions made at `t_ns` (`None`: the model
+    /// does not predict): the first error less certain than its cycle limit, kept from when
+    /// it first was, and the tool tip's band through `sens` ([`crate::tool_tip`]). The machine
+    /// loop and the benches that replay its schedule look the same way.
+    pub fn look(
+        &self,
+        st: &mut SchedulerState,
+        predictions: Option<&[Prediction]>,
+        sens: &BTreeMap<String, [f64; 3]>,
+        t_ns: i64,
+    ) {
+        let Some(preds) = predictions else {
+            st.look(None);
+            return;
+        };
+        st.uncertain = match (self.uncertain(preds, t_ns), &st.uncertain) {
+            (Some(mut u), Some(old)) => {
+                u.since_ns = old.since_ns;
+                Some(u)
+            }
+            (u, _) => u,
+        };
+        st.look(Some(crate::tool_tip::uncertainty(
+            sens,
+            preds,
+            self.suspect(),
+            t_ns,
+        )));
     }
 
     /// The errors served from a fallback instead of the model, for a served set's reason

@@ -1117,28 +1117,18 @@ impl MachineCore {
             return;
         }
         self.last_prediction_ns = now_ns;
-        let Some(preds) = self.thermal.predict(now_ns) else {
-            self.sched.look(None);
+        let preds = self.thermal.predict(now_ns);
+        self.thermal.look(
+            &mut self.sched,
+            preds.as_deref(),
+            &self.tip_sensitivity,
+            now_ns,
+        );
+        let Some(preds) = preds else {
             self.show_model();
             self.view.thermal.revision += 1;
             return;
         };
-        self.sched.uncertain = match (
-            self.thermal.uncertain(&preds, now_ns),
-            &self.sched.uncertain,
-        ) {
-            (Some(mut u), Some(old)) => {
-                u.since_ns = old.since_ns;
-                Some(u)
-            }
-            (u, _) => u,
-        };
-        self.sched.look(Some(crate::tool_tip::uncertainty(
-            &self.tip_sensitivity,
-            &preds,
-            self.thermal.suspect(),
-            now_ns,
-        )));
         // Not during a cycle, and not in the moment a measured set went out.
         let idle = self.open.is_none() && self.requested.is_none() && self.solving.is_none();
         let note = if idle
