@@ -260,12 +260,20 @@ impl NcDoor {
         }
     }
 
-    /// Take a batch of events whole, or refuse it whole with the first bad event named.
-    pub fn post(&mut self, batch: &EventBatch) -> Result<Accepted, NcDoorError> {
+    /// Take a batch of events whole, or refuse it whole with the first bad event named. Each
+    /// event's time is judged against `now_ns`, the service clock as the batch arrives; without
+    /// one, against the clock at the loop's last look, which may lag it by as long as the loop
+    /// sleeps.
+    pub fn post(
+        &mut self,
+        batch: &EventBatch,
+        now_ns: Option<i64>,
+    ) -> Result<Accepted, NcDoorError> {
         let mut parsed = Vec::with_capacity(batch.events.len());
         let mut stray = 0;
+        let now_ns = now_ns.or(self.clock_ns);
         for (index, e) in batch.events.iter().enumerate() {
-            self.within_clock(index, e)?;
+            self.within_clock(index, e, now_ns)?;
             match self.event(index, e)? {
                 Some(ev) => parsed.push(ev),
                 None => stray += 1,
@@ -290,15 +298,21 @@ impl NcDoor {
     }
 
     /// An event's time is not negative and lies within the tolerance of the service clock
-    /// (once the loop has looked); a refusal is counted for the loop's clock alert.
-    fn within_clock(&mut self, index: usize, e: &PostedEvent) -> Result<(), NcDoorError> {
+    /// `now_ns` (none: before the loop's first look, nothing to judge by); a refusal is counted
+    /// for the loop's clock alert.
+    fn within_clock(
+        &mut self,
+        index: usize,
+        e: &PostedEvent,
+        now_ns: Option<i64>,
+    ) -> Result<(), NcDoorError> {
         if e.t_ns < 0 {
             return Err(NcDoorError::Time {
                 index,
                 t_ns: e.t_ns,
             });
         }
-        let Some(now_ns) = self.clock_ns else {
+        let Some(now_ns) = now_ns else {
             return Ok(());
         };
         let limit_ns = if e.t_ns > now_ns {
@@ -586,13 +600,16 @@ mod tests {
         let hour = units::NS_PER_H;
         let now = 1_800_000_000 * 1_000_000_000;
         let post = |door: &mut NcDoor, t_ns: i64, state: &str| {
-            door.post(&EventBatch {
-                events: vec![PostedEvent {
-                    topic: "/machine/state".into(),
-                    t_ns,
-                    msg: serde_json::json!({"state": state}),
-                }],
-            })
+            door.post(
+                &EventBatch {
+                    events: vec![PostedEvent {
+                        topic: "/machine/state".into(),
+                        t_ns,
+                        msg: serde_json::json!({"state": state}),
+                    }],
+                },
+                None,
+            )
         };
         // The loop's look sets the clock the events are judged by.
         door.poll(now);
@@ -616,6 +633,40 @@ mod tests {
         );
         door.poll(now + 1);
         assert_eq!(door.state, Some(MachineStateKind::Idle));
+        assert_eq!(door.refused_clock_skew(), 2);
+    }
+
+    /// A loop that sleeps between its looks (a quiet machine looks once a minute) must not make
+    /// a sound event look ahead of the clock: a batch is judged against the service clock as
+    /// it arrives when the caller gives it. An NC 15 s fast posting 50 s after the last look
+    /// is 65 s ahead of that look, beyond the 60-s tolerance, but 15 s ahead of the clock.
+    #[test]
+    fn a_batch_is_judged_against_the_clock_as_it_arrives_not_the_loops_last_look() {
+        let (mut door, _) = setup();
+        let s = 1_000_000_000;
+        let look = 1_800_000_000 * s;
+        let batch = |t_ns: i64| EventBatch {
+            events: vec![PostedEvent {
+                topic: "/spindle".into(),
+                t_ns,
+                msg: serde_json::json!({"rpm": 1000.0}),
+            }],
+        };
+        door.poll(look);
+        let arrives = look + 50 * s;
+        assert_eq!(
+            door.post(&batch(arrives + 15 * s), Some(arrives))
+                .map(|a| a.accepted),
+            Ok(1)
+        );
+        assert_eq!(door.refused_clock_skew(), 0);
+        // Without the clock, the last look is all the door has: refused.
+        assert!(door.post(&batch(arrives + 15 * s), None).is_err());
+        // The tolerance still holds against the clock: 61 s ahead of it is refused.
+        let e = door
+            .post(&batch(arrives + 61 * s), Some(arrives))
+            .unwrap_err();
+        assert!(e.to_string().contains("61 s ahead"), "{e}");
         assert_eq!(door.refused_clock_skew(), 2);
     }
 
@@ -671,7 +722,7 @@ mod tests {
                 "program is 65 characters long",
             ),
         ] {
-            let e = door.post(&batch(topic, msg)).unwrap_err();
+            let e = door.post(&batch(topic, msg), None).unwrap_err();
             assert!(
                 matches!(e, NcDoorError::Message { index: 1, .. }) && e.to_string().contains(says),
                 "{e}"
@@ -681,13 +732,13 @@ mod tests {
         // rotation included).
         assert!(door.queue.is_empty());
         let ok = batch("/spindle", serde_json::json!({"rpm": -30000.0}));
-        assert_eq!(door.post(&ok).unwrap().accepted, 2);
+        assert_eq!(door.post(&ok, None).unwrap().accepted, 2);
         let name = "y".repeat(MAX_NAME_CHARS);
         let ok = batch(
             "/temperature",
             serde_json::json!({"sensor": name, "celsius": 99.0}),
         );
-        assert_eq!(door.post(&ok).unwrap().accepted, 2);
+        assert_eq!(door.post(&ok, None).unwrap().accepted, 2);
     }
 
     /// Before the NC says anything, no cycle is ordered, and the refusal says it is the
@@ -714,13 +765,16 @@ mod tests {
             unreachable!()
         };
         let post = |door: &mut NcDoor, m: &DetectionMsg| {
-            door.post(&EventBatch {
-                events: vec![PostedEvent {
-                    topic: "/probe/detection".into(),
-                    t_ns: 10,
-                    msg: serde_json::to_value(m).unwrap(),
-                }],
-            })
+            door.post(
+                &EventBatch {
+                    events: vec![PostedEvent {
+                        topic: "/probe/detection".into(),
+                        t_ns: 10,
+                        msg: serde_json::to_value(m).unwrap(),
+                    }],
+                },
+                None,
+            )
         };
         let mut slow = d.msg.clone();
         slow.spindle_rpm = 0.0;
@@ -773,7 +827,7 @@ mod tests {
             events: vec![det; 1000],
         };
         for _ in 0..300 {
-            assert_eq!(door.post(&batch).unwrap().stray, 1000);
+            assert_eq!(door.post(&batch, None).unwrap().stray, 1000);
         }
         assert_eq!(door.stray_detections(), 300_000);
         assert!(door.queue.is_empty());
@@ -789,12 +843,12 @@ mod tests {
             ],
         };
         for _ in 0..MAX_QUEUED / 10_000 {
-            door.post(&spindle).unwrap();
+            door.post(&spindle, None).unwrap();
         }
-        let e = door.post(&spindle).unwrap_err();
+        let e = door.post(&spindle, None).unwrap_err();
         assert!(matches!(e, NcDoorError::Busy { queued: MAX_QUEUED }), "{e}");
         assert_eq!(door.poll(20).len(), MAX_QUEUED);
-        assert!(door.post(&spindle).is_ok());
+        assert!(door.post(&spindle, None).is_ok());
     }
 
     #[test]

@@ -72,6 +72,9 @@ impl MachineLink for SharedLink {
     fn resume_at(&mut self, t_ns: i64) {
         self.with(|l| l.resume_at(t_ns))
     }
+    fn set_clock(&mut self, clock: &crate::clock::ServiceClock) {
+        self.with(|l| l.set_clock(clock))
+    }
 }
 
 /// One configured machine in a fleet process.

@@ -280,7 +280,8 @@ async fn start(
     let (notifier, deliveries) = Notifier::start(hooks).map_err(LaunchError::Webhooks)?;
     let mut wired = Vec::new();
     let mut slots = Vec::new();
-    for (id, k, plan, link, settings, nc) in links {
+    for (id, k, plan, mut link, settings, nc) in links {
+        link.set_clock(&clock);
         if cfg.fleet.is_some() {
             // Run only once its lease is taken (the fleet's supervisor).
             slots.push(crate::fleet::Slot::new(id, k, plan, settings, link, nc));

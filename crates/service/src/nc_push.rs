@@ -18,7 +18,7 @@
 //!    number (the order's step labels are a suggestion; an approach that did not trip may be
 //!    retried at once, as the next approach, and the retry replaces it).
 
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 
 use tokio::sync::{Notify, watch};
 
@@ -29,6 +29,7 @@ pub use driftwatch_machine::nc_door::{
     ORDER_TOLERANCE, OrderStep, PostedEvent, default_max_ahead_s, default_max_behind_s,
 };
 
+use crate::clock::ServiceClock;
 use crate::link::{LinkError, LinkEvent, MachineLink};
 
 /// The API side: takes the NC's posts, hands out the order.
@@ -39,6 +40,9 @@ pub struct NcPushHandle {
     wake: Arc<Notify>,
     /// Counts the orders given: an NC waiting for one is woken by its change.
     ordered: watch::Sender<u64>,
+    /// The service clock a batch's times are judged against as it arrives, once the service
+    /// has one (it is made after the links); until then the loop's last look.
+    clock: Arc<OnceLock<ServiceClock>>,
 }
 
 /// The service side: a `MachineLink`.
@@ -46,6 +50,7 @@ pub struct NcPushLink {
     door: Arc<Mutex<NcDoor>>,
     wake: Arc<Notify>,
     ordered: watch::Sender<u64>,
+    clock: Arc<OnceLock<ServiceClock>>,
 }
 
 /// The longest an NC may wait for an order in one request (`GET .../nc/request?wait_s=`).
@@ -65,24 +70,29 @@ pub fn nc_push(
     let door = Arc::new(Mutex::new(NcDoor::new(plan, limits, tolerance)));
     let wake = Arc::new(Notify::new());
     let ordered = watch::Sender::new(0);
+    let clock = Arc::new(OnceLock::new());
     (
         NcPushLink {
             door: door.clone(),
             wake: wake.clone(),
             ordered: ordered.clone(),
+            clock: clock.clone(),
         },
         NcPushHandle {
             door,
             wake,
             ordered,
+            clock,
         },
     )
 }
 
 impl NcPushHandle {
-    /// Take a batch of events whole, or refuse it whole with the first bad event named.
+    /// Take a batch of events whole, or refuse it whole with the first bad event named; its
+    /// times are judged against the service clock now.
     pub fn post(&self, batch: &EventBatch) -> Result<Accepted, NcDoorError> {
-        let accepted = lock(&self.door).post(batch)?;
+        let now = self.clock.get().map(ServiceClock::now_ns);
+        let accepted = lock(&self.door).post(batch, now)?;
         self.wake.notify_one();
         Ok(accepted)
     }
@@ -138,6 +148,11 @@ impl MachineLink for NcPushLink {
     fn waker(&self) -> Option<Arc<Notify>> {
         Some(self.wake.clone())
     }
+
+    fn set_clock(&mut self, clock: &ServiceClock) {
+        // Set once: a link is started with one service.
+        let _ = self.clock.set(clock.clone());
+    }
 }
 
 #[cfg(test)]
@@ -175,6 +190,33 @@ mod tests {
             _ = n.notified() => true,
             _ = std::future::ready(()) => false,
         }
+    }
+
+    /// A quiet machine's loop looks once a minute; a batch arriving 50 s after its look from an
+    /// NC whose clock is 15 s fast is 65 s ahead of that look but 15 s ahead of the service
+    /// clock, which is what it is judged by once the service has given the link its clock.
+    #[test]
+    fn a_batch_is_judged_against_the_service_clock_not_the_loops_last_look() {
+        let (mut link, handle) = door();
+        let s = 1_000_000_000;
+        let post = |t_ns: i64| {
+            let batch: EventBatch = serde_json::from_value(serde_json::json!({"events": [
+                {"topic": "/spindle", "t_ns": t_ns, "msg": {"rpm": 1000.0}}
+            ]}))
+            .expect("a valid batch");
+            handle.post(&batch)
+        };
+        link.poll(T0);
+        assert!(
+            post(T0 + 65 * s).is_err(),
+            "no clock: judged by the last look"
+        );
+        let (clock, hand) = ServiceClock::manual(T0);
+        link.set_clock(&clock);
+        hand.set(T0 + 50 * s);
+        assert_eq!(post(T0 + 65 * s).map(|a| a.accepted), Ok(1));
+        assert!(post(T0 + 111 * s).is_err(), "61 s ahead of the clock");
+        assert_eq!(handle.refused_clock_skew(), 2);
     }
 
     #[tokio::test]

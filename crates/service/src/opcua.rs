@@ -435,6 +435,10 @@ impl MachineLink for OpcuaLink {
     fn serve(&mut self, set: &CompensationSet) {
         let _ = self.commands.send(Command::Serve(Box::new(set.clone())));
     }
+
+    fn set_clock(&mut self, clock: &crate::clock::ServiceClock) {
+        self.inner.set_clock(clock);
+    }
 }
 
 /// The configuration and the client built from it (once: it holds the certificate store).

@@ -32,4 +32,7 @@ pub trait MachineLink: Send {
     /// Bring a simulated machine to `t_ns` unobserved (a fleet process taking it over); a
     /// real machine is where it is.
     fn resume_at(&mut self, _t_ns: i64) {}
+    /// The service clock, once the service has made it (after its links): a link that judges
+    /// an NC's times as they arrive judges them against it.
+    fn set_clock(&mut self, _clock: &crate::clock::ServiceClock) {}
 }
