@@ -1832,6 +1832,17 @@ fn bench_located_reports_every_run_at_every_size() {
     );
 }
 
+/// A fresh folder holding the shipped fl-thermal set with its spindle manifest only.
+fn fl_thermal_copy(name: &str) -> PathBuf {
+    let dir = tmp(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal");
+    std::fs::copy(data.join("manifest.toml"), dir.join("manifest.toml")).unwrap();
+    std::fs::copy(data.join("fl_thermal.csv"), dir.join("fl_thermal.csv")).unwrap();
+    dir
+}
+
 /// `bench served` replays the service's live model on the shipped fl-thermal run with a cycle
 /// every 30 min: every channel is scored between its cycles, the model serves most of them,
 /// and the served value beats the last cycle held on every channel. With `anchoring =
@@ -1840,12 +1851,7 @@ fn bench_located_reports_every_run_at_every_size() {
 /// replay runs.
 #[test]
 fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
-    let dir = tmp("served");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal");
-    std::fs::copy(data.join("manifest.toml"), dir.join("manifest.toml")).unwrap();
-    std::fs::copy(data.join("fl_thermal.csv"), dir.join("fl_thermal.csv")).unwrap();
+    let dir = fl_thermal_copy("served");
     let bench = |extra: &[&str]| -> Value {
         let mut args = vec![
             "bench",
@@ -1911,12 +1917,7 @@ fn bench_served_replays_the_live_model_between_cycles_on_a_real_run() {
 /// the trusted model holds it, it replaces the minute cadences: fewer of those.
 #[test]
 fn bench_served_replays_the_services_schedules_against_a_fixed_cadence() {
-    let dir = tmp("served-schedules");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fl-thermal");
-    std::fs::copy(data.join("manifest.toml"), dir.join("manifest.toml")).unwrap();
-    std::fs::copy(data.join("fl_thermal.csv"), dir.join("fl_thermal.csv")).unwrap();
+    let dir = fl_thermal_copy("served-schedules");
     let (ok, out, err) = run(&[
         "bench",
         "served",
