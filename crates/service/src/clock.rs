@@ -117,22 +117,34 @@ impl ServiceClock {
         }
     }
 
-    /// Wait until machine time `t_ns`; while a hand holds the clock, also until the hand next
-    /// moves it (the loops then step to the time it was moved to). A running clock is slept
-    /// on in naps of at most an hour of wall time, and the nap ends early when the hand
-    /// changes the pace.
-    pub async fn sleep_until(&self, t_ns: i64) {
-        let mut rx = self.pace.clone();
+    /// The time now, as a loop looks at it before it steps: the hand's moves up to this look
+    /// count as seen by this clock (its own copy), and a later [`Self::sleep_until`] wakes at
+    /// the next one. A move made while the loop stepped is not lost: it wakes the sleep at once.
+    pub fn look(&mut self) -> i64 {
+        self.pace.borrow_and_update().now_ns()
+    }
+
+    /// Wait until machine time `t_ns`; while a hand holds the clock, also until the hand moves
+    /// it after this clock's last [`Self::look`] (the loops then step to the time it was moved
+    /// to). A running clock is slept on in naps of at most an hour of wall time, and the nap
+    /// ends early when the hand changes the pace.
+    pub async fn sleep_until(&mut self, t_ns: i64) {
         loop {
-            let pace = *rx.borrow_and_update();
+            // A move since the last look (made while the loop stepped) is news already: taking
+            // it as seen here would leave the loop asleep behind a held clock.
+            let moved = self.pace.has_changed().unwrap_or(false);
+            let pace = *self.pace.borrow_and_update();
             let now = pace.now_ns();
             if now >= t_ns {
                 return;
             }
             match pace {
                 Pace::Held(_) => {
+                    if moved {
+                        return;
+                    }
                     // A dropped hand leaves the clock where it stands for good.
-                    if rx.changed().await.is_err() {
+                    if self.pace.changed().await.is_err() {
                         std::future::pending::<()>().await;
                     }
                     return;
@@ -142,7 +154,7 @@ impl ServiceClock {
                     let nap = Duration::from_secs_f64(dt.clamp(0.0, 3600.0));
                     tokio::select! {
                         _ = tokio::time::sleep(nap) => {}
-                        changed = rx.changed() => {
+                        changed = self.pace.changed() => {
                             if changed.is_err() {
                                 // No hand (a scaled clock): the pace is fixed; sleep it out.
                                 tokio::time::sleep(nap).await;
@@ -161,7 +173,7 @@ mod tests {
 
     /// A task that sleeps on `clock` until `t_ns` and returns the time it woke at.
     fn sleeper(clock: &ServiceClock, t_ns: i64) -> tokio::task::JoinHandle<i64> {
-        let clock = clock.clone();
+        let mut clock = clock.clone();
         tokio::spawn(async move {
             clock.sleep_until(t_ns).await;
             clock.now_ns()
@@ -197,9 +209,29 @@ mod tests {
         assert_eq!(woke_at, 2_000);
     }
 
+    /// The hand moves while the loop steps (after its look, before it sleeps): the sleep
+    /// that follows wakes at once, so the loop steps to the new time instead of sleeping
+    /// behind a held clock until the hand's next move.
+    #[tokio::test(start_paused = true)]
+    async fn a_move_made_between_a_look_and_the_sleep_wakes_the_sleep_at_once() {
+        let (mut clock, hand) = ServiceClock::manual(1_000);
+        assert_eq!(clock.look(), 1_000);
+        hand.set(2_000);
+        tokio::time::timeout(Duration::from_secs(60), clock.sleep_until(1_000_000))
+            .await
+            .expect("the move made before the sleep wakes it");
+        assert_eq!(clock.look(), 2_000);
+        // Seen now: the next sleep waits for the next move (tokio's paused time: no wall wait).
+        let waited = tokio::time::timeout(Duration::from_secs(60), clock.sleep_until(1_000_000));
+        assert!(
+            waited.await.is_err(),
+            "no move since the look: the sleep waits"
+        );
+    }
+
     #[tokio::test]
     async fn a_running_clock_wakes_its_sleepers_only_once_their_time_has_come() {
-        let (clock, hand) = ServiceClock::manual(1_000);
+        let (mut clock, hand) = ServiceClock::manual(1_000);
         assert_eq!(clock.scale(), None);
         // A machine second per wall nanosecond: the sleeper's 10 s of machine time pass at once.
         hand.run(1e9);

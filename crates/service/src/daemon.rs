@@ -912,7 +912,7 @@ fn step_at(target: i64, wake: i64, last: i64, failing: bool, end: Option<i64>) -
 async fn wait(
     inbox: Option<Arc<Notify>>,
     link: Option<&Notify>,
-    clock: &ServiceClock,
+    clock: &mut ServiceClock,
     wake: i64,
     shutdown: &CancellationToken,
 ) {
@@ -941,7 +941,7 @@ async fn wait(
 /// tried again with a doubling wait, and never stops the other machines or the API.
 pub(crate) async fn run_machine(
     mut rt: MachineRuntime,
-    clock: ServiceClock,
+    mut clock: ServiceClock,
     start_ns: i64,
     end: Option<i64>,
     shutdown: CancellationToken,
@@ -954,13 +954,16 @@ pub(crate) async fn run_machine(
     // The first step is at the clock's start, however far the clock has gone since.
     let mut wake = start_ns;
     loop {
-        let target = end.map_or(clock.now_ns(), |e| clock.now_ns().min(e));
+        // Looked at, not just read: a hand that moves the clock while the loop steps wakes
+        // its next wait at once.
+        let seen = clock.look();
+        let target = end.map_or(seen, |e| seen.min(e));
         let Some(now) = step_at(target, wake, last, failing, end) else {
             // Waiting to try a failed step again: the loop has looked at the clock's time.
             if let Ok(mut v) = rt.view.lock() {
                 v.health.attempt_ns = Some(target);
             }
-            wait(rt.waker(), link.as_deref(), &clock, wake, &shutdown).await;
+            wait(rt.waker(), link.as_deref(), &mut clock, wake, &shutdown).await;
             if shutdown.is_cancelled() {
                 break;
             }
@@ -1002,7 +1005,7 @@ pub(crate) async fn run_machine(
         if now < target {
             continue;
         }
-        wait(rt.waker(), link.as_deref(), &clock, wake, &shutdown).await;
+        wait(rt.waker(), link.as_deref(), &mut clock, wake, &shutdown).await;
     }
     let now = end
         .map_or(clock.now_ns(), |e| clock.now_ns().min(e))
