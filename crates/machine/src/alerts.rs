@@ -747,7 +747,9 @@ impl AlertEngine {
                     (c.t_ns - t) as f64
                         >= clear_after_min * driftwatch_core::units::NS_PER_MIN as f64
                 });
-                if !quiet {
+                // Nothing open, nothing to resolve: no message to write (this runs at every
+                // step of every loop).
+                if !quiet || !self.state.open.contains_key(&name) {
                     continue;
                 }
                 Observation {

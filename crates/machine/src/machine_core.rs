@@ -1125,8 +1125,11 @@ impl MachineCore {
             now_ns,
         );
         let Some(preds) = preds else {
-            self.show_model();
-            self.view.thermal.revision += 1;
+            // No prediction: the view moves only if the model's part did (a quiet loop looks
+            // once a minute; an unchanged view is not published again).
+            if self.show_model() {
+                self.view.thermal.revision += 1;
+            }
             return;
         };
         // Not during a cycle, and not in the moment a measured set went out.
@@ -1150,13 +1153,16 @@ impl MachineCore {
         t.predictor = self.thermal.snapshot().map(Arc::new);
     }
 
-    /// The model's part of the view, rebuilt only when the model changed since it was shown.
-    fn show_model(&mut self) {
+    /// The model's part of the view, rebuilt only when the model changed since it was shown;
+    /// whether it was.
+    fn show_model(&mut self) -> bool {
         let revision = self.thermal.revision();
-        if self.model_shown != Some(revision) || self.view.thermal.model.is_none() {
+        let changed = self.model_shown != Some(revision) || self.view.thermal.model.is_none();
+        if changed {
             self.view.thermal.model = Some(Arc::new(self.thermal.view()));
             self.model_shown = Some(revision);
         }
+        changed
     }
 
     /// Serve the prediction as a new set if the model is trusted, the prediction moved and
