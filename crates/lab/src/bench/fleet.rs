@@ -269,56 +269,91 @@ struct Polls {
 }
 
 /// `CONNECTIONS` clients, each on its own keep-alive connection, GET the compensation of a
-/// random machine on a fixed schedule (`REQUESTS_PER_S` in all) until `stop`.
+/// random machine on a fixed schedule (`REQUESTS_PER_S` in all) until `stop`. They run on a
+/// thread and runtime of their own, as an NC is a process of its own: their latencies are the
+/// service's answers (and the cores it shares), not the wait of a client task queued behind
+/// the service's own tasks on its runtime.
 fn poll_endpoint(
     addr: std::net::SocketAddr,
     ids: Vec<String>,
     stop: CancellationToken,
-) -> Vec<tokio::task::JoinHandle<Polls>> {
+) -> Result<std::thread::JoinHandle<Polls>> {
     let ids = Arc::new(ids);
     let period = Duration::from_secs_f64(CONNECTIONS as f64 / REQUESTS_PER_S);
-    (0..CONNECTIONS)
-        .map(|c| {
-            let (ids, stop) = (ids.clone(), stop.clone());
-            tokio::spawn(async move {
-                let mut polls = Polls::default();
-                let Ok(client) = reqwest::Client::builder().pool_max_idle_per_host(1).build()
-                else {
+    let thread = std::thread::Builder::new()
+        .name("endpoint-client".into())
+        .spawn(move || {
+            let mut polls = Polls::default();
+            let rt = match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(rt) => rt,
+                Err(_) => {
                     polls.errors += 1;
                     return polls;
-                };
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(c as u64);
-                // The connections take turns rather than all sending at once.
-                let first = tokio::time::Instant::now() + period * c as u32 / CONNECTIONS as u32;
-                let mut tick = tokio::time::interval_at(first, period);
-                tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-                loop {
-                    tokio::select! {
-                        _ = stop.cancelled() => break,
-                        _ = tick.tick() => {}
-                    }
-                    let id = &ids[rng.random_range(0..ids.len())];
-                    let url = format!("http://{addr}/api/v1/machines/{id}/compensation");
-                    let t = Instant::now();
-                    match client.get(&url).send().await {
-                        Ok(r) => {
-                            let status = r.status();
-                            let body = r.bytes().await;
-                            match (status.as_u16(), body) {
-                                (200, Ok(_)) => {
-                                    polls.latencies_us.push(t.elapsed().as_micros() as u64)
-                                }
-                                (404, Ok(_)) => polls.no_set += 1,
-                                _ => polls.errors += 1,
-                            }
+                }
+            };
+            rt.block_on(async {
+                let clients: Vec<_> = (0..CONNECTIONS)
+                    .map(|c| tokio::spawn(one_client(addr, ids.clone(), c, period, stop.clone())))
+                    .collect();
+                for c in clients {
+                    match c.await {
+                        Ok(p) => {
+                            polls.latencies_us.extend(p.latencies_us);
+                            polls.no_set += p.no_set;
+                            polls.errors += p.errors;
                         }
                         Err(_) => polls.errors += 1,
                     }
                 }
-                polls
-            })
-        })
-        .collect()
+            });
+            polls
+        })?;
+    Ok(thread)
+}
+
+/// Client `c` of [`poll_endpoint`].
+async fn one_client(
+    addr: std::net::SocketAddr,
+    ids: Arc<Vec<String>>,
+    c: usize,
+    period: Duration,
+    stop: CancellationToken,
+) -> Polls {
+    let mut polls = Polls::default();
+    let Ok(client) = reqwest::Client::builder().pool_max_idle_per_host(1).build() else {
+        polls.errors += 1;
+        return polls;
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(c as u64);
+    // The connections take turns rather than all sending at once.
+    let first = tokio::time::Instant::now() + period * c as u32 / CONNECTIONS as u32;
+    let mut tick = tokio::time::interval_at(first, period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => break,
+            _ = tick.tick() => {}
+        }
+        let id = &ids[rng.random_range(0..ids.len())];
+        let url = format!("http://{addr}/api/v1/machines/{id}/compensation");
+        let t = Instant::now();
+        match client.get(&url).send().await {
+            Ok(r) => {
+                let status = r.status();
+                let body = r.bytes().await;
+                match (status.as_u16(), body) {
+                    (200, Ok(_)) => polls.latencies_us.push(t.elapsed().as_micros() as u64),
+                    (404, Ok(_)) => polls.no_set += 1,
+                    _ => polls.errors += 1,
+                }
+            }
+            Err(_) => polls.errors += 1,
+        }
+    }
+    polls
 }
 
 /// Whether every loop has stepped to `t_ns`; `from` is the first one not yet seen there (the
@@ -449,18 +484,14 @@ async fn under_polls<T>(
     phase: impl std::future::Future<Output = Result<T>>,
 ) -> Result<(T, Usage, Polls)> {
     let stop = CancellationToken::new();
-    let clients = poll_endpoint(svc.addr, svc.views.keys().cloned().collect(), stop.clone());
+    let clients = poll_endpoint(svc.addr, svc.views.keys().cloned().collect(), stop.clone())?;
     let before = Counters::read(db, tick);
     let out = phase.await;
     let usage = Counters::read(db, tick).since(&before);
     stop.cancel();
-    let mut polls = Polls::default();
-    for c in clients {
-        let p = c.await?;
-        polls.latencies_us.extend(p.latencies_us);
-        polls.no_set += p.no_set;
-        polls.errors += p.errors;
-    }
+    let polls = tokio::task::spawn_blocking(move || clients.join())
+        .await?
+        .map_err(|_| anyhow::anyhow!("the endpoint client's thread panicked"))?;
     Ok((out?, usage, polls))
 }
 
