@@ -142,10 +142,28 @@ struct ChannelState {
 
 /// Writes a recording-format v1 MCAP file. Channels (with their JSON Schema) are registered the
 /// first time a topic is written. Call [`RecordingWriter::finish`] at the end; a writer dropped
-/// without it still tries to close the file, but cannot report failure.
+/// without it still tries to close the file, but cannot report failure (and one that holds
+/// messages back loses them, as a crash would).
 pub struct RecordingWriter<W: Write + Seek> {
     inner: Writer<W>,
     channels: HashMap<String, ChannelState>,
+    /// Messages kept back from the `mcap` writer, when it holds them (see
+    /// [`RecordingWriter::hold_up_to`]).
+    held: Option<Held>,
+}
+
+/// Messages written but not yet handed to the `mcap` writer. An `mcap` writer holds its open
+/// chunk's compressor, some 200 KB for lz4 (its frame's input, dictionary and output
+/// buffers), from a chunk's first message until the chunk closes; a writer that holds its
+/// messages back and hands them over in one go at each flush holds a compressor only while
+/// it writes a chunk, and otherwise only the messages themselves.
+struct Held {
+    /// Hand the messages over (one chunk) once their payloads reach this many bytes.
+    limit: usize,
+    /// Each message's topic (an index into `topics`), time and payload's range in `data`.
+    messages: Vec<(usize, u64, std::ops::Range<usize>)>,
+    topics: Vec<String>,
+    data: Vec<u8>,
 }
 
 /// How a writer compresses its chunks. Every reader of the format takes both.
@@ -184,7 +202,23 @@ impl<W: Write + Seek> RecordingWriter<W> {
         Ok(Self {
             inner,
             channels: HashMap::new(),
+            held: None,
         })
+    }
+
+    /// Hold messages back and write them as one chunk at each [`Self::flush`], or once their
+    /// payloads reach `limit` bytes, instead of streaming them into an open chunk: for
+    /// writers kept open by the thousand, whose open chunk's compressor would outweigh the
+    /// messages between flushes. The file holds the same messages in the same order; only
+    /// where chunks end differs. What is held is lost in a crash, as an open chunk is.
+    pub fn hold_up_to(mut self, limit: usize) -> Self {
+        self.held = Some(Held {
+            limit,
+            messages: Vec::new(),
+            topics: Vec::new(),
+            data: Vec::new(),
+        });
+        self
     }
 
     /// Appends `msg` as JSON on `topic` with log and publish time `t_ns` (ns since the Unix
@@ -215,6 +249,26 @@ impl<W: Write + Seek> RecordingWriter<W> {
                 t_ns,
             });
         };
+        if let Some(h) = &mut self.held {
+            let index = match h.topics.iter().position(|t| t == topic) {
+                Some(i) => i,
+                None => {
+                    h.topics.push(topic.to_string());
+                    h.topics.len() - 1
+                }
+            };
+            let start = h.data.len();
+            h.data.extend_from_slice(data);
+            h.messages.push((index, time, start..h.data.len()));
+            if h.data.len() >= h.limit {
+                return self.flush();
+            }
+            return Ok(());
+        }
+        self.write_now(topic, time, data)
+    }
+
+    fn write_now(&mut self, topic: &str, time: u64, data: &[u8]) -> Result<(), RecordingError> {
         let channel = self.channel(topic)?;
         let sequence = channel.next_sequence;
         channel.next_sequence = sequence.wrapping_add(1);
@@ -257,12 +311,32 @@ impl<W: Write + Seek> RecordingWriter<W> {
     /// Closes the current chunk and flushes the underlying writer, so a crash after this loses
     /// nothing written before it. (This hands the data to the OS; it does not fsync.)
     pub fn flush(&mut self) -> Result<(), RecordingError> {
+        self.hand_over()?;
         self.inner.flush().map_err(RecordingError::from_mcap_write)
+    }
+
+    /// Write the held messages, if any, into the `mcap` writer; the buffers are freed, not
+    /// kept at their largest size.
+    fn hand_over(&mut self) -> Result<(), RecordingError> {
+        let Some(h) = &mut self.held else {
+            return Ok(());
+        };
+        if h.messages.is_empty() {
+            return Ok(());
+        }
+        let messages = std::mem::take(&mut h.messages);
+        let topics = std::mem::take(&mut h.topics);
+        let data = std::mem::take(&mut h.data);
+        for (topic, time, range) in messages {
+            self.write_now(&topics[topic], time, &data[range])?;
+        }
+        Ok(())
     }
 
     /// Closes the last chunk, writes the summary, footer and end magic, and returns the
     /// underlying writer.
     pub fn finish(mut self) -> Result<W, RecordingError> {
+        self.hand_over()?;
         self.inner
             .finish()
             .map_err(RecordingError::from_mcap_write)?;
@@ -1248,6 +1322,61 @@ mod tests {
             .map(|d| d.msg.clone().unwrap())
             .collect();
         assert_eq!(got, written[..30]);
+    }
+
+    /// A writer that holds its messages back writes the same messages, in the same order, as
+    /// one that streams them; nothing reaches the file between its flushes until the limit,
+    /// and a crash then loses only what it held.
+    #[test]
+    fn a_writer_holding_its_messages_writes_them_at_each_flush_and_at_its_limit() {
+        let written = many_detections(45);
+        let streamed = write_all(|w| {
+            for (i, d) in written.iter().enumerate() {
+                w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+            }
+        });
+        let file = SharedFile::default();
+        let size = || file.0.borrow().get_ref().len();
+        let one = serde_json::to_vec(&written[0]).unwrap().len();
+        let mut w = RecordingWriter::with_compression(file.clone(), ChunkCompression::Lz4)
+            .unwrap()
+            .hold_up_to(10 * one);
+        let empty = size();
+        for (i, d) in written[..5].iter().enumerate() {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+        }
+        assert_eq!(size(), empty, "held: nothing written before the flush");
+        w.flush().unwrap();
+        assert!(size() > empty, "the flush writes the held messages");
+        let flushed = size();
+        // The limit: about ten more messages hand themselves over without a flush.
+        for (i, d) in written.iter().enumerate().take(20).skip(5) {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+        }
+        assert!(size() > flushed, "the limit wrote a chunk");
+        let crashed = file.0.borrow().get_ref().clone();
+        for (i, d) in written.iter().enumerate().skip(20) {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+        }
+        let held = w.finish().unwrap().0.borrow().get_ref().clone();
+
+        let (a, b) = (read(&streamed).unwrap(), read(&held).unwrap());
+        let msgs = |r: &Recording| -> Vec<_> {
+            r.detections
+                .iter()
+                .map(|d| (d.t_ns, d.msg.clone().unwrap()))
+                .collect()
+        };
+        assert_eq!(msgs(&a), msgs(&b), "the same messages in the same order");
+        assert_eq!(b.detections.len(), 45);
+        // What reached the file before the crash is every message up to the last hand-over.
+        let r = recover(&crashed).unwrap();
+        assert!(
+            (10..20).contains(&r.detections.len()),
+            "{}",
+            r.detections.len()
+        );
+        assert_eq!(msgs(&r)[..], msgs(&b)[..r.detections.len()]);
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! The service's raw archive: one MCAP file per machine per UTC day (or per size limit),
-//! written as `NAME.mcap.partial`, flushed after every cycle, renamed when closed. Partial files
+//! written as `NAME.mcap.partial`, its messages held and written as a chunk after every cycle
+//! (or every 64 KiB of them), renamed when closed. Partial files
 //! left by a crash are recovered at start: their complete chunks are copied into a closed file.
 
 use driftwatch_core::units;
@@ -14,6 +15,11 @@ use driftwatch_core::recording::{self as rec, Recording};
 use driftwatch_recording::mcap_io::{
     ChunkCompression, ReadOptions, RecordingError, RecordingWriter, read_file,
 };
+
+/// A machine's messages are written to its file as a chunk at each flush or once their
+/// payloads reach this many bytes (an lz4 block is 64 KiB). A crash loses at most these, as it
+/// lost an open chunk (up to 1 MiB) before.
+const HELD_BYTES: usize = 64 * 1024;
 
 #[derive(Debug, Error)]
 pub enum RecorderError {
@@ -240,12 +246,15 @@ impl Recorder {
         let base = self.free_name(&self.dir.join(format!("{day}.mcap")));
         let partial = base.with_extension("mcap.partial");
         // lz4, not zstd: a writer stays open all day for every machine, and zstd's context
-        // (some 3.6 MB each) would be most of a plant's memory.
+        // (some 3.6 MB each) would be most of a plant's memory. The messages are held back
+        // until each flush (a cycle's end) or HELD_BYTES: an open lz4 chunk alone holds some
+        // 200 KB of the compressor's buffers, more than a machine's messages between cycles.
         let mut writer = RecordingWriter::create_file_with(&partial, ChunkCompression::Lz4)
             .map_err(|source| RecorderError::Recording {
                 path: partial.display().to_string(),
                 source,
-            })?;
+            })?
+            .hold_up_to(HELD_BYTES);
         writer
             .write(rec::TOPIC_INFO, t_ns, &self.info)
             .map_err(|source| RecorderError::Recording {
