@@ -565,3 +565,43 @@ fn the_model_tool_tip_band_orders_cycles_in_place_of_the_cadence() {
     assert_eq!(n, Some(7), "{why}");
     assert!(why.contains("tool tip is uncertain"), "{why}");
 }
+
+/// Before the model can predict, a look that changes nothing leaves the thermal view's
+/// revision where it was (the executor copies the view only when it moved); a change of the
+/// model (its first input) still moves it.
+#[test]
+fn a_look_without_a_prediction_moves_the_thermal_view_only_when_the_model_changed() {
+    let k = Kinematics::load("table_bc").unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
+    let settings = Settings::default();
+    assert!(settings.prediction.enabled);
+    let checks = CycleChecks::new(&k);
+    let (mut core, _) = MachineCore::new(
+        Arc::new(k),
+        checks,
+        plan.steps.len(),
+        &settings,
+        Restored {
+            next_cycle: 1,
+            ..Default::default()
+        },
+        T0,
+    )
+    .unwrap();
+    let revision = |c: &MachineCore| c.view().thermal.revision;
+    feed(&mut core, [Input::Tick], min(0));
+    let first = revision(&core);
+    for m in 1..=5 {
+        feed(&mut core, [Input::Tick], min(m));
+        assert_eq!(revision(&core), first, "an empty look at minute {m}");
+    }
+    let temperature = Input::Link(LinkEvent::Temperature(Timed {
+        t_ns: min(6),
+        msg: TemperatureMsg {
+            sensor: "spindle".into(),
+            celsius: 21.0,
+        },
+    }));
+    feed(&mut core, [temperature, Input::Tick], min(6));
+    assert!(revision(&core) > first, "the model's first input is shown");
+}
