@@ -114,7 +114,7 @@ impl Store {
         trigger: &str,
         attempt: i64,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
             "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status, lease_term)
@@ -188,7 +188,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         let status = CycleStatus::from(result.status);
         let payload = serde_json::to_string(result)?;
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $3, finished_ns = $4, reason = $5
@@ -275,7 +275,7 @@ impl Store {
         now_ns: i64,
         reason: &str,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $5, finished_ns = $3, reason = $4

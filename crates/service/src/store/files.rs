@@ -70,7 +70,7 @@ impl Store {
         status: FileStatus,
         messages: i64,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         sqlx::query(
             "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
              ON CONFLICT (path) DO NOTHING",

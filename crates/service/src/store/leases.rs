@@ -7,7 +7,7 @@
 //! commits, so that a process that lost its machine (a pause, a partition) cannot write
 //! after the next holder took over, and a takeover waits for a write in flight.
 
-use sqlx::{Any, Row, Transaction};
+use sqlx::Row;
 
 use super::{Store, StoreError};
 
@@ -64,7 +64,7 @@ impl Store {
         ttl_ms: i64,
     ) -> Result<Option<Lease>, StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         // One statement decides, under the row's lock: two processes cannot both take it.
         let upsert = format!(
             "INSERT INTO leases (machine_id, holder, url, term, expires_ms)
@@ -109,7 +109,7 @@ impl Store {
     /// holder's (another process took the machine).
     pub async fn renew_lease(&self, lease: &Lease, ttl_ms: i64) -> Result<bool, StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         let sql = format!(
             "UPDATE leases SET expires_ms = {now} + $4
              WHERE machine_id = $1 AND holder = $2 AND term = $3"
@@ -142,7 +142,7 @@ impl Store {
     /// Give a lease back (a clean stop): another process may take the machine at once.
     pub async fn release_lease(&self, lease: &Lease) -> Result<(), StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = super::Tx::begin(&self.pool).await?;
         let sql = "UPDATE leases SET expires_ms = 0
                    WHERE machine_id = $1 AND holder = $2 AND term = $3";
         let held = sqlx::query(sql)
@@ -258,7 +258,7 @@ impl Store {
     /// lease this store is bound to is still held (and keeping it so until commit).
     pub(super) async fn fence(
         &self,
-        tx: &mut Transaction<'static, Any>,
+        tx: &mut sqlx::AnyConnection,
         machine: &str,
     ) -> Result<Option<i64>, StoreError> {
         let Some(lease) = self.fence.as_deref() else {
@@ -271,7 +271,7 @@ impl Store {
         );
         let row = sqlx::query(sqlx::AssertSqlSafe(sql))
             .bind(machine)
-            .fetch_optional(&mut **tx)
+            .fetch_optional(&mut *tx)
             .await?;
         let lost = |why: String| {
             Err(StoreError::LeaseLost {

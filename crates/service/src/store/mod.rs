@@ -116,6 +116,72 @@ fn values_placeholders(rows: usize, cols: usize) -> String {
     s
 }
 
+/// A transaction on a connection of the pool that goes back to the pool only once it has
+/// ended by its own COMMIT or ROLLBACK. One that failed or was dropped part way (an error, a
+/// cancelled future) closes its connection instead, which ends whatever the engine still held
+/// of it. So a connection is never used again in a state the engine and the store see
+/// differently: a COMMIT that fails on a full disk may leave SQLite's transaction open (holding
+/// the write lock for every other connection), or end it. Statements outside a transaction
+/// commit or roll back on their own. That is what lets the pool take a connection back without
+/// asking the engine about it first.
+///
+/// BEGIN, COMMIT and ROLLBACK are plain statements (the same in both engines), not sqlx's
+/// transaction type: that one owns its connection and cannot mark it to be closed.
+pub(crate) struct Tx {
+    conn: sqlx::pool::PoolConnection<sqlx::Any>,
+    ended: bool,
+}
+
+impl Tx {
+    async fn begin(pool: &AnyPool) -> Result<Tx, StoreError> {
+        // Made before BEGIN: a BEGIN that fails closes the connection too.
+        let mut tx = Tx {
+            conn: pool.acquire().await?,
+            ended: false,
+        };
+        tx.run("BEGIN").await?;
+        Ok(tx)
+    }
+
+    async fn run(&mut self, sql: &'static str) -> Result<(), StoreError> {
+        sqlx::raw_sql(sql).execute(&mut *self.conn).await?;
+        Ok(())
+    }
+
+    async fn commit(mut self) -> Result<(), StoreError> {
+        self.run("COMMIT").await?;
+        self.ended = true;
+        Ok(())
+    }
+
+    async fn rollback(mut self) -> Result<(), StoreError> {
+        self.run("ROLLBACK").await?;
+        self.ended = true;
+        Ok(())
+    }
+}
+
+impl std::ops::Deref for Tx {
+    type Target = sqlx::AnyConnection;
+    fn deref(&self) -> &sqlx::AnyConnection {
+        &self.conn
+    }
+}
+
+impl std::ops::DerefMut for Tx {
+    fn deref_mut(&mut self) -> &mut sqlx::AnyConnection {
+        &mut self.conn
+    }
+}
+
+impl Drop for Tx {
+    fn drop(&mut self) {
+        if !self.ended {
+            self.conn.close_on_drop();
+        }
+    }
+}
+
 impl Store {
     /// Open (creating if needed) the SQLite database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, StoreError> {
@@ -593,6 +659,43 @@ mod tests {
                 vec![("m1/2026-03-02.mcap".to_string(), FileStatus::Recovered)]
             );
             assert_eq!(store.integrity_check().await.unwrap(), sound(&store));
+        }
+
+        // A transaction that never reached its COMMIT (an error part way, a cancelled
+        // future) takes its connection with it: every later write, on whichever connection
+        // of the pool, commits and is seen by another process (not held in a transaction
+        // left open, nor stuck behind its lock).
+        async fn a_transaction_dropped_before_its_commit_leaves_no_connection_in_it(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+            for attempt in 1..=3 {
+                let mut tx = Tx::begin(&store.pool).await.unwrap();
+                sqlx::query("UPDATE machines SET kinematics = $1 WHERE id = 'm1'")
+                    .bind(format!("dropped {attempt}"))
+                    .execute(&mut *tx)
+                    .await
+                    .unwrap();
+                drop(tx);
+            }
+            // More writes than the pool has connections.
+            let temp = |t_ns| Sample::Temperature {
+                t_ns,
+                sensor: "ambient".into(),
+                celsius: 20.0,
+            };
+            let rows: Vec<Sample> = (1..=12).map(temp).collect();
+            for row in &rows {
+                store.add_samples("m1", std::slice::from_ref(row)).await.unwrap();
+            }
+            store.close().await;
+            let other = Store::connect(db).await.unwrap();
+            assert_eq!(other.samples("m1", 0, 1_000).await.unwrap(), rows);
+            let kinematics: String =
+                sqlx::query_scalar("SELECT kinematics FROM machines WHERE id = 'm1'")
+                    .fetch_one(&other.pool)
+                    .await
+                    .unwrap();
+            assert_eq!(kinematics, "table_bc");
         }
 
         // A batch whose first statement committed and whose second failed is written again

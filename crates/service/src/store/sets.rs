@@ -67,7 +67,7 @@ impl Store {
         c: &NewCompensation<'_>,
     ) -> Result<(), StoreError> {
         if self.fence.is_some() {
-            let mut tx = self.pool.begin().await?;
+            let mut tx = super::Tx::begin(&self.pool).await?;
             let term = self.fence(&mut tx, machine).await?;
             insert_set(&mut tx, machine, c, term).await?;
             tx.commit().await?;
