@@ -130,8 +130,13 @@ impl ScratchPg {
             std::process::id(),
             STARTED.fetch_add(1, Ordering::Relaxed)
         ));
-        let _ = std::fs::remove_dir_all(&dir);
         let io = |what: &str, e: std::io::Error| format!("{what} ({}): {e}", dir.display());
+        // Absolute: the server reads its socket directory (`-k`) from inside its data
+        // directory, so a relative `parent` (`bench fleet`'s default `out/bench`) would name
+        // a directory that is not there.
+        let dir = std::path::absolute(&dir).map_err(|e| io("naming the server's directory", e))?;
+        let io = |what: &str, e: std::io::Error| format!("{what} ({}): {e}", dir.display());
+        let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).map_err(|e| io("creating the server's directory", e))?;
         if let Some((_, uid, gid)) = &user {
             std::os::unix::fs::chown(&dir, Some(*uid), Some(*gid))
@@ -294,4 +299,37 @@ pub async fn test_database() -> String {
     .await
     .expect("start the PostgreSQL test server");
     server.database().await.expect("create a test database").1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A parent named relative to the working directory (as `bench fleet`'s default
+    /// `out/bench`) gives a server that starts and makes databases.
+    #[test]
+    fn a_server_starts_under_a_relative_parent() {
+        // The target directory (the test binary is in target/<profile>/deps), named from the
+        // working directory by way of their common ancestor.
+        let exe = std::env::current_exe().unwrap();
+        let target = exe.parent().and_then(Path::parent).unwrap();
+        let cwd = std::env::current_dir().unwrap();
+        let common = cwd.ancestors().find(|a| target.starts_with(a)).unwrap();
+        let up: std::path::PathBuf = cwd
+            .strip_prefix(common)
+            .unwrap()
+            .components()
+            .map(|_| "..")
+            .collect();
+        let parent = up
+            .join(target.strip_prefix(common).unwrap())
+            .join(format!("scratch-pg-relative-{}", std::process::id()));
+        assert!(parent.is_relative());
+        std::fs::create_dir_all(&parent).unwrap();
+        let server = ScratchPg::start(&parent).unwrap_or_else(|e| panic!("{e}"));
+        let (name, _) = server.database_blocking().unwrap();
+        assert!(name.starts_with("db_"), "{name}");
+        drop(server);
+        let _ = std::fs::remove_dir_all(&parent);
+    }
 }
