@@ -22,10 +22,15 @@ const LATENCY_BUCKETS: [f64; 12] = [
 
 const REQUEST_SECONDS: &str = "driftwatch_http_request_duration_seconds";
 
+/// Requests observed between two drains of the latency histograms.
+const UPKEEP_EVERY: u64 = 1024;
+
 /// The service's metrics: its recorder and the handle that renders it.
 pub struct Metrics {
     recorder: PrometheusRecorder,
     handle: PrometheusHandle,
+    /// Requests observed so far: every [`UPKEEP_EVERY`]th drains the histograms.
+    observed: std::sync::atomic::AtomicU64,
 }
 
 impl Default for Metrics {
@@ -37,7 +42,11 @@ impl Default for Metrics {
             .unwrap_or_else(|_| PrometheusBuilder::new());
         let recorder = builder.build_recorder();
         let handle = recorder.handle();
-        let m = Metrics { recorder, handle };
+        let m = Metrics {
+            recorder,
+            handle,
+            observed: std::sync::atomic::AtomicU64::new(0),
+        };
         m.with(describe);
         m
     }
@@ -51,6 +60,16 @@ impl Metrics {
 
     fn observe_request(&self, route: String, seconds: f64) {
         self.with(|| histogram!(REQUEST_SECONDS, "route" => route).record(seconds));
+        // The exporter keeps every observed value until its histograms are drained, which
+        // a scrape does: a service nobody scrapes would grow by every request it answers
+        // (some 16 bytes each: 1.4 GB a day at 1000 requests a second). Draining them here,
+        // every so many requests, bounds that whoever scrapes and however often.
+        let n = self
+            .observed
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if n % UPKEEP_EVERY == UPKEEP_EVERY - 1 {
+            self.handle.run_upkeep();
+        }
     }
 }
 
@@ -190,4 +209,43 @@ pub(super) async fn metrics(State(st): State<Shared>) -> Response {
     st.metrics.with(|| record_state(&st));
     let out = st.metrics.handle.render();
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Requests observed with no scrape between, across several drains of the histograms
+    /// (and a scrape in the middle of the count): the next scrape counts every one of them
+    /// and sums their times, none lost or taken twice by the drains.
+    #[test]
+    fn drained_request_latencies_are_all_counted_at_the_next_scrape() {
+        let m = Metrics::default();
+        let route = "/api/v1/machines/{id}/compensation";
+        let n = 10 * UPKEEP_EVERY + 17;
+        let mut sum = 0.0;
+        for i in 0..n {
+            let seconds = 1e-4 * (i % 7) as f64;
+            sum += seconds;
+            m.observe_request(route.into(), seconds);
+            if i == n / 2 {
+                m.handle.render();
+            }
+        }
+        let text = m.handle.render();
+        let line = |what: &str| {
+            let head = format!("{REQUEST_SECONDS}_{what}{{route=\"{route}\"}} ");
+            text.lines()
+                .find_map(|l| l.strip_prefix(&head))
+                .unwrap_or_else(|| panic!("no {head} in {text}"))
+                .parse::<f64>()
+                .unwrap()
+        };
+        assert_eq!(line("count"), n as f64);
+        assert!(
+            (line("sum") - sum).abs() < 1e-9,
+            "{} against {sum}",
+            line("sum")
+        );
+    }
 }
