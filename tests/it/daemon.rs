@@ -76,7 +76,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
     let mut rt = MachineRuntime::new(
         "sim-1",
         k,
-        plan,
+        &plan,
         Box::new(link),
         &settings,
         store.clone(),
@@ -349,7 +349,7 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
     let mut first = MachineRuntime::new(
         "sim-1",
         k.clone(),
-        plan.clone(),
+        &plan,
         Box::new(sim),
         &settings,
         store.clone(),
@@ -392,10 +392,18 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
                 said: false,
                 requested: requested.clone(),
             };
-            let mut rt =
-                MachineRuntime::new("sim-1", k, plan, Box::new(link), &settings, store, rec, now)
-                    .await
-                    .unwrap();
+            let mut rt = MachineRuntime::new(
+                "sim-1",
+                k,
+                &plan,
+                Box::new(link),
+                &settings,
+                store,
+                rec,
+                now,
+            )
+            .await
+            .unwrap();
             rt.step(now).await.unwrap();
             let (schedule, model, prediction) = {
                 let v = rt.view.lock().unwrap();

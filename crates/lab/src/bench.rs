@@ -98,7 +98,7 @@ async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store
     let rt = MachineRuntime::new(
         "sim-1",
         k,
-        plan,
+        &plan,
         Box::new(link),
         &settings,
         store.clone(),

@@ -8,6 +8,7 @@
 //! posts into it and the machine's loop polls it.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -150,7 +151,8 @@ pub struct CycleOrder {
 /// knows of the NC (its state, the service clock at the loop's last look, the counts).
 #[derive(Debug)]
 pub struct NcDoor {
-    plan: Plan,
+    /// Shared by every machine of the same kinematics and plan.
+    plan: Arc<Plan>,
     limits: Limits,
     expected: ExpectedMeasurements,
     tolerance: ClockTolerance,
@@ -240,7 +242,7 @@ fn named(index: usize, topic: &str, what: &str, name: &str) -> Result<(), NcDoor
 }
 
 impl NcDoor {
-    pub fn new(plan: Plan, limits: Limits, tolerance: ClockTolerance) -> NcDoor {
+    pub fn new(plan: Arc<Plan>, limits: Limits, tolerance: ClockTolerance) -> NcDoor {
         let expected = plan_measurements(&plan);
         NcDoor {
             plan,
@@ -537,7 +539,11 @@ mod tests {
     fn setup() -> (NcDoor, Plan) {
         let k = Kinematics::load("table_bc").unwrap();
         let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-        let door = NcDoor::new(plan.clone(), k.config.limits, ClockTolerance::default());
+        let door = NcDoor::new(
+            Arc::new(plan.clone()),
+            k.config.limits,
+            ClockTolerance::default(),
+        );
         (door, plan)
     }
 

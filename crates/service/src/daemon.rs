@@ -340,7 +340,7 @@ impl MachineRuntime {
     pub async fn new(
         id: &str,
         k: Kinematics,
-        plan: Plan,
+        plan: &Plan,
         link: Box<dyn MachineLink>,
         settings: &Settings,
         store: Store,
@@ -385,7 +385,7 @@ impl MachineRuntime {
             None => k,
         };
         let mut checks = CycleChecks::new(&k);
-        checks.expected = Some(driftwatch_core::cycle::plan_measurements(&plan));
+        checks.expected = Some(driftwatch_core::cycle::plan_measurements(plan));
         let kin_name = k.name.clone();
         let (core, said) = MachineCore::new(
             Arc::new(k),

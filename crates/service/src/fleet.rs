@@ -81,7 +81,7 @@ impl MachineLink for SharedLink {
 pub struct Slot {
     pub id: String,
     pub kinematics: Kinematics,
-    pub plan: Plan,
+    pub plan: Arc<Plan>,
     pub settings: Settings,
     pub link: SharedLink,
     pub handle: MachineHandle,
@@ -94,7 +94,7 @@ impl Slot {
     pub fn new(
         id: String,
         kinematics: Kinematics,
-        plan: Plan,
+        plan: Arc<Plan>,
         settings: Settings,
         link: Box<dyn MachineLink>,
         nc: Option<crate::nc_push::NcPushHandle>,
@@ -292,7 +292,7 @@ impl Fleet {
         let mut rt = MachineRuntime::new(
             &slot.id,
             slot.kinematics.clone(),
-            slot.plan.clone(),
+            &slot.plan,
             Box::new(link),
             &slot.settings,
             self.store.fenced(lease),

@@ -286,7 +286,8 @@ async fn start(
             // Run only once its lease is taken (the fleet's supervisor).
             slots.push(crate::fleet::Slot::new(id, k, plan, settings, link, nc));
         } else {
-            let mut runtime = start_machine(&cfg, &store, t0, id, k, plan, link, &settings).await?;
+            let mut runtime =
+                start_machine(&cfg, &store, t0, id, k, &plan, link, &settings).await?;
             runtime.set_notifier(notifier.clone());
             let handle = MachineHandle {
                 view: runtime.view.clone(),
@@ -405,7 +406,7 @@ async fn start_machine(
     t0: i64,
     id: String,
     k: Kinematics,
-    plan: Plan,
+    plan: &Plan,
     link: Box<dyn MachineLink>,
     settings: &Settings,
 ) -> Result<MachineRuntime, LaunchError> {
@@ -425,7 +426,7 @@ async fn start_machine(
 type Linked = (
     String,
     Kinematics,
-    Plan,
+    Arc<Plan>,
     Box<dyn MachineLink>,
     Settings,
     Option<crate::nc_push::NcPushHandle>,
@@ -481,6 +482,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
     let real = cfg.machines.iter().any(|m| m.link.is_real());
     let wall_now = chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0);
     let mut pending = Vec::new();
+    let mut plans = std::collections::HashMap::new();
     let mut t0 = i64::MAX;
     let mut resume = i64::MIN;
     for m in &cfg.machines {
@@ -491,7 +493,19 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
         let k = Kinematics::load(&m.machine).map_err(|e| fail(e.to_string()))?;
         let plan_name = m.plan.as_deref().unwrap_or(&k.config.plan);
         let plan_cfg = PlanConfig::load(plan_name).map_err(|e| fail(e.to_string()))?;
-        let plan = Plan::build(&k, &plan_cfg).map_err(|e| fail(e.to_string()))?;
+        // One plan for every machine of the same kinematics file and plan: the NC doors
+        // keep theirs for as long as the service runs (some 17 KB each).
+        let plan = match plans.get(&(m.machine.clone(), plan_name.to_string())) {
+            Some(plan) => Arc::clone(plan),
+            None => {
+                let plan = Arc::new(Plan::build(&k, &plan_cfg).map_err(|e| fail(e.to_string()))?);
+                plans.insert(
+                    (m.machine.clone(), plan_name.to_string()),
+                    Arc::clone(&plan),
+                );
+                plan
+            }
+        };
         let mut settings = settings.clone();
         settings.alert_rules = m.alert_rules(&cfg.alerts).to_vec();
         alerts_fit(&settings.alert_rules, &k, m.alerts.is_some()).map_err(fail)?;
@@ -503,7 +517,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
         let link = match &m.link {
             LinkConfig::Simulated { scenario, seed } => {
                 let (link, start_ns) =
-                    simulated_link(m, scenario, *seed, (&k, &plan), real, wall_now)
+                    simulated_link(m, scenario, *seed, (&k, &*plan), real, wall_now)
                         .map_err(fail)?;
                 t0 = t0.min(start_ns);
                 if let Some(t) = store.latest_time(&m.id).await? {
@@ -513,7 +527,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
             }
             LinkConfig::NcPush { .. } => {
                 let tolerance = m.link.clock_tolerance().unwrap_or_default();
-                let (link, handle) = nc_push(plan.clone(), k.config.limits, tolerance);
+                let (link, handle) = nc_push(Arc::clone(&plan), k.config.limits, tolerance);
                 t0 = t0.min(wall_now);
                 Pending::Nc(Box::new(link), handle)
             }
@@ -541,7 +555,7 @@ async fn links(cfg: &ServiceConfig, store: &Store) -> Result<(Vec<Linked>, i64),
             LinkConfig::Opcua(c) => {
                 let link = crate::opcua::OpcuaLink::start(
                     c,
-                    plan.clone(),
+                    (*plan).clone(),
                     k.config.limits,
                     &cfg.data_dir,
                     &m.id,
@@ -691,5 +705,44 @@ fn initial_model(path: &Path, k: &Kinematics) -> Result<ThermalModel, String> {
             k.name,
             foreign.join(", ")
         ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Machines of one kinematics file and plan share one plan (their NC doors keep it all
+    /// day); another plan is built on its own.
+    #[tokio::test]
+    async fn machines_of_one_kinematics_and_plan_share_one_plan() {
+        let dir = std::env::temp_dir().join(format!("driftwatch-plans-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Store::open(&dir.join("driftwatch.db")).await.unwrap();
+        let mut cfg = ServiceConfig::load(None).unwrap();
+        let nc = crate::config::LinkConfig::NcPush {
+            max_ahead_s: crate::nc_push::default_max_ahead_s(),
+            max_behind_s: crate::nc_push::default_max_behind_s(),
+        };
+        let base = cfg.machines[0].clone();
+        cfg.machines = [("a", "patent"), ("b", "patent"), ("c", "patent_sequential")]
+            .into_iter()
+            .map(|(id, plan)| {
+                let mut m = base.clone();
+                m.id = id.into();
+                m.machine = "table_bc".into();
+                m.plan = Some(plan.into());
+                m.link = nc.clone();
+                m
+            })
+            .collect();
+        let (linked, _) = links(&cfg, &store).await.unwrap();
+        let plans: Vec<&Arc<Plan>> = linked.iter().map(|l| &l.2).collect();
+        assert!(Arc::ptr_eq(plans[0], plans[1]));
+        assert!(!Arc::ptr_eq(plans[0], plans[2]));
+        assert_eq!(plans[2].config.name, "patent_sequential");
+        store.close().await;
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

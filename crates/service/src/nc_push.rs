@@ -63,7 +63,7 @@ fn lock(door: &Mutex<NcDoor>) -> MutexGuard<'_, NcDoor> {
 }
 
 pub fn nc_push(
-    plan: Plan,
+    plan: Arc<Plan>,
     limits: Limits,
     tolerance: ClockTolerance,
 ) -> (NcPushLink, NcPushHandle) {
@@ -172,7 +172,7 @@ mod tests {
             ahead_ns: 60 * 1_000_000_000,
             behind_ns: 3_600 * 1_000_000_000,
         };
-        nc_push(plan, k.config.limits, tolerance)
+        nc_push(Arc::new(plan), k.config.limits, tolerance)
     }
 
     fn idle(handle: &NcPushHandle) {

@@ -360,7 +360,7 @@ impl OpcuaLink {
         machine: &str,
     ) -> Result<OpcuaLink, OpcuaError> {
         let prepared = prepare_client(cfg.prepare(data_dir, machine)?)?;
-        let (inner, handle) = nc_push(plan, limits, cfg.clock_tolerance());
+        let (inner, handle) = nc_push(Arc::new(plan), limits, cfg.clock_tolerance());
         let (commands, rx) = mpsc::unbounded_channel();
         let status = Arc::new(Status::default());
         // Not aborted when the link is dropped: the closed command channel tells the task to
