@@ -29,25 +29,30 @@ struct Rig {
     tool: String,
 }
 
-fn rig_with(restored: Restored) -> Rig {
+/// A core of `table_bc` on the patent plan with `settings`, started from `restored`.
+fn rig_using(settings: &Settings, restored: Restored) -> Rig {
     let k = Kinematics::load("table_bc").unwrap();
     let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
     let mut checks = CycleChecks::new(&k);
     checks.expected = Some(plan_measurements(&plan));
-    let mut settings = Settings::default();
-    // The thermal model has its own tests; here it would only add predicted sets.
-    settings.prediction.enabled = false;
     let tool = k.tool_id.clone();
     let (core, _) = MachineCore::new(
         Arc::new(k),
         checks,
         plan.steps.len(),
-        &settings,
+        settings,
         restored,
         T0,
     )
     .unwrap();
     Rig { core, plan, tool }
+}
+
+fn rig_with(restored: Restored) -> Rig {
+    let mut settings = Settings::default();
+    // The thermal model has its own tests; here it would only add predicted sets.
+    settings.prediction.enabled = false;
+    rig_using(&settings, restored)
 }
 
 fn rig() -> Rig {
@@ -483,9 +488,6 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
 fn rig_with_model(tip_sigma_um: f64) -> Rig {
     use driftwatch_thermal::model::Event;
     let k = Kinematics::load("table_bc").unwrap();
-    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
-    let mut checks = CycleChecks::new(&k);
-    checks.expected = Some(plan_measurements(&plan));
     let lag = |t: i64| 40.0 * (1.0 - (-(t as f64) / (12.0 * NS_PER_MIN as f64)).exp());
     let mut earlier = vec![Event::Spindle {
         t_ns: 0,
@@ -512,11 +514,7 @@ fn rig_with_model(tip_sigma_um: f64) -> Rig {
     // its data): out of the way of the rule under test.
     settings.prediction.cycle_above_sigma_um = 1e6;
     settings.prediction.cycle_above_sigma_urad = 1e6;
-    let tool = k.tool_id.clone();
-    let (core, _) = MachineCore::new(
-        Arc::new(k),
-        checks,
-        plan.steps.len(),
+    rig_using(
         &settings,
         Restored {
             next_cycle: 7,
@@ -526,10 +524,7 @@ fn rig_with_model(tip_sigma_um: f64) -> Rig {
             last_good_ns: None,
             ..Default::default()
         },
-        T0,
     )
-    .unwrap();
-    Rig { core, plan, tool }
 }
 
 /// The spindle starts on an idle NC: the warm-up cadence's first cycle is due at once. With
@@ -571,23 +566,15 @@ fn the_model_tool_tip_band_orders_cycles_in_place_of_the_cadence() {
 /// model (its first input) still moves it.
 #[test]
 fn a_look_without_a_prediction_moves_the_thermal_view_only_when_the_model_changed() {
-    let k = Kinematics::load("table_bc").unwrap();
-    let plan = Plan::build(&k, &PlanConfig::load("patent").unwrap()).unwrap();
     let settings = Settings::default();
     assert!(settings.prediction.enabled);
-    let checks = CycleChecks::new(&k);
-    let (mut core, _) = MachineCore::new(
-        Arc::new(k),
-        checks,
-        plan.steps.len(),
+    let Rig { mut core, .. } = rig_using(
         &settings,
         Restored {
             next_cycle: 1,
             ..Default::default()
         },
-        T0,
-    )
-    .unwrap();
+    );
     let revision = |c: &MachineCore| c.view().thermal.revision;
     feed(&mut core, [Input::Tick], min(0));
     let first = revision(&core);
