@@ -118,9 +118,14 @@ impl ScratchPg {
         static STARTED: AtomicU32 = AtomicU32::new(0);
         let bin = bin_dir()?;
         let user = run_as()?;
+        // Absolute: the server reads its socket directory (`-k`) from inside its data
+        // directory, so a relative `parent` (`bench fleet`'s default `out/bench`) would name
+        // a directory that is not there.
+        let parent = std::path::absolute(parent)
+            .map_err(|e| format!("naming the server's directory ({}): {e}", parent.display()))?;
         // The server's shell removes what it may when it stops (the directory's contents; the
         // directory itself belongs to `parent`'s owner): empty ones of earlier runs go here.
-        for old in std::fs::read_dir(parent).into_iter().flatten().flatten() {
+        for old in std::fs::read_dir(&parent).into_iter().flatten().flatten() {
             if old.file_name().to_string_lossy().starts_with("pg-") {
                 let _ = std::fs::remove_dir(old.path());
             }
@@ -130,11 +135,6 @@ impl ScratchPg {
             std::process::id(),
             STARTED.fetch_add(1, Ordering::Relaxed)
         ));
-        let io = |what: &str, e: std::io::Error| format!("{what} ({}): {e}", dir.display());
-        // Absolute: the server reads its socket directory (`-k`) from inside its data
-        // directory, so a relative `parent` (`bench fleet`'s default `out/bench`) would name
-        // a directory that is not there.
-        let dir = std::path::absolute(&dir).map_err(|e| io("naming the server's directory", e))?;
         let io = |what: &str, e: std::io::Error| format!("{what} ({}): {e}", dir.display());
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).map_err(|e| io("creating the server's directory", e))?;
