@@ -127,7 +127,7 @@ fn values_placeholders(rows: usize, cols: usize) -> String {
 ///
 /// BEGIN, COMMIT and ROLLBACK are plain statements (the same in both engines), not sqlx's
 /// transaction type: that one owns its connection and cannot mark it to be closed.
-pub(crate) struct Tx {
+struct Tx {
     conn: sqlx::pool::PoolConnection<sqlx::Any>,
     ended: bool,
 }
