@@ -1557,6 +1557,45 @@ fn figure_after(out: &str, prefix: &str, word: &str) -> f64 {
 }
 
 #[test]
+fn bench_fleet_of_nc_push_machines_reports_memory_per_loop_anonymous_and_resident() {
+    let dir = tmp("bench-fleet-nc");
+    let (ok, out, err) = run(&[
+        "bench",
+        "fleet",
+        "--link",
+        "nc-push",
+        "--machines",
+        "2",
+        "--days",
+        "0.05",
+        "--realtime-min",
+        "0",
+        "--idle-s",
+        "0",
+        "--dir",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{out}{err}");
+    // Before, with the loops started and at the end: the whole resident set and its anonymous
+    // part (the heap and stacks, without the program's mapped code), both read from /proc.
+    let numbers = |line: &str| -> Vec<f64> {
+        line.split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .filter_map(|w| w.parse().ok())
+            .collect()
+    };
+    let m = numbers(lines_starting(&out, "memory:")[0]);
+    // [total, anon] before, [total, anon] started (and the machine count), [total, anon] end.
+    assert_eq!(m.len(), 7, "{out}");
+    for (total, anon) in [(m[0], m[1]), (m[2], m[3]), (m[5], m[6])] {
+        assert!(anon > 0.0 && anon <= total, "{out}");
+    }
+    assert_eq!(m[4], 2.0, "{out}");
+    let per_loop = numbers(lines_starting(&out, "memory per machine loop")[0]);
+    assert_eq!(per_loop.len(), 4, "{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn bench_fleet_runs_machines_through_the_launched_service_and_reports_its_figures() {
     let dir = tmp("bench-fleet");
     let (ok, out, err) = run(&[

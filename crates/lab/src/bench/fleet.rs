@@ -556,10 +556,10 @@ struct Figures {
 /// What the `nc-push` run measured beyond the rest.
 #[derive(Default)]
 struct NcFigures {
-    /// Resident memory before the service started, after it started, at the end, bytes.
-    rss_before: u64,
-    rss_launched: u64,
-    rss_end: u64,
+    /// Resident memory before the service started, after it started, at the end.
+    rss_before: Resident,
+    rss_launched: Resident,
+    rss_end: Resident,
     /// The generator's CPU in the simulated days and at 1x, s.
     gen_fast_s: f64,
     gen_paced_s: f64,
@@ -608,7 +608,7 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         }
         FleetLink::Simulated => None,
     };
-    let rss_before = rss().unwrap_or(0);
+    let rss_before = rss();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let launch = LaunchOptions {
         clock: ClockKind::Manual,
@@ -620,7 +620,7 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         .await
         .context("launching the service")?;
     let launch_s = launched.elapsed().as_secs_f64();
-    let rss_launched = rss().unwrap_or(0);
+    let rss_launched = rss();
     let ncs = match recorded {
         Some((rec, _)) => {
             let events_per_day = rec.events_per_day();
@@ -640,7 +640,7 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
         None => None,
     };
     let f = run(&svc, &opts, &db, ncs.as_ref().map(|(g, _)| g)).await;
-    let rss_end = rss().unwrap_or(0);
+    let rss_end = rss();
     let per_day = ncs.as_ref().map_or(0, |(_, n)| *n);
     // The NCs stop first: the service they talk to is about to.
     drop(ncs);
@@ -661,12 +661,30 @@ pub async fn fleet(opts: FleetOptions) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// The resident set of this process now, bytes (VmRSS).
-fn rss() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
+/// The resident set of this process, bytes: all of it (VmRSS), and its anonymous part
+/// (RssAnon: the heap and the stacks). The rest is mapped files, the program's own code
+/// among them: pages that its first run through a code path brings in, the same for one
+/// machine as for ten thousand, and shared with every other process that maps them.
+#[derive(Clone, Copy, Default)]
+struct Resident {
+    total: u64,
+    anon: u64,
+}
+
+/// This process' resident set now (zeros where /proc does not say).
+fn rss() -> Resident {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| -> u64 {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|rest| rest.split_whitespace().next()?.parse::<u64>().ok())
+            .map_or(0, |kb| kb * 1024)
+    };
+    Resident {
+        total: field("VmRSS:"),
+        anon: field("RssAnon:"),
+    }
 }
 
 /// The run itself, on the launched service: the simulated days as fast as the loops keep up,
@@ -893,14 +911,23 @@ fn report(opts: &FleetOptions, f: &Figures) {
 fn report_nc(opts: &FleetOptions, f: &Figures, nc: &NcFigures) {
     let n = opts.machines as f64;
     let kb = |b: u64| b as f64 / 1024.0;
+    let (b, l, e) = (nc.rss_before, nc.rss_launched, nc.rss_end);
     println!(
-        "memory: {:.1} MB resident before the service started, {:.1} MB with {} machine loops started ({:.0} KB per machine loop), {:.1} MB at the end ({:.0} KB per machine loop over the start; the generator's NCs hold about 0.1 KB each)",
-        nc.rss_before as f64 / 1e6,
-        nc.rss_launched as f64 / 1e6,
+        "memory: {:.1} MB resident before the service started ({:.1} MB of it anonymous), {:.1} MB ({:.1}) with {} machine loops started, {:.1} MB ({:.1}) at the end",
+        b.total as f64 / 1e6,
+        b.anon as f64 / 1e6,
+        l.total as f64 / 1e6,
+        l.anon as f64 / 1e6,
         opts.machines,
-        kb(nc.rss_launched.saturating_sub(nc.rss_before)) / n,
-        nc.rss_end as f64 / 1e6,
-        kb(nc.rss_end.saturating_sub(nc.rss_before)) / n,
+        e.total as f64 / 1e6,
+        e.anon as f64 / 1e6,
+    );
+    println!(
+        "memory per machine loop over the start: {:.0} KB anonymous ({:.0} KB resident) with the loops started, {:.0} KB ({:.0} KB) at the end (the load generator's HTTP clients, in this process, included)",
+        kb(l.anon.saturating_sub(b.anon)) / n,
+        kb(l.total.saturating_sub(b.total)) / n,
+        kb(e.anon.saturating_sub(b.anon)) / n,
+        kb(e.total.saturating_sub(b.total)) / n,
     );
     let u = &f.usage;
     let machine_days = n * opts.days;
