@@ -716,21 +716,16 @@ fn periodic_scan(
     };
     // Coarse: the pair's fit to the residual, not projected on the model (its smooth
     // columns hardly overlap a pair of a few hours or less).
-    let approx = |period: f64| -> f64 {
-        let x = block(period);
-        let b = x.tr_mul(&e);
-        let mut a = x.tr_mul(&x);
-        let ridge = 1e-9 * a.trace() / a.nrows() as f64;
-        for i in 0..a.nrows() {
-            a[(i, i)] += ridge;
-        }
-        inverse_form(a, &b).unwrap_or(0.0)
-    };
     let df = 1.0 / (2.0 * span);
+    let mut pairs = CoarsePairs::new(rows, &e, sigma, &tmin, df);
     let mut coarse = Vec::new();
     let mut f = 1.0 / hi;
     while f <= 1.0 / lo {
-        coarse.push((f, approx(1.0 / f)));
+        if coarse.len() % CoarsePairs::RESEED == 0 {
+            pairs.seed(f);
+        }
+        coarse.push((f, pairs.explained()));
+        pairs.advance();
         f += df;
     }
     // Local maxima, strongest first.
@@ -782,6 +777,132 @@ fn periodic_scan(
         },
         block(period),
     ))
+}
+
+/// The coarse periodic scan's fit of the residual `e` by every design parameter times a
+/// Fourier pair, at each frequency of a uniform grid. Its normal equations are built from
+/// per-row products taken once: with `c = cos wt` and `s = sin wt`, `c^2 = (1 + cos 2wt)/2`,
+/// `s^2 = (1 - cos 2wt)/2` and `cs = sin 2wt / 2`, so the pair's `X^T X` is the rows'
+/// `u u^T` (`u` the whitened sensitivities) summed plain and against `cos 2wt` and `sin 2wt`.
+/// From one frequency to the next each row's phase turns by one complex multiplication, not
+/// a `sin_cos`. Forming `X` and `X^T X` at every frequency was half of a diagnosis' time.
+struct CoarsePairs {
+    p: usize,
+    tmin: Vec<f64>,
+    /// Per row, `u_j u_l` for `j <= l`, packed row-major.
+    uu: Vec<f64>,
+    /// Per row, `u_j e`.
+    ue: Vec<f64>,
+    /// `sum u_j u_l` over the rows, packed as `uu`.
+    plain: Vec<f64>,
+    /// Per row, `(cos wt, sin wt)` at the current frequency, and the turn of one grid step.
+    phase: Vec<(f64, f64)>,
+    turn: Vec<(f64, f64)>,
+}
+
+impl CoarsePairs {
+    /// Grid steps between exact phases: the turns' rounding stays near 1e-14.
+    const RESEED: usize = 64;
+
+    fn new(rows: &Rows, e: &DVector<f64>, sigma: f64, tmin: &[f64], df: f64) -> Self {
+        let p = rows.params.len();
+        let packed = p * (p + 1) / 2;
+        let (mut uu, mut ue) = (Vec::with_capacity(rows.rows.len() * packed), Vec::new());
+        let mut plain = vec![0.0; packed];
+        for (r, ei) in rows.rows.iter().zip(e.iter()) {
+            let u: Vec<f64> = r.sensitivity[..p].iter().map(|s| s / sigma).collect();
+            let mut k = 0;
+            for j in 0..p {
+                ue.push(u[j] * ei);
+                for l in j..p {
+                    uu.push(u[j] * u[l]);
+                    plain[k] += u[j] * u[l];
+                    k += 1;
+                }
+            }
+        }
+        let turn = tmin
+            .iter()
+            .map(|t| (std::f64::consts::TAU * df * t).sin_cos())
+            .map(|(s, c)| (c, s))
+            .collect();
+        CoarsePairs {
+            p,
+            tmin: tmin.to_vec(),
+            uu,
+            ue,
+            plain,
+            phase: vec![(1.0, 0.0); tmin.len()],
+            turn,
+        }
+    }
+
+    /// Sets the phases exactly at frequency `f` (1/min).
+    fn seed(&mut self, f: f64) {
+        let w = std::f64::consts::TAU * f;
+        for (ph, t) in self.phase.iter_mut().zip(&self.tmin) {
+            let (s, c) = (w * t).sin_cos();
+            *ph = (c, s);
+        }
+    }
+
+    /// One grid step up in frequency.
+    fn advance(&mut self) {
+        for ((c, s), (tc, ts)) in self.phase.iter_mut().zip(&self.turn) {
+            (*c, *s) = (*c * tc - *s * ts, *s * tc + *c * ts);
+        }
+    }
+
+    /// `b^T A^-1 b` at the current frequency (`A = X^T X` with a relative ridge of 1e-9,
+    /// `b = X^T e`), 0 when `A` is not positive definite.
+    fn explained(&self) -> f64 {
+        let (p, packed) = (self.p, self.plain.len());
+        let (mut c2, mut s2) = (vec![0.0; packed], vec![0.0; packed]);
+        let (mut bc, mut bs) = (vec![0.0; p], vec![0.0; p]);
+        for (i, &(c, s)) in self.phase.iter().enumerate() {
+            let (cos2, sin2) = (c * c - s * s, 2.0 * c * s);
+            let uu = &self.uu[i * packed..(i + 1) * packed];
+            for ((a, b), x) in c2.iter_mut().zip(s2.iter_mut()).zip(uu) {
+                *a += x * cos2;
+                *b += x * sin2;
+            }
+            let ue = &self.ue[i * p..(i + 1) * p];
+            for ((a, b), x) in bc.iter_mut().zip(bs.iter_mut()).zip(ue) {
+                *a += x * c;
+                *b += x * s;
+            }
+        }
+        let mut a = DMatrix::zeros(2 * p, 2 * p);
+        let mut k = 0;
+        for j in 0..p {
+            for l in j..p {
+                let (cc, ss, cs) = (
+                    0.5 * (self.plain[k] + c2[k]),
+                    0.5 * (self.plain[k] - c2[k]),
+                    0.5 * s2[k],
+                );
+                for (r, q, v) in [
+                    (j, l, cc),
+                    (l, j, cc),
+                    (p + j, p + l, ss),
+                    (p + l, p + j, ss),
+                    (j, p + l, cs),
+                    (p + l, j, cs),
+                    (l, p + j, cs),
+                    (p + j, l, cs),
+                ] {
+                    a[(r, q)] = v;
+                }
+                k += 1;
+            }
+        }
+        let ridge = 1e-9 * a.trace() / a.nrows() as f64;
+        for i in 0..a.nrows() {
+            a[(i, i)] += ridge;
+        }
+        let b = DVector::from_iterator(2 * p, bc.into_iter().chain(bs));
+        inverse_form(a, &b).unwrap_or(0.0)
+    }
 }
 
 /// The rows' phase: the production spindle (the log without the cycles' own spins) on for
@@ -1178,6 +1299,61 @@ mod tests {
             .enumerate()
             .map(|(k, d)| row(c, k as i64, *d))
             .collect()
+    }
+
+    /// The coarse scan's normal equations (products taken once, phases turned from step to
+    /// step, exact again every `RESEED` steps) against `X^T X` and `X^T e` formed at each
+    /// frequency, over more steps than one reseed.
+    #[test]
+    fn the_coarse_periodic_scan_agrees_with_the_normal_equations_formed_at_each_period() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let p = 3;
+        let rows = Rows {
+            params: (0..p).map(|j| format!("p{j}")).collect(),
+            locations: Vec::new(),
+            signatures: Vec::new(),
+            rows: (0..300)
+                .map(|i| DetectionRow {
+                    t_ns: i * 7 * units::NS_PER_MIN + rng.random_range(0..units::NS_PER_MIN),
+                    sensitivity: (0..p).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                    ..row(i, 0, 0.0)
+                })
+                .collect(),
+        };
+        let e = DVector::from_fn(rows.rows.len(), |_, _| rng.random_range(-2.0..2.0));
+        let sigma = 0.7;
+        let tmin: Vec<f64> = rows.rows.iter().map(|r| r.t_ns as f64 / 6e10).collect();
+        let span = tmin[tmin.len() - 1];
+        let df = 1.0 / (2.0 * span);
+        let direct = |f: f64| {
+            let w = std::f64::consts::TAU * f;
+            let x = DMatrix::from_fn(rows.rows.len(), 2 * p, |i, c| {
+                let (s, co) = (w * tmin[i]).sin_cos();
+                rows.rows[i].sensitivity[c % p] / sigma * if c < p { co } else { s }
+            });
+            let mut a = x.tr_mul(&x);
+            let ridge = 1e-9 * a.trace() / a.nrows() as f64;
+            for i in 0..a.nrows() {
+                a[(i, i)] += ridge;
+            }
+            inverse_form(a, &x.tr_mul(&e)).unwrap_or(0.0)
+        };
+        let mut pairs = CoarsePairs::new(&rows, &e, sigma, &tmin, df);
+        let f0 = 1.0 / 240.0;
+        for k in 0..(2 * CoarsePairs::RESEED + 5) {
+            let f = f0 + k as f64 * df;
+            if k % CoarsePairs::RESEED == 0 {
+                pairs.seed(f);
+            }
+            let (got, want) = (pairs.explained(), direct(f));
+            assert!(want > 0.0);
+            assert!(
+                (got - want).abs() <= 1e-9 * want,
+                "step {k}: {got} against {want}"
+            );
+            pairs.advance();
+        }
     }
 
     #[test]
