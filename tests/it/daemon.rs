@@ -196,7 +196,9 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
             >= 6
     );
     // EZ0B passes 30 um during production (alert raised) and falls back overnight (resolved).
-    let log = rt.alert_log.clone();
+    // Every alert event as stored, oldest first.
+    let mut log = store.alert_events("sim-1", 100_000, None).await.unwrap();
+    log.reverse();
     let raised = log
         .iter()
         .find(|e| e.rule == "threshold:EZ0B" && format!("{:?}", e.kind) == "Raised");
@@ -222,7 +224,7 @@ async fn a_simulated_day_runs_cycles_in_idle_windows_and_serves_only_validated_s
         .collect();
     let logged: Vec<(u64, String)> = log
         .iter()
-        .map(|e| (e.id, format!("{:?}", e.kind).to_lowercase()))
+        .map(|e| (e.alert as u64, format!("{:?}", e.kind).to_lowercase()))
         .collect();
     assert_eq!(sent, logged);
     assert!(seen.iter().all(|v| v["machine"] == "sim-1"));

@@ -282,7 +282,8 @@ impl LiveModel {
         self.cycles_since_fit += 1;
         self.start_at(t_ns);
         self.catch_up(t_ns);
-        let Some(row) = self.lagged.as_ref().map(Features::row) else {
+        // One row for every channel of the cycle.
+        let Some(row) = self.lagged.as_ref().map(|f| Arc::new(f.row())) else {
             return;
         };
         let keep_from = t_ns - units::h_to_ns(self.policy.history_days * 24.0);
@@ -296,12 +297,15 @@ impl LiveModel {
             let rows = self.rows.entry(name.clone()).or_default();
             rows.push(Obs {
                 t_ns,
-                row: row.clone(),
+                row: Arc::clone(&row),
                 y: *v,
                 sigma: sigma.filter(|s| driftwatch_core::units::positive(*s)),
             });
             let old = rows.partition_point(|o| o.t_ns < keep_from);
             rows.drain(..old);
+            // Once the window is full the rows stop growing: without this, the capacity left
+            // from their last doubling (up to half of it unused) stays with every machine.
+            rows.shrink_to(rows.len() + rows.len() / 8);
         }
     }
 

@@ -211,9 +211,6 @@ pub struct MachineRuntime {
     events: VecDeque<LinkEvent>,
     pub view: Arc<Mutex<MachineView>>,
     pub inbox: Arc<Mutex<Inbox>>,
-    /// The last [`ALERT_LOG_LEN`] alert events (every one is stored), newest last: kept for
-    /// a look without the store, not for ever (a loop runs for months).
-    pub alert_log: Vec<driftwatch_machine::alerts::AlertEvent>,
     notifier: crate::webhook::Notifier,
     /// The newest set the store holds: the only set that may be shown to the API or written
     /// to the NC. The core decides a set before the executor has stored it, so its view may
@@ -423,7 +420,6 @@ impl MachineRuntime {
             events: VecDeque::new(),
             view: Arc::new(Mutex::new(view)),
             inbox: Arc::new(Mutex::new(Inbox::default())),
-            alert_log: Vec::new(),
             notifier: Default::default(),
             stored_set,
             published: (view_version, 0),
@@ -504,7 +500,6 @@ impl MachineRuntime {
                     Effect::Alert(ev) => {
                         warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
                         self.notifier.notify(&self.id, &ev);
-                        self.log_alert(&ev);
                         self.queue.push_back(Job::StoreAlert(ev));
                     }
                     // The view's alerts only: the served set stays the stored one.
@@ -560,13 +555,6 @@ impl MachineRuntime {
             Some(t) if t > now_ns => wake.min(t),
             _ => wake,
         })
-    }
-
-    fn log_alert(&mut self, ev: &driftwatch_machine::alerts::AlertEvent) {
-        if self.alert_log.len() >= ALERT_LOG_LEN {
-            self.alert_log.remove(0);
-        }
-        self.alert_log.push(ev.clone());
     }
 
     fn feed(&mut self, input: Input, now_ns: i64) {
@@ -684,7 +672,6 @@ impl MachineRuntime {
                 warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
                 self.store_alert(ev).await?;
                 self.notifier.notify(&self.id, ev);
-                self.log_alert(ev);
             }
             Effect::StoreAlertState { t_ns, state } => {
                 self.store.put_alert_state(&self.id, *t_ns, state).await?
@@ -869,9 +856,6 @@ impl MachineRuntime {
         &self.store
     }
 }
-
-/// How many alert events a loop keeps in [`MachineRuntime::alert_log`].
-const ALERT_LOG_LEN: usize = 256;
 
 /// A failing loop waits this much machine time before it tries again, doubling up to
 /// [`MAX_RETRY_NS`].

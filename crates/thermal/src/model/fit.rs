@@ -3,6 +3,7 @@
 //! the data's range, and the least squares on the inputs' changes that the model must beat.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
@@ -78,11 +79,13 @@ const PRIOR_SD_OFFSET: f64 = 1e4;
 /// Blocks of the time-ordered data for cross-validation.
 const CV_BLOCKS: usize = 5;
 
-/// One observation of a channel with its design row (the lag states at its time).
+/// One observation of a channel with its design row (the lag states at its time). The row is
+/// shared: a cycle observes every channel at one time, and a service keeps a week of them for
+/// each of its machines.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Obs {
     pub t_ns: i64,
-    pub row: DVector<f64>,
+    pub row: Arc<DVector<f64>>,
     pub y: f64,
     pub sigma: Option<f64>,
 }
@@ -134,7 +137,7 @@ pub fn fit(
         {
             per.entry(channel.clone()).or_default().push(Obs {
                 t_ns: *t_ns,
-                row: f.row(),
+                row: Arc::new(f.row()),
                 y: *value,
                 sigma: sigma.filter(|s| driftwatch_core::units::positive(*s)),
             });
@@ -185,7 +188,7 @@ pub fn fit_rows(
 /// Posterior mean and precision matrix for weights `w` and prior precision `lambda` (the
 /// Bayesian ridge of `least_squares::posterior`).
 fn solve(obs: &[&Obs], w: &[f64], lambda: &[f64]) -> Option<least_squares::Posterior> {
-    least_squares::posterior(obs.iter().zip(w).map(|(o, wi)| (&o.row, o.y, *wi)), lambda).ok()
+    least_squares::posterior(obs.iter().zip(w).map(|(o, wi)| (&*o.row, o.y, *wi)), lambda).ok()
 }
 
 /// One channel's fit: the posterior on every observation, the offset walk learned from
@@ -574,7 +577,7 @@ mod tests {
                 let x = (k * k) as f64 * 0.5 + run as f64;
                 obs.push(Obs {
                     t_ns: run * 16 * 60 * MIN + k * 30 * MIN,
-                    row: DVector::from_vec(vec![1.0, 0.0, x, 0.7 * x]),
+                    row: Arc::new(DVector::from_vec(vec![1.0, 0.0, x, 0.7 * x])),
                     y: offset + 3.0 * x,
                     sigma: None,
                 });
