@@ -166,6 +166,18 @@ struct Held {
     data: Vec<u8>,
 }
 
+impl Held {
+    /// The same limit, nothing held.
+    fn emptied(self) -> Held {
+        Held {
+            limit: self.limit,
+            messages: Vec::new(),
+            topics: Vec::new(),
+            data: Vec::new(),
+        }
+    }
+}
+
 /// How a writer compresses its chunks. Every reader of the format takes both.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ChunkCompression {
@@ -309,34 +321,57 @@ impl<W: Write + Seek> RecordingWriter<W> {
     }
 
     /// Closes the current chunk and flushes the underlying writer, so a crash after this loses
-    /// nothing written before it. (This hands the data to the OS; it does not fsync.)
+    /// nothing written before it. (This hands the data to the OS; it does not fsync.) Held
+    /// messages stay held until their chunk is closed: after a failure part way (a full
+    /// disk), [`Self::take_held`] gives back every one of them.
     pub fn flush(&mut self) -> Result<(), RecordingError> {
-        self.hand_over()?;
-        self.inner.flush().map_err(RecordingError::from_mcap_write)
+        let held = self.held.take();
+        let result = self
+            .hand_over(held.as_ref())
+            .and_then(|()| self.inner.flush().map_err(RecordingError::from_mcap_write));
+        // Once written, the buffers are freed, not kept at their largest size.
+        self.held = held.map(|h| if result.is_ok() { h.emptied() } else { h });
+        result
     }
 
-    /// Write the held messages, if any, into the `mcap` writer; the buffers are freed, not
-    /// kept at their largest size.
-    fn hand_over(&mut self) -> Result<(), RecordingError> {
-        let Some(h) = &mut self.held else {
-            return Ok(());
-        };
-        if h.messages.is_empty() {
-            return Ok(());
-        }
-        let messages = std::mem::take(&mut h.messages);
-        let topics = std::mem::take(&mut h.topics);
-        let data = std::mem::take(&mut h.data);
-        for (topic, time, range) in messages {
-            self.write_now(&topics[topic], time, &data[range])?;
+    /// Write `held`'s messages into the `mcap` writer's chunk.
+    fn hand_over(&mut self, held: Option<&Held>) -> Result<(), RecordingError> {
+        if let Some(h) = held {
+            for (topic, time, range) in &h.messages {
+                self.write_now(&h.topics[*topic], *time, &h.data[range.clone()])?;
+            }
         }
         Ok(())
+    }
+
+    /// The messages held back and not yet in a closed chunk, oldest first; the writer holds
+    /// none after. After a failed [`Self::flush`], these are the messages its file may lack.
+    pub fn take_held(&mut self) -> Vec<driftwatch_core::recording::RawMessage> {
+        let Some(h) = self.held.take() else {
+            return Vec::new();
+        };
+        let out = h
+            .messages
+            .iter()
+            .map(
+                |(topic, time, range)| driftwatch_core::recording::RawMessage {
+                    topic: h.topics[*topic].clone(),
+                    // Held only from an i64 that was not negative.
+                    t_ns: i64::try_from(*time).unwrap_or(i64::MAX),
+                    data: h.data[range.clone()].to_vec(),
+                },
+            )
+            .collect();
+        self.held = Some(h.emptied());
+        out
     }
 
     /// Closes the last chunk, writes the summary, footer and end magic, and returns the
     /// underlying writer.
     pub fn finish(mut self) -> Result<W, RecordingError> {
-        self.hand_over()?;
+        if self.held.is_some() {
+            self.flush()?;
+        }
         self.inner
             .finish()
             .map_err(RecordingError::from_mcap_write)?;
@@ -1322,6 +1357,87 @@ mod tests {
             .map(|d| d.msg.clone().unwrap())
             .collect();
         assert_eq!(got, written[..30]);
+    }
+
+    /// A file with `room` bytes left: a write past it fails as a full disk does.
+    #[derive(Clone)]
+    struct FullingFile {
+        file: SharedFile,
+        room: Rc<RefCell<usize>>,
+    }
+
+    impl Write for FullingFile {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            let mut room = self.room.borrow_mut();
+            if buf.len() > *room {
+                return Err(std::io::ErrorKind::StorageFull.into());
+            }
+            *room -= buf.len();
+            self.file.write(buf)
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Seek for FullingFile {
+        fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+            self.file.seek(pos)
+        }
+    }
+
+    /// A flush that fails part way (the disk full in the middle of the chunk) leaves every
+    /// held message to `take_held`, in order, for the caller to write elsewhere; one that
+    /// succeeds leaves none. So does a failure of the flush the limit sets off.
+    #[test]
+    fn a_failed_flush_gives_back_every_held_message() {
+        let written = many_detections(12);
+        let raw = |i: usize| driftwatch_core::recording::RawMessage {
+            topic: TOPIC_DETECTION.to_string(),
+            t_ns: i as i64,
+            data: serde_json::to_vec(&written[i]).unwrap(),
+        };
+        let one = raw(0).data.len();
+        let room = Rc::new(RefCell::new(usize::MAX));
+        let file = FullingFile {
+            file: SharedFile::default(),
+            room: room.clone(),
+        };
+        let mut w = RecordingWriter::with_compression(file, ChunkCompression::Lz4)
+            .unwrap()
+            .hold_up_to(4 * one);
+        for (i, d) in written[..3].iter().enumerate() {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+        }
+        w.flush().unwrap();
+        assert!(
+            w.take_held().is_empty(),
+            "a chunk written holds nothing back"
+        );
+        for (i, d) in written.iter().enumerate().take(6).skip(3) {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+        }
+        // Room for the chunk's header but not for its data.
+        *room.borrow_mut() = 100;
+        assert!(w.flush().is_err());
+        assert_eq!(w.take_held(), (3..6).map(raw).collect::<Vec<_>>());
+        assert!(w.take_held().is_empty(), "taken once");
+        // The limit's flush fails at the fourth message: all four come back.
+        let mut w = RecordingWriter::with_compression(
+            FullingFile {
+                file: SharedFile::default(),
+                // Room for the file's header, not for a chunk.
+                room: Rc::new(RefCell::new(150)),
+            },
+            ChunkCompression::Lz4,
+        )
+        .unwrap()
+        .hold_up_to(4 * one);
+        let results: Vec<bool> = (6..10)
+            .map(|i| w.write(TOPIC_DETECTION, i as i64, &written[i]).is_ok())
+            .collect();
+        assert_eq!(results, [true, true, true, false]);
+        assert_eq!(w.take_held(), (6..10).map(raw).collect::<Vec<_>>());
     }
 
     /// A writer that holds its messages back writes the same messages, in the same order, as

@@ -341,7 +341,7 @@ impl MachineRuntime {
         link: Box<dyn MachineLink>,
         settings: &Settings,
         store: Store,
-        recorder: Recorder,
+        mut recorder: Recorder,
         now_ns: i64,
     ) -> Result<Self, DaemonError> {
         store.ensure_machine(id, &k.name, now_ns).await?;

@@ -83,6 +83,11 @@ pub struct Recorder {
     /// one, so it was dropped and its `.partial` file waits to be recovered, up to its last
     /// complete chunk, before the next write opens a new file.
     salvage: bool,
+    /// What the failed writer held and had not yet written as a complete chunk, oldest first,
+    /// and its file: written first into the next file, but for the part that the recovered
+    /// file turns out to hold (a chunk that reached the disk before the failure).
+    carry: Vec<rec::RawMessage>,
+    carry_from: Option<PathBuf>,
 }
 
 fn day_of(t_ns: i64) -> String {
@@ -105,13 +110,21 @@ impl Recorder {
             open: None,
             info,
             salvage: false,
+            carry: Vec::new(),
+            carry_from: None,
         })
     }
 
     /// The current writer failed: drop it (what of its file is complete stays readable) and
     /// recover its file before the next write.
     fn broke(&mut self) {
-        self.open = None;
+        if let Some(mut f) = self.open.take() {
+            // The next file writes its own /machine/info.
+            let held = f.writer.take_held().into_iter();
+            self.carry
+                .extend(held.filter(|m| m.topic != rec::TOPIC_INFO));
+            self.carry_from = Some(f.partial);
+        }
         self.salvage = true;
     }
 
@@ -121,7 +134,7 @@ impl Recorder {
 
     /// Recover every `.partial` file left in this machine's directory (a crash): copy its
     /// complete chunks into a closed file beside it and remove the partial one.
-    pub fn recover(&self) -> Result<Vec<ClosedFile>, RecorderError> {
+    pub fn recover(&mut self) -> Result<Vec<ClosedFile>, RecorderError> {
         let mut out = Vec::new();
         let entries = fs::read_dir(&self.dir).map_err(|source| RecorderError::Dir {
             path: self.dir.display().to_string(),
@@ -157,6 +170,15 @@ impl Recorder {
                 }
                 Err(e) => return Err(rec_err(e)),
             };
+            if self.carry_from.as_ref() == Some(&partial) {
+                // What the failed writer held is written again, but for what reached the disk.
+                if let Some(last) = recording.raw.last()
+                    && let Some(j) = self.carry.iter().position(|m| m == last)
+                {
+                    self.carry.drain(..=j);
+                }
+                self.carry_from = None;
+            }
             let target = self.free_name(&partial.with_extension(""));
             let messages = rewrite(&recording, &target).map_err(|source| {
                 // A copy cut short (a full disk) is no file: the partial one stays.
@@ -177,6 +199,8 @@ impl Recorder {
                 recovered: true,
             });
         }
+        // Its file read, or not there to read (unreadable, set aside): nothing more to drop.
+        self.carry_from = None;
         Ok(out)
     }
 
@@ -227,6 +251,18 @@ impl Recorder {
         let Some(f) = self.open.as_mut() else {
             return Ok(rotation);
         };
+        // What a failed writer held, before anything new.
+        let carry = std::mem::take(&mut self.carry);
+        for (i, m) in carry.iter().enumerate() {
+            if let Err(source) = f.writer.write_json_bytes(&m.topic, m.t_ns, &m.data) {
+                let path = f.partial.display().to_string();
+                self.broke();
+                self.carry.extend_from_slice(&carry[i + 1..]);
+                return Err(RecorderError::Recording { path, source });
+            }
+            f.messages += 1;
+            f.bytes_hint += m.data.len() as u64;
+        }
         let data = serde_json::to_vec(msg).map_err(|e| RecorderError::Recording {
             path: f.partial.display().to_string(),
             source: RecordingError::Json {
@@ -237,6 +273,14 @@ impl Recorder {
         if let Err(source) = f.writer.write_json_bytes(topic, t_ns, &data) {
             let path = f.partial.display().to_string();
             self.broke();
+            // The caller writes this message again: it is not carried too.
+            if self
+                .carry
+                .last()
+                .is_some_and(|m| m.topic == topic && m.t_ns == t_ns && m.data == data)
+            {
+                self.carry.pop();
+            }
             return Err(RecorderError::Recording { path, source });
         }
         f.messages += 1;
@@ -292,6 +336,8 @@ impl Recorder {
 
     /// Finish the current file and rename it from `.partial`.
     pub fn close(&mut self) -> Result<Option<ClosedFile>, RecorderError> {
+        // The held messages first: a failure leaves them to the next file.
+        self.flush()?;
         let Some(f) = self.open.take() else {
             return Ok(None);
         };
@@ -349,6 +395,119 @@ mod tests {
     }
 
     const DAY: i64 = units::NS_PER_DAY;
+
+    /// Every message of a recording directory's closed files, in file order (the files by
+    /// their first message).
+    fn all_messages(d: &Path) -> Vec<(String, i64, Vec<u8>)> {
+        let keep = ReadOptions {
+            recover_truncated: false,
+            keep_raw: true,
+        };
+        let mut files: Vec<Vec<rec::RawMessage>> = fs::read_dir(d.join("m1"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
+            .map(|p| read_file(&p, &keep).unwrap().raw)
+            .collect();
+        files.sort_by_key(|raw| raw.first().map(|m| m.t_ns));
+        files
+            .into_iter()
+            .flatten()
+            .map(|m| (m.topic, m.t_ns, m.data))
+            .collect()
+    }
+
+    /// The disk is full under a new day's recording (its file is /dev/full): the chunk its
+    /// held messages set off fails. Those messages are written into the next file, once and in
+    /// order; the message whose write failed is written once, by the caller's retry.
+    #[test]
+    fn a_full_disk_loses_no_held_message_and_writes_none_twice() {
+        let d = dir("full");
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        let t0 = 20_000 * DAY + units::NS_PER_H;
+        let spin = |r: &mut Recorder, i: i64| {
+            let t = t0 + i * units::NS_PER_S;
+            r.write(rec::TOPIC_SPINDLE, t, t, &SpindleMsg { rpm: i as f64 })
+        };
+        spin(&mut r, 0).unwrap();
+        let next_day = d
+            .join("m1")
+            .join(format!("{}.mcap.partial", day_of(t0 + DAY)));
+        std::os::unix::fs::symlink("/dev/full", &next_day).unwrap();
+        let day = DAY / units::NS_PER_S;
+        let mut i = day;
+        let failed = loop {
+            if spin(&mut r, i).is_err() {
+                break i;
+            }
+            i += 1;
+            assert!(
+                i < day + 100_000,
+                "the held messages never reached the disk"
+            );
+        };
+        assert!(
+            failed > day + 100,
+            "the limit holds many messages: {}",
+            failed - day
+        );
+        // Room again: the next file is a real one (/dev/full is never read back).
+        fs::remove_file(&next_day).unwrap();
+        spin(&mut r, failed).unwrap();
+        spin(&mut r, failed + 1).unwrap();
+        r.close().unwrap();
+        let got: Vec<i64> = all_messages(&d)
+            .into_iter()
+            .filter(|m| m.0 == rec::TOPIC_SPINDLE)
+            .map(|m| (m.1 - t0) / units::NS_PER_S)
+            .collect();
+        let want: Vec<i64> = std::iter::once(0).chain(day..=failed + 1).collect();
+        assert_eq!(got, want);
+        let _ = fs::remove_dir_all(&d);
+    }
+
+    /// A failed writer's messages that its file turns out to hold (their chunk reached the
+    /// disk before the failure) are not written again; the rest are.
+    #[test]
+    fn carried_messages_that_reached_the_disk_are_not_written_again() {
+        let d = dir("landed");
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        let t0 = 20_000 * DAY + units::NS_PER_H;
+        let msg = |i: i64| rec::RawMessage {
+            topic: rec::TOPIC_SPINDLE.to_string(),
+            t_ns: t0 + i * units::NS_PER_MIN,
+            data: serde_json::to_vec(&SpindleMsg { rpm: i as f64 }).unwrap(),
+        };
+        for i in 0..3 {
+            let m = msg(i);
+            r.write(
+                rec::TOPIC_SPINDLE,
+                m.t_ns,
+                m.t_ns,
+                &SpindleMsg { rpm: i as f64 },
+            )
+            .unwrap();
+        }
+        r.flush().unwrap();
+        // As if the writer had failed after messages 1 and 2 reached the disk, holding 1 to 4
+        // (the writer is lost as in a crash: its file stays partial).
+        let f = r.open.take().unwrap();
+        r.carry = (1..5).map(msg).collect();
+        r.carry_from = Some(f.partial.clone());
+        r.salvage = true;
+        std::mem::forget(f);
+        let m = msg(5);
+        r.write(rec::TOPIC_SPINDLE, m.t_ns, m.t_ns, &SpindleMsg { rpm: 5.0 })
+            .unwrap();
+        r.close().unwrap();
+        let got: Vec<i64> = all_messages(&d)
+            .into_iter()
+            .filter(|m| m.0 == rec::TOPIC_SPINDLE)
+            .map(|m| (m.1 - t0) / units::NS_PER_MIN)
+            .collect();
+        assert_eq!(got, [0, 1, 2, 3, 4, 5]);
+        let _ = fs::remove_dir_all(&d);
+    }
 
     #[test]
     fn one_file_per_day_renamed_when_closed() {
@@ -444,7 +603,7 @@ mod tests {
             // A crash: the writer is leaked, never finished.
             std::mem::forget(r);
         }
-        let r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let rec = r.recover().unwrap();
         assert_eq!(rec.len(), 1);
         assert!(rec[0].recovered);
