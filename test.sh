@@ -142,27 +142,33 @@ finish_background() {
     done
 }
 
-# Build every test binary first: a build error stops here, and a failing test further on
-# still leaves the driftwatch binary the Python checks run fresh.
-step "build the tests"
-cargo test --locked --no-run
-
 out="$(mktemp -d)"
-# The binary `cargo test` built for the command-line tests.
-bin=target/debug/driftwatch
-if [ -n "${CARGO_TARGET_DIR:-}" ]; then bin="$CARGO_TARGET_DIR/debug/driftwatch"; fi
+target="${CARGO_TARGET_DIR:-target}"
 not_run=()
 # LinuxCNC runs the measurement program, the gateway writes the served sets into its
-# kinematics and the tool tip is measured, on both trt families, with the faults (about 6 min
-# of machine motion on the wall clock, little CPU): beside everything after it. It runs
-# LinuxCNC as a non-root user and installs the truth component, so it needs root.
+# kinematics and the tool tip is measured, on both trt families, with the faults (about 8 min
+# of machine motion on the wall clock, little CPU): it starts as soon as the service's binary
+# is built, beside the rest of the build and everything after it (started after the whole
+# build, it was the last step to end). Its own copy of the binary: the test build replaces
+# the one in the target directory. It runs LinuxCNC as a non-root user and installs the
+# truth component, so it needs root.
 if [ "$(id -u)" -eq 0 ]; then
+    step "build the service's binary (for LinuxCNC in the loop)"
+    cargo build --locked --profile test --bin driftwatch
+    cp "$target/debug/driftwatch" "$out/driftwatch"
     chmod o+x "$out"  # LinuxCNC's user works in $out/linuxcnc
     in_background "LinuxCNC in the loop (tests/linuxcnc/loop.py)" \
-        python3 tests/linuxcnc/loop.py "$bin" "$out/linuxcnc"
+        python3 tests/linuxcnc/loop.py "$out/driftwatch" "$out/linuxcnc"
 else
     not_run+=("LinuxCNC in the loop (needs root: a user for LinuxCNC, the truth component)")
 fi
+
+# Build every test binary: a build error stops here, and a failing test further on still
+# leaves the driftwatch binary the Python checks run fresh.
+step "build the tests"
+cargo test --locked --no-run
+# The binary `cargo test` built for the command-line tests.
+bin="$target/debug/driftwatch"
 check "cargo test (every test binary)" cargo test --locked --no-fail-fast
 # The modules of the integration tests (tests/it, one binary) that take their store from
 # tests/it/common run again on PostgreSQL, chosen by their module paths (the fault injection of
