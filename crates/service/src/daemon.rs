@@ -823,7 +823,7 @@ impl MachineRuntime {
         self.clock_ns = now_ns;
         self.feed(Input::Shutdown, now_ns);
         self.drain().await?;
-        if let Some(closed) = self.recorder.close()? {
+        for closed in self.recorder.stop(now_ns)? {
             self.file_closed(&closed, now_ns).await?;
         }
         Ok(())

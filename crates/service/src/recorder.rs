@@ -88,6 +88,8 @@ pub struct Recorder {
     /// file turns out to hold (a chunk that reached the disk before the failure).
     carry: Vec<rec::RawMessage>,
     carry_from: Option<PathBuf>,
+    /// Files closed or recovered by a call that then failed: reported by the next call.
+    unreported: Vec<ClosedFile>,
 }
 
 fn day_of(t_ns: i64) -> String {
@@ -112,6 +114,7 @@ impl Recorder {
             salvage: false,
             carry: Vec::new(),
             carry_from: None,
+            unreported: Vec::new(),
         })
     }
 
@@ -230,10 +233,63 @@ impl Recorder {
         clock_ns: i64,
         msg: &T,
     ) -> Result<Rotation, RecorderError> {
+        let mut rotation = Rotation {
+            recovered: std::mem::take(&mut self.unreported),
+            ..Default::default()
+        };
+        let result = self
+            .ready(&mut rotation, clock_ns)
+            .and_then(|()| self.append(topic, t_ns, msg));
+        self.settle(rotation, result)
+    }
+
+    /// Close the recording for good (the service stops): what a failed writer left is written
+    /// first, into a new file, if the disk takes it. Returns every file closed or recovered.
+    pub fn stop(&mut self, clock_ns: i64) -> Result<Vec<ClosedFile>, RecorderError> {
+        let mut rotation = Rotation {
+            recovered: std::mem::take(&mut self.unreported),
+            ..Default::default()
+        };
+        let mut result = Ok(());
+        if !self.carry.is_empty() {
+            result = self.ready(&mut rotation, clock_ns);
+        }
+        if result.is_ok() {
+            match self.close() {
+                Ok(closed) => rotation.recovered.extend(closed),
+                Err(e) => result = Err(e),
+            }
+        }
+        let rotation = self.settle(rotation, result)?;
+        Ok(rotation
+            .recovered
+            .into_iter()
+            .chain(rotation.closed)
+            .collect())
+    }
+
+    /// The files a failed call had closed or recovered are reported by the next one: their
+    /// store rows must not be forgotten.
+    fn settle(
+        &mut self,
+        rotation: Rotation,
+        result: Result<(), RecorderError>,
+    ) -> Result<Rotation, RecorderError> {
+        match result {
+            Ok(()) => Ok(rotation),
+            Err(e) => {
+                self.unreported = rotation.recovered;
+                self.unreported.extend(rotation.closed);
+                Err(e)
+            }
+        }
+    }
+
+    /// Recover a failed writer's file, rotate, and write what the failed writer held.
+    fn ready(&mut self, rotation: &mut Rotation, clock_ns: i64) -> Result<(), RecorderError> {
         let day_number = clock_ns.div_euclid(units::NS_PER_DAY);
-        let mut rotation = Rotation::default();
         if self.salvage {
-            rotation.recovered = self.recover()?;
+            rotation.recovered.extend(self.recover()?);
             self.salvage = false;
         }
         let rotate = match &self.open {
@@ -249,7 +305,7 @@ impl Recorder {
             rotation.opened = self.current().map(Path::to_path_buf);
         }
         let Some(f) = self.open.as_mut() else {
-            return Ok(rotation);
+            return Ok(());
         };
         // What a failed writer held, before anything new.
         let carry = std::mem::take(&mut self.carry);
@@ -263,6 +319,19 @@ impl Recorder {
             f.messages += 1;
             f.bytes_hint += m.data.len() as u64;
         }
+        Ok(())
+    }
+
+    /// Append one message to the open file.
+    fn append<T: Serialize>(
+        &mut self,
+        topic: &str,
+        t_ns: i64,
+        msg: &T,
+    ) -> Result<(), RecorderError> {
+        let Some(f) = self.open.as_mut() else {
+            return Ok(());
+        };
         let data = serde_json::to_vec(msg).map_err(|e| RecorderError::Recording {
             path: f.partial.display().to_string(),
             source: RecordingError::Json {
@@ -285,7 +354,7 @@ impl Recorder {
         }
         f.messages += 1;
         f.bytes_hint += data.len() as u64;
-        Ok(rotation)
+        Ok(())
     }
 
     fn open_file(&mut self, day: &str, t_ns: i64) -> Result<(), RecorderError> {
@@ -335,7 +404,7 @@ impl Recorder {
     }
 
     /// Finish the current file and rename it from `.partial`.
-    pub fn close(&mut self) -> Result<Option<ClosedFile>, RecorderError> {
+    fn close(&mut self) -> Result<Option<ClosedFile>, RecorderError> {
         // The held messages first: a failure leaves them to the next file.
         self.flush()?;
         let Some(f) = self.open.take() else {
@@ -463,6 +532,83 @@ mod tests {
             .collect();
         let want: Vec<i64> = std::iter::once(0).chain(day..=failed + 1).collect();
         assert_eq!(got, want);
+        let _ = fs::remove_dir_all(&d);
+    }
+
+    /// The service stops after a failed write and before any other message: what the failed
+    /// writer held is still written, into a file of its own, and reported.
+    #[test]
+    fn a_stop_after_a_failed_write_writes_what_the_writer_held() {
+        let d = dir("stop");
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        let t0 = 20_000 * DAY + units::NS_PER_H;
+        let t = |i: i64| t0 + DAY + i * units::NS_PER_S;
+        let first = r
+            .write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 0.0 })
+            .unwrap();
+        assert!(first.opened.is_some());
+        let next_day = d.join("m1").join(format!("{}.mcap.partial", day_of(t(0))));
+        std::os::unix::fs::symlink("/dev/full", &next_day).unwrap();
+        let mut written = Vec::new();
+        for i in 0..100_000 {
+            let ok = r
+                .write(
+                    rec::TOPIC_SPINDLE,
+                    t(i),
+                    t(i),
+                    &SpindleMsg { rpm: i as f64 },
+                )
+                .is_ok();
+            if !ok {
+                break;
+            }
+            written.push(t(i));
+        }
+        assert!(!r.carry.is_empty());
+        fs::remove_file(&next_day).unwrap();
+        let files = r.stop(t(0) + units::NS_PER_H).unwrap();
+        // The first day's file (closed at the rotation) was reported then; now the carry's.
+        assert_eq!(files.len(), 1, "{files:?}");
+        assert_eq!(
+            files[0].messages as usize,
+            written.len() + 1,
+            "with its info"
+        );
+        let got: Vec<i64> = all_messages(&d)
+            .into_iter()
+            .filter(|m| m.0 == rec::TOPIC_SPINDLE)
+            .map(|m| m.1)
+            .collect();
+        assert_eq!(got, std::iter::once(t0).chain(written).collect::<Vec<_>>());
+        let _ = fs::remove_dir_all(&d);
+    }
+
+    /// A file recovered by a write that then failed (here on a message that is no JSON) is
+    /// reported by the next write: its store row is not forgotten.
+    #[test]
+    fn a_file_recovered_by_a_failed_write_is_reported_by_the_next() {
+        let d = dir("unreported");
+        let t0 = 20_000 * DAY + units::NS_PER_H;
+        {
+            let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+            r.write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 1.0 })
+                .unwrap();
+            r.flush().unwrap();
+            // A crash: the writer is leaked, never finished.
+            std::mem::forget(r);
+        }
+        let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
+        r.salvage = true;
+        let not_json = std::collections::BTreeMap::from([((1, 2), 3)]);
+        assert!(
+            r.write(rec::TOPIC_SPINDLE, t0 + 1, t0 + 1, &not_json)
+                .is_err()
+        );
+        let next = r
+            .write(rec::TOPIC_SPINDLE, t0 + 2, t0 + 2, &SpindleMsg { rpm: 2.0 })
+            .unwrap();
+        assert_eq!(next.recovered.len(), 1, "{next:?}");
+        assert!(next.recovered[0].recovered);
         let _ = fs::remove_dir_all(&d);
     }
 
