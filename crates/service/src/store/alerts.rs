@@ -139,7 +139,7 @@ impl Store {
         .bind(ev.value)
         // Not a cached prepared statement: see `NULLABLE_REAL` in the store's module.
         .persistent(super::NULLABLE_REAL_CACHED)
-        .execute(&self.pool)
+        .execute(&mut *self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -197,7 +197,7 @@ impl Store {
         .bind(machine)
         .bind(t_ns)
         .bind(json)
-        .execute(&self.pool)
+        .execute(&mut *self.write_conn().await?)
         .await?;
         Ok(())
     }

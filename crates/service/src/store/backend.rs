@@ -162,6 +162,8 @@ impl Backend {
                 let url = format!("{url}{sep}mode=rwc");
                 probe_sqlite(&url).await?;
                 AnyPoolOptions::new()
+                    // One of them the store's writer, held between writes (`writer`); the
+                    // others for the reads.
                     .max_connections(4)
                     // A ping at each acquire only asks the connection's thread whether it is
                     // there (a file has no network to lose); a connection is unfit only after

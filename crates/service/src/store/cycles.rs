@@ -114,7 +114,7 @@ impl Store {
         trigger: &str,
         attempt: i64,
     ) -> Result<(), StoreError> {
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
             "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status, lease_term)
@@ -145,6 +145,7 @@ impl Store {
             .enumerate()
             .map(|(i, r)| (i as i64, r))
             .collect();
+        let mut conn = self.write_conn().await?;
         for chunk in numbered.chunks(1000) {
             let sql = format!(
                 "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload) {}",
@@ -160,7 +161,7 @@ impl Store {
                     .bind(r.step)
                     .bind(r.payload.as_str());
             }
-            q.execute(&self.pool).await?;
+            q.execute(&mut *conn).await?;
         }
         Ok(())
     }
@@ -188,7 +189,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         let status = CycleStatus::from(result.status);
         let payload = serde_json::to_string(result)?;
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         let term = self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $3, finished_ns = $4, reason = $5
@@ -275,7 +276,7 @@ impl Store {
         now_ns: i64,
         reason: &str,
     ) -> Result<(), StoreError> {
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         self.fence(&mut tx, machine).await?;
         sqlx::query(
             "UPDATE cycles SET status = $5, finished_ns = $3, reason = $4

@@ -85,6 +85,7 @@ impl Store {
     /// Store a diagnosis run (its result JSON when it succeeded) and keep only the machine's
     /// newest `keep` (at least 1: numbers are never given twice); returns its number.
     pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>, keep: i64) -> Result<i64, StoreError> {
+        let mut conn = self.write_conn().await?;
         // One statement: the number and the row together, whatever else writes meanwhile.
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO diagnoses (machine_id, id, requested_ns, requested_by, from_ns, to_ns, status, summary, result)
@@ -100,12 +101,12 @@ impl Store {
         .bind(d.status.as_str())
         .bind(d.summary)
         .bind(d.result)
-        .fetch_one(&self.pool)
+        .fetch_one(&mut *conn)
         .await?;
         sqlx::query("DELETE FROM diagnoses WHERE machine_id = $1 AND id <= $2")
             .bind(d.machine)
             .bind(id - keep.max(1))
-            .execute(&self.pool)
+            .execute(&mut *conn)
             .await?;
         Ok(id)
     }

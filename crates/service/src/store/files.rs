@@ -54,7 +54,7 @@ impl Store {
         .bind(path)
         .bind(opened_ns)
         .bind(FileStatus::Open.as_str())
-        .execute(&self.pool)
+        .execute(&mut *self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -70,7 +70,7 @@ impl Store {
         status: FileStatus,
         messages: i64,
     ) -> Result<(), StoreError> {
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         sqlx::query(
             "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
              ON CONFLICT (path) DO NOTHING",

@@ -51,7 +51,7 @@ impl Store {
         .bind(requested_by)
         .bind(source)
         .bind(&payload)
-        .fetch_one(&self.pool)
+        .fetch_one(&mut *self.write_conn().await?)
         .await?;
         Ok(version)
     }

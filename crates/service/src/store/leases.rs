@@ -64,7 +64,7 @@ impl Store {
         ttl_ms: i64,
     ) -> Result<Option<Lease>, StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         // One statement decides, under the row's lock: two processes cannot both take it.
         let upsert = format!(
             "INSERT INTO leases (machine_id, holder, url, term, expires_ms)
@@ -109,7 +109,7 @@ impl Store {
     /// holder's (another process took the machine).
     pub async fn renew_lease(&self, lease: &Lease, ttl_ms: i64) -> Result<bool, StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         let sql = format!(
             "UPDATE leases SET expires_ms = {now} + $4
              WHERE machine_id = $1 AND holder = $2 AND term = $3"
@@ -142,7 +142,7 @@ impl Store {
     /// Give a lease back (a clean stop): another process may take the machine at once.
     pub async fn release_lease(&self, lease: &Lease) -> Result<(), StoreError> {
         let now = self.backend.now_ms_sql();
-        let mut tx = super::Tx::begin(&self.pool).await?;
+        let mut tx = super::Tx::begin(self).await?;
         let sql = "UPDATE leases SET expires_ms = 0
                    WHERE machine_id = $1 AND holder = $2 AND term = $3";
         let held = sqlx::query(sql)
@@ -225,7 +225,7 @@ impl Store {
         sqlx::query(sqlx::AssertSqlSafe(insert))
             .bind(t0_ns)
             .bind(scale)
-            .execute(&self.pool)
+            .execute(&mut *self.write_conn().await?)
             .await?;
         let select = format!("SELECT t0_ns, wall0_ms, scale, {now} FROM fleet_clock WHERE id = 1");
         let row = sqlx::query(sqlx::AssertSqlSafe(select))

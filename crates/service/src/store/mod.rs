@@ -16,6 +16,7 @@ mod leases;
 mod samples;
 mod sets;
 mod verifications;
+mod writer;
 
 pub use alerts::{AlertEventKind, AlertEventRow, AlertSeverity, NewAlertEvent};
 pub use backend::Backend;
@@ -33,6 +34,8 @@ use std::path::Path;
 
 use sqlx::AnyPool;
 use thiserror::Error;
+
+use writer::{Conn, Tx, Writer};
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -84,6 +87,8 @@ pub struct Store {
     /// The name drawn when this database's schema was made: a set's ETag carries it, so that
     /// a version number of an emptied (or another) database never passes for this one's.
     epoch: std::sync::Arc<str>,
+    /// SQLite's one writer connection ([`writer`]); none on PostgreSQL.
+    writer: Option<std::sync::Arc<Writer>>,
 }
 
 /// Whether a statement that binds an `Option<f64>` may be a cached prepared statement: no.
@@ -116,73 +121,16 @@ fn values_placeholders(rows: usize, cols: usize) -> String {
     s
 }
 
-/// A transaction on a connection of the pool that goes back to the pool only once it has
-/// ended by its own COMMIT or ROLLBACK. One that failed or was dropped part way (an error, a
-/// cancelled future) closes its connection instead, which ends whatever the engine still held
-/// of it. So a connection is never used again in a state the engine and the store see
-/// differently: a COMMIT that fails on a full disk may leave SQLite's transaction open (holding
-/// the write lock for every other connection), or end it. Statements outside a transaction
-/// commit or roll back on their own. That is what lets the pool take a connection back without
-/// asking the engine about it first.
-///
-/// BEGIN, COMMIT and ROLLBACK are plain statements (the same in both engines), not sqlx's
-/// transaction type: that one owns its connection and cannot mark it to be closed.
-struct Tx {
-    conn: sqlx::pool::PoolConnection<sqlx::Any>,
-    ended: bool,
-}
-
-impl Tx {
-    async fn begin(pool: &AnyPool) -> Result<Tx, StoreError> {
-        // Made before BEGIN: a BEGIN that fails closes the connection too.
-        let mut tx = Tx {
-            conn: pool.acquire().await?,
-            ended: false,
-        };
-        tx.run("BEGIN").await?;
-        Ok(tx)
-    }
-
-    async fn run(&mut self, sql: &'static str) -> Result<(), StoreError> {
-        sqlx::raw_sql(sql).execute(&mut *self.conn).await?;
-        Ok(())
-    }
-
-    async fn commit(mut self) -> Result<(), StoreError> {
-        self.run("COMMIT").await?;
-        self.ended = true;
-        Ok(())
-    }
-
-    async fn rollback(mut self) -> Result<(), StoreError> {
-        self.run("ROLLBACK").await?;
-        self.ended = true;
-        Ok(())
-    }
-}
-
-impl std::ops::Deref for Tx {
-    type Target = sqlx::AnyConnection;
-    fn deref(&self) -> &sqlx::AnyConnection {
-        &self.conn
-    }
-}
-
-impl std::ops::DerefMut for Tx {
-    fn deref_mut(&mut self) -> &mut sqlx::AnyConnection {
-        &mut self.conn
-    }
-}
-
-impl Drop for Tx {
-    fn drop(&mut self) {
-        if !self.ended {
-            self.conn.close_on_drop();
+impl Store {
+    /// A connection to write on ([`writer`]): SQLite's writer, once the write before has
+    /// finished, or one of PostgreSQL's pool.
+    async fn write_conn(&self) -> Result<Conn<'_>, StoreError> {
+        match &self.writer {
+            Some(w) => w.lock(&self.pool).await,
+            None => Ok(Conn::Pooled(self.pool.acquire().await?)),
         }
     }
-}
 
-impl Store {
     /// Open (creating if needed) the SQLite database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, StoreError> {
         Self::connect(&Backend::sqlite_url(path)).await
@@ -209,6 +157,7 @@ impl Store {
             backend,
             fence: None,
             epoch: epoch.into(),
+            writer: (backend == Backend::Sqlite).then(Default::default),
         })
     }
 
@@ -243,6 +192,9 @@ impl Store {
     }
 
     pub async fn close(&self) {
+        if let Some(w) = &self.writer {
+            w.release().await;
+        }
         self.pool.close().await;
     }
 
@@ -259,7 +211,7 @@ impl Store {
         .bind(id)
         .bind(kinematics)
         .bind(now_ns)
-        .execute(&self.pool)
+        .execute(&mut *self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -669,7 +621,7 @@ mod tests {
             let store = Store::connect(db).await.unwrap();
             store.ensure_machine("m1", "table_bc", 0).await.unwrap();
             for attempt in 1..=3 {
-                let mut tx = Tx::begin(&store.pool).await.unwrap();
+                let mut tx = Tx::begin(&store).await.unwrap();
                 sqlx::query("UPDATE machines SET kinematics = $1 WHERE id = 'm1'")
                     .bind(format!("dropped {attempt}"))
                     .execute(&mut *tx)
@@ -696,6 +648,61 @@ mod tests {
                     .await
                     .unwrap();
             assert_eq!(kinematics, "table_bc");
+        }
+
+        // Writes that come at once (many machines' loops) are all stored; while a transaction
+        // is open, reads are answered, and on SQLite another write waits for its end (on the
+        // one writer) instead of failing or going into it.
+        async fn writes_at_once_are_stored_in_turn_and_reads_go_on_beside_them(db: &str) {
+            let store = Store::connect(db).await.unwrap();
+            let machines: Vec<String> = (0..12).map(|i| format!("m{i:02}")).collect();
+            for m in &machines {
+                store.ensure_machine(m, "table_bc", 0).await.unwrap();
+            }
+            let set = |version: i64| NewCompensation {
+                version,
+                valid_from_ns: version,
+                source: "predicted",
+                cycle: None,
+                reason: "",
+                values: r#"{"errors": {}, "sigma": {}}"#.into(),
+            };
+            let mut tasks = tokio::task::JoinSet::new();
+            for m in machines.clone() {
+                let store = store.clone();
+                tasks.spawn(async move {
+                    for v in 1..=5 {
+                        store.insert_compensation(&m, &set(v)).await?;
+                    }
+                    Ok::<_, StoreError>(())
+                });
+            }
+            while let Some(done) = tasks.join_next().await {
+                done.unwrap().unwrap();
+            }
+            for m in &machines {
+                assert_eq!(store.compensation_versions(m).await.unwrap().len(), 5, "{m}");
+            }
+
+            let mut tx = Tx::begin(&store).await.unwrap();
+            sets::insert_set(&mut tx, "m00", &set(6), None).await.unwrap();
+            let waiting = tokio::spawn({
+                let store = store.clone();
+                async move { store.insert_compensation("m01", &set(6)).await }
+            });
+            // Reads do not wait for the writer: the transaction's row is not seen yet.
+            assert_eq!(store.compensation_versions("m00").await.unwrap().len(), 5);
+            if store.backend() == Backend::Sqlite {
+                // SQLite's one writer: the other machine's write waits for the commit.
+                tokio::task::yield_now().await;
+                assert!(!waiting.is_finished(), "a write went past an open transaction");
+            }
+            tx.commit().await.unwrap();
+            waiting.await.unwrap().unwrap();
+            for m in ["m00", "m01"] {
+                assert_eq!(store.compensation_versions(m).await.unwrap().len(), 6, "{m}");
+            }
+            store.close().await;
         }
 
         // A batch whose first statement committed and whose second failed is written again

@@ -39,7 +39,7 @@ impl Store {
                 }
             }
         }
-        let mut conn = self.pool.acquire().await?;
+        let mut conn = self.write_conn().await?;
         // SQLite allows 32766 bound values per statement: chunks of 1000 rows stay far below.
         let spindle: Vec<_> = spindle.into_iter().collect();
         for chunk in spindle.chunks(1000) {

@@ -67,7 +67,7 @@ impl Store {
         c: &NewCompensation<'_>,
     ) -> Result<(), StoreError> {
         if self.fence.is_some() {
-            let mut tx = super::Tx::begin(&self.pool).await?;
+            let mut tx = super::Tx::begin(self).await?;
             let term = self.fence(&mut tx, machine).await?;
             insert_set(&mut tx, machine, c, term).await?;
             tx.commit().await?;
@@ -75,7 +75,7 @@ impl Store {
         }
         // One statement commits on its own: no transaction round trips for the predicted sets
         // that go out every few minutes.
-        let mut conn = self.pool.acquire().await?;
+        let mut conn = self.write_conn().await?;
         insert_set(&mut conn, machine, c, None).await
     }
 

@@ -32,6 +32,7 @@ impl Store {
         keep: i64,
     ) -> Result<i64, StoreError> {
         let payload = serde_json::to_string(v)?;
+        let mut conn = self.write_conn().await?;
         // One statement: the number and the row together, whatever else writes meanwhile.
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO verifications (machine_id, id, t_ns, created_ns, requested_by, instrument, method, exceeds, worst_z, payload)
@@ -48,12 +49,12 @@ impl Store {
         .bind(v.exceeds_any)
         .bind(v.worst_z)
         .bind(&payload)
-        .fetch_one(&self.pool)
+        .fetch_one(&mut *conn)
         .await?;
         sqlx::query("DELETE FROM verifications WHERE machine_id = $1 AND id <= $2")
             .bind(&v.machine_id)
             .bind(id - keep.max(1))
-            .execute(&self.pool)
+            .execute(&mut *conn)
             .await?;
         Ok(id)
     }
