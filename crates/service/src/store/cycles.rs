@@ -219,21 +219,25 @@ impl Store {
         .persistent(super::NULLABLE_REAL_CACHED)
         .execute(&mut *tx)
         .await?;
-        if let (Some(errors), Some(sigma)) = (&result.errors, &result.sigma) {
+        // One multi-row statement for the errors (one request instead of one per error).
+        if let (Some(errors), Some(sigma)) = (&result.errors, &result.sigma)
+            && !errors.is_empty()
+        {
+            let sql = format!(
+                "INSERT INTO result_values (machine_id, cycle, name, t_ns, value, sigma) {}",
+                super::values_placeholders(errors.len(), 6)
+            );
+            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
             for (name, value) in errors {
-                sqlx::query(
-                    "INSERT INTO result_values (machine_id, cycle, name, t_ns, value, sigma)
-                     VALUES ($1, $2, $3, $4, $5, $6)",
-                )
-                .bind(machine)
-                .bind(result.cycle)
-                .bind(name)
-                .bind(result.t_ns)
-                .bind(value)
-                .bind(sigma.get(name).copied().unwrap_or(f64::NAN))
-                .execute(&mut *tx)
-                .await?;
+                q = q
+                    .bind(machine)
+                    .bind(result.cycle)
+                    .bind(name)
+                    .bind(result.t_ns)
+                    .bind(value)
+                    .bind(sigma.get(name).copied().unwrap_or(f64::NAN));
             }
+            q.execute(&mut *tx).await?;
         }
         if let Some(c) = compensation {
             insert_set(&mut tx, machine, c, term).await?;

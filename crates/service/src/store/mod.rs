@@ -104,6 +104,7 @@ const NULLABLE_REAL_CACHED: bool = false;
 /// placeholders both engines read (the `Any` driver's query builder writes `?`, which
 /// PostgreSQL does not).
 fn values_placeholders(rows: usize, cols: usize) -> String {
+    use std::fmt::Write;
     let mut s = String::from("VALUES ");
     for r in 0..rows {
         if r > 0 {
@@ -114,7 +115,8 @@ fn values_placeholders(rows: usize, cols: usize) -> String {
             if c > 0 {
                 s.push_str(", ");
             }
-            s.push_str(&format!("${}", r * cols + c + 1));
+            // Writing to a String cannot fail.
+            let _ = write!(s, "${}", r * cols + c + 1);
         }
         s.push(')');
     }
