@@ -25,6 +25,8 @@ impl Writer {
     /// The writer, once the write before this one has finished.
     pub(super) async fn lock<'a>(&'a self, pool: &AnyPool) -> Result<Conn<'a>, StoreError> {
         let mut slot = self.slot.lock().await;
+        // The pool's own check at a release (sqlx's count); the store's transactions close
+        // their connection themselves when they do not end.
         if slot.as_ref().is_some_and(|c| c.is_in_transaction()) {
             discard(&mut slot);
         }
