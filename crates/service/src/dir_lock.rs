@@ -81,9 +81,11 @@ mod tests {
 
     #[test]
     fn a_second_lock_on_a_directory_is_refused_naming_the_first() {
-        let dir = std::env::temp_dir().join(format!("driftwatch-lock-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::Builder::new()
+            .prefix("driftwatch-lock-")
+            .tempdir()
+            .unwrap();
+        let dir = tmp.path().to_path_buf();
         let first = lock(&dir, "pid 1, listening on 127.0.0.1:8080").unwrap();
         let err = lock(&dir, "pid 2").unwrap_err().to_string();
         assert!(

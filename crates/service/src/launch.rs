@@ -716,9 +716,11 @@ mod tests {
     /// day); another plan is built on its own.
     #[tokio::test]
     async fn machines_of_one_kinematics_and_plan_share_one_plan() {
-        let dir = std::env::temp_dir().join(format!("driftwatch-plans-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::Builder::new()
+            .prefix("driftwatch-plans-")
+            .tempdir()
+            .unwrap();
+        let dir = tmp.path().to_path_buf();
         let store = Store::open(&dir.join("driftwatch.db")).await.unwrap();
         let mut cfg = ServiceConfig::load(None).unwrap();
         let nc = crate::config::LinkConfig::NcPush {
@@ -743,6 +745,5 @@ mod tests {
         assert!(!Arc::ptr_eq(plans[0], plans[2]));
         assert_eq!(plans[2].config.name, "patent_sequential");
         store.close().await;
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

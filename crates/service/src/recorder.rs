@@ -448,11 +448,12 @@ mod tests {
     use super::*;
     use driftwatch_core::recording::SpindleMsg;
 
-    fn dir(name: &str) -> PathBuf {
-        let d =
-            std::env::temp_dir().join(format!("driftwatch-recorder-{}-{name}", std::process::id()));
-        let _ = fs::remove_dir_all(&d);
-        d
+    /// A fresh directory, removed when the test ends.
+    fn dir(name: &str) -> tempfile::TempDir {
+        tempfile::Builder::new()
+            .prefix(&format!("driftwatch-recorder-{name}-"))
+            .tempdir()
+            .unwrap()
     }
 
     fn info() -> rec::MachineInfo {
@@ -491,7 +492,8 @@ mod tests {
     /// order; the message whose write failed is written once, by the caller's retry.
     #[test]
     fn a_full_disk_loses_no_held_message_and_writes_none_twice() {
-        let d = dir("full");
+        let tmp = dir("full");
+        let d = tmp.path().to_path_buf();
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let spin = |r: &mut Recorder, i: i64| {
@@ -532,14 +534,14 @@ mod tests {
             .collect();
         let want: Vec<i64> = std::iter::once(0).chain(day..=failed + 1).collect();
         assert_eq!(got, want);
-        let _ = fs::remove_dir_all(&d);
     }
 
     /// The service stops after a failed write and before any other message: what the failed
     /// writer held is still written, into a file of its own, and reported.
     #[test]
     fn a_stop_after_a_failed_write_writes_what_the_writer_held() {
-        let d = dir("stop");
+        let tmp = dir("stop");
+        let d = tmp.path().to_path_buf();
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let t = |i: i64| t0 + DAY + i * units::NS_PER_S;
@@ -580,14 +582,14 @@ mod tests {
             .map(|m| m.1)
             .collect();
         assert_eq!(got, std::iter::once(t0).chain(written).collect::<Vec<_>>());
-        let _ = fs::remove_dir_all(&d);
     }
 
     /// A file recovered by a write that then failed (here on a message that is no JSON) is
     /// reported by the next write: its store row is not forgotten.
     #[test]
     fn a_file_recovered_by_a_failed_write_is_reported_by_the_next() {
-        let d = dir("unreported");
+        let tmp = dir("unreported");
+        let d = tmp.path().to_path_buf();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         {
             let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
@@ -609,14 +611,14 @@ mod tests {
             .unwrap();
         assert_eq!(next.recovered.len(), 1, "{next:?}");
         assert!(next.recovered[0].recovered);
-        let _ = fs::remove_dir_all(&d);
     }
 
     /// A failed writer's messages that its file turns out to hold (their chunk reached the
     /// disk before the failure) are not written again; the rest are.
     #[test]
     fn carried_messages_that_reached_the_disk_are_not_written_again() {
-        let d = dir("landed");
+        let tmp = dir("landed");
+        let d = tmp.path().to_path_buf();
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let msg = |i: i64| rec::RawMessage {
@@ -652,12 +654,12 @@ mod tests {
             .map(|m| (m.1 - t0) / units::NS_PER_MIN)
             .collect();
         assert_eq!(got, [0, 1, 2, 3, 4, 5]);
-        let _ = fs::remove_dir_all(&d);
     }
 
     #[test]
     fn one_file_per_day_renamed_when_closed() {
-        let d = dir("days");
+        let tmp = dir("days");
+        let d = tmp.path().to_path_buf();
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         r.write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 1000.0 })
@@ -689,7 +691,8 @@ mod tests {
 
     #[test]
     fn files_follow_the_service_clock_not_the_stamps() {
-        let d = dir("clock");
+        let tmp = dir("clock");
+        let d = tmp.path().to_path_buf();
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let now = 20_000 * DAY + units::NS_PER_H;
         // A gateway's bad stamps: the epoch and the end of i64 nanoseconds.
@@ -714,7 +717,8 @@ mod tests {
 
     #[test]
     fn a_partial_file_left_by_a_crash_is_recovered_up_to_its_last_flush() {
-        let d = dir("crash");
+        let tmp = dir("crash");
+        let d = tmp.path().to_path_buf();
         let partial;
         {
             let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();

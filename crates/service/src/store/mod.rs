@@ -243,13 +243,14 @@ mod tests {
     use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
     use std::collections::BTreeMap;
 
-    /// A fresh SQLite file's URL.
-    fn sqlite_db(name: &str) -> String {
-        let dir =
-            std::env::temp_dir().join(format!("driftwatch-store-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        Backend::sqlite_url(&dir.join("driftwatch.db"))
+    /// A fresh SQLite file's URL, in a directory removed when the test ends.
+    fn sqlite_db(name: &str) -> (tempfile::TempDir, String) {
+        let dir = tempfile::Builder::new()
+            .prefix(&format!("driftwatch-store-{name}-"))
+            .tempdir()
+            .unwrap();
+        let url = Backend::sqlite_url(&dir.path().join("driftwatch.db"));
+        (dir, url)
     }
 
     /// `integrity_check`'s answer on a sound database of `store`'s engine.
@@ -269,7 +270,8 @@ mod tests {
                 $(
                     #[tokio::test]
                     async fn $name() {
-                        let $db: &str = &sqlite_db(stringify!($name));
+                        let (_dir, url) = sqlite_db(stringify!($name));
+                        let $db: &str = &url;
                         $body
                     }
                 )*
@@ -350,7 +352,8 @@ mod tests {
             .unwrap();
         assert!(taken.is_some(), "m1 and m2 are free once the first let go");
         // On SQLite the data directory's lock is the rule: nothing to hold here.
-        let lite = Store::connect(&sqlite_db("holds")).await.unwrap();
+        let (_dir, url) = sqlite_db("holds");
+        let lite = Store::connect(&url).await.unwrap();
         assert!(
             lite.hold_machines("unused", &ids, "x")
                 .await
