@@ -448,12 +448,14 @@ mod tests {
     use super::*;
     use driftwatch_core::recording::SpindleMsg;
 
-    /// A fresh directory, removed when the test ends.
-    fn dir(name: &str) -> tempfile::TempDir {
-        tempfile::Builder::new()
+    /// A fresh directory and its path, removed when the first is dropped (the test's end).
+    fn dir(name: &str) -> (tempfile::TempDir, PathBuf) {
+        let tmp = tempfile::Builder::new()
             .prefix(&format!("driftwatch-recorder-{name}-"))
             .tempdir()
-            .unwrap()
+            .unwrap();
+        let path = tmp.path().to_path_buf();
+        (tmp, path)
     }
 
     fn info() -> rec::MachineInfo {
@@ -492,8 +494,7 @@ mod tests {
     /// order; the message whose write failed is written once, by the caller's retry.
     #[test]
     fn a_full_disk_loses_no_held_message_and_writes_none_twice() {
-        let tmp = dir("full");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("full");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let spin = |r: &mut Recorder, i: i64| {
@@ -540,8 +541,7 @@ mod tests {
     /// writer held is still written, into a file of its own, and reported.
     #[test]
     fn a_stop_after_a_failed_write_writes_what_the_writer_held() {
-        let tmp = dir("stop");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("stop");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let t = |i: i64| t0 + DAY + i * units::NS_PER_S;
@@ -588,8 +588,7 @@ mod tests {
     /// reported by the next write: its store row is not forgotten.
     #[test]
     fn a_file_recovered_by_a_failed_write_is_reported_by_the_next() {
-        let tmp = dir("unreported");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("unreported");
         let t0 = 20_000 * DAY + units::NS_PER_H;
         {
             let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
@@ -617,8 +616,7 @@ mod tests {
     /// disk before the failure) are not written again; the rest are.
     #[test]
     fn carried_messages_that_reached_the_disk_are_not_written_again() {
-        let tmp = dir("landed");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("landed");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         let msg = |i: i64| rec::RawMessage {
@@ -658,8 +656,7 @@ mod tests {
 
     #[test]
     fn one_file_per_day_renamed_when_closed() {
-        let tmp = dir("days");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("days");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let t0 = 20_000 * DAY + units::NS_PER_H;
         r.write(rec::TOPIC_SPINDLE, t0, t0, &SpindleMsg { rpm: 1000.0 })
@@ -691,8 +688,7 @@ mod tests {
 
     #[test]
     fn files_follow_the_service_clock_not_the_stamps() {
-        let tmp = dir("clock");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("clock");
         let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
         let now = 20_000 * DAY + units::NS_PER_H;
         // A gateway's bad stamps: the epoch and the end of i64 nanoseconds.
@@ -717,8 +713,7 @@ mod tests {
 
     #[test]
     fn a_partial_file_left_by_a_crash_is_recovered_up_to_its_last_flush() {
-        let tmp = dir("crash");
-        let d = tmp.path().to_path_buf();
+        let (_tmp, d) = dir("crash");
         let partial;
         {
             let mut r = Recorder::new(&d, info(), 1 << 30).unwrap();
