@@ -307,25 +307,49 @@ pub fn posterior<'a>(
     rows: impl IntoIterator<Item = (&'a DVector<f64>, f64, f64)>,
     lambda: &[f64],
 ) -> Result<Posterior, LeastSquaresError> {
-    let n = lambda.len();
-    let mut a = DMatrix::from_diagonal(&DVector::from_column_slice(lambda));
+    let rows: Vec<_> = rows.into_iter().collect();
+    let mut one = posteriors(&rows, &[lambda]);
+    one.pop().unwrap_or(Err(LeastSquaresError::Singular))
+}
+
+/// [`posterior`] of the same rows under each prior of `lambdas` (a ridge's grid), bit for bit
+/// as each would be alone: the prior enters `A` only on its diagonal, so the products off the
+/// diagonal and `sum_i w_i y_i x_i` are summed once, and only the diagonal again for each
+/// prior, from its precision and in the rows' order, as the rank-one updates (`ger`) sum it.
+pub fn posteriors(
+    rows: &[(&DVector<f64>, f64, f64)],
+    lambdas: &[&[f64]],
+) -> Vec<Result<Posterior, LeastSquaresError>> {
+    let n = lambdas.first().map_or(0, |l| l.len());
+    let length = |got: usize| LeastSquaresError::Length { rows: n, got };
+    if let Some(&(x, _, _)) = rows.iter().find(|(x, _, _)| x.len() != n) {
+        return vec![Err(length(x.len())); lambdas.len()];
+    }
+    let mut off = DMatrix::zeros(n, n);
     let mut b = DVector::zeros(n);
-    for (x, y, w) in rows {
-        if x.len() != n {
-            return Err(LeastSquaresError::Length {
-                rows: n,
-                got: x.len(),
-            });
-        }
-        a.ger(w, x, x, 1.0);
+    for &(x, y, w) in rows {
+        off.ger(w, x, x, 1.0);
         b.axpy(w * y, x, 1.0);
     }
-    let a = (a.clone() + a.transpose()) * 0.5;
-    let chol = a.clone().cholesky().ok_or(LeastSquaresError::Singular)?;
-    Ok(Posterior {
-        mean: chol.solve(&b),
-        precision: a,
-    })
+    lambdas
+        .iter()
+        .map(|lambda| {
+            if lambda.len() != n {
+                return Err(length(lambda.len()));
+            }
+            let mut a = off.clone();
+            for (j, l) in lambda.iter().enumerate() {
+                // `ger`'s sum for this entry: a += (w x_j) x_j, row after row.
+                a[(j, j)] = rows.iter().fold(*l, |d, &(x, _, w)| w * x[j] * x[j] + d);
+            }
+            let a = (a.clone() + a.transpose()) * 0.5;
+            let chol = a.clone().cholesky().ok_or(LeastSquaresError::Singular)?;
+            Ok(Posterior {
+                mean: chol.solve(&b),
+                precision: a,
+            })
+        })
+        .collect()
 }
 
 /// The thin SVD of a tall matrix (U n x p, V^T p x p) by a Householder QR first and the SVD
@@ -606,6 +630,57 @@ mod tests {
         assert!(close(p.precision[(0, 0)], a, 1e-15));
         assert!(close(p.mean[0], (1.0 + 0.5 * 2.0 * 3.0) / a, 1e-15));
         assert!(close(p.covariance().unwrap()[(0, 0)], 1.0 / a, 1e-15));
+    }
+
+    /// Several priors on the same rows give, bit for bit, what each gives alone summed from
+    /// its own diagonal (the rank-one updates of the textbook sum, as `posterior` was), and a
+    /// row of the wrong length is refused under every prior.
+    #[test]
+    fn posteriors_of_a_grid_are_each_prior_alone_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let n = 5;
+        let rows: Vec<(DVector<f64>, f64, f64)> = (0..40)
+            .map(|_| {
+                let x = DVector::from_fn(n, |_, _| rng.random_range(-3.0..3.0));
+                (x, rng.random_range(-50.0..50.0), rng.random_range(0.1..4.0))
+            })
+            .collect();
+        let rows: Vec<(&DVector<f64>, f64, f64)> =
+            rows.iter().map(|(x, y, w)| (x, *y, *w)).collect();
+        let grid: Vec<Vec<f64>> = [0.0, 1e-3, 0.7, 100.0]
+            .iter()
+            .map(|k| (0..n).map(|j| 1e-6 + k * (j as f64 + 0.5)).collect())
+            .collect();
+        let lambdas: Vec<&[f64]> = grid.iter().map(Vec::as_slice).collect();
+        let all = posteriors(&rows, &lambdas);
+        for (lambda, got) in lambdas.iter().zip(&all) {
+            let mut a = DMatrix::from_diagonal(&DVector::from_column_slice(lambda));
+            let mut b = DVector::zeros(n);
+            for &(x, y, w) in &rows {
+                a.ger(w, x, x, 1.0);
+                b.axpy(w * y, x, 1.0);
+            }
+            let a = (a.clone() + a.transpose()) * 0.5;
+            let mean = a.clone().cholesky().unwrap().solve(&b);
+            let got = got.as_ref().unwrap();
+            assert_eq!(got.precision, a);
+            assert_eq!(got.mean, mean);
+            assert_eq!(posterior(rows.iter().copied(), lambda).unwrap().mean, mean);
+        }
+        let short = DVector::from_vec(vec![1.0; n - 1]);
+        let bad = [rows[0], (&short, 1.0, 1.0)];
+        let refused = posteriors(&bad, &lambdas);
+        assert_eq!(refused.len(), lambdas.len());
+        for r in refused {
+            assert_eq!(
+                r.err(),
+                Some(LeastSquaresError::Length {
+                    rows: n,
+                    got: n - 1
+                })
+            );
+        }
     }
 
     /// A gauge as an exact constraint: two offsets only their difference is seen, the sum

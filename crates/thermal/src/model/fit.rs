@@ -230,12 +230,11 @@ fn learn_walk(cfg: &ModelConfig, obs: &[Obs], fit: &ChannelFit) -> Option<f64> {
         let mut ll = 0.0;
         for (i, o) in obs.iter().enumerate() {
             st.walk_to(o.t_ns);
-            let (m, v) = st.model_at(&o.row);
+            let (m, v) = st.predict_and_correct(&o.row, o.y, obs_var(o));
             let s = (v + obs_var(o)).max(1e-24);
             if i >= burn {
                 ll -= 0.5 * (s.ln() + (o.y - m).powi(2) / s);
             }
-            st.correct(&o.row, o.y, obs_var(o));
         }
         // A larger walk must do better, not merely as well.
         if ll.is_finite() && best.is_none_or(|b| ll > b.0 + 1e-9) {
@@ -488,26 +487,34 @@ impl<'a> Posterior<'a> {
     fn best_ridge(&self, grid: &[f64], w: &[f64]) -> (f64, f64) {
         let obs = self.obs;
         let blocks = CV_BLOCKS.min(obs.len());
-        let mut best = (f64::INFINITY, 0.0);
-        for &k in grid {
-            let mut sse = 0.0;
-            let mut count = 0usize;
-            for b in 0..blocks {
-                let lo = b * obs.len() / blocks;
-                let hi = (b + 1) * obs.len() / blocks;
-                let train: Vec<&Obs> = obs[..lo].iter().chain(&obs[hi..]).collect();
-                let wt: Vec<f64> = w[..lo].iter().chain(&w[hi..]).copied().collect();
-                let Some(least_squares::Posterior { mean: beta, .. }) =
-                    solve(&train, &wt, &self.with_ridge(k))
-                else {
+        let lambdas: Vec<Vec<f64>> = grid.iter().map(|&k| self.with_ridge(k)).collect();
+        let lambdas: Vec<&[f64]> = lambdas.iter().map(Vec::as_slice).collect();
+        let mut sse = vec![0.0; grid.len()];
+        let mut count = vec![0usize; grid.len()];
+        for b in 0..blocks {
+            let lo = b * obs.len() / blocks;
+            let hi = (b + 1) * obs.len() / blocks;
+            let train: Vec<(&DVector<f64>, f64, f64)> = obs[..lo]
+                .iter()
+                .zip(&w[..lo])
+                .chain(obs[hi..].iter().zip(&w[hi..]))
+                .map(|(o, wi)| (&*o.row, o.y, *wi))
+                .collect();
+            // Every factor of the grid on the same training rows: summed once.
+            let fits = least_squares::posteriors(&train, &lambdas);
+            for (g, fit) in fits.into_iter().enumerate() {
+                let Ok(least_squares::Posterior { mean: beta, .. }) = fit else {
                     continue;
                 };
                 for o in &obs[lo..hi] {
-                    sse += (o.y - o.row.dot(&beta)).powi(2);
-                    count += 1;
+                    sse[g] += (o.y - o.row.dot(&beta)).powi(2);
+                    count[g] += 1;
                 }
             }
-            let rmse = (sse / count.max(1) as f64).sqrt();
+        }
+        let mut best = (f64::INFINITY, 0.0);
+        for (g, &k) in grid.iter().enumerate() {
+            let rmse = (sse[g] / count[g].max(1) as f64).sqrt();
             // A larger ridge must do better, not merely as well.
             if rmse < best.0 * (1.0 - 1e-9) {
                 best = (rmse, k);

@@ -180,14 +180,27 @@ impl ChannelState {
 
     /// The Kalman correction by an observation `y` with stated variance `obs_var`.
     pub(super) fn correct(&mut self, h: &DVector<f64>, y: f64, obs_var: f64) {
+        self.predict_and_correct(h, y, obs_var);
+    }
+
+    /// [`ChannelState::model_at`] before the correction by `y`, then the correction: the
+    /// two share the product `P h`.
+    pub(super) fn predict_and_correct(
+        &mut self,
+        h: &DVector<f64>,
+        y: f64,
+        obs_var: f64,
+    ) -> (f64, f64) {
         let h = &self.hold(h);
         let r = obs_var + self.discrepancy2;
         let r = if r > 0.0 { r } else { 1e-12 };
         let ph = &self.p * h;
-        let s = h.dot(&ph) + r;
-        let innovation = y - h.dot(&self.beta);
-        self.beta.axpy(innovation / s, &ph, 1.0);
+        let hph = h.dot(&ph);
+        let m = h.dot(&self.beta);
+        let s = hph + r;
+        self.beta.axpy((y - m) / s, &ph, 1.0);
         // P - (Ph)(Ph)^T / S: symmetric by construction, O(n^2).
         self.p.ger(-1.0 / s, &ph, &ph, 1.0);
+        (m, hph + self.discrepancy2)
     }
 }
