@@ -2,6 +2,7 @@
 //! the design row that the fit and the filter use.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use nalgebra::DVector;
 
@@ -12,7 +13,8 @@ use driftwatch_core::units::{plausible_celsius, plausible_rpm};
 /// The lag states of every input, advanced along the timeline.
 #[derive(Debug, Clone)]
 pub struct Features {
-    cfg: ModelConfig,
+    /// Shared by the copies: the loop copies a running predictor at every look, for the API.
+    cfg: Arc<ModelConfig>,
     /// Reference of each configured sensor (in `cfg.temperatures` order): given, or its
     /// first reading.
     t_ref: Vec<Option<f64>>,
@@ -32,7 +34,7 @@ impl Features {
     pub fn new(cfg: &ModelConfig, t_ref_c: &BTreeMap<String, f64>, t0_ns: i64) -> Self {
         let n = cfg.columns().len() - 1;
         Features {
-            cfg: cfg.clone(),
+            cfg: Arc::new(cfg.clone()),
             t_ref: cfg
                 .temperatures
                 .iter()

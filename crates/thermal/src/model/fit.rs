@@ -273,7 +273,7 @@ fn holdout_guard(cfg: &ModelConfig, name: &str, obs: &[Obs], n: usize) -> Guard 
     };
     let walk = learn_walk(cfg, &obs[..n_head], &head).unwrap_or(cfg.offset_walk_per_h);
     let mut st = ChannelState::of_fit(&head, walk / 3600.0, obs[n_head - 1].t_ns);
-    st.reg = fit_change_regression(cfg, &obs[..n_head]);
+    st.reg = fit_change_regression(cfg, &obs[..n_head]).map(Arc::new);
     st.anchoring = cfg.anchoring;
     let gap = driftwatch_core::units::h_to_ns(cfg.run_gap_h);
     // The head's last observation is only taken (the head's posterior holds it).

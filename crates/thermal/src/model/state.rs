@@ -5,6 +5,7 @@ use super::config::Anchoring;
 use super::fitted::{ChangeRegression, ChannelFit};
 use super::guard::Guard;
 use nalgebra::{DMatrix, DVector};
+use std::sync::Arc;
 
 /// One channel's filter: parameter mean and covariance, the offset walk, the guard.
 #[derive(Debug, Clone)]
@@ -18,8 +19,10 @@ pub(super) struct ChannelState {
     pub(super) walk_per_s: f64,
     pub(super) guard: Guard,
     /// Columns held to the fit data's range (see [`ChannelFit::held_to_range`]).
-    held: Vec<(usize, f64, f64)>,
-    pub(super) reg: Option<ChangeRegression>,
+    /// (This and the regression are the fit's, shared by the copies: the loop copies a
+    /// running predictor at every look, for the API.)
+    held: Arc<[(usize, f64, f64)]>,
+    pub(super) reg: Option<Arc<ChangeRegression>>,
     /// [`ModelConfig::anchoring`].
     pub(super) anchoring: Anchoring,
 }
@@ -34,8 +37,8 @@ impl ChannelState {
             discrepancy2: c.discrepancy_um.powi(2),
             walk_per_s,
             guard: c.guard.clone(),
-            held: c.held_to_range.clone(),
-            reg: c.regression.clone(),
+            held: c.held_to_range.as_slice().into(),
+            reg: c.regression.clone().map(Arc::new),
             anchoring: Anchoring::Never,
         }
     }
@@ -52,7 +55,7 @@ impl ChannelState {
             discrepancy2,
             walk_per_s,
             guard: Guard::default(),
-            held: Vec::new(),
+            held: Arc::new([]),
             reg: None,
             anchoring: Anchoring::Never,
         }
@@ -164,7 +167,7 @@ impl ChannelState {
     /// The design row with the held columns inside the fit data's range.
     fn hold(&self, h: &DVector<f64>) -> DVector<f64> {
         let mut h = h.clone();
-        for &(j, lo, hi) in &self.held {
+        for &(j, lo, hi) in self.held.iter() {
             if j < h.len() && lo <= hi {
                 h[j] = h[j].clamp(lo, hi);
             }
