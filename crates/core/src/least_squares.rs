@@ -308,6 +308,7 @@ pub fn posterior<'a>(
     lambda: &[f64],
 ) -> Result<Posterior, LeastSquaresError> {
     let rows: Vec<_> = rows.into_iter().collect();
+    // One prior gives one answer.
     let mut one = posteriors(&rows, &[lambda]);
     one.pop().unwrap_or(Err(LeastSquaresError::Singular))
 }
