@@ -81,11 +81,7 @@ mod tests {
 
     #[test]
     fn a_second_lock_on_a_directory_is_refused_naming_the_first() {
-        let tmp = tempfile::Builder::new()
-            .prefix("driftwatch-lock-")
-            .tempdir()
-            .unwrap();
-        let dir = tmp.path().to_path_buf();
+        let (_tmp, dir) = crate::scratch_dir("lock");
         let first = lock(&dir, "pid 1, listening on 127.0.0.1:8080").unwrap();
         let err = lock(&dir, "pid 2").unwrap_err().to_string();
         assert!(

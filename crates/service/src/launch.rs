@@ -716,11 +716,7 @@ mod tests {
     /// day); another plan is built on its own.
     #[tokio::test]
     async fn machines_of_one_kinematics_and_plan_share_one_plan() {
-        let tmp = tempfile::Builder::new()
-            .prefix("driftwatch-plans-")
-            .tempdir()
-            .unwrap();
-        let dir = tmp.path().to_path_buf();
+        let (_tmp, dir) = crate::scratch_dir("plans");
         let store = Store::open(&dir.join("driftwatch.db")).await.unwrap();
         let mut cfg = ServiceConfig::load(None).unwrap();
         let nc = crate::config::LinkConfig::NcPush {

@@ -20,3 +20,15 @@ pub mod recorder;
 pub mod series;
 pub mod store;
 pub mod webhook;
+
+/// A test's scratch directory (named after `name`) and its path; the directory is removed
+/// when the first is dropped, at the test's end.
+#[cfg(test)]
+pub(crate) fn scratch_dir(name: &str) -> (tempfile::TempDir, std::path::PathBuf) {
+    let tmp = tempfile::Builder::new()
+        .prefix(&format!("driftwatch-{name}-"))
+        .tempdir()
+        .unwrap();
+    let path = tmp.path().to_path_buf();
+    (tmp, path)
+}

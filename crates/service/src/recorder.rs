@@ -448,14 +448,8 @@ mod tests {
     use super::*;
     use driftwatch_core::recording::SpindleMsg;
 
-    /// A fresh directory and its path, removed when the first is dropped (the test's end).
     fn dir(name: &str) -> (tempfile::TempDir, PathBuf) {
-        let tmp = tempfile::Builder::new()
-            .prefix(&format!("driftwatch-recorder-{name}-"))
-            .tempdir()
-            .unwrap();
-        let path = tmp.path().to_path_buf();
-        (tmp, path)
+        crate::scratch_dir(&format!("recorder-{name}"))
     }
 
     fn info() -> rec::MachineInfo {

@@ -245,12 +245,8 @@ mod tests {
 
     /// A fresh SQLite file's URL, in a directory removed when the test ends.
     fn sqlite_db(name: &str) -> (tempfile::TempDir, String) {
-        let dir = tempfile::Builder::new()
-            .prefix(&format!("driftwatch-store-{name}-"))
-            .tempdir()
-            .unwrap();
-        let url = Backend::sqlite_url(&dir.path().join("driftwatch.db"));
-        (dir, url)
+        let (dir, path) = crate::scratch_dir(&format!("store-{name}"));
+        (dir, Backend::sqlite_url(&path.join("driftwatch.db")))
     }
 
     /// `integrity_check`'s answer on a sound database of `store`'s engine.
