@@ -5,6 +5,7 @@ use sqlx::Row;
 
 use driftwatch_machine::alerts::{EventKind, Severity};
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// What happened to an alert (stored as its lowercase name): the engine's events and the
@@ -124,7 +125,7 @@ impl Store {
         machine: &str,
         ev: &NewAlertEvent<'_>,
     ) -> Result<(), StoreError> {
-        sqlx::query(
+        query(
             "INSERT INTO alert_events (machine_id, alert_id, seq, t_ns, kind, rule, severity, message, value)
              VALUES ($1, $2, (SELECT COALESCE(MAX(seq), 0) + 1 FROM alert_events WHERE machine_id = $1 AND alert_id = $2),
                      $3, $4, $5, $6, $7, $8)",
@@ -139,7 +140,7 @@ impl Store {
         .bind(ev.value)
         // Not a cached prepared statement: see `NULLABLE_REAL` in the store's module.
         .persistent(super::NULLABLE_REAL_CACHED)
-        .execute(&mut *self.write_conn().await?)
+        .execute(&mut self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -190,14 +191,14 @@ impl Store {
         state: &driftwatch_machine::alerts::AlertState,
     ) -> Result<(), StoreError> {
         let json = serde_json::to_string(state)?;
-        sqlx::query(
+        query(
             "INSERT INTO alert_state (machine_id, t_ns, state) VALUES ($1, $2, $3)
              ON CONFLICT (machine_id) DO UPDATE SET t_ns = excluded.t_ns, state = excluded.state",
         )
         .bind(machine)
         .bind(t_ns)
         .bind(json)
-        .execute(&mut *self.write_conn().await?)
+        .execute(&mut self.write_conn().await?)
         .await?;
         Ok(())
     }

@@ -1,6 +1,7 @@
 //! The two database engines behind the store, SQLite (the default, one file in the data
 //! directory) and PostgreSQL (`database_url = "postgres://..."`): what differs between them is
-//! here, the queries themselves are one portable implementation over sqlx's `Any` driver.
+//! here, the queries themselves are one portable implementation (reads over sqlx's `Any` driver,
+//! writes through [`super::statement`]).
 //!
 //! What stays SQLite's: the connection's pragmas (WAL, synchronous NORMAL, foreign keys, busy
 //! timeout), creating the file, `WITHOUT ROWID` tables (in its migrations only) and
@@ -92,6 +93,48 @@ fn corrupt(url: &str, e: &sqlx::Error) -> StoreError {
     }
 }
 
+/// Every SQLite connection's settings: a 5 s wait on a lock instead of failing, foreign keys
+/// enforced, the write-ahead log, and synchronous NORMAL, which in WAL mode never corrupts and
+/// keeps every commit through a process crash (only a power loss can take the last commits).
+const SQLITE_PRAGMAS: [&str; 4] = [
+    "PRAGMA busy_timeout = 5000",
+    "PRAGMA foreign_keys = ON",
+    "PRAGMA journal_mode = WAL",
+    "PRAGMA synchronous = NORMAL",
+];
+
+/// The file a `sqlite:` URL names, as sqlx reads the URL.
+pub(super) fn sqlite_path(url: &str) -> Result<std::path::PathBuf, StoreError> {
+    use std::str::FromStr;
+    let options =
+        sqlx::sqlite::SqliteConnectOptions::from_str(url).map_err(|source| StoreError::Open {
+            path: redacted(url),
+            source,
+        })?;
+    Ok(options.get_filename().to_path_buf())
+}
+
+/// The store's SQLite writer ([`super::writer`]): a connection of its own to the file the pool
+/// made (never creating one: a file gone since is an error, not a new empty store), with the
+/// pool's settings and as many prepared statements kept as sqlx keeps.
+pub(super) fn open_sqlite_writer(path: &Path) -> Result<rusqlite::Connection, StoreError> {
+    use rusqlite::OpenFlags;
+    let conn = rusqlite::Connection::open_with_flags(
+        path,
+        OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+    )?;
+    for pragma in SQLITE_PRAGMAS {
+        // `journal_mode` answers with a row: read as a query, not run as a statement.
+        conn.query_row(pragma, [], |_| Ok(()))
+            .or_else(|e| match e {
+                rusqlite::Error::QueryReturnedNoRows => Ok(()),
+                e => Err(e),
+            })?;
+    }
+    conn.set_prepared_statement_cache_capacity(100);
+    Ok(conn)
+}
+
 /// Whether a connection given back to the pool is fit to be used again: not in a transaction
 /// by sqlx's count. The store's own transactions ([`super::Tx`]) give a connection back only
 /// after their COMMIT or ROLLBACK succeeded and close it otherwise, so what the engine holds
@@ -154,17 +197,13 @@ impl Backend {
         };
         let pool = match self {
             Backend::Sqlite => {
-                // Created if missing (mode=rwc). Each connection: a 5 s wait on a lock instead
-                // of failing, foreign keys enforced, the write-ahead log, and synchronous NORMAL,
-                // which in WAL mode never corrupts and keeps every commit through a process
-                // crash (only a power loss can take the last commits).
+                // Created if missing (mode=rwc); each connection with `SQLITE_PRAGMAS`.
                 let sep = if url.contains('?') { '&' } else { '?' };
                 let url = format!("{url}{sep}mode=rwc");
                 probe_sqlite(&url).await?;
                 AnyPoolOptions::new()
-                    // One of them the store's writer, held between writes (`writer`); the
-                    // others for the reads.
-                    .max_connections(4)
+                    // For the reads: the writes have their own connection (`writer`).
+                    .max_connections(3)
                     // A ping at each acquire only asks the connection's thread whether it is
                     // there (a file has no network to lose); a connection is unfit only after
                     // a transaction that did not end, and the store closes such a one itself.
@@ -172,12 +211,7 @@ impl Backend {
                     .after_release(|conn, _meta| Box::pin(connection_sound(conn)))
                     .after_connect(|conn, _meta| {
                         Box::pin(async move {
-                            for pragma in [
-                                "PRAGMA busy_timeout = 5000",
-                                "PRAGMA foreign_keys = ON",
-                                "PRAGMA journal_mode = WAL",
-                                "PRAGMA synchronous = NORMAL",
-                            ] {
+                            for pragma in SQLITE_PRAGMAS {
                                 sqlx::query(pragma).execute(&mut *conn).await?;
                             }
                             Ok(())

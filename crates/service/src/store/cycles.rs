@@ -8,6 +8,7 @@ use sqlx::Row;
 use driftwatch_core::recording::{CycleResultMsg, ResultStatus};
 
 use super::sets::insert_set;
+use super::statement::query;
 use super::{ErrorSample, NewCompensation, Store, StoreError};
 
 /// A cycle's state in the `cycles` table (stored as its lowercase name).
@@ -116,7 +117,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         let mut tx = super::Tx::begin(self).await?;
         let term = self.fence(&mut tx, machine).await?;
-        sqlx::query(
+        query(
             "INSERT INTO cycles (machine_id, cycle, started_ns, trigger, attempt, status, lease_term)
              VALUES ($1, $2, $3, $4, $5, $6, $7)",
         )
@@ -127,7 +128,7 @@ impl Store {
         .bind(attempt)
         .bind(CycleStatus::Open.as_str())
         .bind(term)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         tx.commit().await?;
         Ok(())
@@ -151,7 +152,7 @@ impl Store {
                 "INSERT INTO detections (machine_id, cycle, seq, t_ns, step, payload) {}",
                 super::values_placeholders(chunk.len(), 6)
             );
-            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            let mut q = query(sql);
             for (seq, r) in chunk {
                 q = q
                     .bind(machine)
@@ -161,7 +162,7 @@ impl Store {
                     .bind(r.step)
                     .bind(r.payload.as_str());
             }
-            q.execute(&mut *conn).await?;
+            q.execute(&mut conn).await?;
         }
         Ok(())
     }
@@ -191,7 +192,7 @@ impl Store {
         let payload = serde_json::to_string(result)?;
         let mut tx = super::Tx::begin(self).await?;
         let term = self.fence(&mut tx, machine).await?;
-        sqlx::query(
+        query(
             "UPDATE cycles SET status = $3, finished_ns = $4, reason = $5
              WHERE machine_id = $1 AND cycle = $2",
         )
@@ -200,9 +201,9 @@ impl Store {
         .bind(status.as_str())
         .bind(finished_ns)
         .bind(result.reason.as_deref())
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
-        sqlx::query(
+        query(
             "INSERT INTO results (machine_id, cycle, t_ns, status, reason, residual_rms_um, chi2, dof, payload)
              VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
         )
@@ -217,7 +218,7 @@ impl Store {
         .bind(&payload)
         // Not a cached prepared statement: see `NULLABLE_REAL` in the store's module.
         .persistent(super::NULLABLE_REAL_CACHED)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         // One multi-row statement for the errors (one request instead of one per error).
         if let (Some(errors), Some(sigma)) = (&result.errors, &result.sigma)
@@ -227,7 +228,7 @@ impl Store {
                 "INSERT INTO result_values (machine_id, cycle, name, t_ns, value, sigma) {}",
                 super::values_placeholders(errors.len(), 6)
             );
-            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            let mut q = query(sql);
             for (name, value) in errors {
                 q = q
                     .bind(machine)
@@ -237,7 +238,7 @@ impl Store {
                     .bind(value)
                     .bind(sigma.get(name).copied().unwrap_or(f64::NAN));
             }
-            q.execute(&mut *tx).await?;
+            q.execute(&mut tx).await?;
         }
         if let Some(c) = compensation {
             insert_set(&mut tx, machine, c, term).await?;
@@ -282,7 +283,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         let mut tx = super::Tx::begin(self).await?;
         self.fence(&mut tx, machine).await?;
-        sqlx::query(
+        query(
             "UPDATE cycles SET status = $5, finished_ns = $3, reason = $4
              WHERE machine_id = $1 AND cycle = $2 AND status = $6",
         )
@@ -292,7 +293,7 @@ impl Store {
         .bind(reason)
         .bind(CycleStatus::Abandoned.as_str())
         .bind(CycleStatus::Open.as_str())
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         tx.commit().await?;
         Ok(())

@@ -4,6 +4,7 @@ use serde::Serialize;
 use serde_json::Value;
 use sqlx::Row;
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// How a diagnosis run ended (stored as its lowercase name).
@@ -87,7 +88,7 @@ impl Store {
     pub async fn add_diagnosis(&self, d: &NewDiagnosis<'_>, keep: i64) -> Result<i64, StoreError> {
         let mut conn = self.write_conn().await?;
         // One statement: the number and the row together, whatever else writes meanwhile.
-        let id: i64 = sqlx::query_scalar(
+        let id: i64 = query(
             "INSERT INTO diagnoses (machine_id, id, requested_ns, requested_by, from_ns, to_ns, status, summary, result)
              VALUES ($1, (SELECT COALESCE(MAX(id), 0) + 1 FROM diagnoses WHERE machine_id = $1),
                      $2, $3, $4, $5, $6, $7, $8)
@@ -101,12 +102,13 @@ impl Store {
         .bind(d.status.as_str())
         .bind(d.summary)
         .bind(d.result)
-        .fetch_one(&mut *conn)
-        .await?;
-        sqlx::query("DELETE FROM diagnoses WHERE machine_id = $1 AND id <= $2")
+        .fetch_one(&mut conn)
+        .await?
+        .get(0)?;
+        query("DELETE FROM diagnoses WHERE machine_id = $1 AND id <= $2")
             .bind(d.machine)
             .bind(id - keep.max(1))
-            .execute(&mut *conn)
+            .execute(&mut conn)
             .await?;
         Ok(id)
     }

@@ -3,6 +3,7 @@
 use serde::Serialize;
 use sqlx::Row;
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// An MCAP file's state in the `mcap_files` table (stored as its lowercase name).
@@ -46,7 +47,7 @@ impl Store {
         path: &str,
         opened_ns: i64,
     ) -> Result<(), StoreError> {
-        sqlx::query(
+        query(
             "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
              ON CONFLICT (path) DO UPDATE SET status = $4, closed_ns = NULL",
         )
@@ -54,7 +55,7 @@ impl Store {
         .bind(path)
         .bind(opened_ns)
         .bind(FileStatus::Open.as_str())
-        .execute(&mut *self.write_conn().await?)
+        .execute(&mut self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -71,7 +72,7 @@ impl Store {
         messages: i64,
     ) -> Result<(), StoreError> {
         let mut tx = super::Tx::begin(self).await?;
-        sqlx::query(
+        query(
             "INSERT INTO mcap_files (machine_id, path, opened_ns, status) VALUES ($1, $2, $3, $4)
              ON CONFLICT (path) DO NOTHING",
         )
@@ -79,9 +80,9 @@ impl Store {
         .bind(partial)
         .bind(closed_ns)
         .bind(FileStatus::Open.as_str())
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
-        sqlx::query(
+        query(
             "UPDATE mcap_files SET path = $2, closed_ns = $3, status = $4, messages = $5 WHERE path = $1",
         )
         .bind(partial)
@@ -89,7 +90,7 @@ impl Store {
         .bind(closed_ns)
         .bind(status.as_str())
         .bind(messages)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         tx.commit().await?;
         Ok(())

@@ -6,6 +6,7 @@ use sqlx::Row;
 
 use driftwatch_core::linear_axes::LinearGeometry;
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// A geometry version as stored.
@@ -40,7 +41,7 @@ impl Store {
         requested_by: &str,
     ) -> Result<i64, StoreError> {
         let payload = serde_json::to_string(g)?;
-        let version: i64 = sqlx::query_scalar(
+        let version: i64 = query(
             "INSERT INTO geometries (machine_id, version, created_ns, requested_by, source, payload)
              VALUES ($1, (SELECT COALESCE(MAX(version), 0) + 1 FROM geometries WHERE machine_id = $1),
                      $2, $3, $4, $5)
@@ -51,8 +52,9 @@ impl Store {
         .bind(requested_by)
         .bind(source)
         .bind(&payload)
-        .fetch_one(&mut *self.write_conn().await?)
-        .await?;
+        .fetch_one(&mut self.write_conn().await?)
+        .await?
+        .get(0)?;
         Ok(version)
     }
 

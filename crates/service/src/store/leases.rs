@@ -9,6 +9,8 @@
 
 use sqlx::Row;
 
+use super::statement::query;
+use super::writer::Conn;
 use super::{Store, StoreError};
 
 /// A held lease: the machine, its holder and the term.
@@ -74,28 +76,28 @@ impl Store {
              WHERE leases.expires_ms < {now}
              RETURNING term, expires_ms"
         );
-        let row = sqlx::query(sqlx::AssertSqlSafe(upsert))
+        let row = query(upsert)
             .bind(machine)
             .bind(holder)
             .bind(url)
             .bind(ttl_ms)
-            .fetch_optional(&mut *tx)
+            .fetch_optional(&mut tx)
             .await?;
         let Some(row) = row else {
             tx.rollback().await?;
             return Ok(None);
         };
-        let (term, expires_ms): (i64, i64) = (row.try_get(0)?, row.try_get(1)?);
+        let (term, expires_ms): (i64, i64) = (row.get(0)?, row.get(1)?);
         let log = format!(
             "INSERT INTO lease_terms (machine_id, term, holder, acquired_ms, renewed_ms, expires_ms)
              VALUES ($1, $2, $3, {now}, {now}, $4)"
         );
-        sqlx::query(sqlx::AssertSqlSafe(log))
+        query(log)
             .bind(machine)
             .bind(term)
             .bind(holder)
             .bind(expires_ms)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?;
         tx.commit().await?;
         Ok(Some(Lease {
@@ -114,25 +116,24 @@ impl Store {
             "UPDATE leases SET expires_ms = {now} + $4
              WHERE machine_id = $1 AND holder = $2 AND term = $3"
         );
-        let held = sqlx::query(sqlx::AssertSqlSafe(sql))
+        let held = query(sql)
             .bind(&lease.machine)
             .bind(&lease.holder)
             .bind(lease.term)
             .bind(ttl_ms)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?
-            .rows_affected()
             == 1;
         if held {
             let log = format!(
                 "UPDATE lease_terms SET renewed_ms = {now}, expires_ms = {now} + $3
                  WHERE machine_id = $1 AND term = $2"
             );
-            sqlx::query(sqlx::AssertSqlSafe(log))
+            query(log)
                 .bind(&lease.machine)
                 .bind(lease.term)
                 .bind(ttl_ms)
-                .execute(&mut *tx)
+                .execute(&mut tx)
                 .await?;
         }
         tx.commit().await?;
@@ -145,23 +146,22 @@ impl Store {
         let mut tx = super::Tx::begin(self).await?;
         let sql = "UPDATE leases SET expires_ms = 0
                    WHERE machine_id = $1 AND holder = $2 AND term = $3";
-        let held = sqlx::query(sql)
+        let held = query(sql)
             .bind(&lease.machine)
             .bind(&lease.holder)
             .bind(lease.term)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?
-            .rows_affected()
             == 1;
         if held {
             let log = format!(
                 "UPDATE lease_terms SET released_ms = {now}, expires_ms = {now}
                  WHERE machine_id = $1 AND term = $2"
             );
-            sqlx::query(sqlx::AssertSqlSafe(log))
+            query(log)
                 .bind(&lease.machine)
                 .bind(lease.term)
-                .execute(&mut *tx)
+                .execute(&mut tx)
                 .await?;
         }
         tx.commit().await?;
@@ -222,10 +222,10 @@ impl Store {
             "INSERT INTO fleet_clock (id, t0_ns, wall0_ms, scale) VALUES (1, $1, {now}, $2)
              ON CONFLICT (id) DO NOTHING"
         );
-        sqlx::query(sqlx::AssertSqlSafe(insert))
+        query(insert)
             .bind(t0_ns)
             .bind(scale)
-            .execute(&mut *self.write_conn().await?)
+            .execute(&mut self.write_conn().await?)
             .await?;
         let select = format!("SELECT t0_ns, wall0_ms, scale, {now} FROM fleet_clock WHERE id = 1");
         let row = sqlx::query(sqlx::AssertSqlSafe(select))
@@ -258,7 +258,7 @@ impl Store {
     /// lease this store is bound to is still held (and keeping it so until commit).
     pub(super) async fn fence(
         &self,
-        tx: &mut sqlx::AnyConnection,
+        tx: &mut Conn<'_>,
         machine: &str,
     ) -> Result<Option<i64>, StoreError> {
         let Some(lease) = self.fence.as_deref() else {
@@ -269,10 +269,7 @@ impl Store {
             self.backend.now_ms_sql(),
             self.backend.share_lock()
         );
-        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(machine)
-            .fetch_optional(&mut *tx)
-            .await?;
+        let row = query(sql).bind(machine).fetch_optional(tx).await?;
         let lost = |why: String| {
             Err(StoreError::LeaseLost {
                 machine: machine.to_string(),
@@ -283,12 +280,8 @@ impl Store {
         let Some(row) = row else {
             return lost("the machine has no lease".to_string());
         };
-        let (holder, term, expires, now): (String, i64, i64, i64) = (
-            row.try_get(0)?,
-            row.try_get(1)?,
-            row.try_get(2)?,
-            row.try_get(3)?,
-        );
+        let (holder, term, expires, now): (String, i64, i64, i64) =
+            (row.get(0)?, row.get(1)?, row.get(2)?, row.get(3)?);
         if machine != lease.machine || holder != lease.holder || term != lease.term {
             return lost(format!("it is held by '{holder}' in term {term}"));
         }

@@ -1,7 +1,8 @@
 //! Storage of the service: SQLite (the default, one file in the data directory) or PostgreSQL
-//! (`database_url = "postgres://..."`) through sqlx's `Any` driver, one implementation of the
-//! queries in portable SQL; what differs between the engines (connecting, migrations, SQLite's
-//! pragmas) is in [`backend`]. Schemas in `migrations/sqlite/` and `migrations/postgres/`
+//! (`database_url = "postgres://..."`), one implementation of the queries in portable SQL. The
+//! reads go through sqlx's `Any` driver; the writes through [`statement`], which runs the same
+//! SQL on SQLite's writer (on the calling thread) or on a PostgreSQL connection. What differs
+//! between the engines (connecting, migrations, SQLite's pragmas) is in [`backend`]. Schemas in `migrations/sqlite/` and `migrations/postgres/`
 //! (embedded, applied at open). Shell code; with `recorder` (through the recording crate's
 //! `mcap_io`) the only module that touches files.
 
@@ -15,6 +16,7 @@ mod holds;
 mod leases;
 mod samples;
 mod sets;
+mod statement;
 mod verifications;
 mod writer;
 
@@ -47,6 +49,9 @@ pub enum StoreError {
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("database: {0}")]
     Sql(#[from] sqlx::Error),
+    /// From SQLite's writer ([`writer`]).
+    #[error("database: {0}")]
+    Sqlite(#[from] rusqlite::Error),
     #[error("stored JSON: {0}")]
     Json(#[from] serde_json::Error),
     #[error("stored value: {0}")]
@@ -128,7 +133,7 @@ impl Store {
     /// finished, or one of PostgreSQL's pool.
     async fn write_conn(&self) -> Result<Conn<'_>, StoreError> {
         match &self.writer {
-            Some(w) => w.lock(&self.pool).await,
+            Some(w) => w.lock().await,
             None => Ok(Conn::Pooled(self.pool.acquire().await?)),
         }
     }
@@ -159,7 +164,12 @@ impl Store {
             backend,
             fence: None,
             epoch: epoch.into(),
-            writer: (backend == Backend::Sqlite).then(Default::default),
+            writer: match backend {
+                Backend::Sqlite => {
+                    Some(std::sync::Arc::new(Writer::new(backend::sqlite_path(url)?)))
+                }
+                Backend::Postgres => None,
+            },
         })
     }
 
@@ -206,14 +216,14 @@ impl Store {
         kinematics: &str,
         now_ns: i64,
     ) -> Result<(), StoreError> {
-        sqlx::query(
+        statement::query(
             "INSERT INTO machines (id, kinematics, created_ns) VALUES ($1, $2, $3)
              ON CONFLICT (id) DO UPDATE SET kinematics = excluded.kinematics",
         )
         .bind(id)
         .bind(kinematics)
         .bind(now_ns)
-        .execute(&mut *self.write_conn().await?)
+        .execute(&mut self.write_conn().await?)
         .await?;
         Ok(())
     }
@@ -623,9 +633,9 @@ mod tests {
             store.ensure_machine("m1", "table_bc", 0).await.unwrap();
             for attempt in 1..=3 {
                 let mut tx = Tx::begin(&store).await.unwrap();
-                sqlx::query("UPDATE machines SET kinematics = $1 WHERE id = 'm1'")
+                statement::query("UPDATE machines SET kinematics = $1 WHERE id = 'm1'")
                     .bind(format!("dropped {attempt}"))
-                    .execute(&mut *tx)
+                    .execute(&mut tx)
                     .await
                     .unwrap();
                 drop(tx);

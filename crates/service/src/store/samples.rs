@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 
 use sqlx::Row;
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// One sample of a per-minute series.
@@ -48,11 +49,11 @@ impl Store {
                  ON CONFLICT (machine_id, t_ns) DO UPDATE SET rpm = excluded.rpm",
                 super::values_placeholders(chunk.len(), 3)
             );
-            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            let mut q = query(sql);
             for (t, rpm) in chunk {
                 q = q.bind(machine).bind(*t).bind(*rpm);
             }
-            q.execute(&mut *conn).await?;
+            q.execute(&mut conn).await?;
         }
         let temps: Vec<_> = temps.into_iter().collect();
         for chunk in temps.chunks(1000) {
@@ -61,11 +62,11 @@ impl Store {
                  ON CONFLICT (machine_id, sensor, t_ns) DO UPDATE SET celsius = excluded.celsius",
                 super::values_placeholders(chunk.len(), 4)
             );
-            let mut q = sqlx::query(sqlx::AssertSqlSafe(sql));
+            let mut q = query(sql);
             for ((sensor, t), c) in chunk {
                 q = q.bind(machine).bind(*t).bind(*sensor).bind(*c);
             }
-            q.execute(&mut *conn).await?;
+            q.execute(&mut conn).await?;
         }
         Ok(())
     }

@@ -4,15 +4,17 @@ use std::collections::BTreeMap;
 
 use sqlx::Row;
 
+use super::statement::query;
+use super::writer::Conn;
 use super::{Store, StoreError};
 
 pub(super) async fn insert_set(
-    conn: &mut sqlx::AnyConnection,
+    conn: &mut Conn<'_>,
     machine: &str,
     c: &NewCompensation<'_>,
     lease_term: Option<i64>,
 ) -> Result<(), StoreError> {
-    sqlx::query(
+    query(
         "INSERT INTO compensation_sets (machine_id, version, valid_from_ns, source, cycle, reason, payload, lease_term)
          VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
     )
@@ -24,7 +26,7 @@ pub(super) async fn insert_set(
     .bind(c.reason)
     .bind(&c.values)
     .bind(lease_term)
-    .execute(&mut *conn)
+    .execute(conn)
     .await?;
     Ok(())
 }

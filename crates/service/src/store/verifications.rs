@@ -6,6 +6,7 @@ use sqlx::Row;
 
 use driftwatch_machine::verification::Verification;
 
+use super::statement::query;
 use super::{Store, StoreError};
 
 /// A verification as stored: its number, when and by whom it was posted, and the comparison.
@@ -34,7 +35,7 @@ impl Store {
         let payload = serde_json::to_string(v)?;
         let mut conn = self.write_conn().await?;
         // One statement: the number and the row together, whatever else writes meanwhile.
-        let id: i64 = sqlx::query_scalar(
+        let id: i64 = query(
             "INSERT INTO verifications (machine_id, id, t_ns, created_ns, requested_by, instrument, method, exceeds, worst_z, payload)
              VALUES ($1, (SELECT COALESCE(MAX(id), 0) + 1 FROM verifications WHERE machine_id = $1),
                      $2, $3, $4, $5, $6, $7, $8, $9)
@@ -49,12 +50,13 @@ impl Store {
         .bind(v.exceeds_any)
         .bind(v.worst_z)
         .bind(&payload)
-        .fetch_one(&mut *conn)
-        .await?;
-        sqlx::query("DELETE FROM verifications WHERE machine_id = $1 AND id <= $2")
+        .fetch_one(&mut conn)
+        .await?
+        .get(0)?;
+        query("DELETE FROM verifications WHERE machine_id = $1 AND id <= $2")
             .bind(&v.machine_id)
             .bind(id - keep.max(1))
-            .execute(&mut *conn)
+            .execute(&mut conn)
             .await?;
         Ok(id)
     }

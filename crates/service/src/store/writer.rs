@@ -1,91 +1,87 @@
 //! Where the store's writes run: the connection a write takes ([`Conn`]) and the store's own
 //! transactions on it ([`Tx`]).
 //!
-//! On SQLite one connection of the pool is the store's writer, held between writes: every
-//! write of every machine goes through it in turn. SQLite lets one connection write at a time
-//! anyway (a second one waits in its busy handler, which sleeps); a held writer also keeps its
-//! page cache between writes, where a connection that another one's commit overtook must read
-//! those pages again, and a write costs no trip to the pool and back. The pool's other
-//! connections are left to the reads (the API's among them), which the write-ahead log never
-//! blocks. On PostgreSQL, which writes concurrently, a write takes a connection of the pool.
+//! On SQLite one connection is the store's writer, held between writes: every write of every
+//! machine goes through it in turn. SQLite lets one connection write at a time anyway (a
+//! second one waits in its busy handler, which sleeps); a held writer also keeps its page
+//! cache between writes, where a connection that another one's commit overtook must read
+//! those pages again. It is the store's own connection, apart from sqlx's pool, and runs its
+//! statements on the calling thread ([`super::statement`]). The pool's connections are left to
+//! the reads (the API's among them), which the write-ahead log never blocks. On PostgreSQL,
+//! which writes concurrently, a write takes a connection of the pool.
 
+use std::path::PathBuf;
+
+use sqlx::Any;
 use sqlx::pool::PoolConnection;
-use sqlx::{Any, AnyPool, Connection};
 use tokio::sync::{Mutex, MutexGuard};
 
 use super::StoreError;
+use super::statement::{Engine, Target};
 
-/// SQLite's writer: the connection, once the first write has taken it from the pool.
-#[derive(Default)]
+/// SQLite's writer: its own connection to the file, opened at the first write (and again
+/// after one was discarded), through `rusqlite` so that a write runs on the calling thread
+/// ([`super::statement`]).
 pub(super) struct Writer {
-    slot: Mutex<Option<PoolConnection<Any>>>,
+    path: PathBuf,
+    slot: Mutex<Option<rusqlite::Connection>>,
 }
 
 impl Writer {
+    pub(super) fn new(path: PathBuf) -> Self {
+        Writer {
+            path,
+            slot: Mutex::new(None),
+        }
+    }
+
     /// The writer, once the write before this one has finished.
-    pub(super) async fn lock<'a>(&'a self, pool: &AnyPool) -> Result<Conn<'a>, StoreError> {
+    pub(super) async fn lock(&self) -> Result<Conn<'_>, StoreError> {
         let mut slot = self.slot.lock().await;
-        // The pool's own check at a release (sqlx's count); the store's transactions close
-        // their connection themselves when they do not end.
-        if slot.as_ref().is_some_and(|c| c.is_in_transaction()) {
-            discard(&mut slot);
+        // A transaction that did not end closes its connection itself; this is the check
+        // that nothing else left one open.
+        if slot.as_ref().is_some_and(|c| !c.is_autocommit()) {
+            slot.take();
         }
         if slot.is_none() {
-            *slot = Some(pool.acquire().await?);
+            *slot = Some(super::backend::open_sqlite_writer(&self.path)?);
         }
         Ok(Conn::Writer(slot))
     }
 
-    /// Give the connection back to the pool (before the pool closes: it waits for every one).
+    /// Close the connection (before the pool closes, so that the last connection to close,
+    /// which folds the write-ahead log into the file, is the pool's).
     pub(super) async fn release(&self) {
         self.slot.lock().await.take();
     }
 }
 
-/// Close the writer's connection now, which ends whatever the engine still held of it (an
-/// open transaction and its lock); the next write takes a fresh one from the pool.
-fn discard(slot: &mut Option<PoolConnection<Any>>) {
-    if let Some(mut c) = slot.take() {
-        c.close_on_drop();
-    }
-}
-
-/// A connection to write on: SQLite's writer (its slot, filled), or one of the pool's.
+/// A connection to write on: SQLite's writer (its slot, filled), or one of PostgreSQL's pool.
 pub(super) enum Conn<'a> {
     Pooled(PoolConnection<Any>),
-    Writer(MutexGuard<'a, Option<PoolConnection<Any>>>),
+    Writer(MutexGuard<'a, Option<rusqlite::Connection>>),
 }
 
 impl Conn<'_> {
     /// Do not use this connection again: it may be in a state the engine and the store see
-    /// differently. It is closed.
+    /// differently. It is closed (which ends whatever the engine still held of it: an open
+    /// transaction and its lock); SQLite's next write opens a fresh one.
     fn discard(&mut self) {
         match self {
             Conn::Pooled(c) => c.close_on_drop(),
-            Conn::Writer(slot) => discard(slot),
+            Conn::Writer(slot) => drop(slot.take()),
         }
     }
 }
 
-impl std::ops::Deref for Conn<'_> {
-    type Target = sqlx::AnyConnection;
-    fn deref(&self) -> &sqlx::AnyConnection {
+impl Target for Conn<'_> {
+    fn engine(&mut self) -> Engine<'_> {
         match self {
-            Conn::Pooled(c) => c,
-            Conn::Writer(slot) => slot
-                .as_deref()
-                .unwrap_or_else(|| unreachable!("the writer's slot is filled while lent")),
-        }
-    }
-}
-
-impl std::ops::DerefMut for Conn<'_> {
-    fn deref_mut(&mut self) -> &mut sqlx::AnyConnection {
-        match self {
-            Conn::Pooled(c) => c,
-            Conn::Writer(slot) => slot
-                .as_deref_mut()
-                .unwrap_or_else(|| unreachable!("the writer's slot is filled while lent")),
+            Conn::Pooled(c) => Engine::Any(c),
+            Conn::Writer(slot) => Engine::Sqlite(
+                slot.as_ref()
+                    .unwrap_or_else(|| unreachable!("the writer's slot is filled while lent")),
+            ),
         }
     }
 }
@@ -118,7 +114,7 @@ impl<'a> Tx<'a> {
     }
 
     async fn run(&mut self, sql: &'static str) -> Result<(), StoreError> {
-        sqlx::raw_sql(sql).execute(&mut *self.conn).await?;
+        super::statement::query(sql).execute(&mut self.conn).await?;
         Ok(())
     }
 
@@ -135,16 +131,22 @@ impl<'a> Tx<'a> {
     }
 }
 
-impl std::ops::Deref for Tx<'_> {
-    type Target = sqlx::AnyConnection;
-    fn deref(&self) -> &sqlx::AnyConnection {
+impl<'a> std::ops::Deref for Tx<'a> {
+    type Target = Conn<'a>;
+    fn deref(&self) -> &Conn<'a> {
         &self.conn
     }
 }
 
-impl std::ops::DerefMut for Tx<'_> {
-    fn deref_mut(&mut self) -> &mut sqlx::AnyConnection {
+impl<'a> std::ops::DerefMut for Tx<'a> {
+    fn deref_mut(&mut self) -> &mut Conn<'a> {
         &mut self.conn
+    }
+}
+
+impl Target for Tx<'_> {
+    fn engine(&mut self) -> Engine<'_> {
+        self.conn.engine()
     }
 }
 
