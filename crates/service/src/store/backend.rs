@@ -119,20 +119,26 @@ pub(super) fn sqlite_path(url: &str) -> Result<std::path::PathBuf, StoreError> {
 /// pool's settings and as many prepared statements kept as sqlx keeps.
 pub(super) fn open_sqlite_writer(path: &Path) -> Result<rusqlite::Connection, StoreError> {
     use rusqlite::OpenFlags;
-    let conn = rusqlite::Connection::open_with_flags(
-        path,
-        OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX,
-    )?;
-    for pragma in SQLITE_PRAGMAS {
-        // `journal_mode` answers with a row: read as a query, not run as a statement.
-        conn.query_row(pragma, [], |_| Ok(()))
-            .or_else(|e| match e {
-                rusqlite::Error::QueryReturnedNoRows => Ok(()),
-                e => Err(e),
-            })?;
-    }
-    conn.set_prepared_statement_cache_capacity(100);
-    Ok(conn)
+    let open = || {
+        let conn = rusqlite::Connection::open_with_flags(
+            path,
+            OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )?;
+        for pragma in SQLITE_PRAGMAS {
+            // Some answer with a row (`journal_mode`): each is read as a query.
+            conn.query_row(pragma, [], |_| Ok(()))
+                .or_else(|e| match e {
+                    rusqlite::Error::QueryReturnedNoRows => Ok(()),
+                    e => Err(e),
+                })?;
+        }
+        conn.set_prepared_statement_cache_capacity(100);
+        Ok(conn)
+    };
+    open().map_err(|source| StoreError::OpenWriter {
+        path: path.display().to_string(),
+        source,
+    })
 }
 
 /// Whether a connection given back to the pool is fit to be used again: not in a transaction

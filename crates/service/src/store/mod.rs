@@ -52,6 +52,11 @@ pub enum StoreError {
     /// From SQLite's writer ([`writer`]).
     #[error("database: {0}")]
     Sqlite(#[from] rusqlite::Error),
+    #[error("cannot open the database {path} for writing: {source}")]
+    OpenWriter {
+        path: String,
+        source: rusqlite::Error,
+    },
     #[error("stored JSON: {0}")]
     Json(#[from] serde_json::Error),
     #[error("stored value: {0}")]
@@ -293,6 +298,23 @@ mod tests {
                 )*
             }
         };
+    }
+
+    // SQLite's writer opens its own connection to the file the store opened: a file gone
+    // since is refused with its name, not made anew as an empty store.
+    #[tokio::test]
+    async fn a_sqlite_file_gone_since_the_open_is_not_written_anew() {
+        let (dir, url) = sqlite_db("gone");
+        let store = Store::connect(&url).await.unwrap();
+        let path = dir.path().join("driftwatch.db");
+        std::fs::remove_file(&path).unwrap();
+        let e = store.ensure_machine("m1", "table_bc", 0).await.unwrap_err();
+        assert!(
+            matches!(&e, StoreError::OpenWriter { path: p, .. } if p.ends_with("driftwatch.db")),
+            "{e}"
+        );
+        assert!(!path.exists(), "a new database file was made");
+        store.close().await;
     }
 
     fn result(cycle: i64, ok: bool) -> CycleResultMsg {
