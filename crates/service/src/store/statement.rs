@@ -139,7 +139,7 @@ impl<'q> Stmt<'q> {
     }
 
     /// Run it; the rows it gave.
-    pub(super) async fn fetch_all(self, conn: &mut impl Target) -> Result<Vec<Row>, StoreError> {
+    pub(super) async fn fetch_all(&self, conn: &mut impl Target) -> Result<Vec<Row>, StoreError> {
         match conn.engine() {
             Engine::Sqlite(c) => Ok(self.on_sqlite(c, |st| {
                 let n = st.column_count();
@@ -164,17 +164,16 @@ impl<'q> Stmt<'q> {
 
     /// Run it; its first row, if it gave one.
     pub(super) async fn fetch_optional(
-        self,
+        &self,
         conn: &mut impl Target,
     ) -> Result<Option<Row>, StoreError> {
         Ok(self.fetch_all(conn).await?.into_iter().next())
     }
 
     /// Run it; its first row, which it must give.
-    pub(super) async fn fetch_one(self, conn: &mut impl Target) -> Result<Row, StoreError> {
-        let sql = self.sql.clone();
+    pub(super) async fn fetch_one(&self, conn: &mut impl Target) -> Result<Row, StoreError> {
         self.fetch_optional(conn).await?.ok_or_else(|| {
-            StoreError::Corrupt(format!("the statement gave no row: {}", summary(&sql)))
+            StoreError::Corrupt(format!("the statement gave no row: {}", summary(&self.sql)))
         })
     }
 
