@@ -15,6 +15,7 @@ use driftwatch_core::error_name::ErrorName;
 use driftwatch_thermal::model::{
     Event, Features, GuardSummary, Obs, Prediction, Predictor, Served, ThermalModel, fit_rows,
 };
+use nalgebra::DVector;
 
 /// How far the rows' lag states trail the inputs: longer than any cycle, so that a cycle's
 /// reference time is never behind them when its result arrives.
@@ -47,12 +48,12 @@ pub struct LiveModel {
     /// middle of its probing), which the loop learns only at its end. The predictor runs
     /// its own copy up to now.
     lagged: Option<Features>,
-    pending: VecDeque<Event>,
+    pending: VecDeque<Held>,
     /// References of the temperature inputs when a model fitted elsewhere gave them.
     t_ref_c: BTreeMap<String, f64>,
-    /// Validated observations of the last `history_days` with their design rows: the fits
-    /// need nothing else, so a refit costs the rows, not a replay of the inputs.
-    rows: BTreeMap<String, Vec<Obs>>,
+    /// Validated cycles of the last `history_days` with their design rows: the fits need
+    /// nothing else, so a refit costs the rows, not a replay of the inputs.
+    window: Window,
     /// A model fitted elsewhere, served until the machine's own first fit.
     initial: Option<Arc<ThermalModel>>,
     ok_cycles: usize,
@@ -80,7 +81,7 @@ impl LiveModel {
             lagged: None,
             pending: VecDeque::new(),
             t_ref_c: BTreeMap::new(),
-            rows: BTreeMap::new(),
+            window: Window::default(),
             initial: None,
             ok_cycles: 0,
             cycles_since_fit: 0,
@@ -137,8 +138,8 @@ impl LiveModel {
     /// The lag states of now: the held-back ones with the pending inputs applied.
     fn features_now(&self) -> Option<Features> {
         let mut f = self.lagged.clone()?;
-        for e in &self.pending {
-            f.apply(e);
+        for h in &self.pending {
+            h.apply_to(&mut f);
         }
         Some(f)
     }
@@ -148,9 +149,9 @@ impl LiveModel {
         let Some(lagged) = &mut self.lagged else {
             return;
         };
-        while self.pending.front().is_some_and(|e| e.t_ns() <= t_ns) {
-            if let Some(e) = self.pending.pop_front() {
-                lagged.apply(&e);
+        while self.pending.front().is_some_and(|h| h.t_ns <= t_ns) {
+            if let Some(h) = self.pending.pop_front() {
+                h.apply_to(lagged);
             }
         }
         lagged.advance_to(t_ns);
@@ -166,7 +167,9 @@ impl LiveModel {
         if let Some(p) = &mut self.predictor {
             p.apply(&e);
         }
-        self.pending.push_back(e);
+        if let Some(f) = &self.lagged {
+            self.pending.push_back(Held::of(&e, f));
+        }
         self.catch_up(t - HOLD_BACK_NS);
     }
 
@@ -283,30 +286,27 @@ impl LiveModel {
         self.start_at(t_ns);
         self.catch_up(t_ns);
         // One row for every channel of the cycle.
-        let Some(row) = self.lagged.as_ref().map(|f| Arc::new(f.row())) else {
+        let Some(row) = self.lagged.as_ref().map(Features::row) else {
             return;
         };
-        let keep_from = t_ns - units::h_to_ns(self.policy.history_days * 24.0);
-        for (name, v) in errors.iter().filter(|(_, v)| v.is_finite()) {
-            let sigma = sigma.get(name).copied();
+        let finite = || errors.iter().filter(|(_, v)| v.is_finite());
+        for (name, v) in finite() {
             if let Some(p) = &mut self.predictor
-                && p.observe_row(name, t_ns, *v, sigma, &row)
+                && p.observe_row(name, t_ns, *v, sigma.get(name).copied(), &row)
             {
                 self.updates += 1;
             }
-            let rows = self.rows.entry(name.clone()).or_default();
-            rows.push(Obs {
-                t_ns,
-                row: Arc::clone(&row),
-                y: *v,
-                sigma: sigma.filter(|s| driftwatch_core::units::positive(*s)),
-            });
-            let old = rows.partition_point(|o| o.t_ns < keep_from);
-            rows.drain(..old);
-            // Once the window is full the rows stop growing: without this, the capacity left
-            // from their last doubling (up to half of it unused) stays with every machine.
-            rows.shrink_to(rows.len() + rows.len() / 8);
         }
+        let keep_from = t_ns - units::h_to_ns(self.policy.history_days * 24.0);
+        self.window.push(
+            t_ns,
+            &row,
+            finite().map(|(name, v)| {
+                let s = sigma.get(name).copied();
+                (name.as_str(), *v, s.filter(|s| units::positive(*s)))
+            }),
+            keep_from,
+        );
     }
 
     /// Bring back the state a running service had: the stored inputs and validated cycle
@@ -355,7 +355,7 @@ impl LiveModel {
         let Some(features) = self.features_now() else {
             return "no inputs yet".into();
         };
-        let per = &self.rows;
+        let per = &self.window.per_channel();
         let span = (
             per.values()
                 .filter_map(|v| v.first())
@@ -512,12 +512,268 @@ impl LiveModel {
     }
 }
 
+/// An input held back for the lagged states: its sensor by its place among the model's
+/// sensors, not by name (a loop holds an hour of these).
+#[derive(Debug, Clone, Copy)]
+struct Held {
+    t_ns: i64,
+    input: HeldInput,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum HeldInput {
+    Spindle(f64),
+    /// A configured sensor ([`Features::sensor_index`]) and its reading.
+    Sensor(usize, f64),
+    /// Only the time moves on: a sensor the model does not take, or an observation.
+    Time,
+}
+
+impl Held {
+    fn of(e: &Event, f: &Features) -> Self {
+        let input = match e {
+            Event::Spindle { rpm, .. } => HeldInput::Spindle(*rpm),
+            Event::Temperature {
+                sensor, celsius, ..
+            } => f
+                .sensor_index(sensor)
+                .map_or(HeldInput::Time, |k| HeldInput::Sensor(k, *celsius)),
+            Event::Observation { .. } => HeldInput::Time,
+        };
+        Held {
+            t_ns: e.t_ns(),
+            input,
+        }
+    }
+
+    /// What [`Features::apply`] does with the event this was made of.
+    fn apply_to(&self, f: &mut Features) {
+        match self.input {
+            HeldInput::Spindle(rpm) => f.set_rpm(self.t_ns, rpm),
+            HeldInput::Sensor(k, celsius) => f.set_sensor(self.t_ns, k, celsius),
+            HeldInput::Time => f.advance_to(self.t_ns),
+        }
+    }
+}
+
+/// The validated cycles of the history window, packed in one buffer: each cycle's design row,
+/// then each channel's value and standard uncertainty (NaN: none). A loop holds a week of
+/// cycles; kept as observations per channel, each with a handle to a shared row, they took
+/// about twice the memory, and a plant runs thousands of loops in one process.
+#[derive(Debug, Clone, Default)]
+struct Window {
+    /// The channels in the order of their values in a record; a channel stays once seen.
+    channels: Vec<String>,
+    /// The design row's length.
+    width: usize,
+    /// Each cycle's reference time, oldest first.
+    t_ns: Vec<i64>,
+    /// The records, [`Window::stride`] numbers each, oldest first.
+    data: Vec<f64>,
+}
+
+impl Window {
+    fn stride(&self) -> usize {
+        self.width + 2 * self.channels.len()
+    }
+
+    /// Add a cycle at `t_ns` (not before the last one) with its (channel, value, uncertainty)
+    /// triples, and drop the cycles before `keep_from_ns`.
+    fn push<'a>(
+        &mut self,
+        t_ns: i64,
+        row: &DVector<f64>,
+        values: impl Iterator<Item = (&'a str, f64, Option<f64>)> + Clone,
+        keep_from_ns: i64,
+    ) {
+        if row.len() != self.width {
+            // Rows of another model's columns cannot be fitted with these.
+            *self = Window {
+                channels: std::mem::take(&mut self.channels),
+                width: row.len(),
+                ..Window::default()
+            };
+        }
+        for (name, ..) in values.clone() {
+            if !self.channels.iter().any(|c| c == name) {
+                self.add_channel(name);
+            }
+        }
+        let start = self.data.len();
+        self.data.extend_from_slice(row.as_slice());
+        self.data.resize(start + self.stride(), f64::NAN);
+        for (name, y, sigma) in values {
+            if let Some(k) = self.channels.iter().position(|c| c == name) {
+                let at = start + self.width + 2 * k;
+                self.data[at] = y;
+                self.data[at + 1] = sigma.unwrap_or(f64::NAN);
+            }
+        }
+        self.t_ns.push(t_ns);
+        let old = self.t_ns.partition_point(|t| *t < keep_from_ns);
+        self.t_ns.drain(..old);
+        self.data.drain(..old * self.stride());
+        // Once the window is full it stops growing: without this, the capacity left from the
+        // last doubling (up to half of it unused) stays with every machine.
+        self.t_ns.shrink_to(self.t_ns.len() + self.t_ns.len() / 8);
+        self.data.shrink_to(self.data.len() + self.data.len() / 8);
+    }
+
+    /// A channel first seen: every record so far gets an empty value for it.
+    fn add_channel(&mut self, name: &str) {
+        let old = self.stride();
+        let mut data = Vec::with_capacity(self.t_ns.len() * (old + 2));
+        for r in self.data.chunks_exact(old.max(1)) {
+            data.extend_from_slice(r);
+            data.extend_from_slice(&[f64::NAN, f64::NAN]);
+        }
+        self.data = data;
+        self.channels.push(name.to_string());
+    }
+
+    /// Each channel's observations as the fit takes them, in time order; the channels of a
+    /// cycle share its row. A channel with no observation left in the window is left out, not
+    /// handed to the fit empty (where its failure would fail every channel's fit).
+    fn per_channel(&self) -> BTreeMap<String, Vec<Obs>> {
+        let stride = self.stride();
+        if stride == 0 {
+            return BTreeMap::new();
+        }
+        let records = || self.data.chunks_exact(stride).zip(&self.t_ns);
+        let rows: Vec<Arc<DVector<f64>>> = records()
+            .map(|(r, _)| Arc::new(DVector::from_column_slice(&r[..self.width])))
+            .collect();
+        let obs = |k: usize| -> Vec<Obs> {
+            records()
+                .zip(&rows)
+                .filter_map(|((r, t_ns), row)| {
+                    let (y, sigma) = (r[self.width + 2 * k], r[self.width + 2 * k + 1]);
+                    (!y.is_nan()).then(|| Obs {
+                        t_ns: *t_ns,
+                        row: Arc::clone(row),
+                        y,
+                        sigma: (!sigma.is_nan()).then_some(sigma),
+                    })
+                })
+                .collect()
+        };
+        self.channels
+            .iter()
+            .enumerate()
+            .map(|(k, name)| (name.clone(), obs(k)))
+            .filter(|(_, obs)| !obs.is_empty())
+            .collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::compensation::TABLE_BC_ERRORS;
 
     const MIN: i64 = units::NS_PER_MIN;
+
+    /// The packed window hands the fit each channel's values in time order with its cycle's
+    /// row, a channel first seen later included, the cycles before the window gone, and a
+    /// channel with none left in the window left out.
+    #[test]
+    fn the_window_gives_the_fit_each_channels_observations() {
+        let row = |x: f64| DVector::from_vec(vec![1.0, x, 2.0 * x]);
+        let mut w = Window::default();
+        w.push(10, &row(1.0), [("B", 1.0, Some(0.5))].into_iter(), 0);
+        w.push(
+            20,
+            &row(2.0),
+            [("A", 2.0, None), ("B", 3.0, Some(0.25))].into_iter(),
+            0,
+        );
+        w.push(30, &row(3.0), [("A", 4.0, Some(0.125))].into_iter(), 15);
+        let per = w.per_channel();
+        let seen = |name: &str| -> Vec<(i64, Vec<f64>, f64, Option<f64>)> {
+            per[name]
+                .iter()
+                .map(|o| (o.t_ns, o.row.iter().copied().collect(), o.y, o.sigma))
+                .collect()
+        };
+        assert_eq!(
+            seen("A"),
+            vec![
+                (20, vec![1.0, 2.0, 4.0], 2.0, None),
+                (30, vec![1.0, 3.0, 6.0], 4.0, Some(0.125))
+            ]
+        );
+        assert_eq!(seen("B"), vec![(20, vec![1.0, 2.0, 4.0], 3.0, Some(0.25))]);
+        assert!(Arc::ptr_eq(&per["A"][0].row, &per["B"][0].row));
+        // The cycle at 20 leaves the window, and B's last value with it.
+        w.push(40, &row(4.0), [("A", 5.0, None)].into_iter(), 25);
+        let per = w.per_channel();
+        assert_eq!(per.keys().collect::<Vec<_>>(), ["A"]);
+        assert_eq!(
+            per["A"].iter().map(|o| o.t_ns).collect::<Vec<_>>(),
+            [30, 40]
+        );
+        // Rows of another width (another model's columns) start the window anew.
+        w.push(
+            50,
+            &DVector::from_vec(vec![1.0, 5.0]),
+            [("B", 6.0, None)].into_iter(),
+            0,
+        );
+        let per = w.per_channel();
+        assert_eq!(per.keys().collect::<Vec<_>>(), ["B"]);
+        assert_eq!(per["B"].len(), 1);
+        assert_eq!(per["B"][0].row.len(), 2);
+    }
+
+    /// An input held back by its sensor's place moves the lag states as the event itself does,
+    /// a sensor the model does not take and an observation included.
+    #[test]
+    fn held_inputs_move_the_lags_as_their_events_do() {
+        let mut cfg = driftwatch_thermal::model::ModelConfig::default();
+        for sensor in ["ambient", "spindle_housing"] {
+            cfg.temperatures
+                .push(driftwatch_thermal::model::TemperatureInput {
+                    sensor: sensor.into(),
+                    taus_min: vec![0.0, 30.0],
+                });
+        }
+        let t = |sensor: &str, t_ns: i64, celsius: f64| Event::Temperature {
+            t_ns,
+            sensor: sensor.into(),
+            celsius,
+        };
+        let events = [
+            Event::Spindle {
+                t_ns: MIN,
+                rpm: 12000.0,
+            },
+            t("spindle_housing", 2 * MIN, 24.0),
+            t("ambient", 3 * MIN, 20.0),
+            t("coolant", 4 * MIN, 18.0),
+            t("spindle_housing", 9 * MIN, 27.5),
+            Event::Observation {
+                t_ns: 15 * MIN,
+                channel: "EZ0B".into(),
+                value: 3.0,
+                sigma: None,
+            },
+            Event::Spindle {
+                t_ns: 20 * MIN,
+                rpm: 0.0,
+            },
+            t("ambient", 40 * MIN, 21.0),
+        ];
+        let mut by_event = Features::new(&cfg, &BTreeMap::new(), 0);
+        let mut held = by_event.clone();
+        for e in &events {
+            by_event.apply(e);
+            Held::of(e, &held).apply_to(&mut held);
+            assert_eq!(held.t_ns(), by_event.t_ns());
+            assert_eq!(held.row(), by_event.row(), "after {e:?}");
+        }
+        assert_eq!(held.t_ref_c(), by_event.t_ref_c());
+        assert!(held.row().iter().any(|x| *x != 0.0 && *x != 1.0));
+    }
 
     #[test]
     fn it_waits_for_cycles_fits_and_then_asks_for_a_cycle_when_uncertain() {

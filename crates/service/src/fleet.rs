@@ -259,8 +259,13 @@ impl Fleet {
             Ok(rt) => {
                 info!(machine = %id, term = lease.term, process = %self.process, "fleet: running the machine");
                 let stop = shutdown.child_token();
-                let task =
-                    tokio::spawn(run_machine(rt, self.clock.clone(), now, None, stop.clone()));
+                let task = tokio::spawn(run_machine(
+                    Box::new(rt),
+                    self.clock.clone(),
+                    now,
+                    None,
+                    stop.clone(),
+                ));
                 self.slots[i].running = Some(Running {
                     lease,
                     stop,

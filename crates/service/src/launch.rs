@@ -366,18 +366,18 @@ async fn start(
         ))
     };
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
-    let mut machines: Vec<JoinHandle<()>> = wired
-        .into_iter()
-        .map(|w| {
-            tokio::spawn(run_machine(
-                w.runtime,
-                clock.clone(),
-                t0,
-                end,
-                shutdown.clone(),
-            ))
-        })
-        .collect();
+    // Not `wired.into_iter().map(..).collect()`: that collects in place, and the handles
+    // would keep the runtimes' buffer (some 5 KB a machine) for the life of the service.
+    let mut machines: Vec<JoinHandle<()>> = Vec::with_capacity(wired.len() + 1);
+    for w in wired {
+        machines.push(tokio::spawn(run_machine(
+            Box::new(w.runtime),
+            clock.clone(),
+            t0,
+            end,
+            shutdown.clone(),
+        )));
+    }
     if let Some(fleet) = fleet {
         machines.push(tokio::spawn(fleet.run(shutdown.clone())));
     }

@@ -190,6 +190,11 @@ impl Nc {
         while self.pending.front().is_some_and(|e| e.t_ns <= upto) {
             out.extend(self.pending.pop_front());
         }
+        if self.pending.is_empty() {
+            // A cycle's answer grows this; kept, it would be counted as the service's memory
+            // (the generator runs in the service's process).
+            self.pending = VecDeque::new();
+        }
         if self.cycle_end.is_some_and(|end| end <= upto) && self.pending.is_empty() {
             self.cycle_end = None;
         }

@@ -131,16 +131,26 @@ impl Features {
     }
 
     pub fn set_temperature(&mut self, t_ns: i64, sensor: &str, celsius: f64) {
-        self.advance_to(t_ns);
-        let Some(k) = self
-            .cfg
+        match self.sensor_index(sensor) {
+            Some(k) => self.set_sensor(t_ns, k, celsius),
+            None => self.advance_to(t_ns),
+        }
+    }
+
+    /// Where a sensor sits among the configured ones (`None`: not configured, its readings
+    /// only move the time on): an input held for later may keep this instead of the name.
+    pub fn sensor_index(&self, sensor: &str) -> Option<usize> {
+        self.cfg
             .temperatures
             .iter()
             .position(|s| s.sensor == sensor)
-        else {
-            return;
-        };
-        if plausible_celsius(celsius) {
+    }
+
+    /// A reading of the configured sensor `k` ([`Features::sensor_index`]); an index out of
+    /// range only moves the time on.
+    pub fn set_sensor(&mut self, t_ns: i64, k: usize, celsius: f64) {
+        self.advance_to(t_ns);
+        if k < self.temps.len() && plausible_celsius(celsius) {
             self.temps[k] = Some(celsius);
             self.t_ref[k].get_or_insert(celsius);
             self.refresh_instant();
