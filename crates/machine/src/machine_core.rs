@@ -35,7 +35,7 @@ use crate::link_event::{LinkEvent, RawJson};
 use crate::live_model::{LiveModel, ModelView};
 use crate::nc_offsets::NcLayout;
 use crate::phase::{PhaseConfig, PhaseError, PhaseInfo, PhaseTracker};
-use crate::scheduler::{Decision, SchedulePolicy, SchedulerState, decide};
+use crate::scheduler::{Decision, Reason, SchedulePolicy, SchedulerState, decide};
 
 /// Machine time the per-minute samples are held before they are stored together.
 pub const SAMPLE_BATCH_NS: i64 = 10 * units::NS_PER_MIN;
@@ -477,6 +477,9 @@ pub struct MachineCore {
     skew: (u64, i64),
     /// The [`LiveModel::revision`] that `view.thermal.model` shows.
     model_shown: Option<u64>,
+    /// The scheduler's reason to wait that `view.cycles.schedule` says (`None`: it says
+    /// something else): the same reason is not formatted again at every step.
+    wait_shown: Option<Reason>,
     view: View,
 }
 
@@ -594,6 +597,7 @@ impl MachineCore {
             phase_changes_ns: None,
             skew: (0, 0),
             model_shown: None,
+            wait_shown: None,
             view,
         };
         Ok((core, out))
@@ -899,7 +903,10 @@ impl MachineCore {
                 reason,
             } => {
                 self.next_due_ns = next_due_ns;
-                self.view.cycles.schedule = reason.to_string();
+                if self.wait_shown.as_ref() != Some(&reason) {
+                    self.view.cycles.schedule = reason.to_string();
+                    self.wait_shown = Some(reason);
+                }
             }
             Decision::Abandon { cycle, retry } => {
                 out.push(Effect::Log(
@@ -922,6 +929,7 @@ impl MachineCore {
                 let _ = self.phase.on_cycle(now_ns, false);
                 self.view.cycles.abandoned += 1;
                 self.view.cycles.schedule = format!("cycle {cycle} abandoned (timeout)");
+                self.wait_shown = None;
             }
         }
         self.publish(now_ns, out);
@@ -951,6 +959,7 @@ impl MachineCore {
             self.requested = Some((asked, reason));
             return;
         }
+        self.wait_shown = None;
         self.view.cycles.schedule = match result {
             Ok(()) => {
                 out.push(Effect::Log(
@@ -1174,9 +1183,6 @@ impl MachineCore {
         out: &mut Vec<Effect>,
     ) -> Option<String> {
         let served = self.served.as_ref()?;
-        let policy = self.thermal.policy().clone();
-        let values: BTreeMap<String, f64> =
-            preds.iter().map(|p| (p.channel.clone(), p.value)).collect();
         let with_sigma: BTreeMap<String, (f64, f64)> = preds
             .iter()
             .map(|p| (p.channel.clone(), (p.value, p.sigma)))
@@ -1191,6 +1197,9 @@ impl MachineCore {
                 .map_err(|why| format!("inconsistent with the latest measurement: {why}")),
             (None, None) => Ok(()),
         };
+        let policy = self.thermal.policy();
+        let values: BTreeMap<String, f64> =
+            preds.iter().map(|p| (p.channel.clone(), p.value)).collect();
         let refused = match trusted {
             Err(why) => why,
             Ok(()) if !policy.moved(served, &values) => return None,
@@ -1207,7 +1216,7 @@ impl MachineCore {
                     Some(served),
                     &with_sigma,
                     &self.limits,
-                    &policy,
+                    policy,
                     now_ns,
                     &about,
                     &self.layout,

@@ -58,16 +58,13 @@ impl TruthSample {
     pub fn rounded(&self, step: f64) -> TruthSample {
         // Dividing by the reciprocal gives the shortest decimal (0.81443, not 0.8144299999).
         let per = 1.0 / step;
-        let r = |m: &BTreeMap<String, f64>| {
-            m.iter()
-                .map(|(k, v)| (k.clone(), (v * per).round() / per))
-                .collect()
-        };
-        TruthSample {
-            apparent: r(&self.apparent),
-            channels: r(&self.channels),
-            ..self.clone()
+        // Rounded in a copy's own maps: a copy of everything and new maps besides cost twice
+        // the allocations, once a simulated minute.
+        let mut t = self.clone();
+        for v in t.apparent.values_mut().chain(t.channels.values_mut()) {
+            *v = (*v * per).round() / per;
         }
+        t
     }
 }
 

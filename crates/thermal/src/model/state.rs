@@ -5,6 +5,7 @@ use super::config::Anchoring;
 use super::fitted::{ChangeRegression, ChannelFit};
 use super::guard::Guard;
 use nalgebra::{DMatrix, DVector};
+use std::borrow::Cow;
 use std::sync::Arc;
 
 /// One channel's filter: parameter mean and covariance, the offset walk, the guard.
@@ -157,22 +158,23 @@ impl ChannelState {
     /// The model's value for the design row `h` and its variance (of the true value:
     /// parameters, walk so far, discrepancy).
     pub(super) fn model_at(&self, h: &DVector<f64>) -> (f64, f64) {
-        let h = self.hold(h);
-        (
-            h.dot(&self.beta),
-            h.dot(&(&self.p * &h)) + self.discrepancy2,
-        )
+        let h: &DVector<f64> = &self.hold(h);
+        (h.dot(&self.beta), h.dot(&(&self.p * h)) + self.discrepancy2)
     }
 
-    /// The design row with the held columns inside the fit data's range.
-    fn hold(&self, h: &DVector<f64>) -> DVector<f64> {
+    /// The design row with the held columns inside the fit data's range (the row itself,
+    /// not a copy, when no column is held: this runs for every observation of every fit).
+    fn hold<'a>(&self, h: &'a DVector<f64>) -> Cow<'a, DVector<f64>> {
+        if self.held.is_empty() {
+            return Cow::Borrowed(h);
+        }
         let mut h = h.clone();
         for &(j, lo, hi) in self.held.iter() {
             if j < h.len() && lo <= hi {
                 h[j] = h[j].clamp(lo, hi);
             }
         }
-        h
+        Cow::Owned(h)
     }
 
     /// The cold value (the offset: every thermal term at zero) and its variance, with
@@ -194,7 +196,7 @@ impl ChannelState {
         y: f64,
         obs_var: f64,
     ) -> (f64, f64) {
-        let h = &self.hold(h);
+        let h: &DVector<f64> = &self.hold(h);
         let r = obs_var + self.discrepancy2;
         let r = if r > 0.0 { r } else { 1e-12 };
         let ph = &self.p * h;
