@@ -297,6 +297,9 @@ pub struct View {
     pub open_alerts: Vec<Alert>,
     /// The threshold rules with the reference each measures from, for charts that draw them.
     pub thresholds: Vec<AlertThreshold>,
+    /// Counts the changes of `open_alerts` and `thresholds`, so that a reader copies them only
+    /// when they changed (the loop publishes its view at every step).
+    pub alerts_revision: u64,
     pub thermal: ThermalView,
 }
 
@@ -740,7 +743,7 @@ impl MachineCore {
         let events = self.alerts.evaluate(&input, now_ns);
         if !events.is_empty() {
             raise(events, out);
-            self.view.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
+            self.show_open_alerts();
             out.push(Effect::PublishView);
         }
     }
@@ -935,9 +938,19 @@ impl MachineCore {
         self.publish(now_ns, out);
     }
 
-    fn publish(&mut self, now_ns: i64, out: &mut Vec<Effect>) {
+    /// The open alerts as they stand in the view, its revision moved if they changed.
+    fn show_open_alerts(&mut self) {
+        let open = self.alerts.open_alerts();
         let v = &mut self.view;
-        v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
+        if !open.iter().copied().eq(v.open_alerts.iter()) {
+            v.open_alerts = open.into_iter().cloned().collect();
+            v.alerts_revision += 1;
+        }
+    }
+
+    fn publish(&mut self, now_ns: i64, out: &mut Vec<Effect>) {
+        self.show_open_alerts();
+        let v = &mut self.view;
         v.phase = Some(self.phase.phase(now_ns));
         v.cycles.open = self.open.as_ref().map(|c| c.number);
         v.cycles.open_received = self.open.as_ref().map(|c| c.detections.len());
@@ -1107,10 +1120,14 @@ impl MachineCore {
         } else {
             v.cycles.rejected += 1;
         }
-        v.open_alerts = self.alerts.open_alerts().into_iter().cloned().collect();
-        // A cycle's first validated values become the references of rules without one.
-        v.thresholds = thresholds(&self.alerts);
         v.cycles.open = None;
+        self.show_open_alerts();
+        // A cycle's first validated values become the references of rules without one.
+        let rules = thresholds(&self.alerts);
+        if rules != self.view.thresholds {
+            self.view.thresholds = rules;
+            self.view.alerts_revision += 1;
+        }
         out.push(Effect::PublishView);
     }
 

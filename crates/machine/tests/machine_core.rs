@@ -404,6 +404,7 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
     use driftwatch_machine::alerts::EventKind;
     use driftwatch_machine::verification::{ReferenceResult, compare};
     let mut rig = rig();
+    let r0 = rig.core.view().alerts_revision;
     let setter = CycleResultMsg {
         cycle: 3,
         t_ns: min(10),
@@ -471,6 +472,23 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
     assert!(out.iter().any(|e| matches!(e, Effect::PublishView)));
     assert!(matches!(out.last(), Some(Effect::StoreAlertState { .. })));
     assert_eq!(rig.core.view().open_alerts[0].rule, "verification");
+    // The alerts' revision moves with the alerts, not with every step: the loop copies them
+    // for the API only when it moved.
+    let r1 = rig.core.view().alerts_revision;
+    assert!(r1 > r0);
+    let cutting = Input::Link(LinkEvent::State(Timed {
+        t_ns: min(30),
+        msg: StateMsg {
+            state: MachineStateKind::Cutting,
+            program: None,
+        },
+    }));
+    let out = feed(&mut rig.core, [cutting, Input::Tick], min(30) + 1);
+    assert!(
+        out.iter().any(|e| matches!(e, Effect::PublishView)),
+        "{out:?}"
+    );
+    assert_eq!(rig.core.view().alerts_revision, r1);
     let out = rig.core.handle(
         Input::Verification(Box::new(verify(min(13), 12.2))),
         min(31),
@@ -481,6 +499,7 @@ fn a_verification_that_exceeds_raises_an_alert_and_one_within_resolves_it() {
         "{out:?}"
     );
     assert!(rig.core.view().open_alerts.is_empty());
+    assert!(rig.core.view().alerts_revision > r1);
 }
 
 /// A core started from a model fitted on an earlier day of every error (a 12-min lag seen

@@ -219,8 +219,8 @@ pub struct MachineRuntime {
     /// to the NC. The core decides a set before the executor has stored it, so its view may
     /// be ahead of the store; a set becomes this only once its row is committed.
     stored_set: Option<CompensationSet>,
-    /// The set version and thermal-view revision last shown to the API.
-    published: (Option<u64>, u64),
+    /// The set version, thermal-view revision and alerts revision last shown to the API.
+    published: (Option<u64>, u64, u64),
     /// The service clock at the current step: recording files follow it.
     clock_ns: i64,
     /// Steps failed since the last one that succeeded (0: healthy).
@@ -413,6 +413,7 @@ impl MachineRuntime {
             thresholds: cv.thresholds.clone(),
             ..Default::default()
         };
+        let alerts_revision = cv.alerts_revision;
         let mut rt = MachineRuntime {
             id: id.to_string(),
             core,
@@ -425,7 +426,7 @@ impl MachineRuntime {
             inbox: Arc::new(Mutex::new(Inbox::default())),
             notifier: Default::default(),
             stored_set,
-            published: (view_version, 0),
+            published: (view_version, 0, alerts_revision),
             clock_ns: now_ns,
             failed_steps: 0,
         };
@@ -801,17 +802,23 @@ impl MachineRuntime {
             self.link.serve(served);
         }
         let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
-        self.published = (version, cv.thermal.revision);
-        let (mut cycles, mut alerts) = (cv.cycles.clone(), cv.open_alerts.clone());
-        let mut thresholds = cv.thresholds.clone();
+        let alerts = (cv.alerts_revision != self.published.2)
+            .then(|| (cv.open_alerts.clone(), cv.thresholds.clone()));
+        self.published = (version, cv.thermal.revision, cv.alerts_revision);
+        let mut cycles = cv.cycles.clone();
         let phase = cv.phase;
         let mut old_set = None;
         let mut old_thermal = None;
+        let mut old_alerts = None;
         if let Ok(mut v) = self.view.lock() {
             v.phase = phase;
             std::mem::swap(&mut v.cycles, &mut cycles);
-            std::mem::swap(&mut v.open_alerts, &mut alerts);
-            std::mem::swap(&mut v.thresholds, &mut thresholds);
+            if let Some((open, rules)) = alerts {
+                old_alerts = Some((
+                    std::mem::replace(&mut v.open_alerts, open),
+                    std::mem::replace(&mut v.thresholds, rules),
+                ));
+            }
             if let Some((set, nc)) = set {
                 old_set = Some((
                     std::mem::replace(&mut v.compensation, set),
@@ -822,7 +829,7 @@ impl MachineRuntime {
                 old_thermal = Some(std::mem::replace(&mut v.thermal, t));
             }
         }
-        drop((cycles, alerts, thresholds, old_set, old_thermal));
+        drop((cycles, old_alerts, old_set, old_thermal));
     }
 
     /// Give up the open cycle, store what is held and close the recording cleanly.
