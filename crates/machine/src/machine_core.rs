@@ -708,8 +708,7 @@ impl MachineCore {
                     .loop_fault(failing, failed_steps, &message, now_ns);
                 if !events.is_empty() {
                     raise(events, &mut out);
-                    self.view.open_alerts =
-                        self.alerts.open_alerts().into_iter().cloned().collect();
+                    self.show_open_alerts();
                     out.push(Effect::PublishView);
                 }
             }
