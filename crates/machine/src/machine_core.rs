@@ -905,10 +905,7 @@ impl MachineCore {
                 reason,
             } => {
                 self.next_due_ns = next_due_ns;
-                if self.wait_shown.as_ref() != Some(&reason) {
-                    self.view.cycles.schedule = reason.to_string();
-                    self.wait_shown = Some(reason);
-                }
+                self.show_wait(reason);
             }
             Decision::Abandon { cycle, retry } => {
                 out.push(Effect::Log(
@@ -930,11 +927,25 @@ impl MachineCore {
                 self.sched.abandoned(now_ns);
                 let _ = self.phase.on_cycle(now_ns, false);
                 self.view.cycles.abandoned += 1;
-                self.view.cycles.schedule = format!("cycle {cycle} abandoned (timeout)");
-                self.wait_shown = None;
+                self.show_schedule(format!("cycle {cycle} abandoned (timeout)"));
             }
         }
         self.publish(now_ns, out);
+    }
+
+    /// The view's schedule line: the scheduler's reason to wait, formatted only when it is not
+    /// the one shown already (the loop asks the scheduler at every step).
+    fn show_wait(&mut self, reason: Reason) {
+        if self.wait_shown.as_ref() != Some(&reason) {
+            self.view.cycles.schedule = reason.to_string();
+            self.wait_shown = Some(reason);
+        }
+    }
+
+    /// Any other schedule line (a cycle started, refused or abandoned).
+    fn show_schedule(&mut self, line: String) {
+        self.view.cycles.schedule = line;
+        self.wait_shown = None;
     }
 
     /// The open alerts as they stand in the view, its revision moved if they changed.
@@ -971,8 +982,7 @@ impl MachineCore {
             self.requested = Some((asked, reason));
             return;
         }
-        self.wait_shown = None;
-        self.view.cycles.schedule = match result {
+        let schedule = match result {
             Ok(()) => {
                 out.push(Effect::Log(
                     Level::Info,
@@ -995,6 +1005,7 @@ impl MachineCore {
             }
             Err(e) => format!("a cycle is due ({reason}) but the machine refused: {e}"),
         };
+        self.show_schedule(schedule);
         self.publish(now_ns, out);
     }
 

@@ -245,6 +245,41 @@ fn a_refused_request_opens_nothing_and_the_next_step_asks_again_with_the_same_nu
     assert_eq!(requested(&again), Some(1));
 }
 
+/// The schedule line says the reason to wait again after a refused request said something
+/// else, though the reason is the one it said before (it is formatted only when it changed).
+#[test]
+fn the_schedule_line_says_the_reason_to_wait_again_after_a_refusal() {
+    let mut rig = rig();
+    let cutting = |t_ns| {
+        Input::Link(LinkEvent::State(Timed {
+            t_ns,
+            msg: StateMsg {
+                state: MachineStateKind::Cutting,
+                program: None,
+            },
+        }))
+    };
+    let schedule = |rig: &Rig| rig.core.view().cycles.schedule.clone();
+    for at in [0, 10] {
+        ask(&mut rig, at, Err("not idle".into()));
+        assert!(
+            schedule(&rig).contains("the machine refused"),
+            "{}",
+            schedule(&rig)
+        );
+        feed(
+            &mut rig.core,
+            [cutting(min(at + 1)), Input::Tick],
+            min(at + 1),
+        );
+        assert!(
+            schedule(&rig).contains("the NC is cutting"),
+            "{}",
+            schedule(&rig)
+        );
+    }
+}
+
 #[test]
 fn a_failed_solve_abandons_the_cycle_with_its_reason_and_a_retry_follows() {
     let mut rig = rig();

@@ -3,8 +3,8 @@
 //! reads go through sqlx's `Any` driver; the writes through [`statement`], which runs the same
 //! SQL on SQLite's writer (on the calling thread) or on a PostgreSQL connection. What differs
 //! between the engines (connecting, migrations, SQLite's pragmas) is in [`backend`]. Schemas
-//! in `migrations/sqlite/` and `migrations/postgres/` (embedded, applied at open). Shell code; with `recorder` (through the recording crate's
-//! `mcap_io`) the only module that touches files.
+//! in `migrations/sqlite/` and `migrations/postgres/` (embedded, applied at open). Shell code;
+//! with `recorder` (through the recording crate's `mcap_io`) the only module that touches files.
 
 mod alerts;
 mod backend;
@@ -662,8 +662,7 @@ mod tests {
         // A transaction that never reached its COMMIT (an error part way, a cancelled
         // future) takes its connection with it: every later write, on SQLite's writer opened
         // anew or on whichever connection of PostgreSQL's pool, commits and is seen by another
-        // process (not held in a transaction
-        // left open, nor stuck behind its lock).
+        // process (not held in a transaction left open, nor stuck behind its lock).
         async fn a_transaction_dropped_before_its_commit_leaves_no_connection_in_it(db: &str) {
             let store = Store::connect(db).await.unwrap();
             store.ensure_machine("m1", "table_bc", 0).await.unwrap();
