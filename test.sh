@@ -149,12 +149,15 @@ not_run=()
 # kinematics and the tool tip is measured, on both trt families, with the faults (about 8 min
 # of machine motion on the wall clock, little CPU): it starts as soon as the service's binary
 # is built, beside the rest of the build and everything after it (started after the whole
-# build, it was the last step to end). Its own copy of the binary: the test build replaces
-# the one in the target directory. It runs LinuxCNC as a non-root user and installs the
-# truth component, so it needs root.
+# build, it was the last step to end). It runs its own copy of the binary, which nothing
+# rebuilds under it. It runs LinuxCNC as a non-root user and installs the truth component, so
+# it needs root. The binary is built as the integration tests build it (`cargo test --test
+# it`): a plain `cargo build` resolves the dependencies' features without the tests' (tokio's
+# test clock, the browser test's client), and the test build after it compiled some 110
+# crates again (227 s of CI's 1254).
 if [ "$(id -u)" -eq 0 ]; then
-    step "build the service's binary (for LinuxCNC in the loop)"
-    cargo build --locked --profile test --bin driftwatch
+    step "build the service's binary and the integration tests (for LinuxCNC in the loop)"
+    cargo test --locked --no-run --test it
     cp "$target/debug/driftwatch" "$out/driftwatch"
     chmod o+x "$out"  # LinuxCNC's user works in $out/linuxcnc
     in_background "LinuxCNC in the loop (tests/linuxcnc/loop.py)" \
