@@ -151,13 +151,14 @@ not_run=()
 # is built, beside the rest of the build and everything after it (started after the whole
 # build, it was the last step to end). It runs its own copy of the binary, which nothing
 # rebuilds under it. It runs LinuxCNC as a non-root user and installs the truth component, so
-# it needs root. The binary is built as the integration tests build it (`cargo test --test
-# it`): a plain `cargo build` resolves the dependencies' features without the tests' (tokio's
-# test clock, the browser test's client), and the test build after it compiled some 110
-# crates again (227 s of CI's 1254).
+# it needs root. The binary is built as the integration tests build it, with the features
+# the test build gives the dependencies (the root's and the service's dev-dependencies: tokio's
+# test clock, the browser test's client): a plain `cargo build` resolved them without, and the
+# test build after it compiled some 110 crates again (227 s of CI's 1254). Every unit this
+# builds is one the whole test build needs (`cargo test --unit-graph` shows the same units).
 if [ "$(id -u)" -eq 0 ]; then
     step "build the service's binary and the integration tests (for LinuxCNC in the loop)"
-    cargo test --locked --no-run --test it
+    cargo test --locked --no-run -p driftwatch -p driftwatch-service --test it
     cp "$target/debug/driftwatch" "$out/driftwatch"
     chmod o+x "$out"  # LinuxCNC's user works in $out/linuxcnc
     in_background "LinuxCNC in the loop (tests/linuxcnc/loop.py)" \
