@@ -160,10 +160,32 @@ pub struct RecordingWriter<W: Write + Seek> {
 struct Held {
     /// Hand the messages over (one chunk) once their payloads reach this many bytes.
     limit: usize,
-    /// Each message's topic (an index into `topics`), time and payload's range in `data`.
-    messages: Vec<(usize, u64, std::ops::Range<usize>)>,
+    messages: Vec<HeldMessage>,
     topics: Vec<String>,
     data: Vec<u8>,
+}
+
+/// A held message: its time, its topic (an index into `topics`) and where its payload ends
+/// in `data` (it starts where the one before it ends). 16 bytes where a range and an index
+/// took 32: a service's loop holds up to 16 KiB of messages, a few hundred of them.
+#[derive(Clone, Copy)]
+struct HeldMessage {
+    time: u64,
+    topic: u32,
+    end: u32,
+}
+
+impl Held {
+    /// Each held message's topic, time and payload, oldest first.
+    fn each(&self) -> impl Iterator<Item = (&str, u64, &[u8])> {
+        let mut start = 0;
+        self.messages.iter().map(move |m| {
+            let end = m.end as usize;
+            let payload = &self.data[start..end];
+            start = end;
+            (self.topics[m.topic as usize].as_str(), m.time, payload)
+        })
+    }
 }
 
 impl Held {
@@ -262,20 +284,26 @@ impl<W: Write + Seek> RecordingWriter<W> {
             });
         };
         if let Some(h) = &mut self.held {
-            let index = match h.topics.iter().position(|t| t == topic) {
-                Some(i) => i,
-                None => {
+            let index = h.topics.iter().position(|t| t == topic);
+            let topic_at = u32::try_from(index.unwrap_or(h.topics.len()));
+            if let (Ok(topic_at), Ok(end)) = (topic_at, u32::try_from(h.data.len() + data.len())) {
+                if index.is_none() {
                     h.topics.push(topic.to_string());
-                    h.topics.len() - 1
                 }
-            };
-            let start = h.data.len();
-            h.data.extend_from_slice(data);
-            h.messages.push((index, time, start..h.data.len()));
-            if h.data.len() >= h.limit {
-                return self.flush();
+                h.data.extend_from_slice(data);
+                h.messages.push(HeldMessage {
+                    time,
+                    topic: topic_at,
+                    end,
+                });
+                if h.data.len() >= h.limit {
+                    return self.flush();
+                }
+                return Ok(());
             }
-            return Ok(());
+            // Past what an index of a held message reaches (4 GiB held, or as many topics):
+            // what is held goes first, then this one, so that the order stays.
+            self.flush()?;
         }
         self.write_now(topic, time, data)
     }
@@ -337,8 +365,8 @@ impl<W: Write + Seek> RecordingWriter<W> {
     /// Write `held`'s messages into the `mcap` writer's chunk.
     fn hand_over(&mut self, held: Option<&Held>) -> Result<(), RecordingError> {
         if let Some(h) = held {
-            for (topic, time, range) in &h.messages {
-                self.write_now(&h.topics[*topic], *time, &h.data[range.clone()])?;
+            for (topic, time, payload) in h.each() {
+                self.write_now(topic, time, payload)?;
             }
         }
         Ok(())
@@ -351,14 +379,13 @@ impl<W: Write + Seek> RecordingWriter<W> {
             return Vec::new();
         };
         let out = h
-            .messages
-            .iter()
+            .each()
             .map(
-                |(topic, time, range)| driftwatch_core::recording::RawMessage {
-                    topic: h.topics[*topic].clone(),
+                |(topic, time, payload)| driftwatch_core::recording::RawMessage {
+                    topic: topic.to_string(),
                     // Held only from an i64 that was not negative.
-                    t_ns: i64::try_from(*time).unwrap_or(i64::MAX),
-                    data: h.data[range.clone()].to_vec(),
+                    t_ns: i64::try_from(time).unwrap_or(i64::MAX),
+                    data: payload.to_vec(),
                 },
             )
             .collect();

@@ -12,7 +12,10 @@ use std::sync::Arc;
 #[derive(Debug, Clone)]
 pub(super) struct ChannelState {
     pub(super) beta: DVector<f64>,
-    p: DMatrix<f64>,
+    /// The parameters' covariance, shared with the copies the loop takes of a running
+    /// predictor at every look (for the API): it changes only at an observation, which then
+    /// copies it once, where every look had copied it (a machine's six of them, some 5 KB).
+    p: Arc<DMatrix<f64>>,
     /// Time of the last observation (or of the start).
     pub(super) t_ns: i64,
     discrepancy2: f64,
@@ -33,7 +36,7 @@ impl ChannelState {
     pub(super) fn of_fit(c: &ChannelFit, walk_per_s: f64, t_ns: i64) -> Self {
         ChannelState {
             beta: DVector::from_column_slice(&c.coef),
-            p: c.cov_matrix(),
+            p: Arc::new(c.cov_matrix()),
             t_ns,
             discrepancy2: c.discrepancy_um.powi(2),
             walk_per_s,
@@ -48,10 +51,10 @@ impl ChannelState {
     pub(super) fn prior(lambda: &[f64], discrepancy2: f64, walk_per_s: f64, t_ns: i64) -> Self {
         ChannelState {
             beta: DVector::zeros(lambda.len()),
-            p: DMatrix::from_diagonal(&DVector::from_iterator(
+            p: Arc::new(DMatrix::from_diagonal(&DVector::from_iterator(
                 lambda.len(),
                 lambda.iter().map(|l| 1.0 / l),
-            )),
+            ))),
             t_ns,
             discrepancy2,
             walk_per_s,
@@ -151,7 +154,8 @@ impl ChannelState {
 
     /// The offset walk from the last observation up to `t_ns` (never back).
     pub(super) fn walk_to(&mut self, t_ns: i64) {
-        self.p[(0, 0)] += self.walk_per_s * (t_ns - self.t_ns).max(0) as f64 / 1e9;
+        Arc::make_mut(&mut self.p)[(0, 0)] +=
+            self.walk_per_s * (t_ns - self.t_ns).max(0) as f64 / 1e9;
         self.t_ns = self.t_ns.max(t_ns);
     }
 
@@ -159,7 +163,10 @@ impl ChannelState {
     /// parameters, walk so far, discrepancy).
     pub(super) fn model_at(&self, h: &DVector<f64>) -> (f64, f64) {
         let h: &DVector<f64> = &self.hold(h);
-        (h.dot(&self.beta), h.dot(&(&self.p * h)) + self.discrepancy2)
+        (
+            h.dot(&self.beta),
+            h.dot(&(&*self.p * h)) + self.discrepancy2,
+        )
     }
 
     /// The design row with the held columns inside the fit data's range (the row itself,
@@ -199,13 +206,14 @@ impl ChannelState {
         let h: &DVector<f64> = &self.hold(h);
         let r = obs_var + self.discrepancy2;
         let r = if r > 0.0 { r } else { 1e-12 };
-        let ph = &self.p * h;
+        let p = Arc::make_mut(&mut self.p);
+        let ph = &*p * h;
         let hph = h.dot(&ph);
         let m = h.dot(&self.beta);
         let s = hph + r;
         self.beta.axpy((y - m) / s, &ph, 1.0);
         // P - (Ph)(Ph)^T / S: symmetric by construction, O(n^2).
-        self.p.ger(-1.0 / s, &ph, &ph, 1.0);
+        p.ger(-1.0 / s, &ph, &ph, 1.0);
         (m, hph + self.discrepancy2)
     }
 }

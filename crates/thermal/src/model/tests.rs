@@ -532,6 +532,44 @@ fn uncertainty_grows_without_observations_and_shrinks_with_one() {
     }));
 }
 
+/// A copy of a running predictor (the loop's copy for the API) shares its covariance until
+/// one of them takes an observation: the other keeps its own band, to the bit.
+#[test]
+fn a_copy_keeps_its_band_when_the_original_takes_an_observation() {
+    let (ev, _) = day(10, 0.5, 4);
+    let cfg = ModelConfig {
+        offset_walk_grid_per_h: Vec::new(),
+        min_scored: 1000,
+        ..Default::default()
+    };
+    let m = fit(&cfg, &ev, None).unwrap();
+    let mut p = Predictor::new(&m, 0);
+    let mut copy = p.clone();
+    let before = copy.predict(600 * MIN)[0].sigma;
+    p.apply(&Event::Observation {
+        t_ns: 600 * MIN,
+        channel: "EZ0B".into(),
+        value: 20.0,
+        sigma: Some(0.5),
+    });
+    let corrected = p.predict(600 * MIN)[0].sigma;
+    assert!(corrected < 0.5 * before, "{before} -> {corrected}");
+    assert_eq!(copy.predict(600 * MIN)[0].sigma.to_bits(), before.to_bits());
+    // And the other way round: the copy's observation leaves the original as it was.
+    let mut fresh = Predictor::new(&m, 0);
+    let untouched = fresh.clone();
+    fresh.apply(&Event::Observation {
+        t_ns: 600 * MIN,
+        channel: "EZ0B".into(),
+        value: 20.0,
+        sigma: Some(0.5),
+    });
+    assert_eq!(
+        untouched.clone().predict(600 * MIN)[0].sigma.to_bits(),
+        before.to_bits()
+    );
+}
+
 #[test]
 fn bad_configurations_and_empty_data_are_named() {
     let cfg = ModelConfig {
