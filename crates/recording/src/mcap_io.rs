@@ -186,9 +186,7 @@ impl Held {
             (self.topics[m.topic as usize].as_str(), m.time, payload)
         })
     }
-}
 
-impl Held {
     /// The same limit, nothing held.
     fn emptied(self) -> Held {
         Held {
