@@ -499,16 +499,31 @@ fn the_online_filter_from_the_prior_reproduces_the_batch_fit() {
     assert!(worst < 1e-6, "online and batch differ by {worst} um");
 }
 
-#[test]
-fn uncertainty_grows_without_observations_and_shrinks_with_one() {
+/// A day's fit with one walk for the channel (none learned) and the model's band as it is
+/// (unscaled).
+fn unscaled_day_model() -> ThermalModel {
     let (ev, _) = day(10, 0.5, 4);
-    // One walk for the channel (none learned) and the model's band as it is (unscaled).
     let cfg = ModelConfig {
         offset_walk_grid_per_h: Vec::new(),
         min_scored: 1000,
         ..Default::default()
     };
-    let m = fit(&cfg, &ev, None).unwrap();
+    fit(&cfg, &ev, None).unwrap()
+}
+
+/// An observation of EZ0B, 20 um +- 0.5, 10 h into the day.
+fn ez0b_after_10_h() -> Event {
+    Event::Observation {
+        t_ns: 600 * MIN,
+        channel: "EZ0B".into(),
+        value: 20.0,
+        sigma: Some(0.5),
+    }
+}
+
+#[test]
+fn uncertainty_grows_without_observations_and_shrinks_with_one() {
+    let m = unscaled_day_model();
     assert_eq!(m.channels[0].offset_walk_per_h, None);
     let mut p = Predictor::new(&m, 0);
     let s0 = p.predict(0)[0].sigma;
@@ -516,12 +531,7 @@ fn uncertainty_grows_without_observations_and_shrinks_with_one() {
     assert!(s1 > s0, "{s0} -> {s1}");
     // 10 h of offset walk at 1 um^2/h: at least sqrt(10) um.
     assert!(s1 >= 10f64.sqrt(), "{s1}");
-    p.apply(&Event::Observation {
-        t_ns: 600 * MIN,
-        channel: "EZ0B".into(),
-        value: 20.0,
-        sigma: Some(0.5),
-    });
+    p.apply(&ez0b_after_10_h());
     let s2 = p.predict(600 * MIN)[0].sigma;
     assert!(s2 < 1.0, "{s2}");
     assert!(!p.apply(&Event::Observation {
@@ -536,34 +546,18 @@ fn uncertainty_grows_without_observations_and_shrinks_with_one() {
 /// one of them takes an observation: the other keeps its own band, to the bit.
 #[test]
 fn a_copy_keeps_its_band_when_the_original_takes_an_observation() {
-    let (ev, _) = day(10, 0.5, 4);
-    let cfg = ModelConfig {
-        offset_walk_grid_per_h: Vec::new(),
-        min_scored: 1000,
-        ..Default::default()
-    };
-    let m = fit(&cfg, &ev, None).unwrap();
+    let m = unscaled_day_model();
     let mut p = Predictor::new(&m, 0);
     let mut copy = p.clone();
     let before = copy.predict(600 * MIN)[0].sigma;
-    p.apply(&Event::Observation {
-        t_ns: 600 * MIN,
-        channel: "EZ0B".into(),
-        value: 20.0,
-        sigma: Some(0.5),
-    });
+    p.apply(&ez0b_after_10_h());
     let corrected = p.predict(600 * MIN)[0].sigma;
     assert!(corrected < 0.5 * before, "{before} -> {corrected}");
     assert_eq!(copy.predict(600 * MIN)[0].sigma.to_bits(), before.to_bits());
     // And the other way round: the copy's observation leaves the original as it was.
     let mut fresh = Predictor::new(&m, 0);
     let untouched = fresh.clone();
-    fresh.apply(&Event::Observation {
-        t_ns: 600 * MIN,
-        channel: "EZ0B".into(),
-        value: 20.0,
-        sigma: Some(0.5),
-    });
+    fresh.apply(&ez0b_after_10_h());
     assert_eq!(
         untouched.clone().predict(600 * MIN)[0].sigma.to_bits(),
         before.to_bits()
