@@ -14,7 +14,7 @@
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Seek, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use mcap::records::{MessageHeader, op};
@@ -145,7 +145,7 @@ struct ChannelState {
 /// without it still tries to close the file, but cannot report failure (and one that holds
 /// messages back loses them, as a crash would).
 pub struct RecordingWriter<W: Write + Seek> {
-    inner: Writer<W>,
+    inner: Writer<Positioned<W>>,
     channels: HashMap<String, ChannelState>,
     /// Messages kept back from the `mcap` writer, when it holds them (see
     /// [`RecordingWriter::hold_up_to`]).
@@ -230,6 +230,8 @@ impl<W: Write + Seek> RecordingWriter<W> {
                 env!("CARGO_PKG_VERSION"),
                 mcap::LIBRARY_IDENTIFIER
             ));
+        let w =
+            Positioned::new(w).map_err(|e| RecordingError::from_mcap_write(McapError::Io(e)))?;
         let inner = Writer::with_options(w, options).map_err(RecordingError::from_mcap_write)?;
         Ok(Self {
             inner,
@@ -400,7 +402,46 @@ impl<W: Write + Seek> RecordingWriter<W> {
         self.inner
             .finish()
             .map_err(RecordingError::from_mcap_write)?;
-        Ok(self.inner.into_inner())
+        Ok(self.inner.into_inner().inner)
+    }
+}
+
+/// A writer that knows its own position. The `mcap` writer asks for its position several
+/// times a chunk (where the chunk starts, where its data start and end, where its rewritten
+/// header ends); a [`std::io::BufWriter`] answers each by writing out its buffer and asking
+/// the file (a write and an `lseek` per question). Here the position is counted from what
+/// was written, and only a seek that moves goes to `inner`. The bytes written are the same.
+struct Positioned<W> {
+    inner: W,
+    pos: u64,
+}
+
+impl<W: Seek> Positioned<W> {
+    fn new(mut inner: W) -> std::io::Result<Self> {
+        let pos = inner.stream_position()?;
+        Ok(Positioned { inner, pos })
+    }
+}
+
+impl<W: Write> Write for Positioned<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.pos += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+impl<W: Seek> Seek for Positioned<W> {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        if to == SeekFrom::Current(0) {
+            return Ok(self.pos);
+        }
+        self.pos = self.inner.seek(to)?;
+        Ok(self.pos)
     }
 }
 
@@ -1389,6 +1430,75 @@ mod tests {
             .map(|d| d.msg.clone().unwrap())
             .collect();
         assert_eq!(got, written[..30]);
+    }
+
+    /// A file that counts the seeks that reach it.
+    #[derive(Default)]
+    struct SeekCounting {
+        file: Cursor<Vec<u8>>,
+        seeks: usize,
+    }
+
+    impl Write for SeekCounting {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.file.write(buf)
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Seek for SeekCounting {
+        fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+            self.seeks += 1;
+            self.file.seek(pos)
+        }
+    }
+
+    /// The writer's own count of its position agrees with the file's through writes and
+    /// seeks of every kind, and only the seeks that move reach the file (and one question at
+    /// the start, where the file is).
+    #[test]
+    fn a_positioned_writer_counts_what_the_file_would_say() {
+        let mut w = Positioned::new(SeekCounting::default()).unwrap();
+        let moves = [
+            SeekFrom::Start(3),
+            SeekFrom::End(0),
+            SeekFrom::Current(-2),
+            SeekFrom::End(-5),
+        ];
+        for (i, to) in moves.into_iter().enumerate() {
+            w.write_all(&vec![i as u8; 7 + i]).unwrap();
+            assert_eq!(w.stream_position().unwrap(), w.inner.file.position());
+            w.seek(to).unwrap();
+            assert_eq!(w.stream_position().unwrap(), w.inner.file.position());
+        }
+        // The one question at the start, then the moves.
+        assert_eq!(w.inner.seeks, 1 + moves.len());
+    }
+
+    /// A chunk's header is rewritten once its size is known: per chunk, one seek back to it
+    /// and one to the end reach the file, and none to ask where the writer is (but the one at
+    /// the start). (Through a
+    /// buffered file each of those questions was a write and an `lseek`.)
+    #[test]
+    fn a_writer_seeks_its_file_only_to_rewrite_each_chunks_header() {
+        let mut w =
+            RecordingWriter::with_compression(SeekCounting::default(), ChunkCompression::Lz4)
+                .unwrap()
+                .hold_up_to(1 << 20);
+        let written = many_detections(30);
+        for (i, d) in written.iter().enumerate() {
+            w.write(TOPIC_DETECTION, i as i64, d).unwrap();
+            if i % 10 == 9 {
+                w.flush().unwrap();
+            }
+        }
+        let f = w.finish().unwrap();
+        // Where the file starts, then two a chunk.
+        assert_eq!(f.seeks, 1 + 2 * 3);
+        let r = read(f.file.get_ref()).unwrap();
+        assert_eq!(r.detections.len(), 30);
     }
 
     /// A file with `room` bytes left: a write past it fails as a full disk does.
