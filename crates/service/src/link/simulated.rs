@@ -2,12 +2,14 @@
 //! program in the caller's time, so the service can run hours of a plant day in seconds on an
 //! injectable clock. Its ground truth is recorded beside what it reports, never served.
 
+use std::borrow::Cow;
+
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
 use driftwatch_core::recording::{
     self as rec, MachineStateKind, SpindleMsg, StateMsg, TemperatureMsg, Timed,
 };
-use driftwatch_sim::scenario::Scenario;
+use driftwatch_sim::scenario::{ProgramSegment, Scenario};
 use driftwatch_sim::simulator::{SimError, TruthSample, VirtualMachine};
 
 use super::{LinkError, LinkEvent, MachineLink, RawJson};
@@ -83,19 +85,19 @@ impl Simulated {
     }
 
     /// The program segment in force at `t_s` (the program repeats every `duration_min`).
-    fn program_at(&self, t_s: f64) -> (f64, MachineStateKind, Option<String>) {
-        let period = self.program_period_s();
-        let local = t_s.rem_euclid(period);
-        match self
-            .scn
+    fn segment_at(&self, t_s: f64) -> Option<&ProgramSegment> {
+        let local = t_s.rem_euclid(self.program_period_s());
+        self.scn
             .spindle
             .iter()
-            .rposition(|s| s.at_min * 60.0 <= local)
-        {
-            Some(i) => {
-                let s = &self.scn.spindle[i];
-                (s.rpm, s.state, s.program.clone())
-            }
+            .rev()
+            .find(|s| s.at_min * 60.0 <= local)
+    }
+
+    /// The program's speed, state and name at `t_s`.
+    fn program_at(&self, t_s: f64) -> (f64, MachineStateKind, Option<Cow<'_, str>>) {
+        match self.segment_at(t_s) {
+            Some(s) => (s.rpm, s.state, s.program.as_deref().map(Cow::Borrowed)),
             None => (0.0, MachineStateKind::Off, None),
         }
     }
@@ -122,21 +124,31 @@ impl Simulated {
             )
     }
 
-    fn rpm_and_state(&self, t_s: f64) -> (f64, MachineStateKind, Option<String>) {
+    /// The spindle speed, state and program at `t_s`, a cycle's while one runs.
+    fn rpm_and_state(&self, t_s: f64) -> (f64, MachineStateKind, Option<Cow<'_, str>>) {
         match &self.active {
             Some(c) => (
                 self.plan.config.spindle_rpm,
                 MachineStateKind::Measuring,
-                Some(format!("driftwatch cycle {}", c.number)),
+                Some(Cow::Owned(format!("driftwatch cycle {}", c.number))),
             ),
             None => self.program_at(t_s),
+        }
+    }
+
+    /// The spindle speed alone at `t_s`: it is asked several times a step, and the cycle's
+    /// program name is a new string each time.
+    fn rpm_at(&self, t_s: f64) -> f64 {
+        match &self.active {
+            Some(_) => self.plan.config.spindle_rpm,
+            None => self.segment_at(t_s).map_or(0.0, |s| s.rpm),
         }
     }
 
     /// Time of the next thing that happens by itself.
     fn next_internal_s(&self) -> f64 {
         let mut t = self.next_program_change(self.now_s).min(self.next_sample_s);
-        let (rpm, _, _) = self.rpm_and_state(self.now_s);
+        let rpm = self.rpm_at(self.now_s);
         if rpm > 0.0 {
             t = t.min(self.next_heartbeat_s);
         }
@@ -153,6 +165,10 @@ impl Simulated {
     fn emit_changes(&mut self, t_s: f64) {
         let t_ns = self.to_ns(t_s);
         let (rpm, state, program) = self.rpm_and_state(t_s);
+        // The program's name is copied only when it changed (this runs every step).
+        let changed = self.last_state.as_ref().map(|(s, p)| (s, p.as_deref()))
+            != Some((&state, program.as_deref()));
+        let program = changed.then(|| program.map(Cow::into_owned));
         if rpm != self.last_rpm {
             self.pending.push(LinkEvent::Spindle(Timed {
                 t_ns,
@@ -160,7 +176,7 @@ impl Simulated {
             }));
             self.last_rpm = rpm;
         }
-        if self.last_state.as_ref().map(|(s, p)| (s, p)) != Some((&state, &program)) {
+        if let Some(program) = program {
             self.pending.push(LinkEvent::State(Timed {
                 t_ns,
                 msg: StateMsg {
@@ -173,11 +189,11 @@ impl Simulated {
     }
 
     fn step_to(&mut self, t_s: f64) {
-        let (rpm, _, _) = self.rpm_and_state(self.now_s);
+        let rpm = self.rpm_at(self.now_s);
         self.vm.advance_to(self.to_ns(t_s), rpm);
         self.now_s = t_s;
         self.emit_changes(t_s);
-        let (rpm, _, _) = self.rpm_and_state(t_s);
+        let rpm = self.rpm_at(t_s);
         let t_ns = self.to_ns(t_s);
         if t_s >= self.next_heartbeat_s {
             if rpm > 0.0 {
@@ -260,7 +276,7 @@ impl MachineLink for Simulated {
             self.step_to(next.max(self.now_s));
         }
         if now_s > self.now_s {
-            let (rpm, _, _) = self.rpm_and_state(self.now_s);
+            let rpm = self.rpm_at(self.now_s);
             self.vm.advance_to(now_ns, rpm);
             self.now_s = now_s;
         }
