@@ -355,6 +355,22 @@ fn fit_posterior(
     })
 }
 
+/// The `x` in `[0, hi]` where the falling `f` comes down to `target`, by 80 halvings of
+/// `[0, hi]` (`f(0) > target`): the smallest end found with `f(x) <= target`. Once the
+/// midpoint rounds to an end no later halving can move that end (the low end always has
+/// `f > target`), so the search stops there, with the value all 80 give.
+fn bisect_falling(f: impl Fn(f64) -> f64, target: f64, hi: f64) -> f64 {
+    let (mut lo, mut hi) = (0.0, hi);
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if mid == lo || mid == hi {
+            break;
+        }
+        if f(mid) > target { lo = mid } else { hi = mid }
+    }
+    hi
+}
+
 fn channel_error(name: &str, message: String) -> ModelError {
     ModelError::Channel {
         channel: name.to_string(),
@@ -470,13 +486,7 @@ impl<'a> Posterior<'a> {
             } else if chi(0.0) <= dof {
                 d2 = 0.0;
             } else {
-                // chi(d2) falls as d2 grows: bisect for chi = dof.
-                let (mut lo, mut hi) = (0.0, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
-                for _ in 0..80 {
-                    let mid = 0.5 * (lo + hi);
-                    if chi(mid) > dof { lo = mid } else { hi = mid }
-                }
-                d2 = hi;
+                d2 = bisect_falling(chi, dof, r2.iter().map(|x| x.0).fold(1e-12, f64::max));
             }
         }
         Ok(d2)
@@ -566,6 +576,56 @@ mod tests {
     use driftwatch_core::units;
 
     const MIN: i64 = units::NS_PER_MIN;
+
+    /// The early stop of [`bisect_falling`] gives what all 80 halvings give, bit for bit, for
+    /// chi-square sums of seeded residuals and stated variances, with answers from far inside
+    /// the interval to ones so near 0 that 80 halvings do not reach them.
+    #[test]
+    fn the_bisection_stops_early_at_the_value_all_its_halvings_give() {
+        use rand::{Rng, SeedableRng};
+        // The 80 halvings, and whether the midpoint rounded to an end before the last.
+        let all_80 = |f: &dyn Fn(f64) -> f64, target: f64, hi: f64| {
+            let (mut lo, mut hi, mut met) = (0.0, hi, false);
+            for _ in 0..80 {
+                let mid = 0.5 * (lo + hi);
+                met |= mid == lo || mid == hi;
+                if f(mid) > target { lo = mid } else { hi = mid }
+            }
+            (hi, met)
+        };
+        let mut stopped = [0, 0];
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for case in 0..400 {
+            let n = rng.random_range(3..60);
+            let scale = 10f64.powi(rng.random_range(-12..6));
+            let r2: Vec<(f64, f64)> = (0..n)
+                .map(|_| {
+                    let r: f64 = rng.random_range(-1.0..1.0) * scale;
+                    (r * r, rng.random_range(0.0..2.0) * scale * scale * 1e-3)
+                })
+                .collect();
+            let chi = |d2: f64| -> f64 {
+                r2.iter()
+                    .map(|(r, s)| if s + d2 > 0.0 { r / (s + d2) } else { 0.0 })
+                    .sum()
+            };
+            let dof = (n as f64 * rng.random_range(0.05..0.9)).max(1.0);
+            if chi(0.0) <= dof {
+                continue;
+            }
+            let hi = r2.iter().map(|x| x.0).fold(1e-12, f64::max);
+            let (want, met) = all_80(&chi, dof, hi);
+            stopped[usize::from(met)] += 1;
+            let got = bisect_falling(chi, dof, hi);
+            assert_eq!(
+                got.to_bits(),
+                want.to_bits(),
+                "case {case}: {got} != {want}"
+            );
+        }
+        // Both kinds were tried: searches that stop early and ones that take all 80 steps.
+        assert!(stopped[0] > 10 && stopped[1] > 10, "{stopped:?}");
+    }
 
     #[test]
     fn least_squares_on_the_changes_takes_an_offset_per_run_and_is_served_when_it_wins() {
