@@ -1479,8 +1479,7 @@ mod tests {
 
     /// A chunk's header is rewritten once its size is known: per chunk, one seek back to it
     /// and one to the end reach the file, and none to ask where the writer is (but the one at
-    /// the start). (Through a
-    /// buffered file each of those questions was a write and an `lseek`.)
+    /// the start). Through a buffered file each of those questions was a write and an `lseek`.
     #[test]
     fn a_writer_seeks_its_file_only_to_rewrite_each_chunks_header() {
         let mut w =
