@@ -355,10 +355,10 @@ fn fit_posterior(
     })
 }
 
-/// The `x` in `[0, hi]` where the falling `f` comes down to `target`, by 80 halvings of
-/// `[0, hi]` (`f(0) > target`): the smallest end found with `f(x) <= target`. Once the
-/// midpoint rounds to an end no later halving can move that end (the low end always has
-/// `f > target`), so the search stops there, with the value all 80 give.
+/// Where the falling `f` comes down to `target` in `[0, hi]` (`f(0) > target`): the high end
+/// of the bracket after 80 halvings. Once the midpoint rounds to an end, no later halving can
+/// move the high end (the low end always has `f > target`), so the search stops there, with
+/// the value all 80 give.
 fn bisect_falling(f: impl Fn(f64) -> f64, target: f64, hi: f64) -> f64 {
     let (mut lo, mut hi) = (0.0, hi);
     for _ in 0..80 {
