@@ -313,6 +313,34 @@ mod tests {
         };
     }
 
+    /// A batch of samples is stored whole or not at all: when its temperatures are refused
+    /// (SQLite stores a NaN as NULL, which the column refuses), its spindle rows, written
+    /// first, are not kept either, and the same batch written again in good order is stored.
+    #[tokio::test]
+    async fn a_batch_of_samples_that_fails_part_way_stores_none_of_it() {
+        let (_dir, url) = sqlite_db("samples-whole");
+        let store = Store::connect(&url).await.unwrap();
+        store.ensure_machine("m1", "table_bc", 0).await.unwrap();
+        let batch = |celsius: f64| {
+            [
+                Sample::Spindle {
+                    t_ns: 60,
+                    rpm: 12000.0,
+                },
+                Sample::Temperature {
+                    t_ns: 60,
+                    sensor: "spindle".into(),
+                    celsius,
+                },
+            ]
+        };
+        assert!(store.add_samples("m1", &batch(f64::NAN)).await.is_err());
+        assert!(store.samples("m1", 0, 1000).await.unwrap().is_empty());
+        store.add_samples("m1", &batch(21.5)).await.unwrap();
+        assert_eq!(store.samples("m1", 0, 1000).await.unwrap(), batch(21.5));
+        store.close().await;
+    }
+
     // SQLite's writer opens its own connection to the file the store opened: a file gone
     // since is refused with its name, not made anew as an empty store.
     #[tokio::test]
