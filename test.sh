@@ -2,10 +2,11 @@
 # The whole test suite, on a fresh machine as on a developer's: what the tests need is
 # installed where it is missing (as root; otherwise the exact command is printed and the
 # script stops), then every cargo test binary runs (one failure does not hide the rest), the
-# integration tests again on PostgreSQL, then the Python checks of the running service. Each
-# step says when it starts; the last line says which steps failed. Exit status 1 on any failure.
+# integration tests again on PostgreSQL, then the Python checks of the running service, with
+# the lint (.ci/lint) beside them. Each step says when it starts; the last line says which
+# steps failed. Exit status 1 on any failure.
 #
-# usage: ./test.sh            (CI runs exactly this, after its lint checks: .ci/run)
+# usage: ./test.sh            (CI runs exactly this, after its quick checks: .ci/run)
 # docs/testing.md says what each step checks and what it needs.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -146,8 +147,8 @@ out="$(mktemp -d)"
 target="${CARGO_TARGET_DIR:-target}"
 not_run=()
 # LinuxCNC runs the measurement program, the gateway writes the served sets into its
-# kinematics and the tool tip is measured, on both trt families, with the faults (about 8 min
-# of machine motion on the wall clock, little CPU): it starts as soon as the service's binary
+# kinematics and the tool tip is measured, on both trt families at once, with the faults (about
+# 5 min of machine motion on the wall clock, little CPU): it starts as soon as the service's binary
 # is built, beside the rest of the build and everything after it (started after the whole
 # build, it was the last step to end). It runs its own copy of the binary, which nothing
 # rebuilds under it. It runs LinuxCNC as a non-root user and installs the truth component, so
@@ -173,6 +174,11 @@ step "build the tests"
 cargo test --locked --no-run
 # The binary `cargo test` built for the command-line tests.
 bin="$target/debug/driftwatch"
+# The lint (.ci/lint: clippy on every target, the service without its simulator, each pure
+# crate alone) needs no test: it runs beside them, on what the cores leave over (nice 19), in a
+# target directory of its own (two cargo commands on one directory wait on its lock). Beside
+# the first build it had slowed it by a third; after it, the tests leave cores idle.
+in_background "lint (.ci/lint)" nice -n 19 env CARGO_TARGET_DIR="$target/lint" .ci/lint
 check "cargo test (every test binary)" cargo test --locked --no-fail-fast
 # The modules of the integration tests (tests/it, one binary) that take their store from
 # tests/it/common run again on PostgreSQL, chosen by their module paths (the fault injection of

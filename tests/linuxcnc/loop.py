@@ -18,7 +18,8 @@ killed mid-cycle, the service down mid-cycle, the pins reset behind the gateway.
 WORKDIR/report.json; exit status 1 when a check fails.
 
 LinuxCNC refuses to run as root (rtapi_app), so as root LinuxCNC, the gateway and the pose
-script run as the user `lcnc` (created when missing) through runuser. The truth component
+script run as the user `lcnc` (created when missing) through runuser, with a HOME of the
+family's own, and the families run at once, each in namespaces of its own (apart). The truth component
 must be installed (`halcompile --install tests/linuxcnc/dwtruth.comp`, as root); as root this
 script does it when it is missing.
 """
@@ -26,9 +27,7 @@ import argparse
 import json
 import math
 import os
-import pwd
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -133,12 +132,25 @@ def ideal_pins(family, lines):
 
 # --- processes -----------------------------------------------------------------------------
 
+# The HOME of every process of this rig. LinuxCNC's clients find the tool table's shared file
+# (and rtapi_app its socket) in $HOME, so a rig's processes share one and two rigs running at
+# once must not: as root each family gets its own (rig_home), as another user it is the user's.
+home = os.environ.get("HOME", "")
+
+
+def rig_home(work):
+    """A HOME of LinuxCNC's user for the rig working in `work` (as root)."""
+    global home
+    home = os.path.join(work, "home")
+    os.makedirs(home, exist_ok=True)
+    shutil.chown(home, USER)
+
+
 def as_user(cmd):
-    """cmd as LinuxCNC's user. Its clients find the tool table's shared file in $HOME, so
-    every process of the rig has that user's HOME."""
+    """cmd as LinuxCNC's user, with the rig's HOME."""
     if os.getuid() != 0:
         return cmd
-    return ["runuser", "-u", USER, "--", "env", "HOME=" + pwd.getpwnam(USER).pw_dir] + cmd
+    return ["runuser", "-u", USER, "--", "env", "HOME=" + home] + cmd
 
 
 def run(cmd, **kw):
@@ -296,6 +308,7 @@ max_offset_mm = 0.2
         if os.getuid() == 0:
             if run(["id", USER]).returncode != 0:
                 run(["useradd", "-m", USER])
+            rig_home(w)
             run(["chown", "-R", USER, w])
             if run(as_user(["test", "-r", os.path.join(w, self.f["ini"])])).returncode != 0:
                 raise RuntimeError(f"the user {USER} cannot reach {w}: every directory above it "
@@ -317,8 +330,7 @@ max_offset_mm = 0.2
         open(hold, "w").close()
         self.hold = hold
         out = open(os.path.join(self.work, "linuxcnc.out"), "wb")
-        env = {"PATH": "/usr/bin:/bin", "DW_HOLD": hold, "HOME": os.path.expanduser("~" + USER)
-               if os.getuid() == 0 else os.environ["HOME"]}
+        env = {"PATH": "/usr/bin:/bin", "DW_HOLD": hold, "HOME": home}
         self.lcnc = subprocess.Popen(as_user(["env", "-i"] + [f"{k}={v}" for k, v in env.items()]
                                              + ["linuxcnc", "-r", os.path.join(self.work, self.f["ini"])]),
                                      cwd=self.work, stdout=out, stderr=subprocess.STDOUT)
@@ -607,23 +619,64 @@ def install_truth():
         sys.exit(f"halcompile: {r.stdout}{r.stderr}")
 
 
+def apart(binary, families, faults, work):
+    """Each family in a process of its own, all at once, in namespaces of their own (as root):
+    two LinuxCNCs on one host share HAL's and NML's System V memory (IPC), the `linuxcnc`
+    script's clean-up kills another session's tasks by name (PID, with its own /proc), and
+    the NML server binds TCP 5005 (network: each namespace brings its loopback up, and the
+    family's service listens there). The shell stays the namespace's first process, so that
+    it reaps what LinuxCNC's script leaves behind (a task the script waits to see gone must
+    not linger as a zombie). Each family's output is printed, and its report merged, in order."""
+    kids = []
+    for fam in families:
+        os.makedirs(os.path.join(work, fam), exist_ok=True)
+        out = os.path.join(work, fam + ".out")
+        cmd = ["unshare", "--ipc", "--pid", "--net", "--mount", "--mount-proc", "--fork",
+               "--kill-child", "--", "sh", "-c", 'ip link set lo up && "$@"', "sh",
+               sys.executable, os.path.abspath(__file__), binary, work, "--family", fam,
+               "--faults", *[f for f in faults if f == fam],
+               "--report", os.path.join(work, fam, "report.json"), "--installed"]
+        kids.append((fam, out, subprocess.Popen(cmd, stdout=open(out, "wb"), stderr=subprocess.STDOUT)))
+    for fam, out, p in kids:
+        p.wait()
+        with open(out) as f:
+            sys.stdout.write(f.read())
+        try:
+            with open(os.path.join(work, fam, "report.json")) as f:
+                r = json.load(f)
+        except (OSError, ValueError) as e:
+            r = {"checks": [{"ok": False, "what": f"{fam}: no report ({e}; exit status {p.returncode})"}],
+                 "families": {}}
+            print("FAIL " + r["checks"][0]["what"], flush=True)
+        results["checks"] += r["checks"]
+        results["families"].update(r["families"])
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("binary")
     ap.add_argument("work")
     ap.add_argument("--family", nargs="+", default=["bc", "ac"], choices=sorted(FAMILIES))
     ap.add_argument("--faults", nargs="*", default=["bc"], choices=sorted(FAMILIES))
+    ap.add_argument("--report", help="where the report goes (default WORK/report.json)")
+    ap.add_argument("--installed", action="store_true",
+                    help="the truth component is installed already (a family run apart)")
     a = ap.parse_args()
-    install_truth()
+    report = a.report or os.path.join(a.work, "report.json")
+    if not a.installed:
+        install_truth()
     t0 = time.time()
-    for fam in a.family:
-        family(os.path.abspath(a.binary), fam, os.path.join(os.path.abspath(a.work), fam), fam in a.faults)
+    if os.getuid() == 0 and len(a.family) > 1 and shutil.which("unshare"):
+        apart(os.path.abspath(a.binary), a.family, a.faults, os.path.abspath(a.work))
+    else:
+        for fam in a.family:
+            family(os.path.abspath(a.binary), fam, os.path.join(os.path.abspath(a.work), fam), fam in a.faults)
     results["wall_s"] = round(time.time() - t0, 1)
-    with open(os.path.join(a.work, "report.json"), "w") as f:
+    with open(report, "w") as f:
         json.dump(results, f, indent=1)
     failed = [c for c in results["checks"] if not c["ok"]]
     print(f"linuxcnc loop: {len(results['checks']) - len(failed)} of {len(results['checks'])} checks "
-          f"passed in {results['wall_s']} s (report {os.path.join(a.work, 'report.json')})")
+          f"passed in {results['wall_s']} s (report {report})")
     sys.exit(1 if failed or not results["checks"] else 0)
 
 
