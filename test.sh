@@ -52,6 +52,10 @@ fi
 # control runs LinuxCNC's simulation with a truth component built by halcompile (-dev).
 [ -x /usr/bin/rs274 ] || apt_missing+=(linuxcnc-uspace)
 [ -x /usr/bin/halcompile ] || apt_missing+=(linuxcnc-uspace-dev)
+# As root the loop runs each family in namespaces of its own, bringing their loopback up (ip).
+if [ "$(id -u)" -eq 0 ] && ! command -v ip >/dev/null; then
+    apt_missing+=(iproute2)
+fi
 if ! command -v python3 >/dev/null; then
     apt_missing+=(python3 python3-pip)
 elif ! python3 -m pip --version >/dev/null 2>&1; then

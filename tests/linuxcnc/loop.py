@@ -666,7 +666,7 @@ def main():
     if not a.installed:
         install_truth()
     t0 = time.time()
-    if os.getuid() == 0 and len(a.family) > 1 and shutil.which("unshare"):
+    if os.getuid() == 0 and len(a.family) > 1 and shutil.which("unshare") and shutil.which("ip"):
         apart(os.path.abspath(a.binary), a.family, a.faults, os.path.abspath(a.work))
     else:
         for fam in a.family:
