@@ -494,7 +494,31 @@ struct Observation {
 #[derive(Debug, Clone)]
 pub struct AlertEngine {
     rules: Vec<Rule>,
+    state: Tracked,
+}
+
+/// The engine's state and a count of the times it was handed out to be changed. The machine
+/// core keeps a copy to store after every change; it compares the whole state again only when
+/// the count moved, instead of after every input (most inputs change nothing of it). Every
+/// change goes through [`Tracked::edit`]: reading is all the rest of the engine can do.
+#[derive(Debug, Clone, Default)]
+struct Tracked {
     state: AlertState,
+    edits: u64,
+}
+
+impl Tracked {
+    fn edit(&mut self) -> &mut AlertState {
+        self.edits += 1;
+        &mut self.state
+    }
+}
+
+impl std::ops::Deref for Tracked {
+    type Target = AlertState;
+    fn deref(&self) -> &AlertState {
+        &self.state
+    }
 }
 
 impl AlertEngine {
@@ -502,7 +526,7 @@ impl AlertEngine {
         validate_rules(&rules)?;
         Ok(AlertEngine {
             rules,
-            state: AlertState::default(),
+            state: Tracked::default(),
         })
     }
 
@@ -533,6 +557,7 @@ impl AlertEngine {
         // A hand-edited or truncated state must not hand out an id still in use.
         let max_open = state.open.values().map(|a| a.id).max().unwrap_or(0);
         state.last_id = state.last_id.max(max_open);
+        let state = Tracked { state, edits: 0 };
         Ok((AlertEngine { rules, state }, events))
     }
 
@@ -547,7 +572,8 @@ impl AlertEngine {
         now: i64,
     ) -> Result<(Self, Vec<AlertEvent>), AlertError> {
         let (mut engine, mut events) = Self::restore(rules, state.unwrap_or_default(), now)?;
-        engine.state.last_id = engine.state.last_id.max(logged.max_id);
+        let st = engine.state.edit();
+        st.last_id = st.last_id.max(logged.max_id);
         for (id, rule, severity) in &logged.open {
             let held = engine.state.open.values().any(|a| a.id == *id);
             if held || events.iter().any(|e| e.id == *id) {
@@ -577,6 +603,12 @@ impl AlertEngine {
     /// The state to persist.
     pub fn state(&self) -> &AlertState {
         &self.state
+    }
+
+    /// How many times the state was handed out to be changed: while it stands still, the
+    /// state is the same as when it was last read.
+    pub fn edits(&self) -> u64 {
+        self.state.edits
     }
 
     /// The errors the rules watch, for checking against the machine's error names: a rule on a
@@ -621,6 +653,7 @@ impl AlertEngine {
         }
         let alert = self
             .state
+            .edit()
             .open
             .values_mut()
             .find(|a| a.id == id)
@@ -687,7 +720,7 @@ impl AlertEngine {
         {
             return Vec::new();
         }
-        self.state.last_verification_t_ns = Some(v.t_ns);
+        self.state.edit().last_verification_t_ns = Some(v.t_ns);
         let mut events = Vec::new();
         for i in 0..self.rules.len() {
             let Rule::Verification { critical_z } = self.rules[i] else {
@@ -715,7 +748,7 @@ impl AlertEngine {
     fn evaluate_clock(&mut self, c: &ClockInput, now: i64) -> Vec<AlertEvent> {
         let mut events = Vec::new();
         if c.refused > 0 {
-            self.state.last_clock_refusal_ns = Some(c.t_ns);
+            self.state.edit().last_clock_refusal_ns = Some(c.t_ns);
         }
         for i in 0..self.rules.len() {
             let Rule::ClockSkew { clear_after_min } = self.rules[i] else {
@@ -773,7 +806,7 @@ impl AlertEngine {
         if self.state.last_t_ns.is_some_and(|t| c.t_ns <= t) {
             return Vec::new();
         }
-        self.state.last_t_ns = Some(c.t_ns);
+        self.state.edit().last_t_ns = Some(c.t_ns);
         // A non-finite value is no measurement; rules treat it as absent.
         let values: BTreeMap<&str, f64> = if c.ok {
             c.errors
@@ -784,11 +817,12 @@ impl AlertEngine {
         } else {
             BTreeMap::new()
         };
+        let st = self.state.edit();
         for (k, v) in &values {
-            self.state.references.entry(k.to_string()).or_insert(*v);
+            st.references.entry(k.to_string()).or_insert(*v);
         }
-        let rejected_before = self.state.rejected_in_a_row;
-        self.state.rejected_in_a_row = if c.ok { 0 } else { rejected_before + 1 };
+        let rejected_before = st.rejected_in_a_row;
+        st.rejected_in_a_row = if c.ok { 0 } else { rejected_before + 1 };
 
         let mut events = Vec::new();
         for i in 0..self.rules.len() {
@@ -830,7 +864,7 @@ impl AlertEngine {
             }
         }
         for (k, v) in values {
-            self.state.last_values.insert(
+            self.state.edit().last_values.insert(
                 k.to_string(),
                 Sample {
                     t_ns: c.t_ns,
@@ -849,11 +883,12 @@ impl AlertEngine {
         now: i64,
         events: &mut Vec<AlertEvent>,
     ) {
-        match self.state.open.get_mut(&rule) {
+        let st = self.state.edit();
+        match st.open.get_mut(&rule) {
             None if obs.raise => {
-                self.state.last_id += 1;
+                st.last_id += 1;
                 let a = Alert {
-                    id: self.state.last_id,
+                    id: st.last_id,
                     rule: rule.clone(),
                     severity: obs.severity,
                     raised_t_ns: now,
@@ -865,11 +900,11 @@ impl AlertEngine {
                     acknowledged: None,
                 };
                 events.push(event(&a, EventKind::Raised, now, cycle, a.message.clone()));
-                self.state.open.insert(rule, a);
+                st.open.insert(rule, a);
             }
             None => {}
             Some(_) if obs.resolve => {
-                if let Some(mut a) = self.state.open.remove(&rule) {
+                if let Some(mut a) = st.open.remove(&rule) {
                     // The event keeps the alert's severity so it reaches whoever got the alert.
                     a.value = obs.value;
                     events.push(event(&a, EventKind::Resolved, now, cycle, obs.message));
@@ -1663,5 +1698,91 @@ mod tests {
         assert!(e.evaluate(&check(0, true, 2.5), T0).len() == 1);
         assert!(e.evaluate(&ok(2, &[("EZ0B", 1.0)]), T0).is_empty());
         assert_eq!(e.open_alerts().len(), 1);
+    }
+
+    #[test]
+    fn every_change_of_the_state_moves_its_edit_count_and_a_quiet_look_does_not() {
+        // Every rule, then 3000 inputs of every kind drawn from a fixed seed (xorshift64): a
+        // state that changed must have moved the count, or the machine core would not store it.
+        let mut rules = default_rules();
+        for r in [
+            Rule::Chi2 { factor: 4.0 },
+            Rule::ClockSkew {
+                clear_after_min: 10.0,
+            },
+            Rule::Verification { critical_z: 4.0 },
+        ] {
+            if rules.iter().all(|have| have.name() != r.name()) {
+                rules.push(r);
+            }
+        }
+        let mut e = engine(rules);
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut draw = |n: u64| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x % n
+        };
+        let (mut cycle, mut t, mut quiet, mut changed) = (0_i64, T0, 0, 0);
+        for _ in 0..3000 {
+            t += MIN;
+            let before = (e.state().clone(), e.edits());
+            match draw(8) {
+                0 | 1 => {
+                    cycle += 1;
+                    let v = draw(80) as f64 - 20.0;
+                    e.evaluate(&ok(cycle, &[("EZ0B", v), ("EX0B", v / 2.0)]), t);
+                }
+                2 => {
+                    cycle += 1;
+                    e.evaluate(&rejected_cycle(cycle), t);
+                }
+                // A replayed cycle changes nothing.
+                3 => drop(e.evaluate(&rejected_cycle(cycle), t)),
+                4 => {
+                    let refused = if draw(4) == 0 { 1 + draw(3) } else { 0 };
+                    e.evaluate(
+                        &Input::Clock(ClockInput {
+                            t_ns: t,
+                            refused,
+                            worst_skew_s: 120.0,
+                        }),
+                        t,
+                    );
+                }
+                5 => {
+                    let z = draw(60) as f64 / 10.0;
+                    e.evaluate(
+                        &Input::Verification(VerificationInput {
+                            t_ns: t,
+                            cycle,
+                            exceeds: z > 2.0,
+                            worst_abs_z: z,
+                            k: 2.0,
+                            summary: format!("z {z}"),
+                        }),
+                        t,
+                    );
+                }
+                6 => {
+                    let ids: Vec<u64> = e.open_alerts().iter().map(|a| a.id).collect();
+                    let id = ids.get(draw(3) as usize).copied().unwrap_or(999);
+                    let _ = e.ack(id, "ops", t);
+                }
+                _ => drop(e.loop_fault(draw(2) == 0, 1, "store refused", t)),
+            }
+            if e.state() != &before.0 {
+                changed += 1;
+                assert_ne!(e.edits(), before.1, "a change the count did not see");
+            } else if e.edits() == before.1 {
+                quiet += 1;
+            }
+        }
+        // Both kinds occur: changes, and inputs the count says changed nothing.
+        assert!(
+            changed > 300 && quiet > 100,
+            "{changed} changes, {quiet} quiet"
+        );
     }
 }

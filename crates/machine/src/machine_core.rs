@@ -451,6 +451,9 @@ pub struct MachineCore {
     alerts: AlertEngine,
     /// The alert state the store was last asked to keep: a change emits it again.
     kept_alerts: AlertState,
+    /// The alert engine's count of edits when its state was last compared with `kept_alerts`
+    /// (none: never, so the first input compares).
+    kept_alerts_edits: Option<u64>,
     thermal: LiveModel,
     open: Option<OpenCycle>,
     /// A cycle asked of the machine, waiting for its answer: number and trigger.
@@ -583,6 +586,7 @@ impl MachineCore {
             limits: settings.validation.clone(),
             alerts,
             kept_alerts,
+            kept_alerts_edits: None,
             thermal,
             open: None,
             requested: None,
@@ -714,12 +718,17 @@ impl MachineCore {
             }
         }
         // After the events that changed it, so that the store keeps the state they led to.
-        if self.alerts.state() != &self.kept_alerts {
-            self.kept_alerts = self.alerts.state().clone();
-            out.push(Effect::StoreAlertState {
-                t_ns: now_ns,
-                state: Box::new(self.kept_alerts.clone()),
-            });
+        // Compared only when the engine handed its state out to be changed since the last look.
+        let edits = self.alerts.edits();
+        if self.kept_alerts_edits != Some(edits) {
+            self.kept_alerts_edits = Some(edits);
+            if self.alerts.state() != &self.kept_alerts {
+                self.kept_alerts = self.alerts.state().clone();
+                out.push(Effect::StoreAlertState {
+                    t_ns: now_ns,
+                    state: Box::new(self.kept_alerts.clone()),
+                });
+            }
         }
         out
     }
