@@ -55,16 +55,15 @@ impl TruthSample {
     /// The same sample with every value rounded to `step` (um or urad). A recording at
     /// 1e-4 um (0.1 nm) keeps far more than any measurement could see and compresses several
     /// times better than full binary64 digits.
-    pub fn rounded(&self, step: f64) -> TruthSample {
+    pub fn rounded(mut self, step: f64) -> TruthSample {
         // Dividing by the reciprocal gives the shortest decimal (0.81443, not 0.8144299999).
         let per = 1.0 / step;
-        // Rounded in a copy's own maps: a copy of everything and new maps besides cost twice
-        // the allocations, once a simulated minute.
-        let mut t = self.clone();
-        for v in t.apparent.values_mut().chain(t.channels.values_mut()) {
+        // Rounded in the sample's own maps: a copy (or new maps) would cost the allocations
+        // and frees of every key, once a simulated minute.
+        for v in self.apparent.values_mut().chain(self.channels.values_mut()) {
             *v = (*v * per).round() / per;
         }
-        t
+        self
     }
 }
 
