@@ -619,6 +619,16 @@ def install_truth():
         sys.exit(f"halcompile: {r.stdout}{r.stderr}")
 
 
+def can_part():
+    """Whether this process may make the namespaces `apart` needs (root in a container without
+    the capability to may not): else the families run one after the other."""
+    if os.getuid() != 0 or not (shutil.which("unshare") and shutil.which("ip")):
+        return False
+    probe = ["unshare", "--ipc", "--pid", "--net", "--mount", "--mount-proc", "--fork", "--",
+             "ip", "link", "set", "lo", "up"]
+    return subprocess.run(probe, capture_output=True, timeout=30).returncode == 0
+
+
 def apart(binary, families, faults, work):
     """Each family in a process of its own, all at once, in namespaces of their own (as root):
     two LinuxCNCs on one host share HAL's and NML's System V memory (IPC), the `linuxcnc`
@@ -666,7 +676,7 @@ def main():
     if not a.installed:
         install_truth()
     t0 = time.time()
-    if os.getuid() == 0 and len(a.family) > 1 and shutil.which("unshare") and shutil.which("ip"):
+    if len(a.family) > 1 and can_part():
         apart(os.path.abspath(a.binary), a.family, a.faults, os.path.abspath(a.work))
     else:
         for fam in a.family:
