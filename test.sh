@@ -178,11 +178,6 @@ step "build the tests"
 cargo test --locked --no-run
 # The binary `cargo test` built for the command-line tests.
 bin="$target/debug/driftwatch"
-# The lint (.ci/lint: clippy on every target, the service without its simulator, each pure
-# crate alone) needs no test: it runs beside them, on what the cores leave over (nice 19), in a
-# target directory of its own (two cargo commands on one directory wait on its lock). Beside
-# the first build it had slowed it by a third; after it, the tests leave cores idle.
-in_background "lint (.ci/lint)" nice -n 19 env CARGO_TARGET_DIR="$target/lint" .ci/lint
 check "cargo test (every test binary)" cargo test --locked --no-fail-fast
 # The modules of the integration tests (tests/it, one binary) that take their store from
 # tests/it/common run again on PostgreSQL, chosen by their module paths (the fault injection of
@@ -191,6 +186,13 @@ check "cargo test (every test binary)" cargo test --locked --no-fail-fast
 check "integration tests on PostgreSQL" env DRIFTWATCH_TEST_BACKEND=postgres \
     cargo test --locked --no-fail-fast --test it -- api:: daemon:: nc_offsets:: nc_push:: \
     opcua:: verification::
+# The lint (.ci/lint: clippy on every target, the service without its simulator, each pure
+# crate alone) needs no test: it runs beside the Python checks, on what the cores leave over
+# (nice 19), in the tests' target directory, whose build scripts and procedural macros it
+# reuses, once the last cargo command above has ended (two on one directory wait on its lock).
+# In a directory of its own it built all of those again: clippy alone took 5 min instead of
+# about 1.5. Beside the first build it had slowed that by a third.
+in_background "lint (.ci/lint)" nice -n 19 .ci/lint
 
 # An independent reader (the `mcap` package) checks a simulated recording against the contract.
 check "simulate and check a recording" bash -c \
