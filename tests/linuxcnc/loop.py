@@ -19,9 +19,9 @@ WORKDIR/report.json; exit status 1 when a check fails.
 
 LinuxCNC refuses to run as root (rtapi_app), so as root LinuxCNC, the gateway and the pose
 script run as the user `lcnc` (created when missing) through runuser, with a HOME of the
-family's own, and the families run at once, each in namespaces of its own (apart). The truth component
-must be installed (`halcompile --install tests/linuxcnc/dwtruth.comp`, as root); as root this
-script does it when it is missing.
+family's own, and the families run at once, each in namespaces of its own (apart). The truth
+component must be installed (`halcompile --install tests/linuxcnc/dwtruth.comp`, as root); as
+root this script does it when it is missing.
 """
 import argparse
 import json
@@ -139,11 +139,10 @@ home = os.environ.get("HOME", "")
 
 
 def rig_home(work):
-    """A HOME of LinuxCNC's user for the rig working in `work` (as root)."""
+    """A HOME for the rig working in `work` (as root; `prepare` hands `work` to LinuxCNC's user)."""
     global home
     home = os.path.join(work, "home")
     os.makedirs(home, exist_ok=True)
-    shutil.chown(home, USER)
 
 
 def as_user(cmd):
@@ -646,7 +645,8 @@ def apart(binary, families, faults, work):
                sys.executable, os.path.abspath(__file__), binary, work, "--family", fam,
                "--faults", *[f for f in faults if f == fam],
                "--report", os.path.join(work, fam, "report.json"), "--installed"]
-        kids.append((fam, out, subprocess.Popen(cmd, stdout=open(out, "wb"), stderr=subprocess.STDOUT)))
+        with open(out, "wb") as log:
+            kids.append((fam, out, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
     for fam, out, p in kids:
         p.wait()
         with open(out) as f:
