@@ -236,3 +236,27 @@ async fn the_shipped_fleet_runs_four_families_each_serving_its_own_compensation(
     }
     svc.stop().await;
 }
+
+/// The API is served by threads of its own, not by the loops' runtime: here the loops' runtime
+/// has one thread, and the test holds it in a blocking read of the API's answer. Were the API a
+/// task of that runtime, nothing could answer and the read would run into its bound.
+#[tokio::test(flavor = "current_thread")]
+async fn the_api_answers_while_the_loops_runtime_is_held() {
+    use std::io::{Read, Write};
+    let dir = scratch("service-api-apart");
+    let svc = launch_test(common::patent_m1(&dir), None).await;
+    let mut conn = std::net::TcpStream::connect(svc.svc.addr).unwrap();
+    // A bound for a failing build, not a wait the test needs: the answer comes at once.
+    conn.set_read_timeout(Some(std::time::Duration::from_secs(30)))
+        .unwrap();
+    conn.write_all(b"GET /healthz HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n")
+        .unwrap();
+    let mut answer = String::new();
+    let read = conn.read_to_string(&mut answer);
+    assert!(
+        answer.starts_with("HTTP/1.1 200"),
+        "no answer while the loops' runtime is held ({read:?}): {answer:?}"
+    );
+    svc.svc.stop();
+    svc.svc.wait().await;
+}

@@ -85,13 +85,13 @@ pub enum ServerError {
     },
 }
 
-/// File descriptors kept beside the connections: the runtime, standard streams and logs, the
-/// store's pool (a SQLite connection holds the database, its WAL and shared memory: 3 each;
-/// PostgreSQL one socket each), webhook deliveries and the recordings diagnoses read (one file
-/// at a time each): 96 in all; and per machine its open recording, and for a link over a
-/// socket of its own (MTConnect, OPC UA) two more (the session and a reconnect). A running
-/// service with one simulated machine holds about 30; ten thousand nc_push machines hold one
-/// each (their NCs come in over the API's connections).
+/// File descriptors kept beside the connections: the two runtimes (the loops' and the API's),
+/// standard streams and logs, the store's pool (a SQLite connection holds the database, its
+/// WAL and shared memory: 3 each; PostgreSQL one socket each), webhook deliveries and the
+/// recordings diagnoses read (one file at a time each): 96 in all; and per machine its open
+/// recording, and for a link over a socket of its own (MTConnect, OPC UA) two more (the
+/// session and a reconnect). A running service with one simulated machine holds about 30; ten
+/// thousand nc_push machines hold one each (their NCs come in over the API's connections).
 pub fn reserved_fds(machines: usize, socket_links: usize) -> u64 {
     96 + machines as u64 + 2 * socket_links as u64
 }
@@ -239,6 +239,79 @@ pub async fn serve(
     tasks.close();
     tasks.wait().await;
     Ok(())
+}
+
+/// The API served by a runtime of its own, on threads of its own ([`serve_apart`]): what
+/// the service keeps of it.
+pub struct ApartServer {
+    ended: tokio::sync::oneshot::Receiver<io::Result<()>>,
+    /// Dropped when the service has closed its store: the runtime is kept until then.
+    _keep: std::sync::mpsc::Sender<()>,
+    /// The server's own shutdown (a child of the service's): a service dropped without being
+    /// stopped stops its API too, as it did when the server was a task of the loops' runtime.
+    stop: CancellationToken,
+}
+
+impl Drop for ApartServer {
+    fn drop(&mut self) {
+        self.stop.cancel();
+    }
+}
+
+impl ApartServer {
+    /// Wait for the server to close its last connection (after `shutdown`); `Err` with a
+    /// message when its thread ended without an outcome (a panic).
+    pub async fn ended(&mut self) -> Result<io::Result<()>, &'static str> {
+        (&mut self.ended)
+            .await
+            .map_err(|_| "the API's thread ended without closing its connections (it panicked)")
+    }
+
+    /// Let the API's runtime go: after the store has closed. A store connection the API opened
+    /// (PostgreSQL's pool grows from whichever request needs one) is driven by this runtime's
+    /// reactor, and the loops and the store's close may use it after the server has ended.
+    pub fn release(self) {}
+}
+
+/// [`serve`] on a runtime and threads of its own, apart from the machine loops' runtime.
+///
+/// Why apart: on one runtime a request waits for a worker, and at ten thousand loops that catch
+/// up as fast as they can every worker is running a loop's step (a SQLite write holds its
+/// thread for as long as SQLite takes). The NC's `GET /compensation` then waited behind them.
+/// On threads of its own the request is the operating system's to schedule, which wakes a
+/// thread that was waiting on its socket ahead of the busy ones.
+pub fn serve_apart(
+    listener: TcpListener,
+    app: Router,
+    limits: ConnLimits,
+    shutdown: CancellationToken,
+) -> io::Result<ApartServer> {
+    let listener = listener.into_std()?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .thread_name("driftwatch-api")
+        .enable_all()
+        .build()?;
+    let (ended_tx, ended) = tokio::sync::oneshot::channel();
+    let (keep, kept) = std::sync::mpsc::channel::<()>();
+    let stop = shutdown.child_token();
+    let server_stop = stop.clone();
+    std::thread::Builder::new()
+        .name("driftwatch-api".into())
+        .spawn(move || {
+            let served = rt.block_on(async move {
+                // Registered with this runtime's reactor, as are the connections it accepts.
+                serve(TcpListener::from_std(listener)?, app, limits, server_stop).await
+            });
+            let _ = ended_tx.send(served);
+            // Until the service lets it go, or is dropped without waiting for it.
+            let _ = kept.recv();
+            drop(rt);
+        })?;
+    Ok(ApartServer {
+        ended,
+        _keep: keep,
+        stop,
+    })
 }
 
 /// How often a full server looks again for a connection it may close for room.

@@ -65,6 +65,8 @@ pub enum LaunchError {
     HistoryWithoutDatabase { mcap: PathBuf, files: usize },
     #[error(transparent)]
     Http(#[from] crate::http_server::ServerError),
+    #[error("starting the API's runtime: {0}")]
+    ApiRuntime(std::io::Error),
 }
 
 /// Which clock the machines run on.
@@ -114,7 +116,7 @@ pub struct Service {
     /// What the API serves from (its diagnosis slots, its webhooks' counters).
     pub api: Arc<ApiState>,
     shutdown: CancellationToken,
-    server: JoinHandle<std::io::Result<()>>,
+    server: crate::http_server::ApartServer,
     machines: Vec<JoinHandle<()>>,
     deliveries: Vec<JoinHandle<()>>,
     store: Store,
@@ -358,12 +360,8 @@ async fn start(
             .count();
         crate::http_server::prepare(&limits, cfg.machines.len(), socket_links)?;
         let app = router(api.clone());
-        tokio::spawn(crate::http_server::serve(
-            listener,
-            app,
-            limits,
-            shutdown.clone(),
-        ))
+        crate::http_server::serve_apart(listener, app, limits, shutdown.clone())
+            .map_err(LaunchError::ApiRuntime)?
     };
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
     // Not `wired.into_iter().map(..).collect()`: that collects in place, and the handles
@@ -662,15 +660,17 @@ impl Service {
         }
         // With `until_min`, the loops end by themselves: the API goes with them.
         self.shutdown.cancel();
-        match self.server.await {
+        let mut server = self.server;
+        match server.ended().await {
             Ok(Ok(())) => {}
             Ok(Err(e)) => error!(error = %e, "the HTTP server failed"),
-            Err(e) => error!(error = %e, "the HTTP server panicked"),
+            Err(e) => error!("{e}"),
         }
         if let Some(hold) = self._hold {
             hold.release().await;
         }
         self.store.close().await;
+        server.release();
         let grace = tokio::time::sleep(Duration::from_secs(10));
         tokio::pin!(grace);
         for d in self.deliveries {
