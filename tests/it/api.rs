@@ -33,24 +33,17 @@ async fn call(app: &TestService, req: Request<Body>) -> (StatusCode, axum::http:
 /// and a client that sends the whole body at once races that close. Some (reqwest) then report
 /// the write cut short instead of the answer that is waiting for them.
 async fn too_large(app: &TestService, uri: &str, bytes: usize) -> (StatusCode, String, Value) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut conn = tokio::net::TcpStream::connect(app.svc.addr).await.unwrap();
+    let addr = app.svc.addr;
     let head = format!(
         "POST {uri} HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer write-token\r\n\
          Content-Type: application/json\r\nContent-Length: {bytes}\r\n\
          Expect: 100-continue\r\nConnection: close\r\n\r\n"
     );
-    conn.write_all(head.as_bytes()).await.unwrap();
-    let mut answer = Vec::new();
-    conn.read_to_end(&mut answer).await.unwrap();
-    let answer = String::from_utf8(answer).unwrap();
-    let (head, body) = answer.split_once("\r\n\r\n").unwrap_or((&answer, ""));
-    let status = head
-        .split(' ')
-        .nth(1)
-        .and_then(|c| c.parse::<u16>().ok())
-        .and_then(|c| StatusCode::from_u16(c).ok())
-        .unwrap_or_else(|| panic!("no status line: {head}"));
+    let (code, head, body) =
+        tokio::task::spawn_blocking(move || common::child::exchange(addr, &head))
+            .await
+            .unwrap()
+            .expect("an answer to the head");
     let content_type = head
         .lines()
         .find_map(|l| {
@@ -59,11 +52,7 @@ async fn too_large(app: &TestService, uri: &str, bytes: usize) -> (StatusCode, S
         })
         .map(|(_, v)| v.trim().to_string())
         .unwrap_or_default();
-    (
-        status,
-        content_type,
-        serde_json::from_str(body).unwrap_or(Value::Null),
-    )
+    (StatusCode::from_u16(code).unwrap(), content_type, body)
 }
 
 fn get(uri: &str) -> Request<Body> {

@@ -143,14 +143,20 @@ fn request(
     token: Option<&str>,
 ) -> Option<(u16, Value)> {
     let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\n{auth}Accept: application/json\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+    );
+    exchange(addr, &head).map(|(code, _, body)| (code, body))
+}
+
+/// Send a request's `head` (ending in a blank line; with `Connection: close`) and read the
+/// answer to its end: the status, the answer's head and its JSON body (`Null` if not JSON);
+/// `None` if the server does not answer.
+pub fn exchange(addr: SocketAddr, head: &str) -> Option<(u16, String, Value)> {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).ok()?;
     s.set_read_timeout(Some(Duration::from_secs(10))).ok()?;
     s.set_write_timeout(Some(Duration::from_secs(10))).ok()?;
-    write!(
-        s,
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\n{auth}Accept: application/json\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
-    )
-    .ok()?;
+    s.write_all(head.as_bytes()).ok()?;
     let mut raw = Vec::new();
     s.read_to_end(&mut raw).ok()?;
     let text = String::from_utf8(raw).ok()?;
@@ -165,7 +171,11 @@ fn request(
     } else {
         body.to_string()
     };
-    Some((code, serde_json::from_str(&body).unwrap_or(Value::Null)))
+    Some((
+        code,
+        head.to_string(),
+        serde_json::from_str(&body).unwrap_or(Value::Null),
+    ))
 }
 
 fn dechunk(mut s: &str) -> Option<String> {
