@@ -13,7 +13,7 @@ use driftwatch_recording::mcap_io::{ReadOptions, read_file};
 use driftwatch_service::daemon::{MachineRuntime, Settings};
 use driftwatch_service::link::{LinkError, LinkEvent, MachineLink, Simulated};
 use driftwatch_service::recorder::Recorder;
-use driftwatch_service::store::CycleStatus;
+use driftwatch_service::store::{CycleStatus, Store};
 use driftwatch_sim::scenario::Scenario;
 use driftwatch_thermal::model::Prediction;
 
@@ -471,4 +471,189 @@ async fn a_restart_remembers_the_last_good_result_and_does_not_measure_for_it() 
     // result is known at that time, so it measures.
     let (n, schedule, ..) = asked(t0 - 60 * MIN).await;
     assert_eq!(n, 1, "{schedule}");
+}
+
+/// One simulated machine of the two-shift day on a fresh SQLite store in `d` (the engine whose
+/// writes may run on a thread of their own), its writes apart or not.
+async fn two_shift(d: &std::path::Path, apart: bool) -> (MachineRuntime, Store, i64) {
+    let scn = Scenario::load("two_shift").unwrap();
+    let k = Kinematics::load(&scn.machine).unwrap();
+    let plan = Plan::build(&k, &PlanConfig::load(&scn.plan).unwrap()).unwrap();
+    let sim = Simulated::new(k.clone(), plan.clone(), scn).unwrap();
+    let t0 = sim.start_ns();
+    let store = Store::open(&d.join("driftwatch.db")).await.unwrap();
+    let info = MachineInfo {
+        machine_id: "sim-1".into(),
+        kinematics: k.name.clone(),
+        software: "test".into(),
+    };
+    let recorder = Recorder::new(&d.join("mcap"), info, 256 << 20).unwrap();
+    let mut rt = MachineRuntime::new(
+        "sim-1",
+        k,
+        &plan,
+        Box::new(sim),
+        &Settings::default(),
+        store.clone(),
+        recorder,
+        t0,
+    )
+    .await
+    .unwrap();
+    if apart {
+        rt.write_apart().unwrap();
+        assert!(rt.writes_are_apart());
+    }
+    (rt, store, t0)
+}
+
+/// The newest set version the store holds (0: none), read through the store's readers.
+async fn newest_stored(store: &Store) -> u64 {
+    let sets = store.compensation_versions("sim-1").await.unwrap();
+    sets.last().map_or(0, |s| s.0 as u64)
+}
+
+/// Everything the store and the recording hold of a run, as text to compare.
+async fn holdings(d: &std::path::Path, store: &Store, t0: i64, end: i64) -> Vec<String> {
+    let mut out = vec![format!(
+        "{:?}",
+        store.compensation_versions("sim-1").await.unwrap()
+    )];
+    for c in store.cycles("sim-1", 1000, None).await.unwrap() {
+        out.push(format!(
+            "{} {} {:?} {:?}",
+            c.cycle, c.started_ns, c.status, c.reason
+        ));
+    }
+    out.push(format!(
+        "{:?}",
+        store.samples("sim-1", t0, end).await.unwrap()
+    ));
+    let mut log = store.alert_events("sim-1", 100_000, None).await.unwrap();
+    log.reverse();
+    out.extend(log.iter().map(|e| format!("{e:?}")));
+    let mut files: Vec<_> = std::fs::read_dir(d.join("mcap").join("sim-1"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    for f in &files {
+        let name = f.file_name().unwrap().to_string_lossy().to_string();
+        out.push(format!("{name}: {}", std::fs::read(f).unwrap().len()));
+        out.push(format!(
+            "{:?}",
+            read_file(f, &ReadOptions::default()).unwrap()
+        ));
+    }
+    out
+}
+
+/// The writes on a thread of their own store and record what the loop's own thread does, byte
+/// for byte, and the API is never shown a set the store does not hold yet.
+#[tokio::test]
+async fn writes_apart_store_and_record_what_inline_writes_do() {
+    let mut runs = Vec::new();
+    for apart in [false, true] {
+        let d = dir(if apart {
+            "writes-apart"
+        } else {
+            "writes-inline"
+        });
+        let (mut rt, store, t0) = two_shift(&d, apart).await;
+        let end = t0 + 26 * 60 * MIN;
+        let mut now = t0;
+        let mut shown = 0;
+        while now < end {
+            let wake = rt.step(now).await.unwrap();
+            // Read in this order, a set shown is one stored before it was looked at.
+            let served = rt.served().map_or(0, |s| s.version);
+            let stored = newest_stored(&store).await;
+            assert!(
+                served <= stored,
+                "apart {apart}: version {served} shown, the store holds up to {stored}"
+            );
+            shown = shown.max(served);
+            now = wake.min(end).max(now + 1);
+        }
+        rt.shutdown(end).await.unwrap();
+        assert!(shown > 10, "apart {apart}: only {shown} sets shown");
+        assert_eq!(
+            rt.served().map(|s| s.version),
+            Some(newest_stored(&store).await)
+        );
+        runs.push(holdings(&d, &store, t0, end).await);
+        store.close().await;
+    }
+    assert_eq!(runs[0].len(), runs[1].len());
+    for (a, b) in runs[0].iter().zip(&runs[1]) {
+        assert_eq!(a, b);
+    }
+}
+
+/// Writes apart that fail (the store refuses the sets, as a full disk would): the loop's
+/// next step fails and says why, no set the store does not hold is shown, and when the store
+/// takes writes again the held ones are stored in order and the newest is shown.
+#[tokio::test]
+async fn writes_apart_that_fail_hold_the_loop_and_lose_nothing() {
+    let d = dir("writes-apart-fail");
+    let (mut rt, store, t0) = two_shift(&d, true).await;
+    let db = d.join("driftwatch.db");
+    let mut now = t0;
+    while newest_stored(&store).await < 3 {
+        let wake = rt.step(now).await.unwrap();
+        now = wake.max(now + 1);
+        assert!(now < t0 + 12 * 60 * MIN, "no third set by noon");
+    }
+    rt.settle_writes(now).await.unwrap();
+    let before = newest_stored(&store).await;
+    common::refuse_inserts(&db, &["compensation_sets"], "sim-1", true).await;
+    // Steps go on until one fails: the writer's failure reaches the loop.
+    let mut failed = None;
+    for _ in 0..10_000 {
+        match rt.step(now).await {
+            Ok(wake) => now = wake.max(now + 1),
+            Err(e) => {
+                failed = Some(e.to_string());
+                break;
+            }
+        }
+        let served = rt.served().map_or(0, |s| s.version);
+        assert!(served <= newest_stored(&store).await);
+    }
+    let failed = failed.expect("a step failed while the store refused the sets");
+    assert!(failed.contains("injected fault"), "{failed}");
+    assert_eq!(newest_stored(&store).await, before);
+    assert_eq!(rt.served().map(|s| s.version), Some(before));
+    // Still failing: a step tries the held write again, and fails again.
+    now += MIN;
+    assert!(rt.step(now).await.is_err());
+    assert_eq!(rt.served().map(|s| s.version), Some(before));
+    {
+        let v = rt.view.lock().unwrap();
+        assert!(
+            v.open_alerts.iter().any(|a| a.rule == "loop_fault"),
+            "{:?}",
+            v.open_alerts
+        );
+    }
+
+    common::refuse_inserts(&db, &["compensation_sets"], "sim-1", false).await;
+    now += MIN;
+    rt.step(now).await.unwrap();
+    rt.settle_writes(now).await.unwrap();
+    let after = newest_stored(&store).await;
+    assert!(after > before, "the held sets were stored");
+    assert_eq!(rt.served().map(|s| s.version), Some(after));
+    let sets = store.compensation_versions("sim-1").await.unwrap();
+    assert!(sets.iter().enumerate().all(|(i, s)| s.0 == i as i64 + 1));
+    rt.shutdown(now).await.unwrap();
+    assert!(
+        !rt.view
+            .lock()
+            .unwrap()
+            .open_alerts
+            .iter()
+            .any(|a| a.rule == "loop_fault")
+    );
+    store.close().await;
 }

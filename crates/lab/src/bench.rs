@@ -95,7 +95,7 @@ async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store
     let recorder = Recorder::new(&dir.join("mcap"), info, cfg.max_file_mib << 20)?;
     let mut settings = driftwatch_service::daemon::settings_from_config(&cfg);
     settings.prediction.enabled = prediction;
-    let rt = MachineRuntime::new(
+    let mut rt = MachineRuntime::new(
         "sim-1",
         k,
         &plan,
@@ -106,6 +106,12 @@ async fn pipeline(dir: &Path, prediction: bool) -> Result<(MachineRuntime, Store
         t0,
     )
     .await?;
+    // As the service runs one machine: its writes on a thread of their own where the cores
+    // allow it.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if driftwatch_service::daemon::writes_apart(1, cores) {
+        rt.write_apart()?;
+    }
     Ok((rt, store, t0))
 }
 

@@ -1,7 +1,8 @@
 //! The executor of one machine: it feeds what the machine reports, the operator's requests and
 //! the end of each step into the machine's decisions ([`MachineCore`], pure), and runs the
-//! effects they return: SQLite, the MCAP recording, the link, the blocking pool for solves,
-//! webhooks, and the view the API reads.
+//! effects they return: the link, the blocking pool for solves and the view the API reads
+//! itself; the store's rows, the MCAP recording and the webhooks through its writes
+//! ([`writes`], on its own thread or on one of their own).
 //!
 //! The effects run in order from a queue. One that fails (a store that refuses writes, a
 //! recorder that cannot write) stays at the head of the queue and the step fails; the next
@@ -23,21 +24,21 @@ use tracing::{error, info, warn};
 use crate::clock::ServiceClock;
 use crate::link::{LinkEvent, MachineLink};
 use crate::nc_push::NcPushHandle;
-use crate::recorder::{ClosedFile, Recorder, RecorderError};
-use crate::store::{AlertEventKind, DetectionRow, FileStatus, NewAlertEvent, Store, StoreError};
+use crate::recorder::{Recorder, RecorderError};
+use crate::store::{FileStatus, Store, StoreError};
 use driftwatch_core::cycle::CycleChecks;
 use driftwatch_core::kinematics::Kinematics;
 use driftwatch_core::plan::Plan;
-use driftwatch_core::recording as rec;
 use driftwatch_core::units::{NS_PER_MIN, NS_PER_S};
 use driftwatch_machine::compensation::{self, CompensationSet};
-use driftwatch_machine::machine_core::{
-    CoreError, Effect, Input, Level, MachineCore, Record, Restored,
-};
+use driftwatch_machine::machine_core::{CoreError, Effect, Input, Level, MachineCore, Restored};
 use driftwatch_machine::phase::{PastEvent, PhaseInfo};
 use driftwatch_thermal::model::Event;
+use writes::{Job, Writer, Writes};
 
 pub use driftwatch_machine::machine_core::{CycleView, Settings, ThermalView};
+
+mod writes;
 
 #[derive(Debug, Error)]
 pub enum DaemonError {
@@ -47,6 +48,16 @@ pub enum DaemonError {
     Recorder(#[from] RecorderError),
     #[error("machine {machine}: {source}")]
     Core { machine: String, source: CoreError },
+    #[error("the loop's writer: {0}")]
+    Writes(String),
+}
+
+/// Whether each of `machines` loops in one process makes its writes on a thread of its own
+/// ([`MachineRuntime::write_apart`]): only while every loop and its writer can have a core
+/// (`cores`) to themselves. Beyond that the loops already keep the cores busy, and handing
+/// each write to another thread would only add the hand-over.
+pub fn writes_apart(machines: usize, cores: usize) -> bool {
+    machines > 0 && 2 * machines <= cores
 }
 
 /// Who runs a machine, as the API shows it.
@@ -186,19 +197,6 @@ pub fn settings_from_config(cfg: &crate::config::ServiceConfig) -> Settings {
     }
 }
 
-/// A piece of work for the executor: the core's effects, and what the executor does on its
-/// own behalf in the same order (the store rows of a recording file that opened or closed, an
-/// alert already sent).
-#[derive(Debug)]
-enum Job {
-    Core(Effect),
-    FileOpened(std::path::PathBuf),
-    FileClosed(ClosedFile),
-    /// An alert event already shown and sent (the loop's health alert, raised while the
-    /// queue is held up by the fault it reports): only stored.
-    StoreAlert(Box<driftwatch_machine::alerts::AlertEvent>),
-}
-
 /// The events and jobs a loop's queues keep room for between steps.
 const QUEUE_KEPT: usize = 16;
 
@@ -206,22 +204,24 @@ pub struct MachineRuntime {
     pub id: String,
     core: MachineCore,
     link: Box<dyn MachineLink>,
-    recorder: Recorder,
+    /// For the reads the loop makes; its writes are the writer's.
     store: Store,
-    /// Work not yet done, in order; a failed job stays at the head.
+    /// The writes, inline or on a thread of their own.
+    writes: Writes,
+    /// The loop's own work not yet done (and writes not yet queued), in order; a failed job
+    /// stays at the head.
     queue: VecDeque<Job>,
     /// Events taken from the link and not yet fed to the core (a step failed meanwhile).
     events: VecDeque<LinkEvent>,
     pub view: Arc<Mutex<MachineView>>,
     pub inbox: Arc<Mutex<Inbox>>,
+    /// The loop's health alert is sent from the loop itself (its writes may be held up by the
+    /// fault it reports).
     notifier: crate::webhook::Notifier,
-    /// The newest set the store holds: the only set that may be shown to the API or written
-    /// to the NC. The core decides a set before the executor has stored it, so its view may
-    /// be ahead of the store; a set becomes this only once its row is committed.
-    stored_set: Option<CompensationSet>,
-    /// The set version, thermal-view revision and alerts revision last shown to the API.
+    /// The set version last handed to the link, thermal-view revision and alerts revision
+    /// last shown to the API.
     published: (Option<u64>, u64, u64),
-    /// The service clock at the current step: recording files follow it.
+    /// The service clock at the current step.
     clock_ns: i64,
     /// Steps failed since the last one that succeeded (0: healthy).
     failed_steps: u64,
@@ -414,18 +414,19 @@ impl MachineRuntime {
             ..Default::default()
         };
         let alerts_revision = cv.alerts_revision;
+        let view = Arc::new(Mutex::new(view));
+        let writer = Writer::new(id, store.clone(), recorder, view.clone(), stored_set);
         let mut rt = MachineRuntime {
             id: id.to_string(),
             core,
             link,
-            recorder,
             store,
+            writes: Writes::Inline(Box::new(writer)),
             queue: VecDeque::new(),
             events: VecDeque::new(),
-            view: Arc::new(Mutex::new(view)),
+            view,
             inbox: Arc::new(Mutex::new(Inbox::default())),
             notifier: Default::default(),
-            stored_set,
             published: (view_version, 0, alerts_revision),
             clock_ns: now_ns,
             failed_steps: 0,
@@ -445,6 +446,7 @@ impl MachineRuntime {
         }
         self.view = view.clone();
         self.inbox = inbox.clone();
+        self.writes.set_view(view, self.waker());
     }
 
     /// What wakes the loop when the API puts something in its inbox (the inbox it takes
@@ -455,7 +457,21 @@ impl MachineRuntime {
 
     /// Send alert events to these webhooks from now on.
     pub fn set_notifier(&mut self, notifier: crate::webhook::Notifier) {
+        self.writes.set_notifier(notifier.clone());
         self.notifier = notifier;
+    }
+
+    /// Make the loop's writes on a thread of their own from now on, where its store writes
+    /// on the calling thread (SQLite outside a fleet); elsewhere they stay on the loop's.
+    /// Worth a core: [`writes_apart`] says when.
+    pub fn write_apart(&mut self) -> Result<(), DaemonError> {
+        let wake = self.waker();
+        self.writes.go_apart(wake)
+    }
+
+    /// Whether the loop's writes run on a thread of their own.
+    pub fn writes_are_apart(&self) -> bool {
+        matches!(self.writes, Writes::Apart(_))
     }
 
     /// Handle everything up to `now_ns`; returns when to call again at the latest. A step
@@ -479,6 +495,10 @@ impl MachineRuntime {
                     now_ns,
                 );
                 self.drain().await.map_err(|e| self.failed(now_ns, e))?;
+                self.writes
+                    .step_done()
+                    .await
+                    .map_err(|e| self.failed(now_ns, e))?;
                 Ok(wake)
             }
             Err(e) => Err(self.failed(now_ns, e)),
@@ -554,6 +574,7 @@ impl MachineRuntime {
         }
         self.feed(Input::Tick, now_ns);
         self.drain().await?;
+        self.writes.step_done().await?;
         // Both are empty now. A burst (an NC posting an hour of events at once) grows them,
         // and at that size they would stay with the loop for good.
         self.events.shrink_to(QUEUE_KEPT);
@@ -570,13 +591,19 @@ impl MachineRuntime {
         self.queue.extend(effects.into_iter().map(Job::Core));
     }
 
-    /// Run the queue in order; a job that fails stays at its head.
+    /// Run the queue in order; a job that fails stays at its head (a write, at the head of
+    /// the writer's queue). Writes that failed before are tried again first.
     async fn drain(&mut self) -> Result<(), DaemonError> {
+        self.writes.retry_failed().await?;
         while let Some(job) = self.queue.pop_front() {
+            if job.is_write() {
+                self.writes.push(job, self.clock_ns).await?;
+                continue;
+            }
             match self.run(&job).await {
                 Ok(follow) => {
-                    // What a job gives (the answer to a request, a solve's effects, a file's
-                    // rows) runs before the rest of the queue.
+                    // What a job gives (the answer to a request, a solve's effects) runs
+                    // before the rest of the queue.
                     for j in follow.into_iter().rev() {
                         self.queue.push_front(j);
                     }
@@ -590,31 +617,14 @@ impl MachineRuntime {
         Ok(())
     }
 
-    /// Run one job; returns the jobs it gives, to run next.
+    /// Run one of the loop's own jobs; returns the jobs it gives, to run next.
     async fn run(&mut self, job: &Job) -> Result<Vec<Job>, DaemonError> {
         let now = self.clock_ns;
         let core_jobs = |effects: Vec<Effect>| effects.into_iter().map(Job::Core).collect();
-        let effect = match job {
-            Job::Core(e) => e,
-            Job::FileOpened(path) => {
-                self.store
-                    .mcap_file_opened(&self.id, &path.display().to_string(), now)
-                    .await?;
-                return Ok(Vec::new());
-            }
-            Job::FileClosed(f) => {
-                self.file_closed(f, now).await?;
-                return Ok(Vec::new());
-            }
-            Job::StoreAlert(ev) => {
-                self.store_alert(ev).await?;
-                return Ok(Vec::new());
-            }
+        let Job::Core(effect) = job else {
+            return Ok(Vec::new());
         };
         match effect {
-            Effect::Record(r) => return self.record_core(r),
-            Effect::FlushRecording => self.recorder.flush()?,
-            Effect::StoreSamples(rows) => self.store.add_samples(&self.id, rows).await?,
             Effect::RequestCycle { number } => {
                 let result = self
                     .link
@@ -627,78 +637,9 @@ impl MachineRuntime {
                 return Ok(core_jobs(self.core.handle(input, now)));
             }
             Effect::AbortCycle { number } => self.link.abort_cycle(*number, now),
-            Effect::OpenCycle {
-                number,
-                t_ns,
-                trigger,
-                attempt,
-            } => {
-                self.store
-                    .open_cycle(&self.id, *number, *t_ns, trigger, *attempt)
-                    .await?
-            }
-            Effect::StoreDetections { number, rows } => {
-                let rows: Vec<DetectionRow> = rows
-                    .iter()
-                    .map(|r| DetectionRow {
-                        t_ns: r.t_ns,
-                        step: &r.step,
-                        payload: r.payload.clone(),
-                    })
-                    .collect();
-                self.store.add_detections(&self.id, *number, &rows).await?
-            }
             Effect::Solve(job) => {
                 let input = Self::solve(job).await;
                 return Ok(core_jobs(self.core.handle(input, now)));
-            }
-            Effect::AbandonCycle {
-                number,
-                t_ns,
-                reason,
-            } => {
-                self.store
-                    .abandon_cycle(&self.id, *number, *t_ns, reason)
-                    .await?
-            }
-            Effect::CloseCycle { result, t_ns, set } => {
-                let stored = set.as_deref().map(crate::store::NewCompensation::of);
-                self.store
-                    .close_cycle_with(&self.id, result, *t_ns, stored.as_ref())
-                    .await?;
-                if let Some(set) = set {
-                    self.stored_set = Some((**set).clone());
-                }
-            }
-            Effect::StoreSet(set) => {
-                self.store
-                    .insert_compensation(&self.id, &crate::store::NewCompensation::of(set))
-                    .await?;
-                self.stored_set = Some((**set).clone());
-            }
-            Effect::Alert(ev) => {
-                warn!(machine = %self.id, alert = ev.id, rule = %ev.rule, kind = ?ev.kind, "{}", ev.message);
-                self.store_alert(ev).await?;
-                self.notifier.notify(&self.id, ev);
-            }
-            Effect::StoreAlertState { t_ns, state } => {
-                self.store.put_alert_state(&self.id, *t_ns, state).await?
-            }
-            Effect::Acknowledged { alert, by, t_ns } => {
-                self.store
-                    .add_alert_event(
-                        &self.id,
-                        &NewAlertEvent {
-                            alert: *alert as i64,
-                            t_ns: *t_ns,
-                            kind: AlertEventKind::Acknowledged,
-                            rule: "",
-                            severity: None,
-                            message: &format!("acknowledged by {by}"),
-                            value: None,
-                        },
-                    )
-                    .await?
             }
             Effect::PublishView => self.publish(),
             Effect::Log(level, message) => match level {
@@ -706,25 +647,10 @@ impl MachineRuntime {
                 Level::Warn => warn!(machine = %self.id, "{message}"),
                 Level::Error => error!(machine = %self.id, "{message}"),
             },
+            // The writer's: never run here.
+            _ => {}
         }
         Ok(Vec::new())
-    }
-
-    async fn store_alert(
-        &mut self,
-        ev: &driftwatch_machine::alerts::AlertEvent,
-    ) -> Result<(), DaemonError> {
-        let row = NewAlertEvent {
-            alert: ev.id as i64,
-            t_ns: ev.t_ns,
-            kind: ev.kind.into(),
-            rule: &ev.rule,
-            severity: Some(ev.severity.into()),
-            message: &ev.message,
-            // An alert resolved at a restart has no value to report.
-            value: Some(ev.value).filter(|v| v.is_finite()),
-        };
-        Ok(self.store.add_alert_event(&self.id, &row).await?)
     }
 
     /// Solve on the blocking pool, so that the async threads keep answering the API and the
@@ -752,64 +678,23 @@ impl MachineRuntime {
         }
     }
 
-    fn record_core(&mut self, r: &Record) -> Result<Vec<Job>, DaemonError> {
-        match r {
-            Record::Spindle(m) => self.record(rec::TOPIC_SPINDLE, m.t_ns, &m.msg),
-            Record::State(m) => self.record(rec::TOPIC_STATE, m.t_ns, &m.msg),
-            Record::Temperature(m) => self.record(rec::TOPIC_TEMPERATURE, m.t_ns, &m.msg),
-            Record::Detection(m) => self.record(rec::TOPIC_DETECTION, m.t_ns, &m.msg),
-            Record::Compensation { t_ns, set } => self.record(
-                rec::TOPIC_COMPENSATION,
-                *t_ns,
-                &compensation::compensation_message(set),
-            ),
-            Record::Result { t_ns, result } => self.record(rec::TOPIC_RESULT, *t_ns, result),
-            Record::Raw { topic, t_ns, json } => self.record(topic, *t_ns, json),
-        }
-    }
-
-    /// Write one message; a file that rotated gives its store rows as the next jobs.
-    fn record<T: serde::Serialize>(
-        &mut self,
-        topic: &str,
-        t_ns: i64,
-        msg: &T,
-    ) -> Result<Vec<Job>, DaemonError> {
-        let rotation = self.recorder.write(topic, t_ns, self.clock_ns, msg)?;
-        Ok(rotation
-            .recovered
-            .into_iter()
-            .map(Job::FileClosed)
-            .chain(rotation.closed.map(Job::FileClosed))
-            .chain(rotation.opened.map(Job::FileOpened))
-            .collect())
-    }
-
-    /// Show the core's view to the API, with the newest *stored* set (the core's own may not
-    /// be stored yet: a failed write keeps it back until the store takes it). The copies are
-    /// made before the lock is taken and the old values dropped after it is released, so that
-    /// the NC's reads never wait on them; the set and its NC body (serialised once per
-    /// version) and the thermal view are copied only when they changed.
+    /// Show the core's view to the API. The set it shows is the writer's, the newest one
+    /// stored (the core's own may not be stored yet); a link that writes the set to the NC
+    /// gets it here, as the API does, once stored. The copies are made before the lock is
+    /// taken and the old values dropped after it is released, so that the NC's reads never
+    /// wait on them; the thermal view and the alerts are copied only when they changed.
     fn publish(&mut self) {
         let cv = self.core.view();
-        let version = self.stored_set.as_ref().map(|c| c.version);
-        let set = (version != self.published.0).then(|| {
-            let nc = self.stored_set.as_ref().and_then(NcBody::of);
-            (self.stored_set.clone(), nc)
-        });
-        // A link that writes the set to the NC gets it as the API does: only once stored.
-        if let Some((Some(served), _)) = &set {
-            self.link.serve(served);
-        }
         let thermal = (cv.thermal.revision != self.published.1).then(|| cv.thermal.clone());
         let alerts = (cv.alerts_revision != self.published.2)
             .then(|| (cv.open_alerts.clone(), cv.thresholds.clone()));
-        self.published = (version, cv.thermal.revision, cv.alerts_revision);
+        self.published.1 = cv.thermal.revision;
+        self.published.2 = cv.alerts_revision;
         let mut cycles = cv.cycles.clone();
         let phase = cv.phase;
-        let mut old_set = None;
         let mut old_thermal = None;
         let mut old_alerts = None;
+        let mut stored = None;
         if let Ok(mut v) = self.view.lock() {
             v.phase = phase;
             std::mem::swap(&mut v.cycles, &mut cycles);
@@ -819,17 +704,19 @@ impl MachineRuntime {
                     std::mem::replace(&mut v.thresholds, rules),
                 ));
             }
-            if let Some((set, nc)) = set {
-                old_set = Some((
-                    std::mem::replace(&mut v.compensation, set),
-                    std::mem::replace(&mut v.nc_body, nc),
-                ));
-            }
             if let Some(t) = thermal {
                 old_thermal = Some(std::mem::replace(&mut v.thermal, t));
             }
+            let version = v.compensation.as_ref().map(|c| c.version);
+            if version != self.published.0 {
+                self.published.0 = version;
+                stored = v.compensation.clone();
+            }
         }
-        drop((cycles, old_alerts, old_set, old_thermal));
+        drop((cycles, old_alerts, old_thermal));
+        if let Some(set) = stored {
+            self.link.serve(&set);
+        }
     }
 
     /// Give up the open cycle, store what is held and close the recording cleanly.
@@ -837,33 +724,21 @@ impl MachineRuntime {
         self.clock_ns = now_ns;
         self.feed(Input::Shutdown, now_ns);
         self.drain().await?;
-        for closed in self.recorder.stop(now_ns)? {
-            self.file_closed(&closed, now_ns).await?;
-        }
-        Ok(())
+        self.writes.stop(now_ns).await
     }
 
-    async fn file_closed(&mut self, f: &ClosedFile, now_ns: i64) -> Result<(), DaemonError> {
-        self.store
-            .mcap_file_closed(
-                &self.id,
-                &f.partial.display().to_string(),
-                &f.path.display().to_string(),
-                now_ns,
-                if f.recovered {
-                    FileStatus::Recovered
-                } else {
-                    FileStatus::Closed
-                },
-                f.messages as i64,
-            )
-            .await?;
-        Ok(())
+    /// Wait until every write the loop has decided is made (inline they are already); one
+    /// that fails fails the step it is part of.
+    pub async fn settle_writes(&mut self, now_ns: i64) -> Result<(), DaemonError> {
+        self.writes
+            .settle()
+            .await
+            .map_err(|e| self.failed(now_ns, e))
     }
 
     /// The set served: the newest one stored.
-    pub fn served(&self) -> Option<&CompensationSet> {
-        self.stored_set.as_ref()
+    pub fn served(&self) -> Option<CompensationSet> {
+        self.view.lock().ok().and_then(|v| v.compensation.clone())
     }
 
     pub fn store(&self) -> &Store {
@@ -989,7 +864,15 @@ pub(crate) async fn run_machine(
         last = now;
         // Boxed: inline, the step's future (about 1 KB) would stay in every loop's task
         // between steps; on the heap it lives only while a step runs.
-        let stepped = Box::pin(rt.step(now)).await;
+        let mut stepped = Box::pin(rt.step(now)).await;
+        // Caught up with the clock, the loop waits for its writes before it says it stepped
+        // and sleeps: a reader who saw the step sees its rows. Only a loop behind its clock
+        // (a replay as fast as it goes) steps on while its writer writes.
+        if let Ok(wake) = stepped
+            && now >= target
+        {
+            stepped = rt.settle_writes(now).await.map(|()| wake);
+        }
         if let Ok(mut v) = rt.view.lock() {
             v.health.attempt_ns = Some(now);
         }

@@ -199,6 +199,12 @@ impl Store {
         self.backend
     }
 
+    /// Whether every write runs on the calling thread, needing no runtime's reactor: SQLite's
+    /// writer outside a fleet (PostgreSQL's connections, and a fleet's fence, go through sqlx).
+    pub(crate) fn writes_on_calling_thread(&self) -> bool {
+        self.backend == Backend::Sqlite && self.fence.is_none()
+    }
+
     /// SQLite's `PRAGMA integrity_check`: "ok" for a sound database (on PostgreSQL, which
     /// checks its own pages, it says it does not apply).
     pub async fn integrity_check(&self) -> Result<String, StoreError> {
