@@ -415,7 +415,7 @@ impl MachineRuntime {
         };
         let alerts_revision = cv.alerts_revision;
         let view = Arc::new(Mutex::new(view));
-        let writer = Writer::new(id, store.clone(), recorder, view.clone(), stored_set);
+        let writer = Writer::new(id, store.clone(), recorder, view.clone());
         let mut rt = MachineRuntime {
             id: id.to_string(),
             core,
@@ -871,7 +871,7 @@ pub(crate) async fn run_machine(
         if let Ok(wake) = stepped
             && now >= target
         {
-            stepped = rt.settle_writes(now).await.map(|()| wake);
+            stepped = Box::pin(rt.settle_writes(now)).await.map(|()| wake);
         }
         if let Ok(mut v) = rt.view.lock() {
             v.health.attempt_ns = Some(now);
