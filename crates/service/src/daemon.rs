@@ -463,7 +463,8 @@ impl MachineRuntime {
 
     /// Make the loop's writes on a thread of their own from now on, where its store writes
     /// on the calling thread (SQLite outside a fleet); elsewhere they stay on the loop's.
-    /// Worth a core: [`writes_apart`] says when.
+    /// Worth a core: [`writes_apart`] says when. An error (no thread could be started) leaves
+    /// them on the loop's thread, and says why.
     pub fn write_apart(&mut self) -> Result<(), DaemonError> {
         let wake = self.waker();
         self.writes.go_apart(wake)

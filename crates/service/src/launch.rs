@@ -369,7 +369,9 @@ async fn start(
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     if crate::daemon::writes_apart(wired.len(), cores) {
         for w in &mut wired {
-            w.runtime.write_apart()?;
+            if let Err(e) = w.runtime.write_apart() {
+                warn!(machine = %w.runtime.id, error = %e, "the machine's writes stay on its loop's thread");
+            }
         }
     }
     // Not `wired.into_iter().map(..).collect()`: that collects in place, and the handles

@@ -448,7 +448,8 @@ impl Writes {
 
     /// Move the writes to a thread of their own. Only where a write runs on the calling
     /// thread (SQLite outside a fleet: no runtime's reactor drives a connection the thread
-    /// would open); otherwise they stay inline.
+    /// would open); otherwise they stay inline. A thread that cannot be started leaves them
+    /// inline, and says why.
     pub(crate) fn go_apart(&mut self, wake: Option<Arc<Notify>>) -> Result<(), DaemonError> {
         let Writes::Inline(w) = self else {
             return Ok(());
@@ -458,27 +459,40 @@ impl Writes {
         }
         let failing = Arc::new(AtomicBool::new(!w.queue.is_empty()));
         let behind = Arc::new(AtomicUsize::new(0));
-        let (tx, rx) = mpsc::unbounded_channel();
-        let name = format!("writes {}", w.id);
-        let placeholder = Writes::Apart(Apart {
-            behind: behind.clone(),
-            tx,
-            held: Vec::new(),
-            due: false,
-            failing: failing.clone(),
-        });
-        let Writes::Inline(mut w) = std::mem::replace(self, placeholder) else {
-            unreachable!("matched above");
-        };
-        w.wake = wake;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .map_err(|e| DaemonError::Writes(format!("starting its runtime: {e}")))?;
+        // The writer goes to the thread only once it runs, so that nothing is lost if it
+        // cannot be started.
+        let (give, take) =
+            std::sync::mpsc::channel::<(Box<Writer>, mpsc::UnboundedReceiver<Msg>)>();
+        let (failing_there, behind_there) = (failing.clone(), behind.clone());
         std::thread::Builder::new()
-            .name(name.chars().take(15).collect())
-            .spawn(move || runtime.block_on(serve(w, rx, failing, behind)))
+            .name(format!("writes {}", w.id).chars().take(15).collect())
+            .spawn(move || {
+                if let Ok((w, rx)) = take.recv() {
+                    runtime.block_on(serve(w, rx, failing_there, behind_there));
+                }
+            })
             .map_err(|e| DaemonError::Writes(format!("starting its thread: {e}")))?;
+        let (tx, rx) = mpsc::unbounded_channel();
+        let apart = Writes::Apart(Apart {
+            behind,
+            tx,
+            held: Vec::new(),
+            due: false,
+            failing,
+        });
+        let Writes::Inline(mut w) = std::mem::replace(self, apart) else {
+            unreachable!("matched above");
+        };
+        w.wake = wake;
+        if let Err(std::sync::mpsc::SendError((mut w, _))) = give.send((w, rx)) {
+            w.wake = None;
+            *self = Writes::Inline(w);
+            return Err(DaemonError::Writes("its thread ended at its start".into()));
+        }
         Ok(())
     }
 
