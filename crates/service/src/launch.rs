@@ -364,16 +364,7 @@ async fn start(
             .map_err(LaunchError::ApiRuntime)?
     };
     let end = opts.until_min.map(|m| t0.saturating_add(min_to_ns(m)));
-    // A machine or two on a machine with cores to spare: each loop's writes on a thread of
-    // their own, so that a loop decides while its last step's rows are written.
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    if crate::daemon::writes_apart(wired.len(), cores) {
-        for w in &mut wired {
-            if let Err(e) = w.runtime.write_apart() {
-                warn!(machine = %w.runtime.id, error = %e, "the machine's writes stay on its loop's thread");
-            }
-        }
-    }
+    write_apart_where_worth(&mut wired);
     // Not `wired.into_iter().map(..).collect()`: that collects in place, and the handles
     // would keep the runtimes' buffer (some 5 KB a machine) for the life of the service.
     let mut machines: Vec<JoinHandle<()>> = Vec::with_capacity(wired.len() + 1);
@@ -404,6 +395,20 @@ async fn start(
         _lock: lock,
         _hold: hold,
     })
+}
+
+/// A machine or two on a computer with cores to spare: each loop's writes on a thread of their
+/// own (`daemon::writes_apart`), so that a loop decides while its last steps' rows are written.
+fn write_apart_where_worth(wired: &mut [Wired]) {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if !crate::daemon::writes_apart(wired.len(), cores) {
+        return;
+    }
+    for w in wired {
+        if let Err(e) = w.runtime.write_apart() {
+            warn!(machine = %w.runtime.id, error = %e, "the machine's writes stay on its loop's thread");
+        }
+    }
 }
 
 /// A machine's loop, started from what the store holds.
