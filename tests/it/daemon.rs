@@ -590,13 +590,21 @@ async fn writes_apart_store_and_record_what_inline_writes_do() {
     }
 }
 
-/// Writes apart that fail (the store refuses the sets, as a full disk would): the loop's
-/// next step fails and says why, no set the store does not hold is shown, and when the store
-/// takes writes again the held ones are stored in order and the newest is shown.
+/// Writes that fail (the store refuses the sets, as a full disk would), on the loop's thread
+/// and apart: the loop's step fails and says why (apart: its next step), no set the store does
+/// not hold is shown, and when the store takes writes again the held ones are stored in order
+/// and the newest is shown.
 #[tokio::test]
-async fn writes_apart_that_fail_hold_the_loop_and_lose_nothing() {
-    let d = dir("writes-apart-fail");
-    let (mut rt, store, t0) = two_shift(&d, true).await;
+async fn writes_that_fail_hold_the_loop_and_lose_nothing() {
+    for apart in [false, true] {
+        writes_that_fail(apart).await;
+    }
+}
+
+async fn writes_that_fail(apart: bool) {
+    let d = dir(&format!("writes-fail-apart-{apart}"));
+    let (mut rt, store, t0) = two_shift(&d, apart).await;
+    assert_eq!(rt.writes_are_apart(), apart);
     let db = d.join("driftwatch.db");
     let mut now = t0;
     while newest_stored(&store).await < 3 {

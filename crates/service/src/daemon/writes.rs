@@ -377,6 +377,18 @@ impl Writes {
     /// returned (the write stays at the head of the queue); apart it is held for the writer.
     pub(crate) async fn push(&mut self, job: Job, now: i64) -> Result<(), DaemonError> {
         match self {
+            // Nothing failed before it (the usual case): made at once, not through the queue.
+            Writes::Inline(w) if w.queue.is_empty() => match w.run(&job, now).await {
+                Ok(follow) if follow.is_empty() => Ok(()),
+                Ok(follow) => {
+                    w.queue.extend(follow.into_iter().map(|j| (now, j)));
+                    w.drain().await
+                }
+                Err(e) => {
+                    w.queue.push_front((now, job));
+                    Err(e)
+                }
+            },
             Writes::Inline(w) => {
                 w.queue.push_back((now, job));
                 w.drain().await
